@@ -1,0 +1,1 @@
+"""The FastAPI job service (the job-service issue)."""

@@ -1,0 +1,160 @@
+"""A one-step referential game: the speaker sees a target, the listener must name it without seeing it.
+
+This is the smallest environment in which communication is both necessary and sufficient: a listener that hears
+nothing succeeds with probability 1/K, one that is told the target succeeds always. It is batched natively in numpy
+(``ReferentialBatch``); ``ReferentialEnv`` wraps a batch of one as a PettingZoo ``ParallelEnv``.
+
+Choices made where the paper is silent:
+
+* Observations are ``[K]`` float32 for both agents: the speaker's is the target's one-hot, the listener's is all
+  zeros (it carries no information; the width only matches the speaker's so the batch needs no extra padding).
+* The speaker has a single no-op action (``Discrete(1)``): its message travels through the learning algorithm's
+  message path, which lives outside the env, so the env cannot be solved by an env-level "say" action.
+* Reward is shared: 1.0 to both agents if the listener's action equals the target, else 0.0. Every episode is one
+  step long and ends with ``terminated=True`` (a real end, so no bootstrapping past it).
+* Targets are uniform over K, drawn from one ``np.random.default_rng`` per batch. ``reset(seed)`` re-creates it from
+  ``seed`` (an int or an array of ints); ``reset(None)`` keeps drawing from the current generator.
+* ``info["target"]`` (``[B]`` int64) holds the target of the episode that just ended, for evaluation only.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pydantic import BaseModel, ConfigDict, Field
+
+from envs.batched import EnvSpec, StepResult, check_actions
+from envs.config import build_config
+
+SPEAKER, LISTENER = "speaker", "listener"
+AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)
+
+
+class ReferentialConfig(BaseModel):
+    """Referential game parameters: only the number of candidate targets K."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    n_targets: int = Field(4, ge=2, le=64, description="Number of candidate targets K; chance success is 1/K.")
+
+
+def _spec(cfg: ReferentialConfig) -> EnvSpec:
+    k = cfg.n_targets
+    return EnvSpec(name="referential", agent_ids=AGENTS, obs_dims=(k, k), n_actions=(1, k), max_steps=1)
+
+
+class ReferentialBatch:
+    """B independent referential games as arrays (implements ``BatchedEnv``)."""
+
+    def __init__(self, config: ReferentialConfig | None = None, num_envs: int = 1) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs: must be ≥ 1 (got {num_envs})")
+        self.config = config if config is not None else ReferentialConfig()
+        self.num_envs = num_envs
+        self.spec = _spec(self.config)
+        self._rng = np.random.default_rng()
+        self._targets = np.zeros(num_envs, dtype=np.int64)
+        self._obs: np.ndarray | None = None
+
+    @property
+    def targets(self) -> np.ndarray:
+        """Current targets ``[B]`` (for tests and oracles; agents should read them from the speaker's obs)."""
+        return self._targets.copy()
+
+    def _draw(self) -> np.ndarray:
+        self._targets = self._rng.integers(self.config.n_targets, size=self.num_envs, dtype=np.int64)
+        obs = np.zeros((self.num_envs, 2, self.config.n_targets), dtype=np.float32)
+        obs[np.arange(self.num_envs), 0, self._targets] = 1.0
+        return obs
+
+    def reset(self, seed: int | np.ndarray | None = None) -> np.ndarray:
+        """Draw new targets for every game; returns obs ``[B, 2, K]``."""
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self._obs = self._draw()
+        return self._obs.copy()
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Score the listener's guesses ``actions[:, 1]``; every game ends and a new target is drawn."""
+        if self._obs is None:
+            raise RuntimeError("step() before reset()")
+        acts = check_actions(actions, self.num_envs, self.spec.n_actions)
+        targets = self._targets
+        hit = (acts[:, 1] == targets).astype(np.float32)
+        final_obs = self._obs
+        self._obs = self._draw()
+        return StepResult(
+            obs=self._obs.copy(),
+            reward=np.repeat(hit[:, None], 2, axis=1),
+            terminated=np.ones(self.num_envs, dtype=bool),
+            truncated=np.zeros(self.num_envs, dtype=bool),
+            final_obs=final_obs,
+            info={"target": targets},
+        )
+
+
+class ReferentialEnv(ParallelEnv):
+    """The referential game as a PettingZoo parallel env (a ``ReferentialBatch`` of one)."""
+
+    metadata: ClassVar[dict[str, Any]] = {"name": "referential_v0", "render_modes": [], "is_parallelizable": True}
+
+    def __init__(self, config: ReferentialConfig | None = None) -> None:
+        self.config = config if config is not None else ReferentialConfig()
+        self.render_mode = None
+        self._batch = ReferentialBatch(self.config, num_envs=1)
+        self.spec = self._batch.spec
+        self.possible_agents = list(AGENTS)
+        self.agents: list[str] = []
+        k = self.config.n_targets
+        self._obs_spaces = {a: spaces.Box(0.0, 1.0, shape=(k,), dtype=np.float32) for a in AGENTS}
+        self._act_spaces = {SPEAKER: spaces.Discrete(1), LISTENER: spaces.Discrete(k)}
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._obs_spaces[agent]  # the identical object every call, as PettingZoo requires
+
+    def action_space(self, agent: str) -> spaces.Discrete:
+        return self._act_spaces[agent]
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        obs = self._batch.reset(seed)[0]
+        self.agents = list(AGENTS)
+        return {a: obs[i] for i, a in enumerate(AGENTS)}, {a: {} for a in AGENTS}
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        if not self.agents:
+            raise RuntimeError("step() called on a finished episode; call reset() first")
+        row = []
+        for agent in AGENTS:
+            if agent not in actions:
+                raise ValueError(f"actions: missing action for {agent}")
+            a = actions[agent]
+            if not self.action_space(agent).contains(a):
+                raise ValueError(
+                    f"actions[{agent!r}]: expected an integer in [0, {self.action_space(agent).n}), got {a!r}"
+                )
+            row.append(int(a))
+        res = self._batch.step(np.array([row], dtype=np.int64))
+        self.agents = []
+        obs = {a: res.final_obs[0, i] for i, a in enumerate(AGENTS)}
+        rewards = {a: float(res.reward[0, i]) for i, a in enumerate(AGENTS)}
+        target = int(res.info["target"][0])
+        infos = {a: {"target": target} for a in AGENTS}
+        return obs, rewards, {a: True for a in AGENTS}, {a: False for a in AGENTS}, infos
+
+    def render(self) -> None:
+        return None
+
+
+def make_referential(**params: Any) -> ReferentialEnv:
+    """Build a validated referential game as a PettingZoo env (B = 1); bad params raise ``ConfigError``."""
+    return ReferentialEnv(build_config(ReferentialConfig, **params))
+
+
+def make_referential_batch(num_envs: int, **params: Any) -> ReferentialBatch:
+    """``num_envs`` referential games behind the ``BatchedEnv`` API; bad params raise ``ConfigError``."""
+    return ReferentialBatch(build_config(ReferentialConfig, **params), num_envs)

@@ -1,0 +1,74 @@
+"""One table of Convoy's environments, so the CLI, actors and (later) the API name them alike."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pettingzoo import ParallelEnv
+
+from envs.batched import BatchedEnv
+from envs.config import ConfigError, build_config
+from envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
+
+
+@dataclass(frozen=True)
+class EnvEntry:
+    """How to build one environment as a batch and as a PettingZoo env."""
+
+    batched: Callable[..., BatchedEnv]  # (num_envs, **params)
+    parallel: Callable[..., ParallelEnv]  # (**params)
+    summary: str
+
+
+def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
+    return TreadmillEngine(build_config(TreadmillConfig, **params), num_envs)
+
+
+def _particle(name: str) -> tuple[Callable[..., BatchedEnv], Callable[..., ParallelEnv]]:
+    """Imported lazily: mpe2 costs half a second to import and the treadmill never needs it."""
+    import envs.particle as particle
+
+    key = name.replace("-", "_")
+    return getattr(particle, f"make_{key}_batch"), getattr(particle, f"make_{key}")
+
+
+def _lazy(name: str, which: int) -> Callable[..., Any]:
+    return lambda *args, **kw: _particle(name)[which](*args, **kw)
+
+
+ENVS: dict[str, EnvEntry] = {
+    "treadmill": EnvEntry(_treadmill_batch, TreadmillParallelEnv, "the paper's highway: N agents, M adversaries"),
+    "predator-prey": EnvEntry(
+        _lazy("predator-prey", 0), _lazy("predator-prey", 1), "2 predators chase a scripted prey (mpe2 simple_tag)"
+    ),
+    "speaker-listener": EnvEntry(
+        _lazy("speaker-listener", 0),
+        _lazy("speaker-listener", 1),
+        "mpe2 simple_speaker_listener, env channel removed",
+    ),
+    "referential": EnvEntry(
+        _lazy("referential", 0), _lazy("referential", 1), "one-step game: the listener must pick the speaker's target"
+    ),
+}
+
+
+def env_entry(name: str) -> EnvEntry:
+    """The registry entry for ``name`` (underscores accepted for hyphens)."""
+    key = name.strip().lower().replace("_", "-")
+    if key not in ENVS:
+        raise ConfigError("env", f"unknown environment {name!r}; choose one of: {', '.join(ENVS)}")
+    return ENVS[key]
+
+
+def make_batched(name: str, num_envs: int = 1, **params: Any) -> BatchedEnv:
+    """B copies of env ``name`` behind the batched interface."""
+    if num_envs < 1:
+        raise ConfigError("num_envs", f"must be ≥ 1 (got {num_envs}); allowed range 1 ≤ num_envs")
+    return env_entry(name).batched(num_envs, **params)
+
+
+def make_parallel(name: str, **params: Any) -> ParallelEnv:
+    """Env ``name`` as a PettingZoo ParallelEnv."""
+    return env_entry(name).parallel(**params)

@@ -1,0 +1,1 @@
+"""What runs: the ``convoy`` CLI and, later, the host agent and supervisor (the composition root)."""

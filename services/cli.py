@@ -1,0 +1,223 @@
+"""The ``convoy`` command line. Errors in user input are printed as one line, never as a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from rich.console import Console
+from rich.table import Table
+
+from envs import ENVS, ConfigError, make_batched
+from envs.registry import env_entry
+from envs.rollout import RolloutResult, random_policy, rollout
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _parse_value(text: str) -> Any:
+    """``--set`` values: int, float, true/false, else the string itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def _env_params(args: argparse.Namespace) -> dict[str, Any]:
+    params: dict[str, Any] = {}
+    if args.agents is not None:
+        params["n_agents"] = args.agents
+    if args.adversaries is not None:
+        params["n_adversaries"] = args.adversaries
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError("--set", f"expected KEY=VALUE (e.g. --set aggression=0.9), got {item!r}")
+        params[key.strip()] = _parse_value(value.strip())
+    return params
+
+
+def cmd_env_list(args: argparse.Namespace) -> int:
+    table = Table(title="Convoy environments")
+    table.add_column("name")
+    table.add_column("what it is")
+    for name, entry in ENVS.items():
+        table.add_row(name, entry.summary)
+    console.print(table)
+    return 0
+
+
+def cmd_env_rollout(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
+    is_treadmill = env_entry(args.env) is ENVS["treadmill"]  # also rejects unknown names first
+    params = _env_params(args)
+    if args.policy == "scripted" and not is_treadmill:
+        raise ConfigError("--policy", "the scripted policy drives the treadmill only; use --policy random")
+    if args.gif and not is_treadmill:
+        raise ConfigError("--gif", "only the treadmill renders GIFs so far; drop --gif")
+    env = make_batched(args.env, args.episodes, **params)
+    render = None
+    if is_treadmill:
+        from envs.treadmill import TreadmillEngine, render_frame, scripted_actions
+
+        env = TreadmillEngine(env.cfg, args.episodes, autoreset=False)  # keep each episode's last frame
+        cfg = env.cfg
+        if args.gif:
+            render = lambda: render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)  # noqa: E731
+    if args.policy == "scripted":
+        policy = lambda obs: scripted_actions(obs, cfg)  # noqa: E731
+    else:
+        policy = random_policy(env.spec, args.seed)
+    result = rollout(env, policy, seed=args.seed, render=render)
+    _print_rollout(args, env.spec.agent_ids, result)
+    if args.gif:
+        from envs.treadmill import write_gif
+
+        Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
+        write_gif(result.frames, args.gif)
+        console.print(f"wrote {args.gif} ({len(result.frames)} frames of episode 0)")
+    if args.summary:
+        _write_summary(args, params, result)
+    if args.plot:
+        _plot_returns(args, env.spec.agent_ids, result)
+    return 0
+
+
+def _print_rollout(args: argparse.Namespace, agent_ids: tuple[str, ...], result: RolloutResult) -> None:
+    table = Table(title=f"{args.env}: {args.episodes} episodes, {args.policy} policy, seed {args.seed}")
+    table.add_column("episode", justify="right")
+    table.add_column("steps", justify="right")
+    table.add_column("ended by")
+    table.add_column("mean return", justify="right")
+    for aid in agent_ids:
+        table.add_column(aid, justify="right")
+    shown = min(len(result.lengths), args.show)
+    for i in range(shown):
+        ended = "crash/terminal" if result.terminated[i] else "time limit"
+        row = [str(i), str(result.lengths[i]), ended, f"{result.mean_return[i]:.2f}"]
+        table.add_row(*row, *(f"{v:.2f}" for v in result.returns[i]))
+    console.print(table)
+    if shown < len(result.lengths):
+        console.print(f"({len(result.lengths) - shown} more episodes not shown; --show N to list them)")
+    mean, half = result.ci95()
+    console.print(
+        f"mean return {mean:.2f} ± {half:.2f} (95 % CI) | mean length {result.lengths.mean():.1f} | "
+        f"terminated {result.terminated.mean():.0%} | {result.env_steps_per_s:,.0f} env-steps/s",
+        soft_wrap=True,
+    )
+
+
+def _write_summary(args: argparse.Namespace, params: dict[str, Any], result: RolloutResult) -> None:
+    mean, half = result.ci95()
+    summary = {
+        "env": args.env,
+        "params": params,
+        "policy": args.policy,
+        "seed": args.seed,
+        "episodes": len(result.lengths),
+        "mean_return": mean,
+        "ci95": half,
+        "mean_length": float(result.lengths.mean()),
+        "terminated_fraction": float(result.terminated.mean()),
+        "env_steps_per_s": result.env_steps_per_s,
+        "episode_returns": result.returns.round(4).tolist(),
+        "episode_lengths": result.lengths.tolist(),
+    }
+    Path(args.summary).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.summary).write_text(json.dumps(summary, indent=2))
+    console.print(f"wrote {args.summary}")
+
+
+def _plot_returns(args: argparse.Namespace, agent_ids: tuple[str, ...], result: RolloutResult) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    episodes = np.arange(len(result.lengths))
+    width = 0.8 / len(agent_ids)
+    for i, aid in enumerate(agent_ids):
+        ax.bar(episodes + i * width, result.returns[:, i], width, label=aid)
+    mean, half = result.ci95()
+    ax.axhline(mean, color="k", lw=1, ls="--", label=f"mean {mean:.1f} ± {half:.1f}")
+    ax.set_xlabel("episode")
+    ax.set_ylabel("return")
+    ax.set_title(f"{args.env}, {args.policy} policy")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.plot, dpi=100)
+    plt.close(fig)
+    console.print(f"wrote {args.plot}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="convoy",
+        description="Convoy: train cooperating, communicating agents (treadmill highway, particle envs).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    env = sub.add_parser("env", help="inspect and run environments", description="Inspect and run environments.")
+    env_sub = env.add_subparsers(dest="env_command", required=True, metavar="ENV_COMMAND")
+
+    lst = env_sub.add_parser("list", help="list the environments", description="List the environments.")
+    lst.set_defaults(func=cmd_env_list)
+
+    ro = env_sub.add_parser(
+        "rollout",
+        help="play episodes with a random or scripted policy and summarise them",
+        description="Play EPISODES episodes (all in one batch) and print a per-episode table with the mean "
+        "return and its 95 %% confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON "
+        "summary and a PNG of the returns.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    ro.add_argument("--env", default="treadmill", help=f"environment: {', '.join(ENVS)}")
+    ro.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents, default 3)")
+    ro.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries, default 1)")
+    ro.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="any env parameter, repeatable, e.g. --set aggression=0.9 --set max_steps=100 "
+        "(treadmill parameters: see docs/treadmill.md)",
+    )
+    ro.add_argument("--episodes", type=int, default=5, help="episodes to play")
+    ro.add_argument("--policy", choices=["scripted", "random"], default="scripted", help="who drives the agents")
+    ro.add_argument("--seed", type=int, default=0, help="seed of the envs and of the random policy")
+    ro.add_argument("--gif", metavar="PATH", help="write an animated GIF of episode 0 (treadmill)")
+    ro.add_argument("--summary", metavar="PATH", help="write the figures as JSON")
+    ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
+    ro.add_argument("--show", type=int, default=20, help="episodes listed in the table")
+    ro.set_defaults(func=cmd_env_rollout)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ConfigError, ValidationError) as exc:
+        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        return 2
+    except KeyboardInterrupt:
+        err_console.print("interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""The ``convoy`` CLI: rollouts with summaries, GIFs and plots; readable errors; complete help."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from PIL import Image
+
+from services.cli import build_parser, main
+
+
+def test_rollout_writes_gif_summary_and_plot(tmp_path, capsys) -> None:
+    gif, summary, plot = tmp_path / "ep.gif", tmp_path / "s.json", tmp_path / "r.png"
+    rc = main(
+        ["env", "rollout", "--env", "treadmill", "--agents", "3", "--adversaries", "1", "--episodes", "4",
+         "--set", "max_steps=40", "--gif", str(gif), "--summary", str(summary), "--plot", str(plot)]
+    )  # fmt: skip
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "mean return" in out and "agent_2" in out
+    data = json.loads(summary.read_text())
+    assert data["episodes"] == 4 and len(data["episode_returns"]) == 4 and len(data["episode_returns"][0]) == 3
+    assert all(1 <= n <= 40 for n in data["episode_lengths"])
+    with Image.open(gif) as im:
+        assert im.format == "GIF" and im.n_frames == data["episode_lengths"][0] + 1
+    assert Image.open(plot).format == "PNG"
+
+
+def test_scripted_policy_beats_random(tmp_path) -> None:
+    figures = {}
+    for policy in ("scripted", "random"):
+        out = tmp_path / f"{policy}.json"
+        assert main(["env", "rollout", "--episodes", "32", "--policy", policy, "--summary", str(out)]) == 0
+        figures[policy] = json.loads(out.read_text())["mean_return"]
+    assert figures["scripted"] > 3 * figures["random"]
+
+
+@pytest.mark.parametrize("env", ["referential", "speaker-listener", "predator-prey"])
+def test_rollout_runs_every_env(env, capsys) -> None:
+    extra = ["--set", "max_steps=30"] if env == "predator-prey" else []
+    assert main(["env", "rollout", "--env", env, "--policy", "random", "--episodes", "3", *extra]) == 0
+    assert "mean return" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--agents", "0"], "n_agents"),
+        (["--set", "length=-5"], "length"),
+        (["--agents", "700", "--adversaries", "0"], "n_agents + n_adversaries"),
+        (["--env", "highway"], "unknown environment"),
+        (["--set", "nonsense"], "KEY=VALUE"),
+        (["--env", "referential"], "--policy"),
+    ],
+)
+def test_bad_input_prints_one_line_without_traceback(argv, needle) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.cli", "env", "rollout", *argv], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 2
+    assert needle in proc.stderr and "Traceback" not in proc.stderr + proc.stdout
+
+
+def test_help_is_complete(capsys) -> None:
+    for argv in (["--help"], ["env", "--help"], ["env", "rollout", "--help"], ["env", "list", "--help"]):
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args(argv)
+        assert info.value.code == 0
+    text = capsys.readouterr().out
+    for flag in ("--env", "--agents", "--adversaries", "--episodes", "--policy", "--seed", "--gif", "--set", "--plot"):
+        assert flag in text
+
+
+def test_env_list(capsys) -> None:
+    assert main(["env", "list"]) == 0
+    out = capsys.readouterr().out
+    assert "treadmill" in out and "speaker-listener" in out
