@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pettingzoo import ParallelEnv
+from pydantic import BaseModel
 
 from envs.batched import BatchedEnv
 from envs.config import ConfigError, build_config
@@ -20,37 +21,41 @@ class EnvEntry:
     batched: Callable[..., BatchedEnv]  # (num_envs, **params)
     parallel: Callable[..., ParallelEnv]  # (**params)
     summary: str
+    config: Callable[[], type[BaseModel]]  # the pydantic model of its parameters (lazy: particle envs import mpe2)
 
 
 def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
     return TreadmillEngine(build_config(TreadmillConfig, **params), num_envs)
 
 
-def _particle(name: str) -> tuple[Callable[..., BatchedEnv], Callable[..., ParallelEnv]]:
-    """Imported lazily: mpe2 costs half a second to import and the treadmill never needs it."""
-    import envs.particle as particle
+def _particle(name: str, summary: str, config: str) -> EnvEntry:
+    """Particle envs are imported on first use: mpe2 costs half a second and the treadmill never needs it."""
+
+    def attr(attribute: str) -> Any:
+        import envs.particle as particle
+
+        return getattr(particle, attribute)
 
     key = name.replace("-", "_")
-    return getattr(particle, f"make_{key}_batch"), getattr(particle, f"make_{key}")
-
-
-def _lazy(name: str, which: int) -> Callable[..., Any]:
-    return lambda *args, **kw: _particle(name)[which](*args, **kw)
+    return EnvEntry(
+        batched=lambda *a, **kw: attr(f"make_{key}_batch")(*a, **kw),
+        parallel=lambda *a, **kw: attr(f"make_{key}")(*a, **kw),
+        summary=summary,
+        config=lambda: attr(config),
+    )
 
 
 ENVS: dict[str, EnvEntry] = {
-    "treadmill": EnvEntry(_treadmill_batch, TreadmillParallelEnv, "the paper's highway: N agents, M adversaries"),
-    "predator-prey": EnvEntry(
-        _lazy("predator-prey", 0), _lazy("predator-prey", 1), "2 predators chase a scripted prey (mpe2 simple_tag)"
+    "treadmill": EnvEntry(
+        _treadmill_batch, TreadmillParallelEnv, "the paper's highway: N agents, M adversaries", lambda: TreadmillConfig
     ),
-    "speaker-listener": EnvEntry(
-        _lazy("speaker-listener", 0),
-        _lazy("speaker-listener", 1),
-        "mpe2 simple_speaker_listener, env channel removed",
+    "predator-prey": _particle(
+        "predator-prey", "2 predators chase a scripted prey (mpe2 simple_tag)", "PredatorPreyConfig"
     ),
-    "referential": EnvEntry(
-        _lazy("referential", 0), _lazy("referential", 1), "one-step game: the listener must pick the speaker's target"
+    "speaker-listener": _particle(
+        "speaker-listener", "mpe2 simple_speaker_listener, env channel removed", "SpeakerListenerConfig"
     ),
+    "referential": _particle("referential", "one-step game: listener picks the speaker's target", "ReferentialConfig"),
 }
 
 

@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from envs import ENVS, ConfigError, make_batched
+from envs.config import allowed_range
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
 
@@ -48,6 +49,17 @@ def _env_params(args: argparse.Namespace) -> dict[str, Any]:
     return params
 
 
+def describe_params(name: str) -> str:
+    """One line per parameter of env ``name``: default, allowed range, meaning (from its pydantic model)."""
+    model = ENVS[name].config()
+    lines = []
+    for field, info in model.model_fields.items():
+        rng = allowed_range(model, field)
+        extra = f", {rng}" if rng else ""
+        lines.append(f"  {field} (default {info.default!r}{extra}): {info.description}")
+    return "\n".join(lines)
+
+
 def cmd_env_list(args: argparse.Namespace) -> int:
     table = Table(title="Convoy environments")
     table.add_column("name")
@@ -55,6 +67,12 @@ def cmd_env_list(args: argparse.Namespace) -> int:
     for name, entry in ENVS.items():
         table.add_row(name, entry.summary)
     console.print(table)
+    if args.params:
+        for name in ENVS:
+            text = f"\n[bold]{name}[/] parameters (--set KEY=VALUE):\n{describe_params(name)}"
+            console.print(text, highlight=False, soft_wrap=True)
+    else:
+        console.print("Each env's parameters, defaults and ranges: convoy env list --params")
     return 0
 
 
@@ -156,7 +174,8 @@ def _plot_returns(args: argparse.Namespace, agent_ids: tuple[str, ...], result: 
     ax.set_xlabel("episode")
     ax.set_ylabel("return")
     ax.set_title(f"{args.env}, {args.policy} policy")
-    ax.legend(fontsize=8)
+    ax.set_xticks(episodes + 0.4 - width / 2, [str(e) for e in episodes], fontsize=7)
+    ax.legend(fontsize=8, ncol=len(agent_ids) + 1, loc="upper center", bbox_to_anchor=(0.5, -0.15))
     fig.tight_layout()
     Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.plot, dpi=100)
@@ -174,34 +193,45 @@ def build_parser() -> argparse.ArgumentParser:
     env = sub.add_parser("env", help="inspect and run environments", description="Inspect and run environments.")
     env_sub = env.add_subparsers(dest="env_command", required=True, metavar="ENV_COMMAND")
 
-    lst = env_sub.add_parser("list", help="list the environments", description="List the environments.")
+    lst = env_sub.add_parser(
+        "list", help="list the environments", description="List the environments and, with --params, their parameters."
+    )
+    lst.add_argument("--params", action="store_true", help="also list every parameter with its default and range")
     lst.set_defaults(func=cmd_env_list)
 
     ro = env_sub.add_parser(
         "rollout",
         help="play episodes with a random or scripted policy and summarise them",
         description="Play EPISODES episodes (all in one batch) and print a per-episode table with the mean "
-        "return and its 95 %% confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON "
+        "return and its 95 % confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON "
         "summary and a PNG of the returns.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog="treadmill parameters for --set (see docs/treadmill.md; other envs: convoy env list --params):\n"
+        + describe_params("treadmill"),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    ro.add_argument("--env", default="treadmill", help=f"environment: {', '.join(ENVS)}")
+    ro.add_argument("--env", default="treadmill", help=f"environment: {', '.join(ENVS)} (default: %(default)s)")
     ro.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents, default 3)")
     ro.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries, default 1)")
     ro.add_argument(
         "--set",
         action="append",
         metavar="KEY=VALUE",
-        help="any env parameter, repeatable, e.g. --set aggression=0.9 --set max_steps=100 "
-        "(treadmill parameters: see docs/treadmill.md)",
+        help="any env parameter, repeatable, e.g. --set aggression=0.9 --set max_steps=100 (listed below)",
     )
-    ro.add_argument("--episodes", type=int, default=5, help="episodes to play")
-    ro.add_argument("--policy", choices=["scripted", "random"], default="scripted", help="who drives the agents")
-    ro.add_argument("--seed", type=int, default=0, help="seed of the envs and of the random policy")
+    ro.add_argument("--episodes", type=int, default=5, help="episodes to play (default: %(default)s)")
+    ro.add_argument(
+        "--policy",
+        choices=["scripted", "random"],
+        default="scripted",
+        help="who drives the agents; scripted is treadmill-only (default: %(default)s)",
+    )
+    ro.add_argument(
+        "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"
+    )
     ro.add_argument("--gif", metavar="PATH", help="write an animated GIF of episode 0 (treadmill)")
     ro.add_argument("--summary", metavar="PATH", help="write the figures as JSON")
     ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
-    ro.add_argument("--show", type=int, default=20, help="episodes listed in the table")
+    ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
     ro.set_defaults(func=cmd_env_rollout)
     return parser
 

@@ -7,6 +7,7 @@ import sys
 import pytest
 from PIL import Image
 
+from envs.treadmill import TreadmillConfig
 from services.cli import build_parser, main
 
 
@@ -70,9 +71,14 @@ def test_help_is_complete(capsys) -> None:
     text = capsys.readouterr().out
     for flag in ("--env", "--agents", "--adversaries", "--episodes", "--policy", "--seed", "--gif", "--set", "--plot"):
         assert flag in text
+    for param in TreadmillConfig.model_fields:  # every treadmill rule is documented where --set is
+        assert f"  {param} (default" in text
 
 
 def test_env_list(capsys) -> None:
     assert main(["env", "list"]) == 0
     out = capsys.readouterr().out
     assert "treadmill" in out and "speaker-listener" in out
+    assert main(["env", "list", "--params"]) == 0
+    out = capsys.readouterr().out
+    assert "n_targets (default 4, 2 ≤ n_targets ≤ 64)" in out and "keep_env_channel (default False)" in out
