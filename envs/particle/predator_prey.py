@@ -19,14 +19,13 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from gymnasium import spaces
 from mpe2 import simple_tag_v3
-from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field
 
 from envs.batched import EnvSpec
-from envs.config import ConfigError, build_config
+from envs.config import build_config
 from envs.particle.batch import ParallelEnvBatch
+from envs.particle.mpe_env import MpeParallelEnv
 
 PREDATORS: tuple[str, ...] = ("predator_0", "predator_1")
 _MPE_PREDATORS: tuple[str, ...] = ("adversary_0", "adversary_1")
@@ -80,7 +79,7 @@ def capture_rewards(captured: np.ndarray, alone: float, joint: float) -> np.ndar
     return np.where(captured, np.float32(alone), np.float32(0.0)).astype(np.float32)
 
 
-class PredatorPreyEnv(ParallelEnv):
+class PredatorPreyEnv(MpeParallelEnv):
     """PettingZoo parallel env: ``predator_0``/``predator_1`` chase a scripted prey in MPE2 ``simple_tag``.
 
     ``self.world`` is the MPE2 world (positions in ``world.agents[i].state.p_pos``; predators are indices 0 and 1,
@@ -95,21 +94,15 @@ class PredatorPreyEnv(ParallelEnv):
     }
 
     def __init__(self, config: PredatorPreyConfig | None = None, render_mode: str | None = None) -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ConfigError("render_mode", f"must be None or 'rgb_array' (got {render_mode!r})")
         self.config = config if config is not None else PredatorPreyConfig()
-        self.render_mode = render_mode
-        self.possible_agents = list(PREDATORS)
-        self.agents: list[str] = []
-        self.spec = EnvSpec(
+        spec = EnvSpec(
             name="predator-prey",
             agent_ids=PREDATORS,
             obs_dims=(2, 2),
             n_actions=(5, 5),
             max_steps=self.config.max_steps,
         )
-        # mpe2's own truncation coincides with ours; we still count steps ourselves so the rule is explicit here.
-        self._mpe = simple_tag_v3.parallel_env(
+        mpe = simple_tag_v3.parallel_env(
             num_good=1,
             num_adversaries=2,
             num_obstacles=self.config.num_obstacles,
@@ -117,16 +110,7 @@ class PredatorPreyEnv(ParallelEnv):
             continuous_actions=False,
             render_mode=render_mode,
         )
-        self.world = self._mpe.unwrapped.world
-        self._obs_spaces = {a: spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float32) for a in PREDATORS}
-        self._act_spaces = {a: spaces.Discrete(5) for a in PREDATORS}
-        self._steps = 0
-
-    def observation_space(self, agent: str) -> spaces.Box:
-        return self._obs_spaces[agent]  # the identical object every call, as PettingZoo requires
-
-    def action_space(self, agent: str) -> spaces.Discrete:
-        return self._act_spaces[agent]
+        super().__init__(mpe, spec, render_mode)
 
     def _positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(predator positions [2, 2], prey position [2])."""
@@ -152,45 +136,20 @@ class PredatorPreyEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
-        self._mpe.reset(seed=seed, options=options)
-        self._steps = 0
-        self.agents = list(PREDATORS)
-        return self._observe(), {a: {} for a in self.agents}
+        self._start_episode(seed, options)
+        return self._observe(), {a: {} for a in PREDATORS}
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        if not self.agents:
-            raise RuntimeError("step() called on a finished episode; call reset() first")
-        mpe_actions: dict[str, int] = {}
-        for agent, mpe_name in zip(PREDATORS, _MPE_PREDATORS, strict=True):
-            if agent not in actions:
-                raise ValueError(f"actions: missing action for {agent}")
-            a = actions[agent]
-            if not self.action_space(agent).contains(a):
-                raise ValueError(f"actions[{agent!r}]: expected an integer in [0, 5), got {a!r}")
-            mpe_actions[mpe_name] = int(a)
+        checked = self._checked_actions(actions)
+        mpe_actions = {mpe: checked[ours] for ours, mpe in zip(PREDATORS, _MPE_PREDATORS, strict=True)}
         mpe_actions[_MPE_PREY] = self.prey_action()
         self._mpe.step(mpe_actions)
-        self._steps += 1
-
         caught = self.captured()
         rew = capture_rewards(caught, self.config.capture_reward_alone, self.config.capture_reward_joint)
-        obs = self._observe()
         rewards = {a: float(rew[i]) for i, a in enumerate(PREDATORS)}
-        truncated = self._steps >= self.config.max_steps
-        terminations = {a: False for a in PREDATORS}
-        truncations = {a: truncated for a in PREDATORS}
         infos = {a: {"captures": int(caught[i])} for i, a in enumerate(PREDATORS)}
-        if truncated:
-            self.agents = []
-        return obs, rewards, terminations, truncations, infos
-
-    def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            return None
-        return self._mpe.render()
-
-    def close(self) -> None:
-        self._mpe.close()
+        terminations, truncations = self._finish_step()
+        return self._observe(), rewards, terminations, truncations, infos
 
 
 def make_predator_prey(render_mode: str | None = None, **params: Any) -> PredatorPreyEnv:

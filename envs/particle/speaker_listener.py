@@ -22,14 +22,13 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from gymnasium import spaces
 from mpe2 import simple_speaker_listener_v4
-from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field
 
 from envs.batched import EnvSpec
-from envs.config import ConfigError, build_config
+from envs.config import build_config
 from envs.particle.batch import ParallelEnvBatch
+from envs.particle.mpe_env import MpeParallelEnv
 
 SPEAKER, LISTENER = "speaker_0", "listener_0"
 AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)
@@ -48,7 +47,7 @@ class SpeakerListenerConfig(BaseModel):
     )
 
 
-class SpeakerListenerEnv(ParallelEnv):
+class SpeakerListenerEnv(MpeParallelEnv):
     """PettingZoo parallel env over MPE2 speaker-listener; ``self.world`` is the MPE2 world for inspection."""
 
     metadata: ClassVar[dict[str, Any]] = {
@@ -59,36 +58,19 @@ class SpeakerListenerEnv(ParallelEnv):
     }
 
     def __init__(self, config: SpeakerListenerConfig | None = None, render_mode: str | None = None) -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ConfigError("render_mode", f"must be None or 'rgb_array' (got {render_mode!r})")
         self.config = config if config is not None else SpeakerListenerConfig()
-        self.render_mode = render_mode
-        self.possible_agents = list(AGENTS)
-        self.agents: list[str] = []
         self._listener_dim = LISTENER_OBS_WITH_CHANNEL if self.config.keep_env_channel else LISTENER_OBS_NO_CHANNEL
-        self.spec = EnvSpec(
+        spec = EnvSpec(
             name="speaker-listener",
             agent_ids=AGENTS,
             obs_dims=(3, self._listener_dim),
             n_actions=(3, 5),
             max_steps=self.config.max_steps,
         )
-        self._mpe = simple_speaker_listener_v4.parallel_env(
+        mpe = simple_speaker_listener_v4.parallel_env(
             max_cycles=self.config.max_steps, continuous_actions=False, render_mode=render_mode
         )
-        self.world = self._mpe.unwrapped.world
-        self._obs_spaces = {
-            SPEAKER: spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float32),
-            LISTENER: spaces.Box(-np.inf, np.inf, shape=(self._listener_dim,), dtype=np.float32),
-        }
-        self._act_spaces = {SPEAKER: spaces.Discrete(3), LISTENER: spaces.Discrete(5)}
-        self._steps = 0
-
-    def observation_space(self, agent: str) -> spaces.Box:
-        return self._obs_spaces[agent]  # the identical object every call, as PettingZoo requires
-
-    def action_space(self, agent: str) -> spaces.Discrete:
-        return self._act_spaces[agent]
+        super().__init__(mpe, spec, render_mode)
 
     def _convert(self, mpe_obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return {
@@ -99,41 +81,13 @@ class SpeakerListenerEnv(ParallelEnv):
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
-        mpe_obs, _ = self._mpe.reset(seed=seed, options=options)
-        self._steps = 0
-        self.agents = list(AGENTS)
-        return self._convert(mpe_obs), {a: {} for a in AGENTS}
+        return self._convert(self._start_episode(seed, options)), {a: {} for a in AGENTS}
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        if not self.agents:
-            raise RuntimeError("step() called on a finished episode; call reset() first")
-        mpe_actions: dict[str, int] = {}
-        for agent in AGENTS:
-            if agent not in actions:
-                raise ValueError(f"actions: missing action for {agent}")
-            a = actions[agent]
-            space = self.action_space(agent)
-            if not space.contains(a):
-                raise ValueError(f"actions[{agent!r}]: expected an integer in [0, {space.n}), got {a!r}")
-            mpe_actions[agent] = int(a)
-        mpe_obs, mpe_rew, _, _, _ = self._mpe.step(mpe_actions)
-        self._steps += 1
-        truncated = self._steps >= self.config.max_steps
+        mpe_obs, mpe_rew, _, _, _ = self._mpe.step(self._checked_actions(actions))
         rewards = {a: float(mpe_rew[a]) for a in AGENTS}
-        terminations = {a: False for a in AGENTS}
-        truncations = {a: truncated for a in AGENTS}
-        infos: dict[str, dict[str, Any]] = {a: {} for a in AGENTS}
-        if truncated:
-            self.agents = []
-        return self._convert(mpe_obs), rewards, terminations, truncations, infos
-
-    def render(self) -> np.ndarray | None:
-        if self.render_mode is None:
-            return None
-        return self._mpe.render()
-
-    def close(self) -> None:
-        self._mpe.close()
+        terminations, truncations = self._finish_step()
+        return self._convert(mpe_obs), rewards, terminations, truncations, {a: {} for a in AGENTS}
 
 
 def make_speaker_listener(render_mode: str | None = None, **params: Any) -> SpeakerListenerEnv:
