@@ -318,3 +318,17 @@ def test_bad_config_names_the_field_and_range(factory, params, field, needle) ->
         factory(**params)
     assert exc.value.field == field
     assert needle in str(exc.value)
+
+
+def test_referential_batch_equals_games_played_one_by_one() -> None:
+    batch = make_referential_batch(5, n_targets=7)
+    obs = batch.reset(seed=3)
+    singles = [make_referential_batch(1, n_targets=7) for _ in range(5)]
+    seeds = env_seeds(3, 5)
+    for b, s in enumerate(singles):
+        np.testing.assert_array_equal(s.reset(seed=seeds[b : b + 1])[0], obs[b])
+    acts = np.zeros((5, 2), dtype=np.int64)
+    for _ in range(4):
+        res = batch.step(acts)
+        for b, s in enumerate(singles):
+            np.testing.assert_array_equal(s.step(acts[b : b + 1]).obs[0], res.obs[b])

@@ -12,8 +12,9 @@ Choices made where the paper is silent:
   message path, which lives outside the env, so the env cannot be solved by an env-level "say" action.
 * Reward is shared: 1.0 to both agents if the listener's action equals the target, else 0.0. Every episode is one
   step long and ends with ``terminated=True`` (a real end, so no bootstrapping past it).
-* Targets are uniform over K, drawn from one ``np.random.default_rng`` per batch. ``reset(seed)`` re-creates it from
-  ``seed`` (an int or an array of ints); ``reset(None)`` keeps drawing from the current generator.
+* Targets are uniform over K, drawn from the counter-based generator of ``envs.rng`` (as the treadmill's), so each
+  env's targets depend only on its own seed: an int seed is expanded per env by ``envs.batched.env_seeds``, an array
+  gives each env its seed, ``reset(None)`` continues the streams (fresh entropy on the very first reset).
 * ``info["target"]`` (``[B]`` int64) holds the target of the episode that just ended, for evaluation only.
 """
 
@@ -26,7 +27,8 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field
 
-from envs.batched import EnvSpec, StepResult, check_actions
+from envs import rng
+from envs.batched import EnvSpec, StepResult, check_actions, env_seeds
 from envs.config import build_config
 
 SPEAKER, LISTENER = "speaker", "listener"
@@ -55,7 +57,8 @@ class ReferentialBatch:
         self.config = config if config is not None else ReferentialConfig()
         self.num_envs = num_envs
         self.spec = _spec(self.config)
-        self._rng = np.random.default_rng()
+        self._keys = rng.env_keys(env_seeds(int(np.random.SeedSequence().entropy % (1 << 62)), num_envs))
+        self._ticks = np.zeros(num_envs, dtype=np.uint64)
         self._targets = np.zeros(num_envs, dtype=np.int64)
         self._obs: np.ndarray | None = None
 
@@ -65,7 +68,9 @@ class ReferentialBatch:
         return self._targets.copy()
 
     def _draw(self) -> np.ndarray:
-        self._targets = self._rng.integers(self.config.n_targets, size=self.num_envs, dtype=np.int64)
+        u = rng.uniform(self._keys, self._ticks, rng.STREAM_TARGET, 1)[:, 0]
+        self._ticks += np.uint64(1)
+        self._targets = (u * self.config.n_targets).astype(np.int64)
         obs = np.zeros((self.num_envs, 2, self.config.n_targets), dtype=np.float32)
         obs[np.arange(self.num_envs), 0, self._targets] = 1.0
         return obs
@@ -73,7 +78,8 @@ class ReferentialBatch:
     def reset(self, seed: int | np.ndarray | None = None) -> np.ndarray:
         """Draw new targets for every game; returns obs ``[B, 2, K]``."""
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
+            self._keys = rng.env_keys(env_seeds(seed, self.num_envs))
+            self._ticks[:] = 0
         self._obs = self._draw()
         return self._obs.copy()
 

@@ -29,7 +29,7 @@ closest cars (agents and adversaries alike, as in the paper): relative position 
 / (length/2) and / (width−1)), heading one-hot and speed. Cars spawn forward-facing at
 ``initial_speed`` on random distinct cells of a lattice of pitch ``spawn_gap``.
 
-Randomness comes from ``envs.treadmill.rng``: draws depend only on the env's own seed and step
+Randomness comes from ``envs.rng``: draws depend only on the env's own seed and step
 counter, so a batch equals its envs stepped one by one, bit for bit (seed env b alone with
 ``envs.batched.env_seeds(s, B)[b]`` to replay env b of a batch seeded s).
 """
@@ -38,8 +38,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from envs import rng
 from envs.batched import EnvSpec, StepResult, check_actions, env_seeds
-from envs.treadmill import rng
 from envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
 
 # Unit move per heading, counter-clockwise from "forward along the road".

@@ -21,6 +21,7 @@ _INV_2_53 = 1.0 / (1 << 53)
 # Named streams, so that two purposes never share draws.
 STREAM_ADVERSARY = 1
 STREAM_SPAWN = 2
+STREAM_TARGET = 3
 
 
 def splitmix64(x: np.ndarray) -> np.ndarray:
