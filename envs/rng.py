@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from envs.batched import env_seeds
+
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -44,3 +46,35 @@ def uniform(keys: np.ndarray, ticks: np.ndarray, stream: int, n: int) -> np.ndar
     counter = ticks.astype(np.uint64)[:, None] * _TICK_MUL + offset + col[None, :]
     bits = splitmix64(keys[:, None] ^ splitmix64(counter))
     return (bits >> _S11).astype(np.float64) * _INV_2_53
+
+
+class EnvStreams:
+    """One counter-based stream per env: a key from its seed and a tick that advances once per step.
+
+    The one place that turns a reset's ``seed`` into per-env streams, so every batched env seeds alike:
+    an int is expanded by ``envs.batched.env_seeds``, an array gives each env its seed, None keeps the
+    current streams (fresh OS entropy the very first time).
+    """
+
+    def __init__(self, num_envs: int) -> None:
+        self.keys = np.zeros(num_envs, np.uint64)
+        self.ticks = np.zeros(num_envs, np.uint64)
+        self._seeded = False
+
+    def seed(self, seed: int | np.ndarray | None) -> None:
+        if seed is None and not self._seeded:
+            seed = int(np.random.SeedSequence().entropy % (1 << 62))
+        if seed is not None:
+            self.keys = env_keys(env_seeds(seed, len(self.keys)))
+            self.ticks[:] = 0
+            self._seeded = True
+
+    def advance(self) -> None:
+        """Move every env to its next tick (once per step), so the next draws are fresh."""
+        self.ticks += np.uint64(1)
+
+    def uniform(self, stream: int, n: int, envs: np.ndarray | None = None) -> np.ndarray:
+        """``[B, n]`` (or ``[len(envs), n]``) floats in [0, 1) from the current tick."""
+        if envs is None:
+            return uniform(self.keys, self.ticks, stream, n)
+        return uniform(self.keys[envs], self.ticks[envs], stream, n)

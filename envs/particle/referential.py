@@ -28,7 +28,7 @@ from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field
 
 from envs import rng
-from envs.batched import EnvSpec, StepResult, check_actions, env_seeds
+from envs.batched import EnvSpec, StepResult, check_actions
 from envs.config import build_config
 
 SPEAKER, LISTENER = "speaker", "listener"
@@ -57,8 +57,8 @@ class ReferentialBatch:
         self.config = config if config is not None else ReferentialConfig()
         self.num_envs = num_envs
         self.spec = _spec(self.config)
-        self._keys = rng.env_keys(env_seeds(int(np.random.SeedSequence().entropy % (1 << 62)), num_envs))
-        self._ticks = np.zeros(num_envs, dtype=np.uint64)
+        self._streams = rng.EnvStreams(num_envs)
+        self._streams.seed(None)  # usable before any reset: fresh entropy
         self._targets = np.zeros(num_envs, dtype=np.int64)
         self._obs: np.ndarray | None = None
 
@@ -68,8 +68,8 @@ class ReferentialBatch:
         return self._targets.copy()
 
     def _draw(self) -> np.ndarray:
-        u = rng.uniform(self._keys, self._ticks, rng.STREAM_TARGET, 1)[:, 0]
-        self._ticks += np.uint64(1)
+        u = self._streams.uniform(rng.STREAM_TARGET, 1)[:, 0]
+        self._streams.advance()
         self._targets = (u * self.config.n_targets).astype(np.int64)
         obs = np.zeros((self.num_envs, 2, self.config.n_targets), dtype=np.float32)
         obs[np.arange(self.num_envs), 0, self._targets] = 1.0
@@ -77,9 +77,7 @@ class ReferentialBatch:
 
     def reset(self, seed: int | np.ndarray | None = None) -> np.ndarray:
         """Draw new targets for every game; returns obs ``[B, 2, K]``."""
-        if seed is not None:
-            self._keys = rng.env_keys(env_seeds(seed, self.num_envs))
-            self._ticks[:] = 0
+        self._streams.seed(seed)
         self._obs = self._draw()
         return self._obs.copy()
 

@@ -39,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs import rng
-from envs.batched import EnvSpec, StepResult, check_actions, env_seeds
+from envs.batched import EnvSpec, StepResult, check_actions
 from envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
 
 # Unit move per heading, counter-clockwise from "forward along the road".
@@ -90,10 +90,8 @@ class TreadmillEngine:
         self.heading = np.zeros(shape, np.int64)
         self.speed = np.zeros(shape, np.int64)
         self.t = np.zeros(num_envs, np.int64)
-        self._keys = np.zeros(num_envs, np.uint64)
-        self._ticks = np.zeros(num_envs, np.uint64)
+        self._streams = rng.EnvStreams(num_envs)
         self._ep_return = np.zeros((num_envs, n), np.float64)
-        self._seeded = False
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | np.ndarray | None = None) -> np.ndarray:
@@ -102,22 +100,17 @@ class TreadmillEngine:
         ``seed``: an int is expanded per env by ``envs.batched.env_seeds``; an array gives each env its
         seed; None keeps the current streams (fresh entropy on the very first reset).
         """
-        if seed is None and not self._seeded:
-            seed = int(np.random.SeedSequence().entropy % (1 << 62))
-        if seed is not None:
-            self._keys = rng.env_keys(env_seeds(seed, self.num_envs))
-            self._ticks[:] = 0
-            self._seeded = True
+        self._streams.seed(seed)
         everyone = np.arange(self.num_envs)
         self._spawn(everyone)
-        self._ticks += np.uint64(1)
+        self._streams.advance()
         return self._observe(everyone)[0]
 
     def _spawn(self, envs: np.ndarray) -> None:
         """Place every car of ``envs`` on distinct lattice cells, facing forward."""
         cfg = self.cfg
         blocks_x, blocks_y = cfg.length // cfg.spawn_gap, cfg.width // cfg.spawn_gap
-        cells = _distinct_choice(self._keys[envs], self._ticks[envs], blocks_x * blocks_y, cfg.n_cars)
+        cells = _distinct_choice(self._streams, envs, blocks_x * blocks_y, cfg.n_cars)
         half = cfg.spawn_gap // 2
         self.x[envs] = (cells // blocks_y) * cfg.spawn_gap + half
         self.y[envs] = (cells % blocks_y) * cfg.spawn_gap + half
@@ -143,7 +136,7 @@ class TreadmillEngine:
         self.heading[:, n:] = np.where(bounced, (N_HEADINGS - self.heading[:, n:]) % N_HEADINGS, self.heading[:, n:])
         self.x = (self.x - cfg.treadmill_speed) % cfg.length
         self.t += 1
-        self._ticks += np.uint64(1)
+        self._streams.advance()
 
         everyone = np.arange(self.num_envs)
         final_obs, closest = self._observe(everyone)
@@ -178,7 +171,7 @@ class TreadmillEngine:
         cx = ax[..., None] + v * DX[h]
         cy = np.clip(ay[..., None] + v * DY[h], 0, cfg.width - 1)
         greedy = np.argmin(torus_distance(cx, cy, tx, ty, cfg.length), axis=-1)
-        u = rng.uniform(self._keys, self._ticks, rng.STREAM_ADVERSARY, 2 * cfg.n_adversaries)
+        u = self._streams.uniform(rng.STREAM_ADVERSARY, 2 * cfg.n_adversaries)
         coin, pick = u[:, : cfg.n_adversaries], u[:, cfg.n_adversaries :]
         random_action = (pick * N_ACTIONS).astype(np.int64)
         return np.where(coin < cfg.aggression, greedy, random_action)
@@ -249,13 +242,13 @@ class TreadmillEngine:
         return obs, closest
 
 
-def _distinct_choice(keys: np.ndarray, ticks: np.ndarray, n_items: int, k: int) -> np.ndarray:
+def _distinct_choice(streams: rng.EnvStreams, envs: np.ndarray, n_items: int, k: int) -> np.ndarray:
     """k distinct integers in [0, n_items) per env, drawn from that env's own stream only."""
     if 2 * k > n_items:  # dense: a random permutation's prefix
-        u = rng.uniform(keys, ticks, rng.STREAM_SPAWN, n_items)
+        u = streams.uniform(rng.STREAM_SPAWN, n_items, envs)
         return np.argsort(u, axis=1, kind="stable")[:, :k]
     # sparse: draw k, redraw the duplicates with fresh counters until none remain
-    u = rng.uniform(keys, ticks, rng.STREAM_SPAWN, k)
+    u = streams.uniform(rng.STREAM_SPAWN, k, envs)
     out = (u * n_items).astype(np.int64)
     for round_ in range(1, 10_000):
         order = np.argsort(out, axis=1, kind="stable")
@@ -266,6 +259,6 @@ def _distinct_choice(keys: np.ndarray, ticks: np.ndarray, n_items: int, k: int) 
             return out
         dup = np.zeros_like(dup_sorted)
         np.put_along_axis(dup, order, dup_sorted, axis=1)
-        fresh = rng.uniform(keys, ticks, rng.STREAM_SPAWN + round_ * 7919, k)
+        fresh = streams.uniform(rng.STREAM_SPAWN + round_ * 7919, k, envs)
         out = np.where(dup, (fresh * n_items).astype(np.int64), out)
     raise RuntimeError("could not place cars on distinct cells")  # unreachable for 2k ≤ n_items
