@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from envs import ENVS, ConfigError, make_batched
-from envs.config import allowed_range
+from envs.config import allowed_range, build_config
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
 
@@ -85,15 +85,16 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
         raise ConfigError("--policy", "the scripted policy drives the treadmill only; use --policy random")
     if args.gif and not is_treadmill:
         raise ConfigError("--gif", "only the treadmill renders GIFs so far; drop --gif")
-    env = make_batched(args.env, args.episodes, **params)
     render = None
     if is_treadmill:
-        from envs.treadmill import TreadmillEngine, render_frame, scripted_actions
+        from envs.treadmill import TreadmillConfig, TreadmillEngine, render_frame, scripted_actions
 
-        env = TreadmillEngine(env.cfg, args.episodes, autoreset=False)  # keep each episode's last frame
-        cfg = env.cfg
+        cfg = build_config(TreadmillConfig, **params)
+        env = TreadmillEngine(cfg, args.episodes, autoreset=False)  # keeps each episode's last frame for the GIF
         if args.gif:
             render = lambda: render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)  # noqa: E731
+    else:
+        env = make_batched(args.env, args.episodes, **params)
     if args.policy == "scripted":
         policy = lambda obs: scripted_actions(obs, cfg)  # noqa: E731
     else:
