@@ -234,6 +234,10 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
     ro.set_defaults(func=cmd_env_rollout)
+
+    from services.train_cmd import add_train_parser
+
+    add_train_parser(sub)
     return parser
 
 

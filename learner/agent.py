@@ -1,0 +1,20 @@
+"""Build the learning agent a job asks for: an algorithm, or hierarchical DQN wrapped around one."""
+
+from __future__ import annotations
+
+import torch
+
+from envs.batched import EnvSpec
+from learner.algorithm import Algorithm
+from learner.registry import make_algorithm
+from protocol.config import JobConfig
+
+
+def make_agent(job: JobConfig, spec: EnvSpec, device: str | torch.device | None = None) -> Algorithm:
+    """The job's algorithm for ``spec`` (its env defaults resolved), hierarchical when ``job.hierarchical``."""
+    dev = job.device if device is None else device
+    if job.hierarchical:
+        from learner.hierarchy import HierarchicalAgent
+
+        return HierarchicalAgent(job, spec, device=dev)
+    return make_algorithm(job.algo, spec, job.algo_config(), device=dev, seed=job.seed)

@@ -1,0 +1,233 @@
+"""What every algorithm shares: acting with ε-greedy over masked Q-values, replay, double-Q targets, target sync.
+
+An algorithm object is transport-free: the in-process trainer, the tests and (later) the distributed learner all
+drive it through the same four calls — ``act`` (a batch of observations → actions), ``observe`` (a chunk of joint
+transitions ``[T, B, …]``), ``update`` (one gradient step when ``can_update``) and ``state_dict`` (checkpoints
+and weight broadcasts). Step-based algorithms (everything but DIAL) flatten chunks into the joint replay buffer and
+only implement ``q_and_target``; the per-agent TD losses are computed here so that tests can back-propagate one
+agent's loss and see exactly which weights it reaches.
+"""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from envs.batched import EnvSpec
+from learner.nets import pick_device
+from learner.replay import JointReplay
+from protocol.config import AlgoConfig
+
+NEG = -1e9  # Q-value given to actions an agent does not have (heterogeneous action spaces)
+
+
+@dataclass
+class Progress:
+    """Where training stands; the trainer (or learner process) keeps it current for schedules and fingerprints."""
+
+    env_steps: int = 0
+    episodes: int = 0
+    total_steps: int = 1
+
+
+@dataclass
+class ActOutput:
+    """Actions ``[B, N]`` plus what the algorithm wants stored with the transition (``extras``)."""
+
+    actions: np.ndarray
+    messages: np.ndarray | None = None  # [B, N, bits] sent this step, for metrics and the channel model
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+    state: Any = None  # recurrent state to pass to the next act (DIAL's messages from t−1)
+
+
+def td_target(
+    reward: Tensor,
+    terminated: Tensor,
+    gamma: float,
+    q_next_target: Tensor,
+    q_next_online: Tensor | None,
+    mask: Tensor,
+) -> Tensor:
+    """``r + γ (1 − terminated) Q_target(s', a*)`` with ``a*`` the online argmax (double Q) or the target's."""
+    target_q = q_next_target.masked_fill(~mask, NEG)
+    if q_next_online is None:
+        best = target_q.max(dim=-1).values
+    else:
+        a_star = q_next_online.masked_fill(~mask, NEG).argmax(dim=-1, keepdim=True)
+        best = target_q.gather(-1, a_star).squeeze(-1)
+    cont = (1.0 - terminated.float()).unsqueeze(-1)
+    return reward + gamma * cont * best
+
+
+def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
+    """Linear decay from ``eps_start`` to ``eps_end`` over min(fraction × run, max steps), then constant."""
+    horizon = max(1, min(int(cfg.eps_decay_fraction * total_steps), cfg.eps_decay_max_steps))
+    frac = min(1.0, env_steps / horizon)
+    return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+
+
+class Algorithm(ABC):
+    """Base class: subclasses build networks in ``build`` and define ``greedy_q`` and ``q_and_target``."""
+
+    name: ClassVar[str]
+    config_model: ClassVar[type[AlgoConfig]]
+    chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
+    uses_messages: ClassVar[bool] = False
+
+    def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
+        if not isinstance(cfg, self.config_model):
+            raise TypeError(f"{self.name} needs a {self.config_model.__name__}, got {type(cfg).__name__}")
+        if cfg.hidden is None or cfg.share_params is None:
+            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+        self.spec, self.cfg = spec, cfg
+        self.device = pick_device(device) if isinstance(device, str) else device
+        self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
+        self.shared: bool = bool(cfg.share_params)
+        self.rng = np.random.default_rng(seed)
+        self.n_actions_np = np.asarray(spec.n_actions, dtype=np.int64)
+        mask = torch.arange(self.n_act)[None, :] < torch.as_tensor(spec.n_actions)[:, None]
+        self.action_mask = mask.to(self.device)  # [N, A]
+        self.progress = Progress()
+        self.updates = 0
+        self.replay = JointReplay(cfg.replay_capacity)
+        self.online: nn.ModuleDict = nn.ModuleDict(self.build()).to(self.device)
+        self.target: nn.ModuleDict = copy.deepcopy(self.online)
+        self.target.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.online.parameters(), lr=cfg.lr)
+
+    # --- what subclasses provide -------------------------------------------------------------------------------
+    @abstractmethod
+    def build(self) -> dict[str, nn.Module]:
+        """The online networks by name (targets are deep copies)."""
+
+    @abstractmethod
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor | None, Any]:
+        """Execution-mode Q-values ``[B, N, A]``, messages sent (or None) and the next recurrent state."""
+
+    @abstractmethod
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """Q of the taken actions ``[M, N]`` (with grad) and their TD targets ``[M, N]`` (no grad)."""
+
+    # --- acting ------------------------------------------------------------------------------------------------
+    def initial_state(self, num_envs: int) -> Any:
+        """Recurrent state for a fresh batch of envs (None for feed-forward algorithms)."""
+        return None
+
+    def reset_state(self, state: Any, done: np.ndarray) -> Any:
+        """Clear the recurrent state of envs whose episode just ended."""
+        return state
+
+    def extras(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-env arrays to store with each transition (e.g. a fingerprint); none by default."""
+        return {}
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
+        """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style)."""
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        q, msgs, new_state = self.greedy_q(obs_t, state)
+        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
+        b = obs.shape[0]
+        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
+        explore = self.rng.random((b, self.n_agents)) < eps
+        random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
+        actions = np.where(explore, random_a, greedy)
+        return ActOutput(
+            actions=actions,
+            messages=None if msgs is None else msgs.cpu().numpy(),
+            extras=self.extras(obs),
+            state=new_state,
+        )
+
+    # --- learning ----------------------------------------------------------------------------------------------
+    def observe(self, chunk: dict[str, np.ndarray]) -> None:
+        """Store a chunk of joint transitions with leading dims ``[T, B]`` (flattened into the replay)."""
+        self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
+
+    def can_update(self) -> bool:
+        return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
+
+    def updates_for(self, n_transitions: int) -> float:
+        """Updates owed for ``n_transitions`` newly observed joint transitions (the replay ratio)."""
+        return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
+
+    def sample(self) -> dict[str, Tensor]:
+        batch = self.replay.sample(self.cfg.batch_size, self.rng)
+        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
+
+    def sample_weights(self, batch: dict[str, Tensor]) -> Tensor | None:
+        """Per-sample loss weights ``[M]`` (stabilised experience replay); None = uniform."""
+        return None
+
+    def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
+        """Each agent's mean TD loss ``[N]``; their sum is what ``update`` minimises."""
+        q, y = self.q_and_target(batch)
+        err = F.smooth_l1_loss(q, y, reduction="none") if self.cfg.huber else 0.5 * (q - y) ** 2
+        w = self.sample_weights(batch)
+        if w is None:
+            return err.mean(dim=0)
+        return (err * w.unsqueeze(-1)).sum(dim=0) / w.sum().clamp_min(1e-8)
+
+    def update(self) -> dict[str, float]:
+        """One gradient step on a sampled batch; syncs the targets every ``target_update`` updates."""
+        batch = self.sample()
+        losses = self.agent_losses(batch)
+        loss = losses.sum()
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        self.optimizer.step()
+        self.updates += 1
+        if self.updates % self.cfg.target_update == 0:
+            self.sync_target()
+        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm)}
+
+    def sync_target(self) -> None:
+        self.target.load_state_dict(self.online.state_dict())
+
+    # --- persistence -------------------------------------------------------------------------------------------
+    def policy_state(self) -> dict[str, Tensor]:
+        """What an actor needs to act: the online weights (on CPU, for the wire or a file)."""
+        return {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
+
+    def load_policy_state(self, state: dict[str, Tensor]) -> None:
+        self.online.load_state_dict(state)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume learning exactly: networks, targets, optimizer, counters, RNG."""
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "updates": self.updates,
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.online.load_state_dict(state["online"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])
+        self.rng.bit_generator.state = state["rng"]
+
+    # --- helpers for subclasses --------------------------------------------------------------------------------
+    def target_for(self, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]) -> Tensor:
+        """TD target for this batch, honouring the ``double_q`` switch."""
+        return td_target(
+            batch["reward"],
+            batch["terminated"],
+            self.cfg.gamma,
+            q_next_target,
+            q_next_online if self.cfg.double_q else None,
+            self.action_mask,
+        )
+
+    def n_parameters(self) -> int:
+        return sum(p.numel() for p in self.online.parameters())

@@ -1,0 +1,1 @@
+"""One module per algorithm; ``learner.registry`` maps names to classes."""

@@ -1,0 +1,42 @@
+"""Independent DQN: each agent's Q-network sees only its own observation — the no-communication baseline."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from learner.algorithm import Algorithm
+from learner.nets import GroupMLP, id_width, with_agent_id
+from protocol.config import IDQNConfig
+
+
+class IndependentDQN(Algorithm):
+    """N independent (double) DQNs, evaluated in one batched pass; shared weights when ``share_params``."""
+
+    name = "idqn"
+    config_model = IDQNConfig
+
+    def input_width(self) -> int:
+        return self.obs_dim + id_width(self.n_agents, self.shared)
+
+    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None, nxt: bool = False) -> Tensor:
+        """Network input from observations ``[..., N, D]`` (subclasses append e.g. a fingerprint)."""
+        return with_agent_id(obs, self.shared)
+
+    def build(self) -> dict[str, nn.Module]:
+        groups = 1 if self.shared else self.n_agents
+        return {"q": GroupMLP(groups, self.input_width(), self.cfg.hidden, self.n_act)}
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
+        return self.online["q"](self.features(obs)), None, None
+
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        x, x_next = self.features(batch["obs"], batch), self.features(batch["next_obs"], batch, nxt=True)
+        q = self.online["q"](x).gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_next_t = self.target["q"](x_next)
+            q_next_o = self.online["q"](x_next) if self.cfg.double_q else None
+            y = self.target_for(q_next_t, q_next_o, batch)
+        return q, y

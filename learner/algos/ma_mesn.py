@@ -1,0 +1,64 @@
+"""MA-MeSN (the paper's Algorithm 1): separate message networks f′ and policy networks f″.
+
+Every agent j turns its *current* observation into a discrete message ``m_j = f′_j(o_j)`` (Gumbel-softmax bits,
+straight-through in training, argmax at execution). Agent i's policy network sees its own observation and the
+messages of the *others*: ``Q_i = f″_i(o_i, m_{−i})``. The loss is the sum of all agents' TD losses, so each
+message network f′_j receives the summed gradients of every other agent's TD loss (Algorithm 1's "collect
+gradients from all policy networks"), while f″_i is reached by agent i's loss only. Targets use the target copies
+of both networks, synced every C updates.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from learner.algorithm import Algorithm
+from learner.nets import GroupMLP, gather_others, id_width, message_bits, others_index, with_agent_id
+from protocol.config import MeSNConfig
+
+
+class MAMeSN(Algorithm):
+    """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
+
+    name = "ma-mesn"
+    config_model = MeSNConfig
+    uses_messages = True
+
+    def build(self) -> dict[str, nn.Module]:
+        self.bits: int = int(self.cfg.message_bits)
+        self.peers = others_index(self.n_agents).to(self.device)
+        groups = 1 if self.shared else self.n_agents
+        obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
+        msg_in = (self.n_agents - 1) * self.bits
+        return {
+            "message": GroupMLP(groups, obs_in, self.cfg.hidden, 2 * self.bits),  # f′
+            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.hidden, self.n_act),  # f″
+        }
+
+    def messages(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
+        """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
+        return message_bits(nets["message"](x), self.bits, train, self.cfg.gumbel_tau)
+
+    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+        """Q-values ``[..., N, A]`` and the messages sent; ``received`` overrides what each agent hears
+        (``[..., N, (N−1)·bits]``: for channel models, white-noise probes and memory modules)."""
+        x = with_agent_id(obs, self.shared)
+        sent = self.messages(nets, x, train)
+        heard = gather_others(sent, self.peers) if received is None else received
+        return nets["policy"](torch.cat([x, heard], dim=-1)), sent
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
+        q, sent = self.forward(self.online, obs, train=False)
+        return q, sent, None
+
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        q_all, _ = self.forward(self.online, batch["obs"], train=True)
+        q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_next_t, _ = self.forward(self.target, batch["next_obs"], train=False)
+            q_next_o = self.forward(self.online, batch["next_obs"], train=False)[0] if self.cfg.double_q else None
+            y = self.target_for(q_next_t, q_next_o, batch)
+        return q, y

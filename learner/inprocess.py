@@ -1,0 +1,258 @@
+"""The in-process reference trainer: batched envs and learner updates in one loop, one process.
+
+This is the baseline the distributed runtime has to beat, and what the learning tests run. It talks to the
+algorithm only through its public calls (act / observe / updates_for / can_update / update), exactly as the
+learner process will, and to the env only through the batched interface, so the env is built by the caller
+(``services``) and this module imports no environment code.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from envs.batched import BatchedEnv
+from learner.algorithm import Algorithm, Progress, epsilon_at
+from learner.checkpoint import save_checkpoint
+from learner.metrics import MetricsWriter, plot_curves
+from protocol.config import JobConfig
+
+
+@dataclass
+class TrainResult:
+    """What a finished run reports; also written to ``summary.json``."""
+
+    env_steps: int
+    updates: int
+    episodes: int
+    wall_s: float
+    env_steps_per_s: float
+    updates_per_s: float
+    final_return: float  # mean training return of the last 10 % of episodes
+    eval_return: float
+    eval_ci95: float
+    random_return: float
+    out_dir: str | None = None
+    rows: list[dict[str, float]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d.pop("rows")
+        return d
+
+
+def ci95(x: np.ndarray) -> float:
+    """Half-width of a normal 95 % confidence interval of the mean."""
+    return float(1.96 * x.std(ddof=1) / math.sqrt(len(x))) if len(x) > 1 else float("nan")
+
+
+def evaluate(
+    env: BatchedEnv, algo: Algorithm, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
+) -> np.ndarray:
+    """Per-episode returns (mean over agents) of the first ``episodes`` episodes finished with ε-greedy acting."""
+    obs = env.reset(seed=seed)
+    b = env.num_envs
+    state = algo.initial_state(b)
+    ep_ret = np.zeros(b)
+    out: list[float] = []
+    limit = max_iters or (episodes // b + 2) * env.spec.max_steps + 10
+    for _ in range(limit):
+        act = algo.act(obs, epsilon, state)
+        res = env.step(act.actions)
+        ep_ret += res.reward.mean(axis=1)
+        if res.done.any():
+            out.extend(ep_ret[res.done].tolist())
+            ep_ret[res.done] = 0.0
+            if len(out) >= episodes:
+                break
+        state = algo.reset_state(act.state, res.done)
+        obs = res.obs
+    return np.asarray(out[:episodes], dtype=np.float64)
+
+
+class Trainer:
+    """Steps ``env`` with ``algo`` for ``job.steps`` env steps, logging, checkpointing and evaluating."""
+
+    def __init__(
+        self,
+        job: JobConfig,
+        env: BatchedEnv,
+        algo: Algorithm,
+        make_eval_env: Callable[[int], BatchedEnv] | None = None,
+        out_dir: str | Path | None = None,
+        progress: bool = True,
+    ) -> None:
+        self.job, self.env, self.algo = job, env, algo
+        self.make_eval_env = make_eval_env
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.show_progress = progress
+        self.cfg = job.algo_config()
+
+    def run(self) -> TrainResult:
+        job, env, algo = self.job, self.env, self.algo
+        b, n = env.num_envs, env.spec.n_agents
+        torch.manual_seed(job.seed)
+        writer = MetricsWriter(self.out_dir) if self.out_dir else None
+        obs = env.reset(seed=job.seed)
+        state = algo.initial_state(b)
+        ep_ret = np.zeros((b, n))
+        episode_id = np.zeros(b, dtype=np.int64)  # episodes finished when each env's episode began (SER's clock)
+        finished: list[float] = []
+        window: list[float] = []
+        losses: list[float] = []
+        chunk: dict[str, list[np.ndarray]] = {}
+        env_steps = updates_at_row = 0
+        owed = 0.0
+        next_log, next_ckpt = job.log_every, job.checkpoint_every
+        rows: list[dict[str, float]] = []
+        t0 = t_row = time.perf_counter()
+        steps_at_row = 0
+        bar = _Bar(job.steps, self.show_progress)
+        try:
+            while env_steps < job.steps:
+                algo.progress = Progress(env_steps, len(finished), job.steps)
+                eps = epsilon_at(self.cfg, env_steps, job.steps)
+                out = algo.act(obs, eps, state)
+                res = env.step(out.actions)
+                step = {
+                    "obs": obs,
+                    "action": out.actions,
+                    "reward": res.reward.astype(np.float32),
+                    "next_obs": res.final_obs,
+                    "terminated": res.terminated,
+                    "truncated": res.truncated,
+                    "episode": episode_id.copy(),
+                    **out.extras,
+                }
+                for k, v in step.items():
+                    chunk.setdefault(k, []).append(v)
+                ep_ret += res.reward
+                done = res.done
+                if done.any():
+                    rets = ep_ret[done].mean(axis=1).tolist()
+                    finished.extend(rets)
+                    window.extend(rets)
+                    ep_ret[done] = 0.0
+                    episode_id[done] = len(finished)
+                state = algo.reset_state(out.state, done)
+                obs = res.obs
+                env_steps += b
+                if len(chunk["obs"]) >= algo.chunk_len:
+                    t_len = len(chunk["obs"])
+                    algo.observe({k: np.stack(v) for k, v in chunk.items()})
+                    chunk = {}
+                    if algo.can_update():
+                        owed += algo.updates_for(t_len * b)
+                    while owed >= 1.0 and algo.can_update():
+                        info = algo.update()
+                        losses.append(info["loss"])
+                        owed -= 1.0
+                if env_steps >= next_log or env_steps >= job.steps:
+                    now = time.perf_counter()
+                    row = {
+                        "env_steps": env_steps,
+                        "episodes": len(finished),
+                        "updates": algo.updates,
+                        "return": float(np.mean(window)) if window else float("nan"),
+                        "loss": float(np.mean(losses)) if losses else float("nan"),
+                        "epsilon": eps,
+                        "env_steps_per_s": (env_steps - steps_at_row) / max(now - t_row, 1e-9),
+                        "updates_per_s": (algo.updates - updates_at_row) / max(now - t_row, 1e-9),
+                        "wall_s": now - t0,
+                    }
+                    rows.append(row)
+                    if writer:
+                        writer.write(row)
+                    bar.update(env_steps, row)
+                    window, losses = [], []
+                    t_row, steps_at_row, updates_at_row = now, env_steps, algo.updates
+                    next_log += job.log_every
+                if self.out_dir and env_steps >= next_ckpt:
+                    self._checkpoint(env_steps, len(finished))
+                    next_ckpt += job.checkpoint_every
+        finally:
+            bar.close()
+            if writer:
+                writer.close()
+        wall = time.perf_counter() - t0
+        tail = finished[-max(1, len(finished) // 10) :] if finished else [float("nan")]
+        eval_ret, eval_ci, rand_ret = self._final_eval()
+        result = TrainResult(
+            env_steps=env_steps,
+            updates=algo.updates,
+            episodes=len(finished),
+            wall_s=wall,
+            env_steps_per_s=env_steps / wall,
+            updates_per_s=algo.updates / wall,
+            final_return=float(np.mean(tail)),
+            eval_return=eval_ret,
+            eval_ci95=eval_ci,
+            random_return=rand_ret,
+            out_dir=str(self.out_dir) if self.out_dir else None,
+            rows=rows,
+        )
+        if self.out_dir:
+            self._checkpoint(env_steps, len(finished))
+            (self.out_dir / "summary.json").write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+            plot_curves(rows, self.out_dir / "curve.png", title=f"{job.algo} on {job.env}", baseline=rand_ret)
+        return result
+
+    def _checkpoint(self, env_steps: int, episodes: int) -> None:
+        assert self.out_dir is not None
+        counters = {"env_steps": env_steps, "episodes": episodes, "updates": self.algo.updates}
+        save_checkpoint(self.out_dir / "checkpoint.pt", self.algo, self.job, counters)
+
+    def _final_eval(self) -> tuple[float, float, float]:
+        """Greedy return ± CI and the random policy's return on fresh eval envs (seed offset from training)."""
+        if self.job.eval_episodes == 0 or self.make_eval_env is None:
+            return float("nan"), float("nan"), float("nan")
+        n = self.job.eval_episodes
+        env = self.make_eval_env(min(n, 64))
+        try:
+            greedy = evaluate(env, self.algo, n, seed=self.job.seed + 10_000)
+            rand = evaluate(env, self.algo, n, seed=self.job.seed + 10_000, epsilon=1.0)
+        finally:
+            env.close()
+        return float(greedy.mean()), ci95(greedy), float(rand.mean())
+
+
+class _Bar:
+    """A rich progress bar showing steps, return and speeds; silent when disabled."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.progress = None
+        if not enabled:
+            return
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.progress = Progress(
+            TextColumn("[bold]train"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeRemainingColumn(),
+            transient=False,
+        )
+        self.progress.start()
+        self.task = self.progress.add_task("train", total=total, info="")
+
+    def update(self, steps: int, row: dict[str, float]) -> None:
+        if self.progress is None:
+            return
+        info = (
+            f"return {row['return']:.2f} · loss {row['loss']:.3f} · ε {row['epsilon']:.2f} · "
+            f"{row['env_steps_per_s']:,.0f} steps/s · {row['updates_per_s']:,.0f} upd/s"
+        )
+        self.progress.update(self.task, completed=steps, info=info)
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()

@@ -1,0 +1,103 @@
+"""Network building blocks that evaluate every agent in one pass.
+
+All Convoy algorithms keep the agents' weights stacked: ``GroupLinear`` holds ``[G, in, out]`` with G = 1 when
+parameters are shared (the agents then form one big ``[B·N, in] @ [in, out]`` matmul) and G = N otherwise (one
+batched ``bmm`` over agents). Either way a forward pass is one call for all agents, never a Python loop, which
+keeps the learner's matmuls big and lets the inference-scaling benchmark measure the algorithms, not the loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """``auto`` means CUDA when present, else CPU; an explicit name is taken as given."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class GroupLinear(nn.Module):
+    """A linear layer per agent group: input ``[..., N, in]`` → ``[..., N, out]``."""
+
+    def __init__(self, groups: int, in_features: int, out_features: int) -> None:
+        super().__init__()
+        self.groups, self.in_features, self.out_features = groups, in_features, out_features
+        bound = 1.0 / math.sqrt(max(in_features, 1))
+        self.weight = nn.Parameter(torch.empty(groups, in_features, out_features).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(groups, out_features).uniform_(-bound, bound))
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.groups == 1:  # one 2-D matmul over every row of every agent (3-D matmuls backprop slowly)
+            flat = x.reshape(-1, self.in_features)
+            return torch.addmm(self.bias[0], flat, self.weight[0]).reshape(*x.shape[:-1], self.out_features)
+        n = x.shape[-2]
+        if n != self.groups:
+            raise ValueError(f"GroupLinear expected {self.groups} agents on dim -2, got {n}")
+        lead = x.shape[:-2]
+        flat = x.reshape(-1, n, self.in_features).transpose(0, 1)  # [N, M, in]
+        out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight)  # [N, M, out]
+        return out.transpose(0, 1).reshape(*lead, n, self.out_features)
+
+
+class GroupMLP(nn.Module):
+    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits)."""
+
+    def __init__(self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int) -> None:
+        super().__init__()
+        sizes = [in_features, *hidden, out_features]
+        self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+
+    def forward(self, x: Tensor) -> Tensor:
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < len(self.layers) - 1:
+                x = F.relu(x)
+        return x
+
+    def flops_per_row(self) -> int:
+        """Multiply-adds × 2 of one agent's forward pass (for the throughput benchmark)."""
+        return sum(2 * layer.in_features * layer.out_features for layer in self.layers)
+
+
+def with_agent_id(x: Tensor, shared: bool) -> Tensor:
+    """Append a one-hot agent id when parameters are shared, so one network can still tell agents apart."""
+    if not shared or x.shape[-2] == 1:
+        return x
+    n = x.shape[-2]
+    eye = torch.eye(n, device=x.device, dtype=x.dtype).expand(*x.shape[:-2], n, n)
+    return torch.cat([x, eye], dim=-1)
+
+
+def id_width(n_agents: int, shared: bool) -> int:
+    """Extra input width ``with_agent_id`` adds."""
+    return n_agents if shared and n_agents > 1 else 0
+
+
+def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0) -> Tensor:
+    """Discrete binary messages from logits ``[..., bits·2]`` → ``[..., bits]`` in {0, 1}.
+
+    Training uses the straight-through Gumbel-softmax (hard one-hot forward, soft gradient backward); execution
+    takes the argmax, so what travels at execution is exactly ``bits`` bits.
+    """
+    pairs = logits.reshape(*logits.shape[:-1], bits, 2)
+    if train:
+        return F.gumbel_softmax(pairs, tau=tau, hard=True)[..., 1]
+    return (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
+
+
+def others_index(n_agents: int) -> Tensor:
+    """``[N, N−1]`` indices of every agent's peers in order (agent i's row skips i)."""
+    rows = [[j for j in range(n_agents) if j != i] for i in range(n_agents)]
+    return torch.tensor(rows, dtype=torch.long).reshape(n_agents, max(n_agents - 1, 0))
+
+
+def gather_others(x: Tensor, index: Tensor) -> Tensor:
+    """Per agent, the concatenation of the other agents' vectors: ``[..., N, F]`` → ``[..., N, (N−1)·F]``."""
+    picked = x[..., index, :]  # [..., N, N-1, F]
+    return picked.reshape(*x.shape[:-2], index.shape[0], index.shape[1] * x.shape[-1])

@@ -1,0 +1,69 @@
+"""The joint replay buffer: a preallocated numpy ring of whole joint transitions.
+
+Centralized algorithms need every agent's view of the same step, so one row holds all agents' observations at t
+and t+1, their actions and rewards, the termination flag and the episode id (what stabilised experience replay
+weighs by), plus whatever else an algorithm asked to keep (a fingerprint, received messages). Rows are written
+and read as whole slices, never one element at a time; arrays are allocated on the first insert, from its
+shapes and dtypes, and never grow past ``capacity``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class JointReplay:
+    """Fixed-capacity ring of transitions; ``add`` takes any number of rows, ``sample`` returns a dict of arrays."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity: must be ≥ 1 (got {capacity})")
+        self.capacity = capacity
+        self._data: dict[str, np.ndarray] = {}
+        self._next = 0
+        self._size = 0
+
+    def __len__(self) -> int:
+        return self._size
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self._data.values())
+
+    def add(self, rows: dict[str, np.ndarray]) -> None:
+        """Append rows (every array shares the leading dim M); the oldest rows are overwritten when full."""
+        sizes = {k: len(v) for k, v in rows.items()}
+        m = next(iter(sizes.values()))
+        if any(s != m for s in sizes.values()):
+            raise ValueError(f"rows: every field needs the same leading size, got {sizes}")
+        if not self._data:
+            self._data = {
+                k: np.zeros((self.capacity, *np.shape(v)[1:]), dtype=np.asarray(v).dtype) for k, v in rows.items()
+            }
+        elif set(rows) != set(self._data):
+            raise ValueError(f"rows: fields {sorted(rows)} differ from the buffer's {sorted(self._data)}")
+        if m > self.capacity:  # only the newest rows can survive
+            rows = {k: v[-self.capacity :] for k, v in rows.items()}
+            m = self.capacity
+        idx = (self._next + np.arange(m)) % self.capacity
+        for k, v in rows.items():
+            self._data[k][idx] = v
+        self._next = (self._next + m) % self.capacity
+        self._size = min(self._size + m, self.capacity)
+
+    def sample(self, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """``n`` rows drawn uniformly with replacement."""
+        if self._size == 0:
+            raise ValueError("sample() from an empty replay buffer")
+        idx = rng.integers(0, self._size, size=n)
+        return {k: v[idx] for k, v in self._data.items()}
+
+    def state_dict(self) -> dict:
+        """Contents for a full checkpoint (only the filled part)."""
+        return {"data": {k: v[: self._size].copy() for k, v in self._data.items()}, "next": self._next}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._data, self._size, self._next = {}, 0, 0
+        if state["data"]:
+            self.add(state["data"])
+            self._next = state["next"] % self.capacity

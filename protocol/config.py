@@ -1,0 +1,221 @@
+"""The configuration every Convoy process agrees on: one pydantic model per algorithm and the job that runs it.
+
+The CLI, the (later) REST API, the actor and the learner processes all build a ``JobConfig`` the same way
+(``job_config(...)``), so a bad value is rejected with the same message everywhere: the field, what was given and
+the allowed range. Defaults that the paper ties to an environment (network sizes, message width, IMS iterations,
+parameter sharing) are ``None`` in the algorithm models and filled in from ``ENV_DEFAULTS`` when the job is
+resolved, so a user who sets them explicitly always wins.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from envs.config import ConfigError, build_config
+
+
+class AlgoConfig(BaseModel):
+    """Hyper-parameters shared by every algorithm (section 6.1 of the paper unless noted)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lr: float = Field(5e-4, gt=0, le=1, description="Adam learning rate (paper: 5e-4).")
+    batch_size: int = Field(64, ge=1, le=65536, description="Transitions per update (paper: 64).")
+    gamma: float = Field(0.99, ge=0, le=1, description="Discount factor.")
+    target_update: int = Field(200, ge=1, description="Updates between target-network syncs C (paper: 200).")
+    replay_capacity: int = Field(100_000, ge=1, description="Joint transitions kept in replay (oldest dropped).")
+    learning_starts: int = Field(1_000, ge=0, description="Transitions stored before the first update.")
+    replay_ratio: float = Field(
+        1.0, gt=0, le=1024, description="Sampled transitions per inserted transition (updates follow the data)."
+    )
+    hidden: tuple[int, ...] | None = Field(
+        None, description="Hidden layer widths; None = the env's default (treadmill 4096,12; particle 256)."
+    )
+    share_params: bool | None = Field(
+        None, description="One network for all agents (agent id appended to the input); None = the env's default."
+    )
+    double_q: bool = Field(True, description="Double Q-learning: online argmax, target value (paper: on).")
+    huber: bool = Field(True, description="Huber TD loss (clipped error) instead of the squared TD error.")
+    grad_clip: float = Field(10.0, gt=0, description="Global gradient-norm clip.")
+    eps_start: float = Field(1.0, ge=0, le=1, description="Exploration ε at step 0.")
+    eps_end: float = Field(0.05, ge=0, le=1, description="Exploration ε after the decay (paper: 0.05).")
+    eps_decay_fraction: float = Field(0.2, gt=0, le=1, description="ε decays over this fraction of the run ...")
+    eps_decay_max_steps: int = Field(100_000, ge=1, description="... or over this many env steps, if fewer.")
+
+    @field_validator("hidden", mode="before")
+    @classmethod
+    def _one_layer(cls, v: Any) -> Any:
+        return (v,) if isinstance(v, int) else v
+
+    @model_validator(mode="after")
+    def _check(self) -> AlgoConfig:
+        if self.batch_size > self.replay_capacity:
+            raise ConfigError(
+                "batch_size",
+                f"{self.batch_size} is larger than replay_capacity {self.replay_capacity}; "
+                "lower batch_size or raise replay_capacity",
+            )
+        if self.hidden is not None and (not self.hidden or min(self.hidden) < 1):
+            raise ConfigError("hidden", f"needs at least one layer of ≥ 1 unit (got {self.hidden!r})")
+        return self
+
+
+class MessageConfig(AlgoConfig):
+    """Algorithms that send discrete messages (Gumbel-softmax bits, straight-through in training)."""
+
+    message_bits: int | None = Field(
+        None, ge=1, le=256, description="Binary symbols per message; None = env default (2 bytes = 16)."
+    )
+    gumbel_tau: float = Field(1.0, gt=0, le=100, description="Gumbel-softmax temperature.")
+
+
+class IDQNConfig(AlgoConfig):
+    """Independent DQN: every agent learns from its own observation only."""
+
+
+class SERConfig(AlgoConfig):
+    """DQN with stabilised experience replay (the paper's linearly decaying per-sample weight)."""
+
+    ser_horizon: int = Field(
+        200, ge=1, description="Episodes after which a sample's weight reaches 0 (weight = 1 − age/horizon)."
+    )
+    fingerprint: bool = Field(False, description="Append Foerster et al.'s fingerprint (ε, training progress).")
+
+
+class DIALConfig(MessageConfig):
+    """DIAL: one network gives Q-values and a message; DRU noise in training; messages arrive one step late."""
+
+    dru_sigma: float = Field(2.0, ge=0, description="Std of the Gaussian noise the DRU adds in training (paper: 2).")
+    unroll: int = Field(32, ge=1, le=4096, description="Steps per on-policy sequence batch (truncated BPTT).")
+    target_update_episodes: int = Field(40, ge=1, description="Episodes between target syncs (paper: 40).")
+    replay: bool = Field(
+        False, description="Importance-sampled sequence replay (the paper's variant for particle envs)."
+    )
+
+
+class IMSConfig(MessageConfig):
+    """IMS / CommNet: P rounds of messages averaged over the other agents."""
+
+    comm_iterations: int | None = Field(
+        None, ge=1, le=64, description="Communication iterations P; None = env default (treadmill 5, predator-prey 3)."
+    )
+    discrete: bool = Field(
+        True,
+        description="Messages are message_bits Gumbel-softmax bits (the paper's 2-byte cap); False = CommNet's "
+        "original continuous messages (message_bits real values per message, not quantised).",
+    )
+
+
+class MeSNConfig(MessageConfig):
+    """MA-MeSN (Algorithm 1): separate message networks f′ and policy networks f″."""
+
+
+class BoNConfig(MessageConfig):
+    """MA-BoN: one broadcast message from all agents' encodings."""
+
+    encoding: int = Field(64, ge=1, le=65536, description="Width of each agent's observation encoding.")
+    agent_id: bool = Field(
+        True,
+        description="With shared weights, append a one-hot agent id to the encoder and g′ inputs so roles can "
+        "differ; False = the paper's g′(z_i, bm), whose size is then independent of the number of agents.",
+    )
+
+
+ALGO_CONFIGS: dict[str, type[AlgoConfig]] = {
+    "idqn": IDQNConfig,
+    "dqn-ser": SERConfig,
+    "dial": DIALConfig,
+    "ims": IMSConfig,
+    "ma-mesn": MeSNConfig,
+    "ma-bon": BoNConfig,
+}
+ALGO_SUMMARIES: dict[str, str] = {
+    "idqn": "independent DQN, no communication",
+    "dqn-ser": "independent DQN with stabilised experience replay (+ fingerprint option)",
+    "dial": "DIAL: differentiable inter-agent learning, DRU messages from t−1",
+    "ims": "IMS / CommNet: P iterations of averaged messages",
+    "ma-mesn": "MA-MeSN: message networks + policy networks (Algorithm 1)",
+    "ma-bon": "MA-BoN: one broadcast message, all agents in one pass",
+}
+
+# What the paper fixes per environment; applied to fields left at None.
+ENV_DEFAULTS: dict[str, dict[str, Any]] = {
+    "treadmill": {"hidden": (4096, 12), "message_bits": 16, "comm_iterations": 5, "share_params": True},
+    "predator-prey": {"hidden": (256,), "message_bits": 8, "comm_iterations": 3, "share_params": True},
+    "speaker-listener": {"hidden": (256,), "message_bits": 2, "comm_iterations": 1, "share_params": False},
+    "referential": {"hidden": (256,), "message_bits": 16, "comm_iterations": 1, "share_params": False},
+}
+
+
+def algo_name(name: str) -> str:
+    """Canonical algorithm name (case and ``_`` forgiven), or a ConfigError listing the known ones."""
+    key = name.strip().lower().replace("_", "-")
+    if key not in ALGO_CONFIGS:
+        raise ConfigError("algo", f"unknown algorithm {name!r}; choose one of: {', '.join(ALGO_CONFIGS)}")
+    return key
+
+
+def resolve_algo(algo: str, env: str, params: dict[str, Any] | None = None) -> AlgoConfig:
+    """The algorithm's validated config with the env's defaults filled in where the user left ``None``."""
+    model = ALGO_CONFIGS[algo_name(algo)]
+    cfg = build_config(model, **(params or {}))
+    defaults = ENV_DEFAULTS.get(env, ENV_DEFAULTS["referential"])
+    fill = {k: v for k, v in defaults.items() if k in model.model_fields and getattr(cfg, k) is None}
+    return cfg.model_copy(update=fill) if fill else cfg
+
+
+class JobConfig(BaseModel):
+    """One training job: which algorithm on which env, for how long, and how to report."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    ALGOS: ClassVar[tuple[str, ...]] = tuple(ALGO_CONFIGS)
+
+    algo: str = Field("ma-mesn", description=f"Algorithm: {', '.join(ALGO_CONFIGS)}.")
+    env: str = Field("treadmill", description="Environment name (see `convoy env list`).")
+    env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
+    algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
+    hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
+    steps: int = Field(200_000, ge=1, description="Total env steps (summed over parallel envs).")
+    num_envs: int = Field(16, ge=1, le=65536, description="Envs stepped together per actor.")
+    seed: int = Field(0, ge=0, description="Seed of envs, exploration and network init.")
+    eval_episodes: int = Field(20, ge=0, description="Greedy episodes evaluated at the end.")
+    log_every: int = Field(2_000, ge=1, description="Env steps between metric rows.")
+    checkpoint_every: int = Field(50_000, ge=1, description="Env steps between checkpoints.")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; auto = CUDA when present.")
+    torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
+
+    @model_validator(mode="after")
+    def _check(self) -> JobConfig:
+        from envs.registry import env_entry
+
+        object.__setattr__(self, "algo", algo_name(self.algo))
+        entry = env_entry(self.env)
+        object.__setattr__(self, "env", next(k for k, v in _env_table().items() if v is entry))
+        build_config(entry.config(), **self.env_params)
+        self.algo_config()  # validates algo_params
+        if self.hierarchical and self.env != "treadmill":
+            raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")
+        return self
+
+    def algo_config(self) -> AlgoConfig:
+        """The algorithm's resolved config (env defaults applied)."""
+        return resolve_algo(self.algo, self.env, self.algo_params)
+
+    def env_config(self) -> BaseModel:
+        """The env's validated parameter model."""
+        from envs.registry import env_entry
+
+        return build_config(env_entry(self.env).config(), **self.env_params)
+
+
+def _env_table() -> dict[str, Any]:
+    from envs.registry import ENVS
+
+    return ENVS
+
+
+def job_config(**values: Any) -> JobConfig:
+    """Build a JobConfig from plain values; any problem is a ConfigError naming the field."""
+    return build_config(JobConfig, **values)

@@ -1,0 +1,160 @@
+"""``convoy train``: the command that trains an algorithm (in-process until the distributed runtime lands)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import tomllib
+from rich.console import Console
+from rich.table import Table
+
+from envs import ENVS, ConfigError
+from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, AlgoConfig, JobConfig, job_config
+
+console = Console()
+
+
+def parse_value(text: str) -> Any:
+    """``KEY=VALUE`` values: int, float, true/false, comma lists (``64,64``), else the string itself."""
+    if "," in text:
+        return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_pairs(items: list[str] | None, flag: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(flag, f"expected KEY=VALUE (e.g. {flag} lr=0.001), got {item!r}")
+        out[key.strip()] = parse_value(value.strip())
+    return out
+
+
+def read_config_file(path: str) -> dict[str, Any]:
+    """A JobConfig as JSON or TOML (by extension)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("--config", f"no such file {path!r}; pass a JSON or TOML job file")
+    try:
+        data = tomllib.loads(p.read_text()) if p.suffix == ".toml" else json.loads(p.read_text())
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(
+            "--config", f"{path}: not valid {'TOML' if p.suffix == '.toml' else 'JSON'} ({exc})"
+        ) from None
+    if not isinstance(data, dict):
+        raise ConfigError("--config", f"{path}: expected a table/object of JobConfig fields")
+    return data
+
+
+def job_from_args(args: argparse.Namespace) -> JobConfig:
+    """Config file first, then every flag given on the command line on top of it."""
+    values: dict[str, Any] = read_config_file(args.config) if args.config else {}
+    for name in ("algo", "env", "steps", "num_envs", "seed", "eval_episodes", "log_every", "device"):
+        v = getattr(args, name)
+        if v is not None:
+            values[name] = v
+    if args.threads is not None:
+        values["torch_threads"] = args.threads
+    if args.hierarchical:
+        values["hierarchical"] = True
+    env_params = dict(values.get("env_params", {}))
+    if args.agents is not None:
+        env_params["n_agents"] = args.agents
+    if args.adversaries is not None:
+        env_params["n_adversaries"] = args.adversaries
+    env_params.update(parse_pairs(args.set, "--set"))
+    values["env_params"] = env_params
+    values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
+    return job_config(**values)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from services.training import run_inprocess
+
+    job = job_from_args(args)
+    out = Path(args.out) if args.out else Path("runs") / f"{job.algo}-{job.env}"
+    cfg = job.algo_config()
+    if not args.inprocess:
+        console.print("[dim]the distributed runtime is not built yet; training in-process[/]")
+    console.print(
+        f"[bold]{job.algo}[/] on [bold]{job.env}[/] {job.env_params or ''}: {job.steps:,} env steps, "
+        f"{job.num_envs} envs, hidden {cfg.hidden}, seed {job.seed} → {out}/",
+        highlight=False,
+        soft_wrap=True,
+    )
+    result = run_inprocess(job, out, progress=not args.no_progress)
+    table = Table(title=f"{job.algo} on {job.env}")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    table.add_row("env steps", f"{result.env_steps:,}")
+    table.add_row("episodes", f"{result.episodes:,}")
+    table.add_row("updates", f"{result.updates:,}")
+    table.add_row("wall time", f"{result.wall_s:.1f} s")
+    table.add_row("env steps/s", f"{result.env_steps_per_s:,.0f}")
+    table.add_row("updates/s", f"{result.updates_per_s:,.1f}")
+    table.add_row("training return (last 10 %)", f"{result.final_return:.3f}")
+    table.add_row(f"greedy eval return ({job.eval_episodes} eps)", f"{result.eval_return:.3f} ± {result.eval_ci95:.3f}")
+    table.add_row("random policy return", f"{result.random_return:.3f}")
+    console.print(table)
+    console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt, summary.json")
+    return 0
+
+
+def _algo_epilog() -> str:
+    lines = ["algorithms (--algo):"]
+    lines += [f"  {name:9} {ALGO_SUMMARIES[name]}" for name in ALGO_CONFIGS]
+    lines.append("\nhyper-parameters (--hp KEY=VALUE; per-algorithm extras in parentheses):")
+    for name, info in AlgoConfig.model_fields.items():
+        lines.append(f"  {name} (default {info.default!r}): {info.description}")
+    for algo, model in ALGO_CONFIGS.items():
+        for name, info in model.model_fields.items():
+            if name not in AlgoConfig.model_fields:
+                lines.append(f"  {name} ({algo}; default {info.default!r}): {info.description}")
+    lines.append("\nenv parameters (--set KEY=VALUE): convoy env list --params")
+    return "\n".join(dict.fromkeys(lines))
+
+
+def add_train_parser(sub: argparse._SubParsersAction) -> None:
+    tr = sub.add_parser(
+        "train",
+        help="train an algorithm on an environment",
+        description="Train ALGO on ENV: batched envs and learner updates, a progress bar, then a summary table. "
+        "Writes metrics.jsonl/metrics.csv (one row per --log-every steps), curve.png, checkpoint.pt and "
+        "summary.json under --out.",
+        epilog=_algo_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    d = JobConfig.model_fields
+    tr.add_argument("--inprocess", action="store_true", help="run envs and learner in this one process")
+    tr.add_argument("--algo", help=f"algorithm (default {d['algo'].default}): {', '.join(ALGO_CONFIGS)}")
+    tr.add_argument("--env", help=f"environment (default {d['env'].default}): {', '.join(ENVS)}")
+    tr.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents)")
+    tr.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries)")
+    tr.add_argument("--set", action="append", metavar="KEY=VALUE", help="env parameter, repeatable")
+    tr.add_argument("--hp", action="append", metavar="KEY=VALUE", help="algorithm hyper-parameter, repeatable")
+    tr.add_argument("--steps", type=int, help=f"total env steps (default {d['steps'].default:,})")
+    tr.add_argument("--num-envs", type=int, help=f"envs stepped together (default {d['num_envs'].default})")
+    tr.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")
+    tr.add_argument("--hierarchical", action="store_true", help="hierarchical DQN (appendix A.2), treadmill only")
+    tr.add_argument(
+        "--eval-episodes", type=int, help=f"greedy episodes at the end (default {d['eval_episodes'].default})"
+    )
+    tr.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default})")
+    tr.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device (default auto: CUDA if present)")
+    tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
+    tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
+    tr.add_argument("--out", metavar="DIR", help="output directory (default runs/ALGO-ENV)")
+    tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
+    tr.set_defaults(func=cmd_train)

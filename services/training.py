@@ -1,0 +1,31 @@
+"""Composition of a training run: build the job's env and agent, hand them to the in-process trainer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from envs import make_batched
+from envs.batched import BatchedEnv
+from learner.agent import make_agent
+from learner.inprocess import Trainer, TrainResult
+from protocol.config import JobConfig
+
+
+def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
+    """The job's env as a batch of ``num_envs`` (default: the job's)."""
+    return make_batched(job.env, job.num_envs if num_envs is None else num_envs, **job.env_params)
+
+
+def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
+    """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
+    torch.set_num_threads(job.torch_threads)
+    torch.manual_seed(job.seed)
+    env = make_env(job)
+    try:
+        agent = make_agent(job, env.spec)
+        trainer = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), out_dir=out_dir, progress=progress)
+        return trainer.run()
+    finally:
+        env.close()
