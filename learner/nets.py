@@ -8,6 +8,7 @@ keeps the learner's matmuls big and lets the inference-scaling benchmark measure
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import torch
@@ -51,7 +52,7 @@ class GroupMLP(nn.Module):
     def __init__(self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int) -> None:
         super().__init__()
         sizes = [in_features, *hidden, out_features]
-        self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+        self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in itertools.pairwise(sizes))
 
     def forward(self, x: Tensor) -> Tensor:
         for i, layer in enumerate(self.layers):

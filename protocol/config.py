@@ -85,13 +85,21 @@ class SERConfig(AlgoConfig):
 
 
 class DIALConfig(MessageConfig):
-    """DIAL: one network gives Q-values and a message; DRU noise in training; messages arrive one step late."""
+    """DIAL: one network gives Q-values and a message; DRU noise in training; messages arrive one step late.
+
+    On-policy (the default), every chunk of ``unroll`` steps gets exactly one update, so ``batch_size``,
+    ``learning_starts``, ``replay_ratio`` and ``target_update`` do not apply; targets sync every
+    ``target_update_episodes`` finished episodes instead. With ``replay`` an update draws ``batch_size`` sequences
+    of ``unroll`` steps from a ring of ``replay_capacity // unroll`` sequences.
+    """
 
     dru_sigma: float = Field(2.0, ge=0, description="Std of the Gaussian noise the DRU adds in training (paper: 2).")
     unroll: int = Field(32, ge=1, le=4096, description="Steps per on-policy sequence batch (truncated BPTT).")
     target_update_episodes: int = Field(40, ge=1, description="Episodes between target syncs (paper: 40).")
     replay: bool = Field(
-        False, description="Importance-sampled sequence replay (the paper's variant for particle envs)."
+        False,
+        description="Importance-sampled sequence replay (the paper's variant for particle envs): batch_size "
+        "sequences of unroll steps per update, each step's loss weighted by a clipped importance ratio.",
     )
 
 
@@ -194,7 +202,9 @@ class JobConfig(BaseModel):
         entry = env_entry(self.env)
         object.__setattr__(self, "env", next(k for k, v in _env_table().items() if v is entry))
         build_config(entry.config(), **self.env_params)
-        self.algo_config()  # validates algo_params
+        model = ALGO_CONFIGS[self.algo]
+        given = build_config(model, **self.algo_params)  # validates; then store a JSON-stable normal form
+        object.__setattr__(self, "algo_params", given.model_dump(mode="json", exclude_unset=True))
         if self.hierarchical and self.env != "treadmill":
             raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")
         return self

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import tomllib
 from pathlib import Path
 from typing import Any
 
-import tomllib
 from rich.console import Console
 from rich.table import Table
 

@@ -1,0 +1,110 @@
+"""IMS (Iterative Message Sharing) = CommNet (Sukhbaatar et al. 2016), the paper's iterative-communication baseline.
+
+Every agent encodes its observation into a hidden state ``h⁰_i``. Then, P = ``comm_iterations`` times, every agent
+emits a message from its current hidden state, hears the *mean* of the other agents' messages
+``c_i = mean_{j≠i} m_j`` and updates ``h^{p+1}_i = relu(W_h h^p_i + W_c c_i + h⁰_i)`` (CommNet's skip connection
+from the encoding). The Q-values are a linear head on ``h^P_i``. One network therefore produces both the messages
+and the behaviour, which is the coupling the paper blames for IMS's weaker results (section 6.1).
+
+Choices made where the paper and CommNet leave room:
+
+* Messages are ``message_bits`` discrete bits by default (Gumbel-softmax straight-through in training, argmax at
+  execution), because the paper caps every message at 2 bytes. ``discrete=False`` gives CommNet's original
+  continuous communication: the message is then a linear map of ``h^p`` to ``message_bits`` real values (CommNet
+  sends ``h^p`` itself; a learned projection is the same up to a low-rank factor of its ``C`` matrix).
+* One ``CommStep`` module is applied P times (CommNet's module sharing across communication steps), so the
+  parameter count does not depend on P and P can be changed between runs of the same architecture.
+* Widths: the encoder is ``obs → hidden[:-1] → hidden[-1]`` (ReLU), the communication state has ``hidden[-1]``
+  units and the head is linear. With the treadmill's ``(4096, 12)`` the P rounds run on 12 units, which keeps
+  P = 5 rounds of N agents cheap; with ``(256,)`` this is exactly CommNet's encoder / comm / decoder stack.
+* The mean is vectorised as ``(Σ_j m_j − m_i) / (N − 1)``; a lone agent (N = 1) hears zeros.
+* ``greedy_q`` reports the *first* round's messages ``[B, N, bits]``: that is what a radio would carry before any
+  agent has heard anything; later rounds depend on what was heard and are internal to the centralised pass.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from learner.algorithm import Algorithm
+from learner.nets import GroupLinear, GroupMLP, id_width, message_bits, with_agent_id
+from protocol.config import IMSConfig
+
+
+def mean_of_others(sent: Tensor) -> Tensor:
+    """Per agent, the mean of the *other* agents' messages: ``[..., N, F]`` → ``[..., N, F]`` (zeros if N = 1)."""
+    n = sent.shape[-2]
+    return (sent.sum(dim=-2, keepdim=True) - sent) / max(n - 1, 1)
+
+
+class CommStep(nn.Module):
+    """One CommNet communication round for all agents at once; a module of its own so it can be hooked/counted."""
+
+    def __init__(self, groups: int, width: int, bits: int, discrete: bool, tau: float) -> None:
+        super().__init__()
+        self.bits, self.discrete, self.tau = bits, discrete, tau
+        self.speak = GroupLinear(groups, width, 2 * bits if discrete else bits)  # h^p → message (logits)
+        self.recur = GroupLinear(groups, width, width)  # W_h
+        self.listen = GroupLinear(groups, bits, width)  # W_c
+
+    def emit(self, h: Tensor, train: bool) -> Tensor:
+        """Every agent's message ``[..., N, bits]`` from its hidden state."""
+        out = self.speak(h)
+        return message_bits(out, self.bits, train, self.tau) if self.discrete else out
+
+    def forward(self, h: Tensor, h0: Tensor, train: bool, received: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Next hidden state and the messages sent this round; ``received`` replaces the averaged message."""
+        sent = self.emit(h, train)
+        heard = mean_of_others(sent) if received is None else received
+        return F.relu(self.recur(h) + self.listen(heard) + h0), sent
+
+
+class IMS(Algorithm):
+    """CommNet with P rounds of averaged messages; every round is one batched pass over all agents."""
+
+    name = "ims"
+    config_model = IMSConfig
+    uses_messages = True
+
+    def build(self) -> dict[str, nn.Module]:
+        if self.cfg.message_bits is None or self.cfg.comm_iterations is None:
+            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+        self.bits: int = int(self.cfg.message_bits)
+        self.rounds: int = int(self.cfg.comm_iterations)
+        groups = 1 if self.shared else self.n_agents
+        hidden = tuple(self.cfg.hidden)
+        width = hidden[-1]
+        obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
+        return {
+            "encoder": GroupMLP(groups, obs_in, hidden[:-1], width),  # h⁰ (ReLU applied in forward)
+            "comm": CommStep(groups, width, self.bits, bool(self.cfg.discrete), self.cfg.gumbel_tau),
+            "head": GroupLinear(groups, width, self.n_act),
+        }
+
+    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+        """Q-values ``[..., N, A]`` and the first round's messages ``[..., N, bits]``; ``received``
+        (``[..., N, bits]``) overrides the averaged message every agent hears, in every round (for channel models,
+        white-noise probes and memory modules)."""
+        h0 = F.relu(nets["encoder"](with_agent_id(obs, self.shared)))
+        h, first = h0, None
+        for _ in range(self.rounds):  # P rounds; agents and batch stay vectorised inside each
+            h, sent = nets["comm"](h, h0, train, received)
+            first = sent if first is None else first
+        return nets["head"](h), first
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
+        q, first = self.forward(self.online, obs, train=False)
+        return q, first, None
+
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        q_all, _ = self.forward(self.online, batch["obs"], train=True)
+        q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_next_t, _ = self.forward(self.target, batch["next_obs"], train=False)
+            q_next_o = self.forward(self.online, batch["next_obs"], train=False)[0] if self.cfg.double_q else None
+            y = self.target_for(q_next_t, q_next_o, batch)
+        return q, y

@@ -1,0 +1,82 @@
+"""MA-BoN (the paper's section 4.2): one broadcast message from all agents' encodings, one pass for all Q-values.
+
+Every agent encodes its observation, ``e_i = enc(o_i)`` (``encoding`` units). The message network f′ reads the
+concatenation of *all* encodings ``[e_1 … e_N]`` and produces one broadcast message ``bm`` (``message_bits``
+Gumbel-softmax bits, straight-through in training, argmax at execution). Every agent's action values then come from
+``Q_i = g′(o_i, bm)``, evaluated for all N agents in one ``GroupMLP`` call over the agent axis — no P rounds as in
+IMS, which is why inference grows linearly in N (section 6.2). All agents' TD losses are summed, so f′ and every
+encoder receive the cumulative gradients of all agents' losses; g′_i (per-agent weights) is reached by agent i's
+loss only. Targets use the target copies of every network, synced every C updates.
+
+Choices made where the paper is silent:
+
+* The encoder is one linear layer + ReLU per agent (shared or per-agent with ``share_params``); f′ is a single
+  network (one broadcast) with the configured hidden widths, so its first layer — N·encoding inputs — is the only
+  part whose size grows with N (linearly). g′ has the configured hidden widths.
+* With shared weights a one-hot agent id is appended to the encoder's and g′'s inputs (``agent_id``, on by default)
+  so agents with different roles can still act differently; that adds N input columns, again linear in N.
+  ``agent_id=False`` is the paper's literal ``g′(z_i, bm)``, whose size is then independent of N.
+* ``greedy_q`` reports ``bm`` repeated for every agent ``[B, N, bits]`` so that metrics and channel models see the
+  same per-agent message layout as the other algorithms; all N rows of an env are identical.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from learner.algorithm import Algorithm
+from learner.nets import GroupMLP, id_width, message_bits, with_agent_id
+from protocol.config import BoNConfig
+
+
+class MABoN(Algorithm):
+    """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
+
+    name = "ma-bon"
+    config_model = BoNConfig
+    uses_messages = True
+
+    def build(self) -> dict[str, nn.Module]:
+        if self.cfg.message_bits is None:
+            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+        self.bits: int = int(self.cfg.message_bits)
+        self.use_id: bool = self.shared and bool(self.cfg.agent_id)
+        groups = 1 if self.shared else self.n_agents
+        obs_in = self.obs_dim + id_width(self.n_agents, self.use_id)
+        enc = int(self.cfg.encoding)
+        return {
+            "encoder": GroupMLP(groups, obs_in, (), enc),  # e_i (ReLU applied in forward)
+            "message": GroupMLP(1, self.n_agents * enc, self.cfg.hidden, 2 * self.bits),  # f′: one broadcast
+            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.hidden, self.n_act),  # g′
+        }
+
+    def broadcast(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
+        """The broadcast message ``[..., 1, bits]`` of each env from all its agents' encodings."""
+        e = F.relu(nets["encoder"](x))  # [..., N, enc]
+        joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
+        return message_bits(nets["message"](joint), self.bits, train, self.cfg.gumbel_tau)
+
+    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+        """Q-values ``[..., N, A]`` and ``bm`` per agent ``[..., N, bits]``; ``received`` (``[..., N, bits]``)
+        overrides what each agent hears (for channel models, white-noise probes and memory modules)."""
+        x = with_agent_id(obs, self.use_id)
+        sent = self.broadcast(nets, x, train).expand(*x.shape[:-1], self.bits)
+        heard = sent if received is None else received
+        return nets["policy"](torch.cat([x, heard], dim=-1)), sent
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
+        q, sent = self.forward(self.online, obs, train=False)
+        return q, sent.contiguous(), None
+
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        q_all, _ = self.forward(self.online, batch["obs"], train=True)
+        q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_next_t, _ = self.forward(self.target, batch["next_obs"], train=False)
+            q_next_o = self.forward(self.online, batch["next_obs"], train=False)[0] if self.cfg.double_q else None
+            y = self.target_for(q_next_t, q_next_o, batch)
+        return q, y

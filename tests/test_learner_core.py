@@ -1,0 +1,204 @@
+"""Mechanics shared by every algorithm: gradient routing, target networks, double Q, SER, replay, checkpoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from envs import ConfigError, make_batched
+from envs.batched import EnvSpec
+from learner.algorithm import epsilon_at, td_target
+from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from learner.registry import make_algorithm
+from learner.replay import JointReplay
+from protocol.config import job_config, resolve_algo
+
+SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
+
+
+def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = np.random.default_rng(seed)
+    n, d = spec.n_agents, spec.obs_dim
+    return {
+        "obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
+        "next_obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
+        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(m, n))),
+        "reward": torch.as_tensor(g.normal(size=(m, n)), dtype=torch.float32),
+        "terminated": torch.as_tensor(g.random(m) < 0.2),
+        "episode": torch.zeros(m, dtype=torch.long),
+    }
+
+
+def fill(algo, spec: EnvSpec, rows: int = 256) -> None:
+    b = random_batch(spec, rows)
+    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+
+
+def build(name: str, spec: EnvSpec = SPEC, **params):
+    params = {"hidden": (32,), "learning_starts": 0, "batch_size": 16, **params}
+    torch.manual_seed(0)
+    return make_algorithm(name, spec, resolve_algo(name, "referential", params), device="cpu", seed=0)
+
+
+def test_mesn_td_loss_of_agent_i_reaches_other_message_nets_and_only_its_own_policy() -> None:
+    algo = build("ma-mesn", share_params=False)
+    batch = random_batch(SPEC)
+    for i in range(SPEC.n_agents):
+        algo.optimizer.zero_grad(set_to_none=True)
+        algo.agent_losses(batch)[i].backward()
+        policy_grad = algo.online["policy"].layers[0].weight.grad.abs().sum(dim=(1, 2))  # per agent
+        message_grad = algo.online["message"].layers[0].weight.grad.abs().sum(dim=(1, 2))
+        for j in range(SPEC.n_agents):
+            if j == i:
+                assert policy_grad[j] > 0, "agent i's loss must train its own policy network f″_i"
+                assert message_grad[j] == 0, "agent i's own message is not an input of its own Q"
+            else:
+                assert policy_grad[j] == 0, f"agent {i}'s loss leaked into agent {j}'s policy network"
+                assert message_grad[j] > 0, f"agent {i}'s loss must reach agent {j}'s message network f′_{j}"
+
+
+def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
+    algo = build("ma-mesn", share_params=False)
+    batch = random_batch(SPEC)
+    grads = []
+    for i in range(SPEC.n_agents):
+        torch.manual_seed(1)  # same Gumbel noise in every pass
+        algo.optimizer.zero_grad(set_to_none=True)
+        algo.agent_losses(batch)[i].backward()
+        grads.append(algo.online["message"].layers[0].weight.grad.clone())
+    torch.manual_seed(1)
+    algo.optimizer.zero_grad(set_to_none=True)
+    algo.agent_losses(batch).sum().backward()
+    torch.testing.assert_close(algo.online["message"].layers[0].weight.grad, sum(grads), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["idqn", "dqn-ser", "ma-mesn"])
+def test_target_networks_stay_frozen_between_syncs(name: str) -> None:
+    algo = build(name, target_update=5)
+    fill(algo, SPEC)
+    before = {k: v.clone() for k, v in algo.target.state_dict().items()}
+    for _ in range(4):
+        algo.update()
+    for k, v in algo.target.state_dict().items():
+        assert torch.equal(v, before[k]), f"target {k} moved before the sync"
+    assert any(not torch.equal(v, before[k]) for k, v in algo.online.state_dict().items())
+    algo.update()  # the 5th update syncs
+    for k, v in algo.target.state_dict().items():
+        assert torch.equal(v, algo.online.state_dict()[k])
+
+
+def test_double_q_uses_online_argmax_and_target_value() -> None:
+    online = torch.tensor([[[5.0, 1.0, 0.0]]])  # online prefers action 0
+    target = torch.tensor([[[2.0, 9.0, 0.0]]])  # target would prefer action 1
+    mask = torch.tensor([[True, True, True]])
+    r, term = torch.tensor([[1.0]]), torch.tensor([False])
+    assert td_target(r, term, 0.5, target, online, mask).item() == pytest.approx(1.0 + 0.5 * 2.0)
+    assert td_target(r, term, 0.5, target, None, mask).item() == pytest.approx(1.0 + 0.5 * 9.0)
+    assert td_target(r, torch.tensor([True]), 0.5, target, online, mask).item() == pytest.approx(1.0)
+    # an action the agent does not have is never the argmax
+    masked = torch.tensor([[False, True, True]])
+    assert td_target(r, term, 0.5, target, online, masked).item() == pytest.approx(1.0 + 0.5 * 9.0)
+
+
+def test_ser_weights_decay_linearly_with_sample_age() -> None:
+    algo = build("dqn-ser", ser_horizon=100)
+    algo.progress.episodes = 150
+    batch = {"episode": torch.tensor([150, 100, 50, 0])}
+    w = algo.sample_weights(batch)
+    torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 0.0, 0.0]))
+
+
+def test_ser_fingerprint_is_stored_and_fed_to_the_network() -> None:
+    algo = build("dqn-ser", fingerprint=True)
+    algo.progress.env_steps, algo.progress.total_steps = 50, 100
+    out = algo.act(np.zeros((2, 3, 5), np.float32), 0.1)
+    assert out.extras["fingerprint"].shape == (2, 2)
+    assert out.extras["fingerprint"][0, 1] == pytest.approx(0.5)
+    assert algo.online["q"].layers[0].in_features == 5 + 2  # obs + fingerprint (referential: no sharing)
+
+
+def test_epsilon_decays_over_the_shorter_of_20_percent_and_100k_steps() -> None:
+    cfg = resolve_algo("idqn", "treadmill")
+    assert epsilon_at(cfg, 0, 1_000) == pytest.approx(1.0)
+    assert epsilon_at(cfg, 100, 1_000) == pytest.approx((1.0 + 0.05) / 2)
+    assert epsilon_at(cfg, 200, 1_000) == pytest.approx(0.05)
+    assert epsilon_at(cfg, 50_000, 10_000_000) == pytest.approx((1.0 + 0.05) / 2)  # 100k cap
+    assert epsilon_at(cfg, 10_000_000, 10_000_000) == pytest.approx(0.05)
+
+
+def test_heterogeneous_agents_only_take_their_own_actions() -> None:
+    spec = EnvSpec(name="het", agent_ids=("s", "l"), obs_dims=(3, 8), n_actions=(1, 5), max_steps=5)
+    algo = build("ma-mesn", spec)
+    acts = algo.act(np.random.default_rng(0).normal(size=(500, 2, 8)).astype(np.float32), 1.0).actions
+    assert acts[:, 0].max() == 0 and set(np.unique(acts[:, 1])) == set(range(5))
+    greedy = algo.act(np.random.default_rng(1).normal(size=(100, 2, 8)).astype(np.float32), 0.0).actions
+    assert (greedy[:, 0] == 0).all()
+
+
+def test_replay_is_a_bounded_ring() -> None:
+    buf = JointReplay(10)
+    for start in range(0, 25, 5):
+        buf.add({"x": np.arange(start, start + 5)[:, None], "y": np.zeros((5, 2, 3))})
+    assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8
+    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(15, 25))
+    buf.add({"x": np.arange(100, 130)[:, None], "y": np.zeros((30, 2, 3))})  # more rows than capacity
+    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(120, 130))
+    with pytest.raises(ValueError, match="fields"):
+        buf.add({"x": np.zeros((1, 1))})
+
+
+def test_checkpoint_reload_gives_identical_actions(tmp_path) -> None:
+    job = job_config(algo="ma-mesn", env="referential", algo_params={"hidden": (32,), "learning_starts": 0})
+    env = make_batched("referential", 8)
+    algo = make_algorithm("ma-mesn", env.spec, job.algo_config(), device="cpu")
+    fill(algo, env.spec)
+    for _ in range(5):
+        algo.update()
+    path = save_checkpoint(tmp_path / "c.pt", algo, job, {"env_steps": 123})
+    again, job2, counters = load_checkpoint(path, device="cpu")
+    obs = env.reset(seed=3)
+    np.testing.assert_array_equal(algo.act(obs, 0.0).actions, again.act(obs, 0.0).actions)
+    np.testing.assert_array_equal(algo.act(obs, 0.0).messages, again.act(obs, 0.0).messages)
+    assert job2 == job and counters["env_steps"] == 123 and again.updates == 5
+
+
+def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:
+    with pytest.raises(CheckpointError, match="no such file"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_checkpoint(tmp_path / "junk.pt")
+    torch.save({"hello": 1}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not a Convoy checkpoint"):
+        load_checkpoint(tmp_path / "foreign.pt")
+
+
+@pytest.mark.parametrize(
+    ("values", "field"),
+    [
+        ({"algo": "ppo"}, "algo"),
+        ({"algo": "ims", "algo_params": {"comm_iterations": 0}}, "comm_iterations"),
+        ({"algo_params": {"batch_size": 128, "replay_capacity": 64}}, "batch_size"),
+        ({"algo_params": {"learning_rate": 0.1}}, "learning_rate"),
+        ({"algo_params": {"hidden": [64, 0]}}, "hidden"),
+        ({"env": "highway"}, "env"),
+        ({"env_params": {"n_agents": 0}}, "n_agents"),
+        ({"steps": 0}, "steps"),
+        ({"env": "referential", "hierarchical": True}, "hierarchical"),
+    ],
+)
+def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        job_config(**values)
+    assert info.value.field == field, str(info.value)
+
+
+def test_env_defaults_fill_only_what_the_user_left_open() -> None:
+    assert resolve_algo("ma-mesn", "treadmill").hidden == (4096, 12)
+    assert resolve_algo("ma-mesn", "treadmill").message_bits == 16
+    assert resolve_algo("ma-mesn", "predator-prey").message_bits == 8
+    assert resolve_algo("ma-mesn", "speaker-listener").message_bits == 2
+    assert resolve_algo("ims", "treadmill").comm_iterations == 5
+    assert resolve_algo("ims", "predator-prey").comm_iterations == 3
+    assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
