@@ -1,4 +1,4 @@
-# Convoy — `make run` trains (for now: drives the treadmill with the scripted policy), `make test` checks.
+# Convoy — `make run` trains MA-MeSN on the treadmill (in-process), `make test` checks.
 # Both create .venv on first use: torch==2.13.0 first (a local CPU wheel on our machines), then the project.
 PYTHON ?= python3
 VENV   := .venv
@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.convoy-installed
 OUT    ?= runs/demo
 
-.PHONY: run test lint bench clean
+.PHONY: run demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -15,7 +15,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+STEPS  ?= 100000
+
 run: $(STAMP)
+	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 --out $(OUT)
+
+demo: $(STAMP)
 	$(BIN)/convoy env rollout --env treadmill --agents 3 --adversaries 1 --episodes 20 --policy scripted \
 		--seed 0 --show 8 --gif $(OUT)/treadmill.gif --summary $(OUT)/summary.json --plot $(OUT)/returns.png
 
@@ -28,7 +33,10 @@ test: lint
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
-	$(BIN)/python benchmarks/env_throughput.py --markdown $(OUT)/env_throughput.md
+	$(BIN)/python benchmarks/env_throughput.py --markdown runs/bench/env_throughput.md
+	$(BIN)/python benchmarks/learner_throughput.py --markdown runs/bench/learner_throughput.md
+	$(BIN)/python benchmarks/inference_scaling.py --markdown runs/bench/inference_scaling.md
+	$(BIN)/python benchmarks/speaker_listener.py --json runs/bench/speaker_listener.json
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis

@@ -155,6 +155,9 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
     "speaker-listener": {"hidden": (256,), "message_bits": 2, "comm_iterations": 1, "share_params": False},
     "referential": {"hidden": (256,), "message_bits": 16, "comm_iterations": 1, "share_params": False},
 }
+# Where the paper gives one algorithm a different default on one env (section 6.1: DIAL's first layer is 6144 wide
+# on the treadmill, "to allow for fair evaluation to other algorithms").
+ALGO_ENV_DEFAULTS: dict[tuple[str, str], dict[str, Any]] = {("dial", "treadmill"): {"hidden": (6144, 12)}}
 
 
 def algo_name(name: str) -> str:
@@ -169,7 +172,8 @@ def resolve_algo(algo: str, env: str, params: dict[str, Any] | None = None) -> A
     """The algorithm's validated config with the env's defaults filled in where the user left ``None``."""
     model = ALGO_CONFIGS[algo_name(algo)]
     cfg = build_config(model, **(params or {}))
-    defaults = ENV_DEFAULTS.get(env, ENV_DEFAULTS["referential"])
+    key = algo_name(algo)
+    defaults = {**ENV_DEFAULTS.get(env, ENV_DEFAULTS["referential"]), **ALGO_ENV_DEFAULTS.get((key, env), {})}
     fill = {k: v for k, v in defaults.items() if k in model.model_fields and getattr(cfg, k) is None}
     return cfg.model_copy(update=fill) if fill else cfg
 

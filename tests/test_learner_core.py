@@ -202,3 +202,5 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
     assert resolve_algo("ims", "treadmill").comm_iterations == 5
     assert resolve_algo("ims", "predator-prey").comm_iterations == 3
     assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
+    assert resolve_algo("dial", "treadmill").hidden == (6144, 12)  # the paper's wider DIAL
+    assert resolve_algo("dial", "treadmill", {"hidden": 64}).hidden == (64,)

@@ -1,8 +1,13 @@
-"""A one-step referential game: the speaker sees a target, the listener must name it without seeing it.
+"""A referential game: the speaker sees a target, the listener must name it without seeing it.
 
 This is the smallest environment in which communication is both necessary and sufficient: a listener that hears
 nothing succeeds with probability 1/K, one that is told the target succeeds always. It is batched natively in numpy
 (``ReferentialBatch``); ``ReferentialEnv`` wraps a batch of one as a PettingZoo ``ParallelEnv``.
+
+By default a game is one step. ``rounds = R > 1`` keeps the same target for R steps, so that algorithms whose
+messages arrive one step late (DIAL sends at t−1, as the paper notes) can communicate at all: the speaker sees the
+target on every round, the listener still sees zeros, and only the listener's guess on the last round is scored.
+With ``rounds=1`` the game is exactly the one-step game, draw for draw.
 
 Choices made where the paper is silent:
 
@@ -10,12 +15,17 @@ Choices made where the paper is silent:
   zeros (it carries no information; the width only matches the speaker's so the batch needs no extra padding).
 * The speaker has a single no-op action (``Discrete(1)``): its message travels through the learning algorithm's
   message path, which lives outside the env, so the env cannot be solved by an env-level "say" action.
-* Reward is shared: 1.0 to both agents if the listener's action equals the target, else 0.0. Every episode is one
-  step long and ends with ``terminated=True`` (a real end, so no bootstrapping past it).
+* Reward is shared: 1.0 to both agents if the listener's action on the last round equals the target, else 0.0;
+  earlier rounds pay 0.0 whatever the guess. Every episode is exactly ``rounds`` steps long (``spec.max_steps``) and
+  ends with ``terminated=True`` after the last round (a real end, so no bootstrapping past it); ``truncated`` is
+  never set. Observations carry no round counter (the listener's stays all zeros).
+* All games of a batch start together (``reset`` resets every env) and last the same number of steps, so they stay
+  in lockstep: one round counter serves the whole batch and new targets are drawn for every env at once.
 * Targets are uniform over K, drawn from the counter-based generator of ``envs.rng`` (as the treadmill's), so each
   env's targets depend only on its own seed: an int seed is expanded per env by ``envs.batched.env_seeds``, an array
   gives each env its seed, ``reset(None)`` continues the streams (fresh entropy on the very first reset).
-* ``info["target"]`` (``[B]`` int64) holds the target of the episode that just ended, for evaluation only.
+* ``info["target"]`` (``[B]`` int64) holds the target of the episode just played (ended, on the last round), for
+  evaluation only.
 """
 
 from __future__ import annotations
@@ -36,16 +46,23 @@ AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)
 
 
 class ReferentialConfig(BaseModel):
-    """Referential game parameters: only the number of candidate targets K."""
+    """Referential game parameters: the number of candidate targets K and of rounds per game."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     n_targets: int = Field(4, ge=2, le=64, description="Number of candidate targets K; chance success is 1/K.")
+    rounds: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="Steps per game with the same target; only the last round's guess is scored "
+        "(> 1 lets messages sent one step late, as DIAL's, reach the listener).",
+    )
 
 
 def _spec(cfg: ReferentialConfig) -> EnvSpec:
     k = cfg.n_targets
-    return EnvSpec(name="referential", agent_ids=AGENTS, obs_dims=(k, k), n_actions=(1, k), max_steps=1)
+    return EnvSpec(name="referential", agent_ids=AGENTS, obs_dims=(k, k), n_actions=(1, k), max_steps=cfg.rounds)
 
 
 class ReferentialBatch:
@@ -61,6 +78,7 @@ class ReferentialBatch:
         self._streams.seed(None)  # usable before any reset: fresh entropy
         self._targets = np.zeros(num_envs, dtype=np.int64)
         self._obs: np.ndarray | None = None
+        self._round = 0  # rounds already played in the current games (the batch moves in lockstep)
 
     @property
     def targets(self) -> np.ndarray:
@@ -79,25 +97,37 @@ class ReferentialBatch:
         """Draw new targets for every game; returns obs ``[B, 2, K]``."""
         self._streams.seed(seed)
         self._obs = self._draw()
+        self._round = 0
         return self._obs.copy()
 
     def step(self, actions: np.ndarray) -> StepResult:
-        """Score the listener's guesses ``actions[:, 1]``; every game ends and a new target is drawn."""
+        """Play one round; on the last one score the listener's guesses ``actions[:, 1]``, end every game and draw
+        new targets (earlier rounds pay nothing and keep the target)."""
         if self._obs is None:
             raise RuntimeError("step() before reset()")
         acts = check_actions(actions, self.num_envs, self.spec.n_actions)
         targets = self._targets
-        hit = (acts[:, 1] == targets).astype(np.float32)
+        self._round += 1
+        last = self._round >= self.config.rounds
         final_obs = self._obs
-        self._obs = self._draw()
+        if last:
+            hit = (acts[:, 1] == targets).astype(np.float32)
+            self._obs = self._draw()
+            self._round = 0
+        else:
+            hit = np.zeros(self.num_envs, dtype=np.float32)
+            final_obs = final_obs.copy()  # the game goes on with this obs; the caller may keep final_obs
         return StepResult(
             obs=self._obs.copy(),
             reward=np.repeat(hit[:, None], 2, axis=1),
-            terminated=np.ones(self.num_envs, dtype=bool),
+            terminated=np.full(self.num_envs, last, dtype=bool),
             truncated=np.zeros(self.num_envs, dtype=bool),
             final_obs=final_obs,
-            info={"target": targets},
+            info={"target": targets.copy()},
         )
+
+    def close(self) -> None:
+        """Nothing to release (part of the ``BatchedEnv`` API)."""
 
 
 class ReferentialEnv(ParallelEnv):
@@ -143,12 +173,14 @@ class ReferentialEnv(ParallelEnv):
                 )
             row.append(int(a))
         res = self._batch.step(np.array([row], dtype=np.int64))
-        self.agents = []
+        done = bool(res.terminated[0])
+        if done:  # the last round: every agent leaves until the next reset
+            self.agents = []
         obs = {a: res.final_obs[0, i] for i, a in enumerate(AGENTS)}
         rewards = {a: float(res.reward[0, i]) for i, a in enumerate(AGENTS)}
         target = int(res.info["target"][0])
         infos = {a: {"target": target} for a in AGENTS}
-        return obs, rewards, {a: True for a in AGENTS}, {a: False for a in AGENTS}, infos
+        return obs, rewards, {a: done for a in AGENTS}, {a: False for a in AGENTS}, infos
 
     def render(self) -> None:
         return None
