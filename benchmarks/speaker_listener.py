@@ -39,7 +39,7 @@ NO_COMM, ORACLE, TARGET = -16.0, -7.7, -12.0
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--steps", type=int, default=250_000, help="env steps per run (default %(default)s)")
+    p.add_argument("--steps", type=int, default=300_000, help="env steps per run (default %(default)s)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds (default %(default)s)")
     p.add_argument("--algos", nargs="+", default=["ma-mesn", "idqn"], help="algorithms (default %(default)s)")
     p.add_argument("--num-envs", type=int, default=16, help="envs stepped together (default %(default)s)")
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.steps, args.eval_episodes = 4_000, 10
     console = Console()
-    hp = {"learning_starts": 2_000 if not args.quick else 200, "replay_ratio": 2.0}
+    hp = {"learning_starts": 2_000 if not args.quick else 200, "replay_ratio": 8.0, "lr": 1e-3}
     runs: list[dict] = []
     for algo in args.algos:
         for seed in args.seeds:

@@ -55,7 +55,9 @@ ENVS: dict[str, EnvEntry] = {
     "speaker-listener": _particle(
         "speaker-listener", "mpe2 simple_speaker_listener, env channel removed", "SpeakerListenerConfig"
     ),
-    "referential": _particle("referential", "referential game: listener picks the speaker's target (1 or more rounds)", "ReferentialConfig"),
+    "referential": _particle(
+        "referential", "referential game: listener picks the speaker's target (1 or more rounds)", "ReferentialConfig"
+    ),
 }
 
 

@@ -57,24 +57,29 @@ def ci95(x: np.ndarray) -> float:
 def evaluate(
     env: BatchedEnv, algo: Algorithm, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
 ) -> np.ndarray:
-    """Per-episode returns (mean over agents) of the first ``episodes`` episodes finished with ε-greedy acting."""
-    obs = env.reset(seed=seed)
+    """Per-episode returns (mean over agents) of ``episodes`` episodes with ε-greedy acting.
+
+    Every env contributes its *first* episode only (in rounds of B envs, reseeded each round): scoring the first
+    episodes to finish would over-sample short ones, i.e. early crashes.
+    """
     b = env.num_envs
-    state = algo.initial_state(b)
-    ep_ret = np.zeros(b)
     out: list[float] = []
-    limit = max_iters or (episodes // b + 2) * env.spec.max_steps + 10
-    for _ in range(limit):
-        act = algo.act(obs, epsilon, state)
-        res = env.step(act.actions)
-        ep_ret += res.reward.mean(axis=1)
-        if res.done.any():
-            out.extend(ep_ret[res.done].tolist())
-            ep_ret[res.done] = 0.0
-            if len(out) >= episodes:
+    limit = max_iters or env.spec.max_steps + 1
+    for rnd in range(-(-episodes // b)):
+        obs = env.reset(seed=seed + rnd)
+        state = algo.initial_state(b)
+        ep_ret = np.zeros(b)
+        active = np.ones(b, dtype=bool)
+        for _ in range(limit):
+            act = algo.act(obs, epsilon, state)
+            res = env.step(act.actions)
+            ep_ret += np.where(active, res.reward.mean(axis=1), 0.0)
+            active &= ~res.done
+            if not active.any():
                 break
-        state = algo.reset_state(act.state, res.done)
-        obs = res.obs
+            state = algo.reset_state(act.state, res.done)
+            obs = res.obs
+        out.extend(ep_ret.tolist())
     return np.asarray(out[:episodes], dtype=np.float64)
 
 
@@ -215,7 +220,7 @@ class Trainer:
         if self.job.eval_episodes == 0 or self.make_eval_env is None:
             return float("nan"), float("nan"), float("nan")
         n = self.job.eval_episodes
-        env = self.make_eval_env(min(n, 64))
+        env = self.make_eval_env(min(n, 256))
         try:
             greedy = evaluate(env, self.algo, n, seed=self.job.seed + 10_000)
             rand = evaluate(env, self.algo, n, seed=self.job.seed + 10_000, epsilon=1.0)

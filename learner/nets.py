@@ -58,7 +58,7 @@ class GroupMLP(nn.Module):
         for i, layer in enumerate(self.layers):
             x = layer(x)
             if i < len(self.layers) - 1:
-                x = F.relu(x)
+                x = F.relu(x, inplace=True)  # the matmul's output is not needed for its backward: save a copy
         return x
 
     def flops_per_row(self) -> int:
@@ -80,16 +80,24 @@ def id_width(n_agents: int, shared: bool) -> int:
     return n_agents if shared and n_agents > 1 else 0
 
 
-def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0) -> Tensor:
+def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise: float = 1.0) -> Tensor:
     """Discrete binary messages from logits ``[..., bits·2]`` → ``[..., bits]`` in {0, 1}.
 
-    Training uses the straight-through Gumbel-softmax (hard one-hot forward, soft gradient backward); execution
-    takes the argmax, so what travels at execution is exactly ``bits`` bits.
+    Training uses the straight-through Gumbel-softmax: the forward value is the hard one-hot of
+    ``argmax(logits + noise·g)`` (g Gumbel), the gradient that of ``softmax((logits + noise·g) / tau)``. ``noise = 1``
+    is the standard estimator (a message is *sampled*, so the listener trains on the speaker's uncertainty);
+    ``noise = 0`` is the deterministic straight-through estimator. Execution takes the argmax, so what travels is
+    exactly ``bits`` bits.
     """
     pairs = logits.reshape(*logits.shape[:-1], bits, 2)
-    if train:
-        return F.gumbel_softmax(pairs, tau=tau, hard=True)[..., 1]
-    return (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
+    if not train:
+        return (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
+    if noise > 0:
+        u = torch.rand_like(pairs).clamp_(1e-10, 1.0 - 1e-7)
+        pairs = pairs - noise * torch.log(-torch.log(u))
+    soft = torch.softmax(pairs / tau, dim=-1)[..., 1]
+    hard = (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
+    return hard + (soft - soft.detach())  # exactly 0/1 forward (x − x = 0), the soft gradient backward
 
 
 def others_index(n_agents: int) -> Tensor:

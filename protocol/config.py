@@ -69,6 +69,9 @@ class MessageConfig(AlgoConfig):
         None, ge=1, le=256, description="Binary symbols per message; None = env default (2 bytes = 16)."
     )
     gumbel_tau: float = Field(1.0, gt=0, le=100, description="Gumbel-softmax temperature.")
+    gumbel_noise: float = Field(
+        1.0, ge=0, le=10, description="Scale of the Gumbel noise in training (1 = sampled messages, 0 = deterministic)."
+    )
 
 
 class IDQNConfig(AlgoConfig):

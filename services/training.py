@@ -10,6 +10,7 @@ from envs import make_batched
 from envs.batched import BatchedEnv
 from learner.agent import make_agent
 from learner.inprocess import Trainer, TrainResult
+from learner.runtime import configure_learner
 from protocol.config import JobConfig
 
 
@@ -20,7 +21,7 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
 
 def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
-    torch.set_num_threads(job.torch_threads)
+    configure_learner(job.torch_threads)
     torch.manual_seed(job.seed)
     env = make_env(job)
     try:

@@ -204,3 +204,19 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
     assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
     assert resolve_algo("dial", "treadmill").hidden == (6144, 12)  # the paper's wider DIAL
     assert resolve_algo("dial", "treadmill", {"hidden": 64}).hidden == (64,)
+
+
+def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
+    from learner.nets import message_bits
+
+    logits = torch.tensor([[0.3, -0.2, 2.0, -2.0, -0.1, 0.1]], requires_grad=True)  # 3 bits as (off, on) pairs
+    exe = message_bits(logits, 3, train=False)
+    assert exe.tolist() == [[0.0, 0.0, 1.0]]  # argmax of each pair
+    det = message_bits(logits, 3, train=True, noise=0.0)
+    assert torch.equal(det.detach(), exe)  # deterministic straight-through: forward = the argmax
+    det.sum().backward()
+    assert logits.grad is not None and logits.grad.abs().sum() > 0  # the soft path carries a gradient
+    torch.manual_seed(0)
+    samples = torch.stack([message_bits(logits, 3, train=True).detach() for _ in range(400)])
+    assert set(samples.unique().tolist()) <= {0.0, 1.0}
+    assert 0.2 < samples[:, 0, 0].mean() < 0.8  # an unsure bit is sampled both ways (Gumbel noise)

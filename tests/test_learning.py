@@ -55,7 +55,14 @@ def test_independent_dqn_cannot_beat_chance_on_the_referential_game() -> None:
 
 
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
-TREADMILL_HP = {"hidden": (64,), "learning_starts": 500, "replay_ratio": 4.0, "target_update": 100, "gamma": 0.95, "lr": 1e-3}
+TREADMILL_HP = {
+    "hidden": (64,),
+    "learning_starts": 500,
+    "replay_ratio": 4.0,
+    "target_update": 100,
+    "gamma": 0.95,
+    "lr": 1e-3,
+}
 
 
 @pytest.mark.parametrize("algo", ["idqn", "dqn-ser", "ma-mesn", "ma-bon", "ims", "dial"])

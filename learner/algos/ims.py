@@ -44,9 +44,9 @@ def mean_of_others(sent: Tensor) -> Tensor:
 class CommStep(nn.Module):
     """One CommNet communication round for all agents at once; a module of its own so it can be hooked/counted."""
 
-    def __init__(self, groups: int, width: int, bits: int, discrete: bool, tau: float) -> None:
+    def __init__(self, groups: int, width: int, bits: int, discrete: bool, tau: float, noise: float = 1.0) -> None:
         super().__init__()
-        self.bits, self.discrete, self.tau = bits, discrete, tau
+        self.bits, self.discrete, self.tau, self.noise = bits, discrete, tau, noise
         self.speak = GroupLinear(groups, width, 2 * bits if discrete else bits)  # h^p → message (logits)
         self.recur = GroupLinear(groups, width, width)  # W_h
         self.listen = GroupLinear(groups, bits, width)  # W_c
@@ -54,7 +54,7 @@ class CommStep(nn.Module):
     def emit(self, h: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its hidden state."""
         out = self.speak(h)
-        return message_bits(out, self.bits, train, self.tau) if self.discrete else out
+        return message_bits(out, self.bits, train, self.tau, self.noise) if self.discrete else out
 
     def forward(self, h: Tensor, h0: Tensor, train: bool, received: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Next hidden state and the messages sent this round; ``received`` replaces the averaged message."""
@@ -81,7 +81,9 @@ class IMS(Algorithm):
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         return {
             "encoder": GroupMLP(groups, obs_in, hidden[:-1], width),  # h⁰ (ReLU applied in forward)
-            "comm": CommStep(groups, width, self.bits, bool(self.cfg.discrete), self.cfg.gumbel_tau),
+            "comm": CommStep(
+                groups, width, self.bits, bool(self.cfg.discrete), self.cfg.gumbel_tau, self.cfg.gumbel_noise
+            ),
             "head": GroupLinear(groups, width, self.n_act),
         }
 

@@ -58,7 +58,7 @@ class MABoN(Algorithm):
         """The broadcast message ``[..., 1, bits]`` of each env from all its agents' encodings."""
         e = F.relu(nets["encoder"](x))  # [..., N, enc]
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
-        return message_bits(nets["message"](joint), self.bits, train, self.cfg.gumbel_tau)
+        return message_bits(nets["message"](joint), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
 
     def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
         """Q-values ``[..., N, A]`` and ``bm`` per agent ``[..., N, bits]``; ``received`` (``[..., N, bits]``)

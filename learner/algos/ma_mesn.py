@@ -40,7 +40,7 @@ class MAMeSN(Algorithm):
 
     def messages(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
-        return message_bits(nets["message"](x), self.bits, train, self.cfg.gumbel_tau)
+        return message_bits(nets["message"](x), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
 
     def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
         """Q-values ``[..., N, A]`` and the messages sent; ``received`` overrides what each agent hears

@@ -1,0 +1,495 @@
+"""Learner throughput: updates/s, transitions/s and the fraction of the CPU's matmul peak one ``update()`` reaches.
+
+What is measured. For every algorithm in ``learner.registry.ALGORITHMS`` on the treadmill (N = 3 agents + 1
+adversary, ``--agents``) at the paper's network sizes (treadmill hidden (4096, 12), 16 message bits, 5 IMS rounds,
+shared weights) and batch size 64 (``--batch-size``, several values allowed):
+
+* the replay is filled with real transitions: a few env steps are played with ε = 1 (random actions, through
+  ``algo.act`` so that every extra an algorithm stores — DIAL's received messages and behaviour probabilities, SER's
+  episode stamps — is real) and those chunks are observed again and again until the replay holds ``--fill`` rows
+  (default: its capacity, 100,000). ``learning_starts`` is 0, so ``can_update()`` holds at once;
+* DIAL learns on-policy from whole chunks ``[T = unroll = 32, B, …]``; one update consumes one observed chunk, so a
+  chunk is observed (untimed) before every update that needs one. Its B is ``--dial-envs`` (default: the batch
+  size), i.e. one DIAL update sees ``batch_size`` sequences of 32 steps — what its replay variant samples — and the
+  table's transitions/update says how many steps that is;
+* ``update()`` is timed call by call after ``--warmup`` untimed updates: median over ``--repeats`` rounds (each ≥
+  ``--seconds``) → updates/s, and transitions/s = transitions per update × updates/s;
+* the FLOPs of one update are counted by torch itself (``torch.utils.flop_counter.FlopCounterMode`` around one
+  ``update()``: every matmul of the forward passes, the backward pass and the target evaluations; elementwise work
+  such as ReLU, Gumbel sampling and Adam is not counted, so achieved GFLOP/s is matmul work per second of update);
+* the peak is torch's own: ``torch.mm`` of two square float32 matrices (``--peak-n``, 2048) with the same thread
+  count, measured in the same run, so the fraction of peak compares like with like;
+* where the time goes: ``--profile-updates`` updates are profiled with ``torch.profiler`` (CPU): the share of
+  operator time spent in matmuls, the matmuls' own GFLOP/s, the number of operator calls and the top operators by
+  self time; and the minor page faults per timed update (``getrusage``), which count the fresh activation buffers
+  the allocator had to map. Profiling adds a few µs per operator, so the shares lean towards many small ops; the
+  timed figures above are unprofiled.
+
+Target (from the issue): ≥ 0.5 of the matmul peak at the paper's sizes. It is reported, not asserted.
+
+Run from the repository root: ``python benchmarks/learner_throughput.py`` (a few minutes); ``--quick`` for a smoke
+test of a few seconds (hidden (256, 12), small replay and batch); ``--json`` / ``--markdown`` save the figures.
+Algorithms whose module does not import yet are skipped with a note.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
+from inference_scaling import (
+    ENV,
+    build_algorithm,
+    count_flops,
+    cpu_model,
+    fmt_count,
+    importable_algorithms,
+    machine_info,
+    markdown_table,
+    pin_cores,
+    write_outputs,
+)
+
+from envs.registry import make_batched
+from learner.algorithm import Algorithm, Progress
+from learner.registry import ALGORITHMS
+from learner.runtime import configure_learner
+from protocol.config import ENV_DEFAULTS
+
+try:
+    import resource
+except ImportError:  # not on Windows
+    resource = None  # type: ignore[assignment]
+
+TARGET_FRACTION = 0.5
+DEFAULT_AGENTS = 3
+COLLECT_ENVS = 64  # envs played in parallel to gather the real transitions that fill the replay
+COLLECT_STEPS = 32  # steps of those envs (2,048 distinct transitions, observed repeatedly)
+QUICK_HIDDEN = (256, 12)
+MATMUL_OPS = frozenset({"aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm", "aten::mv", "aten::addmv"})
+
+
+# ------------------------------------------------------------------------------------------------ data
+def rusage() -> tuple[int, float]:
+    """Minor page faults and kernel seconds so far: a fresh [rows, 4096] activation costs one fault per 4 KiB page
+    touched, which on a VM can cost as much as the arithmetic on it."""
+    if resource is None:
+        return 0, 0.0
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_minflt, r.ru_stime
+
+
+def collect(algo: Algorithm, env: Any, steps: int, seed: int) -> dict[str, np.ndarray]:
+    """``steps`` env steps of random play as one chunk ``[T, B, …]``, with the fields the in-process trainer stores
+    (``learner.inprocess.Trainer``) plus the algorithm's own extras."""
+    obs = env.reset(seed=seed)
+    b = env.num_envs
+    state = algo.initial_state(b)
+    episode = np.zeros(b, dtype=np.int64)
+    finished = 0
+    chunk: dict[str, list[np.ndarray]] = {}
+    for _ in range(steps):
+        out = algo.act(obs, 1.0, state)
+        res = env.step(out.actions)
+        step = {
+            "obs": obs,
+            "action": out.actions,
+            "reward": res.reward.astype(np.float32),
+            "next_obs": res.final_obs,
+            "terminated": res.terminated,
+            "truncated": res.truncated,
+            "episode": episode.copy(),
+            **out.extras,
+        }
+        for k, v in step.items():
+            chunk.setdefault(k, []).append(v)
+        done = res.done
+        if done.any():
+            finished += int(done.sum())
+            episode[done] = finished
+        state = algo.reset_state(out.state, done)
+        obs = res.obs
+    return {k: np.stack(v) for k, v in chunk.items()}
+
+
+# ------------------------------------------------------------------------------------------------ the cases
+@dataclass
+class Case:
+    """One (algorithm, batch size): a filled learner, the chunk it re-observes, and its timings."""
+
+    algo_name: str
+    batch_size: int
+    algo: Algorithm
+    chunk: dict[str, np.ndarray]
+    transitions_per_update: int
+    chunk_envs: int
+    flops: int = 0
+    flops_by_op: dict[str, int] = field(default_factory=dict)
+    profile: dict[str, Any] = field(default_factory=dict)
+    seconds_per_update: list[float] = field(default_factory=list)
+    faults_per_update: list[float] = field(default_factory=list)  # minor page faults (fresh buffers touched)
+    sys_seconds_per_update: list[float] = field(default_factory=list)  # kernel time, mostly those faults
+
+    def ready(self) -> None:
+        """Untimed: give an on-policy learner (DIAL) its next chunk when its queue is empty."""
+        if not self.algo.can_update():
+            self.algo.observe(self.chunk)
+            if not self.algo.can_update():
+                raise RuntimeError(f"{self.algo_name}: can_update() is false after observing a chunk")
+
+    def update(self) -> None:
+        self.ready()
+        self.algo.update()
+
+    def measure(self, seconds: float, min_updates: int) -> float:
+        """Mean seconds per update over ≥ ``seconds`` of update time (chunk observation excluded)."""
+        clock = time.perf_counter
+        spent, calls, faults, sys_s = 0.0, 0, 0, 0.0
+        while spent < seconds or calls < min_updates:
+            self.ready()
+            r0, t0 = rusage(), clock()
+            self.algo.update()
+            spent += clock() - t0
+            r1 = rusage()
+            faults += r1[0] - r0[0]
+            sys_s += r1[1] - r0[1]
+            calls += 1
+        self.seconds_per_update.append(spent / calls)
+        self.faults_per_update.append(faults / calls)
+        self.sys_seconds_per_update.append(sys_s / calls)
+        return spent / calls
+
+    @property
+    def median_s(self) -> float:
+        return statistics.median(self.seconds_per_update)
+
+    @property
+    def updates_per_s(self) -> float:
+        return 1.0 / self.median_s
+
+    @property
+    def transitions_per_s(self) -> float:
+        return self.transitions_per_update * self.updates_per_s
+
+    @property
+    def gflops(self) -> float:
+        return self.flops * self.updates_per_s / 1e9
+
+
+def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
+    """Build the learner with a small ``learning_starts``, fill its replay with real transitions, warm it up and
+    count and profile one update."""
+    params: dict[str, Any] = {
+        "batch_size": batch_size,
+        "learning_starts": 0,
+        "replay_capacity": max(args.capacity, batch_size),
+    }
+    if args.hidden:
+        params["hidden"] = tuple(args.hidden)
+    probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed)
+    probe_env.close()
+    sequential = algo.chunk_len > 1  # DIAL: one update per observed [chunk_len, B] chunk
+    envs = (args.dial_envs or batch_size) if sequential else COLLECT_ENVS
+    env = make_batched(ENV, envs, n_agents=args.agents, n_adversaries=1)
+    chunk = collect(algo, env, algo.chunk_len if sequential else COLLECT_STEPS, args.seed)
+    env.close()
+    rows = int(np.prod(chunk["terminated"].shape))
+    if sequential:
+        algo.observe(chunk)
+        per_update = rows
+    else:
+        fill = min(args.fill or algo.cfg.replay_capacity, algo.cfg.replay_capacity)
+        while len(algo.replay) < fill:
+            algo.observe(chunk)
+        per_update = algo.cfg.batch_size
+    algo.progress = Progress(env_steps=len(algo.replay), episodes=int(chunk["episode"].max()), total_steps=10**6)
+    case = Case(name, batch_size, algo, chunk, per_update, envs)
+    for _ in range(args.warmup):
+        case.update()
+    case.ready()
+    case.flops, case.flops_by_op = count_flops(algo.update)
+    case.profile = profile_update(case, args.profile_updates)
+    return case
+
+
+def profile_update(case: Case, updates: int) -> dict[str, Any]:
+    """Where an update's time goes, by operator (self CPU time, per update over ``updates`` updates: a preemption
+    on the shared machine lands on whichever op is running, so one update alone is a noisy sample), and the
+    matmuls' own speed."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(updates):
+            case.update()
+    events = [e for e in prof.key_averages() if e.self_cpu_time_total > 0]
+    total_us = sum(e.self_cpu_time_total for e in events)
+    mm_us = sum(e.self_cpu_time_total for e in events if e.key in MATMUL_OPS)
+    top = sorted(events, key=lambda e: e.self_cpu_time_total, reverse=True)[:8]
+    return {
+        "updates_profiled": updates,
+        "op_time_ms": total_us / 1e3 / updates,
+        "op_calls": round(sum(e.count for e in events) / updates),
+        "matmul_share": mm_us / total_us if total_us else 0.0,
+        "matmul_gflops": case.flops * updates / (mm_us * 1e3) if mm_us else None,
+        "top_ops": [
+            {
+                "op": e.key.removeprefix("autograd::engine::evaluate_function: "),
+                "self_ms": e.self_cpu_time_total / 1e3 / updates,
+                "share": e.self_cpu_time_total / total_us,
+                "calls": round(e.count / updates),
+            }
+            for e in top
+        ],
+    }
+
+
+# ------------------------------------------------------------------------------------------------ the peak
+def matmul_peak(n: int, threads: int, repeats: int, min_seconds: float) -> dict[str, Any]:
+    """torch's own float32 GEMM speed on this machine and thread count: ``torch.mm`` of two n × n matrices."""
+    torch.set_num_threads(threads)
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.randn(n, n, generator=gen), torch.randn(n, n, generator=gen)
+    out = torch.empty(n, n)
+    for _ in range(2):
+        torch.mm(a, b, out=out)
+    rates = []
+    for _ in range(repeats):
+        clock = time.perf_counter
+        calls, start = 0, clock()
+        while True:
+            torch.mm(a, b, out=out)
+            calls += 1
+            elapsed = clock() - start
+            if elapsed >= min_seconds:
+                break
+        rates.append(2.0 * n**3 * calls / elapsed / 1e9)
+    return {"n": n, "gflops_median": statistics.median(rates), "gflops_best": max(rates), "all": rates}
+
+
+# ------------------------------------------------------------------------------------------------ reporting
+def fmt_rate(x: float) -> str:
+    return f"{x:,.0f}" if x >= 100 else f"{x:,.1f}" if x >= 10 else f"{x:,.2f}"
+
+
+def report_table(cases: list[Case], peak: float) -> str:
+    header = [
+        "algorithm",
+        "batch",
+        "trans./update",
+        "ms/update",
+        "updates/s",
+        "transitions/s",
+        "FLOP/update",
+        "GFLOP/s",
+        "of peak",
+        "matmul share",
+        "matmul GFLOP/s",
+        "op calls",
+        "page faults/update",
+        "top op (self time)",
+    ]
+    right = [False, *([True] * 12), False]
+    rows = []
+    for c in cases:
+        top = c.profile["top_ops"][0] if c.profile.get("top_ops") else None
+        mm = c.profile.get("matmul_gflops")
+        rows.append(
+            [
+                c.algo_name,
+                f"{c.chunk_envs} seq × {c.algo.chunk_len}" if c.algo.chunk_len > 1 else str(c.batch_size),
+                f"{c.transitions_per_update:,}",
+                f"{1e3 * c.median_s:.2f}",
+                fmt_rate(c.updates_per_s),
+                fmt_rate(c.transitions_per_s),
+                fmt_count(c.flops),
+                fmt_rate(c.gflops),
+                f"{c.gflops / peak:.2f}",
+                f"{c.profile.get('matmul_share', 0.0):.0%}",
+                "—" if mm is None else fmt_rate(mm),
+                f"{c.profile.get('op_calls', 0):,}",
+                f"{statistics.median(c.faults_per_update):,.0f}",
+                "—" if top is None else f"{top['op']} {top['share']:.0%}",
+            ]
+        )
+    return markdown_table(header, rows, right)
+
+
+def verdict(cases: list[Case], peak: float) -> str:
+    if not cases:
+        return "No algorithm could be measured."
+    hit = [c.algo_name + f" (batch {c.batch_size})" for c in cases if c.gflops / peak >= TARGET_FRACTION]
+    best = max(cases, key=lambda c: c.gflops)
+    return (
+        f"Target ≥ {TARGET_FRACTION:g} of the matmul peak ({fmt_rate(peak)} GFLOP/s): "
+        + (f"**MET** by {', '.join(hit)}." if hit else "**NOT MET** by any algorithm.")
+        + f" Best: {best.algo_name} at batch {best.batch_size}, {fmt_rate(best.gflops)} GFLOP/s "
+        f"({best.gflops / peak:.2f} of peak)."
+    )
+
+
+# ------------------------------------------------------------------------------------------------------ main
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    p.add_argument("--algos", nargs="+", default=list(ALGORITHMS), metavar="NAME", help="algorithms (default: all)")
+    p.add_argument("--agents", type=int, default=DEFAULT_AGENTS, help="agents N (+1 adversary; default 3)")
+    p.add_argument(
+        "--batch-size", type=int, nargs="+", default=[64], metavar="B", help="batch sizes (default 64; try 64 1024)"
+    )
+    p.add_argument("--dial-envs", type=int, default=None, help="sequences per DIAL update (default: the batch size)")
+    p.add_argument(
+        "--hidden", type=int, nargs="+", default=None, metavar="W", help="hidden widths (default: the paper's)"
+    )
+    p.add_argument("--capacity", type=int, default=100_000, help="replay capacity (default 100,000, the config's)")
+    p.add_argument("--fill", type=int, default=None, help="rows to fill the replay with (default: its capacity)")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads, and CPUs pinned (default 1)")
+    p.add_argument("--cpu", type=int, default=None, help="first CPU to pin to (default: the lowest allowed)")
+    p.add_argument("--seconds", type=float, default=1.0, help="update time per measurement (default 1.0)")
+    p.add_argument("--repeats", type=int, default=3, help="measurements per case; the median is reported (default 3)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed updates before measuring (default 3)")
+    p.add_argument("--profile-updates", type=int, default=3, help="updates profiled for the op breakdown (3)")
+    p.add_argument("--min-updates", type=int, default=2, help="at least this many updates per measurement")
+    p.add_argument("--peak-n", type=int, default=2048, help="size of the square matmul that defines the peak")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="smoke test: hidden 256 12, batch 32, small replay")
+    p.add_argument("--markdown", type=Path, metavar="PATH", help="also write the table (Markdown) to PATH")
+    p.add_argument("--json", type=Path, metavar="PATH", help="also write every figure as JSON to PATH")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.hidden = args.hidden or list(QUICK_HIDDEN)
+        if args.batch_size == [64]:
+            args.batch_size = [32]
+        args.capacity, args.fill = min(args.capacity, 4096), args.fill or 2048
+        args.seconds, args.repeats, args.warmup, args.min_updates, args.peak_n = 0.05, 1, 1, 1, 512
+        args.profile_updates = 1
+    if (
+        args.seconds <= 0
+        or args.repeats < 1
+        or args.profile_updates < 1
+        or args.threads < 1
+        or args.agents < 1
+        or min(args.batch_size) < 1
+    ):
+        p.error("--seconds must be > 0 and --repeats, --threads, --agents, --batch-size ≥ 1")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    cores = pin_cores(args.threads, args.cpu)
+    configure_learner(args.threads)  # what the learner does: threads + keep big buffers mapped
+    began = time.perf_counter()
+    notes: list[str] = []
+    names = importable_algorithms(args.algos, notes)
+
+    cases: list[Case] = []
+    for name in names:
+        for bs in args.batch_size:
+            print(f"build {name} batch={bs} …", file=sys.stderr, flush=True)
+            try:
+                cases.append(make_case(name, bs, args))
+            except Exception as exc:  # an algorithm being written may import but not yet learn
+                msg = f"{name} (batch {bs}): skipped, failed to build or update ({type(exc).__name__}: {exc})"
+                notes.append(msg)
+                print(f"note: {msg}", file=sys.stderr)
+
+    peak = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5))
+    print(f"peak: torch.mm {args.peak_n}² → {peak['gflops_median']:.1f} GFLOP/s", file=sys.stderr)
+    for r in range(args.repeats):
+        for c in cases:
+            t = c.measure(args.seconds, args.min_updates)
+            print(f"[round {r + 1}/{args.repeats}] {c.algo_name} b={c.batch_size}: {1e3 * t:.2f} ms", file=sys.stderr)
+    peak_after = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5))
+    peak_rates = peak["all"] + peak_after["all"]  # before and after the updates, so drift shows
+    peak_gflops = statistics.median(peak_rates)
+
+    hidden = tuple(args.hidden) if args.hidden else ENV_DEFAULTS[ENV]["hidden"]
+    pinned = f"pinned to CPU {cores}" if cores is not None else "not pinned"
+    heading = (
+        f"Learner throughput on the treadmill (N = {args.agents} agents + 1 adversary), hidden {hidden}, "
+        f"{args.threads} torch thread(s) {pinned} of {os.cpu_count()} ({cpu_model()}), torch {torch.__version__}.  \n"
+        f"Median of {args.repeats} × ≥ {args.seconds:g} s of `update()` per case after {args.warmup} warm-up "
+        f"updates; replay filled to {args.fill or args.capacity:,} rows. FLOPs: torch's FlopCounterMode over one "
+        f"update (matmuls, forward + backward + targets). Peak: torch.mm of {args.peak_n}² float32, "
+        f"{fmt_rate(peak_gflops)} GFLOP/s (median of {len(peak_rates)}, before and after; best "
+        f"{fmt_rate(max(peak_rates))}). Matmul share / matmul GFLOP/s / op calls / top op: torch.profiler over "
+        f"{args.profile_updates} update(s) (per-update figures); page faults: minor faults per timed update "
+        f"(getrusage). DIAL (on-policy) learns from one chunk of B sequences × unroll steps per update instead of a "
+        f"replay sample."
+    )
+    table = report_table(cases, peak_gflops)
+    text = "\n\n".join([heading, table, verdict(cases, peak_gflops), *notes])
+    print(text)
+    elapsed = time.perf_counter() - began
+    print(f"\n(total {elapsed:.0f} s)", file=sys.stderr)
+
+    payload = {
+        "machine": machine_info(cores, args.threads),
+        "settings": {
+            "env": ENV,
+            "n_agents": args.agents,
+            "n_adversaries": 1,
+            "batch_sizes": args.batch_size,
+            "dial_envs": args.dial_envs,
+            "hidden": list(hidden),
+            "replay_capacity": args.capacity,
+            "fill": args.fill,
+            "seconds": args.seconds,
+            "repeats": args.repeats,
+            "warmup": args.warmup,
+            "seed": args.seed,
+            "quick": args.quick,
+        },
+        "peak": {
+            "op": "torch.mm float32",
+            "n": args.peak_n,
+            "gflops": peak_gflops,
+            "gflops_best": max(peak_rates),
+            "gflops_before": peak["all"],
+            "gflops_after": peak_after["all"],
+        },
+        "target_fraction": TARGET_FRACTION,
+        "results": [
+            {
+                "algo": c.algo_name,
+                "batch_size": c.batch_size,
+                "chunk_envs": c.chunk_envs if c.algo.chunk_len > 1 else None,
+                "chunk_len": c.algo.chunk_len,
+                "transitions_per_update": c.transitions_per_update,
+                "params": c.algo.n_parameters(),
+                "ms_per_update": {
+                    "median": 1e3 * c.median_s,
+                    "best": 1e3 * min(c.seconds_per_update),
+                    "all": [1e3 * t for t in c.seconds_per_update],
+                },
+                "page_faults_per_update": statistics.median(c.faults_per_update),
+                "sys_ms_per_update": 1e3 * statistics.median(c.sys_seconds_per_update),
+                "updates_per_s": c.updates_per_s,
+                "transitions_per_s": c.transitions_per_s,
+                "flops_per_update": c.flops,
+                "flops_by_op": c.flops_by_op,
+                "gflops_per_s": c.gflops,
+                "fraction_of_peak": c.gflops / peak_gflops,
+                "meets_target": c.gflops / peak_gflops >= TARGET_FRACTION,
+                "profile": c.profile,
+            }
+            for c in cases
+        ],
+        "notes": notes,
+        "elapsed_s": elapsed,
+    }
+    write_outputs(args, text, payload)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

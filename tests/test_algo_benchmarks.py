@@ -1,0 +1,79 @@
+"""The algorithm benchmarks keep running end to end (figures are checked for shape and sanity, never for speed: the
+machine is shared)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_quick(script: str, *extra: str) -> subprocess.CompletedProcess[str]:
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick", *extra],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return proc
+
+
+def positive(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def test_inference_scaling_quick_run_writes_table_json_and_plot(tmp_path: Path) -> None:
+    out, md, png = tmp_path / "inf.json", tmp_path / "inf.md", tmp_path / "inf.png"
+    proc = run_quick("inference_scaling.py", "--json", str(out), "--markdown", str(md), "--plot", str(png))
+    assert "| idqn" in proc.stdout and "k (all N)" in proc.stdout
+    assert md.read_text().startswith("Inference time per env step")
+    assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    data = json.loads(out.read_text())
+    assert data["settings"]["agents"] == [2, 4, 8]
+    assert data["plot"] == str(png)
+    measured = {r["algo"] for r in data["results"]}
+    assert "idqn" in measured  # the baseline always exists; the others are picked up when they import
+    for r in data["results"]:
+        assert r["n_agents"] in (2, 4, 8) and r["batch"] == 1
+        assert positive(r["ms_per_act"]["median"]) and positive(r["ms_per_act"]["best"])
+        assert positive(r["params"]) and positive(r["flops_per_act"])
+    assert set(data["fits"]) == measured
+    for f in data["fits"].values():
+        assert f["agents"] == [2, 4, 8] and f["upper_agents"] == [4, 8]
+        for key in ("exponent_all", "exponent_upper", "flops_exponent_all", "flops_exponent_upper"):
+            assert isinstance(f[key], float) and math.isfinite(f[key])
+        assert f["flops_exponent_all"] > 0.5  # more agents, more work: a counting bug would show here
+    for note in data["notes"]:
+        assert isinstance(note, str)
+
+
+def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Path) -> None:
+    out, md = tmp_path / "lt.json", tmp_path / "lt.md"
+    proc = run_quick("learner_throughput.py", "--dial-envs", "4", "--json", str(out), "--markdown", str(md))
+    assert "| idqn" in proc.stdout and "of peak" in proc.stdout
+    assert "Target ≥ 0.5" in md.read_text()
+
+    data = json.loads(out.read_text())
+    assert positive(data["peak"]["gflops"]) and data["peak"]["op"] == "torch.mm float32"
+    assert data["target_fraction"] == 0.5
+    measured = {r["algo"] for r in data["results"]}
+    assert "idqn" in measured
+    for r in data["results"]:
+        for key in ("updates_per_s", "transitions_per_s", "flops_per_update", "gflops_per_s", "fraction_of_peak"):
+            assert positive(r[key]), (r["algo"], key, r[key])
+        assert positive(r["ms_per_update"]["median"]) and positive(r["transitions_per_update"])
+        assert math.isclose(r["transitions_per_s"], r["transitions_per_update"] * r["updates_per_s"], rel_tol=1e-9)
+        assert sum(r["flops_by_op"].values()) == r["flops_per_update"]
+        assert 0 < r["profile"]["matmul_share"] <= 1 and r["profile"]["top_ops"]
+        if r["chunk_len"] > 1:  # DIAL: one update = one chunk of --dial-envs sequences
+            assert r["transitions_per_update"] == 4 * r["chunk_len"]
+        else:
+            assert r["transitions_per_update"] == r["batch_size"] == 32

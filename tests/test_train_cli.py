@@ -1,0 +1,77 @@
+"""``convoy train``: a real (tiny) run writes its artefacts; bad input is one readable line, exit code 2."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from PIL import Image
+
+from learner.checkpoint import load_checkpoint
+from services.cli import main
+
+TINY = ["--inprocess", "--env", "referential", "--steps", "3000", "--num-envs", "32", "--log-every", "500",
+        "--eval-episodes", "50", "--no-progress", "--hp", "hidden=32", "--hp", "learning_starts=64"]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    yield
+    torch.set_num_threads(old)
+
+
+def test_train_writes_metrics_curve_checkpoint_and_summary(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    assert main(["train", "--algo", "ma-mesn", *TINY, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "greedy eval return" in text and "random policy return" in text
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) >= 5 and rows[-1]["env_steps"] >= 3000
+    assert {"env_steps", "return", "loss", "epsilon", "env_steps_per_s", "updates_per_s"} <= set(rows[0])
+    assert (out / "metrics.csv").read_text().startswith("env_steps,")
+    assert Image.open(out / "curve.png").size[0] > 400
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["env_steps"] >= 3000 and summary["updates"] > 0
+    algo, job, counters = load_checkpoint(out / "checkpoint.pt", device="cpu")
+    assert job.algo == "ma-mesn" and job.env == "referential" and counters["env_steps"] == summary["env_steps"]
+    assert algo.updates == summary["updates"]
+
+
+def test_config_file_with_flag_overrides(tmp_path, capsys) -> None:
+    cfg = tmp_path / "job.toml"
+    cfg.write_text('algo = "idqn"\nenv = "treadmill"\nsteps = 999\n[algo_params]\nlr = 0.002\n')
+    out = tmp_path / "run"
+    assert main(["train", "--config", str(cfg), *TINY, "--out", str(out)]) == 0
+    _, job, _ = load_checkpoint(out / "checkpoint.pt", device="cpu")
+    assert job.algo == "idqn" and job.env == "referential" and job.steps == 3000  # flags win
+    assert job.algo_params["lr"] == 0.002 and job.algo_params["hidden"] == [32]  # file and flags merge
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--algo", "ppo"], "algo: unknown algorithm 'ppo'; choose one of: idqn, dqn-ser, dial, ims, ma-mesn, ma-bon"),
+        (["--algo", "ims", "--hp", "comm_iterations=0"], "comm_iterations: Input should be greater than or equal"),
+        (["--hp", "batch_size=128", "--hp", "replay_capacity=64"], "batch_size: 128 is larger than replay_capacity"),
+        (["--hp", "lr"], "--hp: expected KEY=VALUE"),
+        (["--hp", "gama=0.9"], "gama: unknown parameter for MeSNConfig"),
+        (["--env", "referential", "--hierarchical"], "hierarchical: goals are defined for the treadmill only"),
+        (["--steps", "0"], "steps: Input should be greater than or equal to 1"),
+        (["--config", "/nonexistent.json"], "--config: no such file"),
+    ],
+)
+def test_bad_train_input_is_one_line(argv: list[str], needle: str, capsys) -> None:
+    assert main(["train", "--no-progress", *argv]) == 2
+    err = capsys.readouterr().err
+    assert needle in " ".join(err.split()), err
+    assert "Traceback" not in err
+
+
+def test_train_help_lists_algorithms_and_hyper_parameters(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = capsys.readouterr().out
+    for needle in ("ma-mesn", "ma-bon", "dial", "ims", "dqn-ser", "idqn", "--hp", "comm_iterations", "ser_horizon"):
+        assert needle in text
