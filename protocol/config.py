@@ -69,8 +69,12 @@ class MessageConfig(AlgoConfig):
         None, ge=1, le=256, description="Binary symbols per message; None = env default (2 bytes = 16)."
     )
     gumbel_tau: float = Field(1.0, gt=0, le=100, description="Gumbel-softmax temperature.")
-    gumbel_noise: float = Field(
-        1.0, ge=0, le=10, description="Scale of the Gumbel noise in training (1 = sampled messages, 0 = deterministic)."
+    gumbel_noise: float | None = Field(
+        None,
+        ge=0,
+        le=10,
+        description="Gumbel noise scale in training: 1 = sampled messages, 0 = deterministic straight-through; "
+        "None = env default (0 on speaker-listener, where the paper used a plain softmax; else 1).",
     )
 
 
@@ -153,10 +157,34 @@ ALGO_SUMMARIES: dict[str, str] = {
 
 # What the paper fixes per environment; applied to fields left at None.
 ENV_DEFAULTS: dict[str, dict[str, Any]] = {
-    "treadmill": {"hidden": (4096, 12), "message_bits": 16, "comm_iterations": 5, "share_params": True},
-    "predator-prey": {"hidden": (256,), "message_bits": 8, "comm_iterations": 3, "share_params": True},
-    "speaker-listener": {"hidden": (256,), "message_bits": 2, "comm_iterations": 1, "share_params": False},
-    "referential": {"hidden": (256,), "message_bits": 16, "comm_iterations": 1, "share_params": False},
+    "treadmill": {
+        "hidden": (4096, 12),
+        "message_bits": 16,
+        "comm_iterations": 5,
+        "gumbel_noise": 1.0,
+        "share_params": True,
+    },
+    "predator-prey": {
+        "hidden": (256,),
+        "message_bits": 8,
+        "comm_iterations": 3,
+        "gumbel_noise": 1.0,
+        "share_params": True,
+    },
+    "speaker-listener": {
+        "hidden": (256,),
+        "message_bits": 2,
+        "comm_iterations": 1,
+        "gumbel_noise": 0.0,
+        "share_params": False,
+    },
+    "referential": {
+        "hidden": (256,),
+        "message_bits": 16,
+        "comm_iterations": 1,
+        "gumbel_noise": 1.0,
+        "share_params": False,
+    },
 }
 # Where the paper gives one algorithm a different default on one env (section 6.1: DIAL's first layer is 6144 wide
 # on the treadmill, "to allow for fair evaluation to other algorithms").
