@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -230,33 +231,39 @@ class Trainer:
 
 
 class _Bar:
-    """A rich progress bar showing steps, return and speeds; silent when disabled."""
+    """A live rich progress bar in a terminal; one plain line per metric row when output goes to a file or pipe
+    (a bar redrawn into a log is unreadable); silent when disabled."""
 
     def __init__(self, total: int, enabled: bool) -> None:
         self.progress = None
-        if not enabled:
+        self.total = total
+        self.lines = enabled and not sys.stdout.isatty()
+        if not enabled or self.lines:
             return
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
         self.progress = Progress(
             TextColumn("[bold]train"),
-            BarColumn(),
+            BarColumn(bar_width=24),
             MofNCompleteColumn(),
             TextColumn("{task.fields[info]}"),
             TimeRemainingColumn(),
-            transient=False,
         )
         self.progress.start()
         self.task = self.progress.add_task("train", total=total, info="")
 
-    def update(self, steps: int, row: dict[str, float]) -> None:
-        if self.progress is None:
-            return
-        info = (
+    @staticmethod
+    def describe(row: dict[str, float]) -> str:
+        return (
             f"return {row['return']:.2f} · loss {row['loss']:.3f} · ε {row['epsilon']:.2f} · "
             f"{row['env_steps_per_s']:,.0f} steps/s · {row['updates_per_s']:,.0f} upd/s"
         )
-        self.progress.update(self.task, completed=steps, info=info)
+
+    def update(self, steps: int, row: dict[str, float]) -> None:
+        if self.lines:
+            print(f"{steps:>{len(f'{self.total:,}')},}/{self.total:,} steps · {self.describe(row)}", flush=True)
+        elif self.progress is not None:
+            self.progress.update(self.task, completed=steps, info=self.describe(row))
 
     def close(self) -> None:
         if self.progress is not None:

@@ -89,7 +89,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not args.inprocess:
         console.print("[dim]the distributed runtime is not built yet; training in-process[/]")
     console.print(
-        f"[bold]{job.algo}[/] on [bold]{job.env}[/] {job.env_params or ''}: {job.steps:,} env steps, "
+        f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
+        f"{job.steps:,} env steps, "
         f"{job.num_envs} envs, hidden {cfg.hidden}, seed {job.seed} → {out}/",
         highlight=False,
         soft_wrap=True,
