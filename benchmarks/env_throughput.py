@@ -60,6 +60,8 @@ from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
+from report import cpu_model  # noqa: E402 (benchmarks/report.py, next to this script)
+from report import markdown_table as format_table  # noqa: E402
 
 BATCH_SIZES = (1, 64, 1024)
 AGENT_COUNTS = (2, 4, 8, 16)
@@ -212,16 +214,6 @@ def pin_to_one_core(cpu: int | None) -> int | None:
     return chosen
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def version(dist: str) -> str:
     try:
         return metadata.version(dist)
@@ -263,14 +255,7 @@ def markdown_table(cases: list[Case], refs: dict[str, float | None]) -> str:
                 *map(fmt_ratio, ratios),
             ]
         )
-    widths = [max(len(r[j]) for r in [header, *rows]) for j in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        padded = (s.rjust(w) if r else s.ljust(w) for s, w, r in zip(cells, widths, right, strict=True))
-        return "| " + " | ".join(padded) + " |"
-
-    rule = "|" + "|".join("-" * (w + 1) + ":" if r else "-" * (w + 2) for w, r in zip(widths, right, strict=True)) + "|"
-    return "\n".join([line(header), rule, *(line(r) for r in rows)])
+    return format_table(header, rows, right)
 
 
 def target_line(cases: list[Case]) -> str:

@@ -49,6 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
+from report import cpu_model, markdown_table  # noqa: E402 (benchmarks/report.py, next to this script)
+
 from envs.registry import make_batched  # noqa: E402
 from learner.algorithm import Algorithm  # noqa: E402
 from learner.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
@@ -101,16 +103,6 @@ def pin_cores(count: int, first: int | None = None) -> list[int] | None:
     return chosen
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine_info(cores: list[int] | None, threads: int) -> dict[str, Any]:
     return {
         "cpu_model": cpu_model(),
@@ -145,18 +137,6 @@ def timed_calls(fn: Callable[[], Any], seconds: float, min_calls: int) -> float:
         elapsed = clock() - start
         if elapsed >= seconds and calls >= min_calls:
             return elapsed / calls
-
-
-def markdown_table(header: list[str], rows: list[list[str]], right: list[bool]) -> str:
-    """A padded Markdown table (numbers right-aligned), readable as printed."""
-    widths = [max(len(r[j]) for r in [header, *rows]) for j in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        padded = (s.rjust(w) if r else s.ljust(w) for s, w, r in zip(cells, widths, right, strict=True))
-        return "| " + " | ".join(padded) + " |"
-
-    rule = "|" + "|".join("-" * (w + 1) + ":" if r else "-" * (w + 2) for w, r in zip(widths, right, strict=True)) + "|"
-    return "\n".join([line(header), rule, *(line(r) for r in rows)])
 
 
 def fmt_count(x: float) -> str:

@@ -51,17 +51,17 @@ from inference_scaling import (
     ENV,
     build_algorithm,
     count_flops,
-    cpu_model,
     fmt_count,
     importable_algorithms,
     machine_info,
-    markdown_table,
     pin_cores,
     write_outputs,
 )
+from report import cpu_model, markdown_table
 
 from envs.registry import make_batched
 from learner.algorithm import Algorithm, Progress
+from learner.inprocess import transition
 from learner.registry import ALGORITHMS
 from learner.runtime import configure_learner
 from protocol.config import ENV_DEFAULTS
@@ -101,17 +101,7 @@ def collect(algo: Algorithm, env: Any, steps: int, seed: int) -> dict[str, np.nd
     for _ in range(steps):
         out = algo.act(obs, 1.0, state)
         res = env.step(out.actions)
-        step = {
-            "obs": obs,
-            "action": out.actions,
-            "reward": res.reward.astype(np.float32),
-            "next_obs": res.final_obs,
-            "terminated": res.terminated,
-            "truncated": res.truncated,
-            "episode": episode.copy(),
-            **out.extras,
-        }
-        for k, v in step.items():
+        for k, v in transition(obs, out, res, episode).items():
             chunk.setdefault(k, []).append(v)
         done = res.done
         if done.any():

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -134,18 +135,23 @@ class Algorithm(ABC):
         """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, msgs, new_state = self.greedy_q(obs_t, state)
-        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
-        b = obs.shape[0]
-        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
-        explore = self.rng.random((b, self.n_agents)) < eps
-        random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
-        actions = np.where(explore, random_a, greedy)
+        actions, _, _ = self.epsilon_greedy(q, epsilon)
         return ActOutput(
             actions=actions,
             messages=None if msgs is None else msgs.cpu().numpy(),
             extras=self.extras(obs),
             state=new_state,
         )
+
+    def epsilon_greedy(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
+        agent's own action count."""
+        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
+        b = q.shape[0]
+        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
+        explore = self.rng.random((b, self.n_agents)) < eps
+        random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
+        return np.where(explore, random_a, greedy), greedy, eps
 
     # --- learning ----------------------------------------------------------------------------------------------
     def observe(self, chunk: dict[str, np.ndarray]) -> None:
@@ -186,9 +192,13 @@ class Algorithm(ABC):
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
         self.optimizer.step()
         self.updates += 1
+        self.after_update()
+        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm)}
+
+    def after_update(self) -> None:
+        """Sync the targets every ``target_update`` updates (DIAL syncs by episodes instead)."""
         if self.updates % self.cfg.target_update == 0:
             self.sync_target()
-        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm)}
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
@@ -219,6 +229,18 @@ class Algorithm(ABC):
         self.rng.bit_generator.state = state["rng"]
 
     # --- helpers for subclasses --------------------------------------------------------------------------------
+    def td_pair(
+        self, q_fn: Callable[[nn.ModuleDict, Tensor, bool], Tensor], batch: dict[str, Tensor]
+    ) -> tuple[Tensor, Tensor]:
+        """Q of the taken actions (online, training mode) and their double-Q targets, for any
+        ``q_fn(nets, obs, train) → Q [..., N, A]``: what ``q_and_target`` is for every feed-forward algorithm."""
+        q = q_fn(self.online, batch["obs"], True).gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        with torch.no_grad():
+            q_next_t = q_fn(self.target, batch["next_obs"], False)
+            q_next_o = q_fn(self.online, batch["next_obs"], False) if self.cfg.double_q else None
+            y = self.target_for(q_next_t, q_next_o, batch)
+        return q, y
+
     def target_for(self, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]) -> Tensor:
         """TD target for this batch, honouring the ``double_q`` switch."""
         return td_target(

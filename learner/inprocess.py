@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.batched import BatchedEnv
-from learner.algorithm import Algorithm, Progress, epsilon_at
+from envs.batched import BatchedEnv, StepResult
+from learner.algorithm import ActOutput, Algorithm, Progress, epsilon_at
 from learner.checkpoint import save_checkpoint
 from learner.metrics import MetricsWriter, plot_curves
 from protocol.config import JobConfig
@@ -48,6 +48,20 @@ class TrainResult:
         d = dict(self.__dict__)
         d.pop("rows")
         return d
+
+
+def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:
+    """One step of B envs as the joint transition every algorithm's ``observe`` expects (plus the act's extras)."""
+    return {
+        "obs": obs,
+        "action": out.actions,
+        "reward": res.reward.astype(np.float32),
+        "next_obs": res.final_obs,
+        "terminated": res.terminated,
+        "truncated": res.truncated,
+        "episode": episode.copy(),
+        **out.extras,
+    }
 
 
 def ci95(x: np.ndarray) -> float:
@@ -128,17 +142,7 @@ class Trainer:
                 eps = epsilon_at(self.cfg, env_steps, job.steps)
                 out = algo.act(obs, eps, state)
                 res = env.step(out.actions)
-                step = {
-                    "obs": obs,
-                    "action": out.actions,
-                    "reward": res.reward.astype(np.float32),
-                    "next_obs": res.final_obs,
-                    "terminated": res.terminated,
-                    "truncated": res.truncated,
-                    "episode": episode_id.copy(),
-                    **out.extras,
-                }
-                for k, v in step.items():
+                for k, v in transition(obs, out, res, episode_id).items():
                     chunk.setdefault(k, []).append(v)
                 ep_ret += res.reward
                 done = res.done

@@ -17,36 +17,10 @@ from envs import ENVS, ConfigError, make_batched
 from envs.config import allowed_range, build_config
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
+from services.args import env_params
 
 console = Console()
 err_console = Console(stderr=True)
-
-
-def _parse_value(text: str) -> Any:
-    """``--set`` values: int, float, true/false, else the string itself."""
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
-def _env_params(args: argparse.Namespace) -> dict[str, Any]:
-    params: dict[str, Any] = {}
-    if args.agents is not None:
-        params["n_agents"] = args.agents
-    if args.adversaries is not None:
-        params["n_adversaries"] = args.adversaries
-    for item in args.set or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError("--set", f"expected KEY=VALUE (e.g. --set aggression=0.9), got {item!r}")
-        params[key.strip()] = _parse_value(value.strip())
-    return params
 
 
 def describe_params(name: str) -> str:
@@ -80,7 +54,7 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
     is_treadmill = env_entry(args.env) is ENVS["treadmill"]  # also rejects unknown names first
-    params = _env_params(args)
+    params = env_params(args)
     if args.policy == "scripted" and not is_treadmill:
         raise ConfigError("--policy", "the scripted policy drives the treadmill only; use --policy random")
     if args.gif and not is_treadmill:

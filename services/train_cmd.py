@@ -13,33 +13,9 @@ from rich.table import Table
 
 from envs import ENVS, ConfigError
 from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, AlgoConfig, JobConfig, job_config
+from services.args import env_params, parse_pairs
 
 console = Console()
-
-
-def parse_value(text: str) -> Any:
-    """``KEY=VALUE`` values: int, float, true/false, comma lists (``64,64``), else the string itself."""
-    if "," in text:
-        return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
-def parse_pairs(items: list[str] | None, flag: str) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(flag, f"expected KEY=VALUE (e.g. {flag} lr=0.001), got {item!r}")
-        out[key.strip()] = parse_value(value.strip())
-    return out
 
 
 def read_config_file(path: str) -> dict[str, Any]:
@@ -69,13 +45,7 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
         values["torch_threads"] = args.threads
     if args.hierarchical:
         values["hierarchical"] = True
-    env_params = dict(values.get("env_params", {}))
-    if args.agents is not None:
-        env_params["n_agents"] = args.agents
-    if args.adversaries is not None:
-        env_params["n_adversaries"] = args.adversaries
-    env_params.update(parse_pairs(args.set, "--set"))
-    values["env_params"] = env_params
+    values["env_params"] = env_params(args, values.get("env_params"))
     values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
     return job_config(**values)
 

@@ -137,12 +137,7 @@ class DIAL(Algorithm):
         ``[B, N, (N−1)·bits]``) and ``mu`` (behaviour probability of each taken action, ``[B, N]``, for replay)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, sent, heard = self.execute(obs_t, state)
-        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
-        b = obs.shape[0]
-        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
-        explore = self.rng.random((b, self.n_agents)) < eps
-        random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
-        actions = np.where(explore, random_a, greedy)
+        actions, greedy, eps = self.epsilon_greedy(q, epsilon)
         mu = (1.0 - eps) * (actions == greedy) + eps / self.n_actions_np
         extras = {**self.extras(obs), "msg_in": heard.cpu().numpy(), "mu": mu.astype(np.float32)}
         return ActOutput(actions=actions, messages=sent.cpu().numpy(), extras=extras, state=sent)
@@ -255,17 +250,8 @@ class DIAL(Algorithm):
         w = valid * self.is_weights(q_all, batch) if self.cfg.replay else valid
         return (err * w.unsqueeze(-1)).sum(dim=(0, 1)) / valid.sum().clamp_min(1.0)
 
-    def update(self) -> dict[str, float]:
-        """One gradient step on one sequence batch (targets are synced by episodes in ``observe``)."""
-        batch = self.sample()
-        losses = self.agent_losses(batch)
-        loss = losses.sum()
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        self.optimizer.step()
-        self.updates += 1
-        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm)}
+    def after_update(self) -> None:
+        """Nothing: DIAL's targets are synced by finished episodes, in ``observe``."""
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -43,7 +43,7 @@ class DQNSER(IndependentDQN):
             return {}
         return {"fingerprint": np.broadcast_to(self.fingerprint(), (obs.shape[0], self.FP_DIM)).copy()}
 
-    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None, nxt: bool = False) -> Tensor:
+    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None) -> Tensor:
         x = super().features(obs)
         if not self.cfg.fingerprint:
             return x

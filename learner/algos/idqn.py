@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
 from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
@@ -21,7 +20,7 @@ class IndependentDQN(Algorithm):
     def input_width(self) -> int:
         return self.obs_dim + id_width(self.n_agents, self.shared)
 
-    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None, nxt: bool = False) -> Tensor:
+    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None) -> Tensor:
         """Network input from observations ``[..., N, D]`` (subclasses append e.g. a fingerprint)."""
         return with_agent_id(obs, self.shared)
 
@@ -33,10 +32,4 @@ class IndependentDQN(Algorithm):
         return self.online["q"](self.features(obs)), None, None
 
     def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        x, x_next = self.features(batch["obs"], batch), self.features(batch["next_obs"], batch, nxt=True)
-        q = self.online["q"](x).gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
-        with torch.no_grad():
-            q_next_t = self.target["q"](x_next)
-            q_next_o = self.online["q"](x_next) if self.cfg.double_q else None
-            y = self.target_for(q_next_t, q_next_o, batch)
-        return q, y
+        return self.td_pair(lambda nets, obs, train: nets["q"](self.features(obs, batch)), batch)

@@ -73,10 +73,4 @@ class MABoN(Algorithm):
         return q, sent.contiguous(), None
 
     def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        q_all, _ = self.forward(self.online, batch["obs"], train=True)
-        q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
-        with torch.no_grad():
-            q_next_t, _ = self.forward(self.target, batch["next_obs"], train=False)
-            q_next_o = self.forward(self.online, batch["next_obs"], train=False)[0] if self.cfg.double_q else None
-            y = self.target_for(q_next_t, q_next_o, batch)
-        return q, y
+        return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)

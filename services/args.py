@@ -1,0 +1,47 @@
+"""Command-line values shared by ``convoy env rollout`` and ``convoy train``: ``KEY=VALUE`` pairs and env params."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from envs import ConfigError
+
+EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
+
+
+def parse_value(text: str) -> Any:
+    """``KEY=VALUE`` values: int, float, true/false, comma lists (``64,64``), else the string itself."""
+    if "," in text:
+        return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_pairs(items: list[str] | None, flag: str) -> dict[str, Any]:
+    """Repeated ``flag KEY=VALUE`` arguments as a dict; a malformed one is a ConfigError naming the flag."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(flag, f"expected KEY=VALUE (e.g. {EXAMPLES.get(flag, flag + ' key=1')}), got {item!r}")
+        out[key.strip()] = parse_value(value.strip())
+    return out
+
+
+def env_params(args: argparse.Namespace, base: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Env parameters from ``--agents``, ``--adversaries`` and ``--set`` on top of ``base``."""
+    params = dict(base or {})
+    if args.agents is not None:
+        params["n_agents"] = args.agents
+    if args.adversaries is not None:
+        params["n_adversaries"] = args.adversaries
+    params.update(parse_pairs(args.set, "--set"))
+    return params
