@@ -63,11 +63,16 @@ class AlgoConfig(BaseModel):
 
 
 class MessageConfig(AlgoConfig):
-    """Algorithms that send discrete messages (Gumbel-softmax bits, straight-through in training)."""
+    """Algorithms that send discrete messages of a fixed width."""
 
     message_bits: int | None = Field(
         None, ge=1, le=256, description="Binary symbols per message; None = env default (2 bytes = 16)."
     )
+
+
+class GumbelConfig(MessageConfig):
+    """Messages as Gumbel-softmax bits, straight-through in training, argmax at execution (DIAL has its DRU)."""
+
     gumbel_tau: float = Field(1.0, gt=0, le=100, description="Gumbel-softmax temperature.")
     gumbel_noise: float | None = Field(
         None,
@@ -110,7 +115,7 @@ class DIALConfig(MessageConfig):
     )
 
 
-class IMSConfig(MessageConfig):
+class IMSConfig(GumbelConfig):
     """IMS / CommNet: P rounds of messages averaged over the other agents."""
 
     comm_iterations: int | None = Field(
@@ -123,11 +128,11 @@ class IMSConfig(MessageConfig):
     )
 
 
-class MeSNConfig(MessageConfig):
+class MeSNConfig(GumbelConfig):
     """MA-MeSN (Algorithm 1): separate message networks f′ and policy networks f″."""
 
 
-class BoNConfig(MessageConfig):
+class BoNConfig(GumbelConfig):
     """MA-BoN: one broadcast message from all agents' encodings."""
 
     encoding: int = Field(64, ge=1, le=65536, description="Width of each agent's observation encoding.")

@@ -86,15 +86,19 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _algo_epilog() -> str:
     lines = ["algorithms (--algo):"]
     lines += [f"  {name:9} {ALGO_SUMMARIES[name]}" for name in ALGO_CONFIGS]
-    lines.append("\nhyper-parameters (--hp KEY=VALUE; per-algorithm extras in parentheses):")
+    lines.append("\nhyper-parameters (--hp KEY=VALUE; the algorithms that have a field in parentheses):")
     for name, info in AlgoConfig.model_fields.items():
         lines.append(f"  {name} (default {info.default!r}): {info.description}")
+    extras: dict[str, list[str]] = {}
     for algo, model in ALGO_CONFIGS.items():
-        for name, info in model.model_fields.items():
+        for name in model.model_fields:
             if name not in AlgoConfig.model_fields:
-                lines.append(f"  {name} ({algo}; default {info.default!r}): {info.description}")
+                extras.setdefault(name, []).append(algo)
+    for name, algos in extras.items():
+        info = ALGO_CONFIGS[algos[0]].model_fields[name]
+        lines.append(f"  {name} ({', '.join(algos)}; default {info.default!r}): {info.description}")
     lines.append("\nenv parameters (--set KEY=VALUE): convoy env list --params")
-    return "\n".join(dict.fromkeys(lines))
+    return "\n".join(lines)
 
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
