@@ -51,12 +51,16 @@ class ActOutput:
 def td_target(
     reward: Tensor,
     terminated: Tensor,
-    gamma: float,
+    gamma: float | Tensor,
     q_next_target: Tensor,
     q_next_online: Tensor | None,
     mask: Tensor,
 ) -> Tensor:
-    """``r + γ (1 − terminated) Q_target(s', a*)`` with ``a*`` the online argmax (double Q) or the target's."""
+    """``r + γ (1 − terminated) Q_target(s', a*)`` with ``a*`` the online argmax (double Q) or the target's.
+
+    ``gamma`` may be one discount per sample ``[M]``: a transition that spans τ steps (an option of hierarchical
+    DQN) bootstraps with γ^τ, or options that collect more steps of reward would look better for that alone.
+    """
     target_q = q_next_target.masked_fill(~mask, NEG)
     if q_next_online is None:
         best = target_q.max(dim=-1).values
@@ -64,6 +68,8 @@ def td_target(
         a_star = q_next_online.masked_fill(~mask, NEG).argmax(dim=-1, keepdim=True)
         best = target_q.gather(-1, a_star).squeeze(-1)
     cont = (1.0 - terminated.float()).unsqueeze(-1)
+    if isinstance(gamma, Tensor):
+        gamma = gamma.unsqueeze(-1)
     return reward + gamma * cont * best
 
 
@@ -242,11 +248,11 @@ class Algorithm(ABC):
         return q, y
 
     def target_for(self, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]) -> Tensor:
-        """TD target for this batch, honouring the ``double_q`` switch."""
+        """TD target for this batch, honouring the ``double_q`` switch and a per-sample ``discount`` if stored."""
         return td_target(
             batch["reward"],
             batch["terminated"],
-            self.cfg.gamma,
+            batch.get("discount", self.cfg.gamma),
             q_next_target,
             q_next_online if self.cfg.double_q else None,
             self.action_mask,

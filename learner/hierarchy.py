@@ -29,9 +29,10 @@ Meta-controller. The job's algorithm (any of idqn, dqn-ser, ma-mesn, ma-bon, ims
 env's but with ``n_goals`` actions per agent and ``ceil(max_steps / goal_steps)`` steps, acting (ε-greedy, with its
 own recurrent state and messages) only for the envs that start an option. It learns from meta-transitions: the
 option's first observation, the goals, the env reward summed over the option, ``R = Σ_k γ^k r_{t+k}`` per agent,
-the observation the option ended on, the env's terminated/truncated flags and ``discount = γ^τ`` for an option of τ
-steps, which its TD target uses (``smdp_target_for``): with one γ per meta step, options that last longer collect
-more reward per meta step and the meta-controller learned to prefer goals that never finish. Meta-transitions of
+the observation the option ended on, the env's terminated/truncated flags and ``discount = γ^τ`` for an option of
+τ steps, which the shared TD target (``learner.algorithm.td_target``) bootstraps with: with one γ per meta step,
+options that last longer collect more reward per meta step and the meta-controller learned to prefer goals that
+never finish. Meta-transitions of
 the envs whose option ended in a step go to ``meta.observe`` as one ``[1, M]`` chunk.
 
 DIAL at the meta level. DIAL learns from ``[T, B]`` sequences (``chunk_len = unroll``) that unroll its messages
@@ -66,7 +67,6 @@ controller rows and keeps the per-env reward sums that become meta-transitions. 
 from __future__ import annotations
 
 import math
-import types
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -76,7 +76,7 @@ from torch import Tensor
 
 from envs.batched import EnvSpec
 from envs.treadmill.config import N_HEADINGS, TreadmillConfig
-from learner.algorithm import ActOutput, Algorithm, Progress, td_target
+from learner.algorithm import ActOutput, Algorithm, Progress
 from learner.algos.idqn import IndependentDQN
 from learner.nets import pick_device
 from learner.registry import make_algorithm
@@ -208,20 +208,6 @@ class LockstepQueue:
         return out
 
 
-def smdp_target_for(
-    self: Algorithm, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]
-) -> Tensor:
-    """The meta-controller's TD target ``R + γ^τ (1 − terminated) Q(s′, g*)`` for an option of τ steps.
-
-    Bound onto the meta algorithm in place of its ``target_for``: with one fixed γ per meta step, an option that
-    collects τ steps of reward would look τ times better than a one-step option, and the meta-controller learns to
-    pick goals that never finish. ``batch["discount"]`` holds each meta-transition's γ^τ.
-    """
-    online = q_next_online if self.cfg.double_q else None
-    y1 = td_target(batch["reward"], batch["terminated"], 1.0, q_next_target, online, self.action_mask)
-    return batch["reward"] + batch["discount"].unsqueeze(-1) * (y1 - batch["reward"])
-
-
 class HierarchicalAgent:
     """Meta-controller (the job's algorithm over goals) + goal-conditioned double-DQN controller, driven through the
     same calls as an ``Algorithm`` (act / observe / can_update / updates_for / update / state_dict)."""
@@ -288,8 +274,6 @@ class HierarchicalAgent:
         # meta algorithm gets variable-length options and an SMDP target
         self.fixed_options = self.meta.chunk_len > 1
         self._queue = LockstepQueue(self.meta.chunk_len, 2 * self.meta.chunk_len) if self.fixed_options else None
-        if not self.fixed_options:
-            self.meta.target_for = types.MethodType(smdp_target_for, self.meta)  # type: ignore[method-assign]
 
     # --- shared counters ---------------------------------------------------------------------------------------
     @property
