@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -37,6 +36,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from envs.rollout import ci95_half  # noqa: E402
 from protocol.config import job_config  # noqa: E402
 from services.training import run_inprocess  # noqa: E402
 
@@ -92,12 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     summary = {}
     for algo in args.algos:
         vals = np.array([r["eval_return"] for r in runs if r["algo"] == algo])
-        if len(vals) > 1:  # across seeds
-            ci = float(1.96 * vals.std(ddof=1) / math.sqrt(len(vals)))
-        else:  # one seed: across its evaluation episodes
-            ci = next(r["eval_ci95"] for r in runs if r["algo"] == algo)
-        summary[algo] = {"mean": float(vals.mean()), "ci95": ci}
+        one_seed_ci = next(r["eval_ci95"] for r in runs if r["algo"] == algo)  # across its evaluation episodes
+        ci = ci95_half(vals, single=one_seed_ci)  # across seeds when there are several
         m = float(vals.mean())
+        summary[algo] = {"mean": m, "ci95": ci}
         table.add_row(algo, f"{m:.2f}", f"{ci:.2f}", f"{m - NO_COMM:+.2f}", f"{m - ORACLE:+.2f}")
     rand = float(np.mean([r["random_return"] for r in runs]))
     table.add_row("random policy", f"{rand:.2f}", "", f"{rand - NO_COMM:+.2f}", f"{rand - ORACLE:+.2f}")

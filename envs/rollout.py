@@ -18,6 +18,12 @@ from envs.batched import BatchedEnv, EnvSpec
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [B, N, D] -> actions [B, N]
 
 
+def ci95_half(x: np.ndarray, single: float = float("nan")) -> float:
+    """Half-width of the normal 95 % confidence interval of the mean of ``x`` (``single`` when len(x) < 2)."""
+    x = np.asarray(x, dtype=np.float64)
+    return float(1.96 * x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else single
+
+
 @dataclass
 class RolloutResult:
     """Per-episode figures, one row per env."""
@@ -36,8 +42,7 @@ class RolloutResult:
     def ci95(self) -> tuple[float, float]:
         """Mean of the per-episode return and the half-width of its 95 % normal confidence interval."""
         r = self.mean_return
-        half = 1.96 * r.std(ddof=1) / np.sqrt(len(r)) if len(r) > 1 else 0.0
-        return float(r.mean()), float(half)
+        return float(r.mean()), ci95_half(r, single=0.0)
 
 
 def random_policy(spec: EnvSpec, seed: int | None = None) -> Policy:

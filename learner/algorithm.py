@@ -182,11 +182,15 @@ class Algorithm(ABC):
     def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
         """Each agent's mean TD loss ``[N]``; their sum is what ``update`` minimises."""
         q, y = self.q_and_target(batch)
-        err = F.smooth_l1_loss(q, y, reduction="none") if self.cfg.huber else 0.5 * (q - y) ** 2
+        err = self.td_error(q, y)
         w = self.sample_weights(batch)
         if w is None:
             return err.mean(dim=0)
         return (err * w.unsqueeze(-1)).sum(dim=0) / w.sum().clamp_min(1e-8)
+
+    def td_error(self, q: Tensor, y: Tensor) -> Tensor:
+        """Elementwise TD loss: Huber (clipped error) or the paper's squared error, per the ``huber`` switch."""
+        return F.smooth_l1_loss(q, y, reduction="none") if self.cfg.huber else 0.5 * (q - y) ** 2
 
     def update(self) -> dict[str, float]:
         """One gradient step on a sampled batch; syncs the targets every ``target_update`` updates."""

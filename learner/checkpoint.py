@@ -17,8 +17,8 @@ from typing import Any
 import torch
 
 from envs.batched import EnvSpec
+from learner.agent import make_agent
 from learner.algorithm import Algorithm
-from learner.registry import make_algorithm
 from protocol.config import JobConfig, job_config
 
 FORMAT = 1
@@ -85,15 +85,8 @@ def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Algorithm, 
         job = job_config(**payload["job"])
         spec_d = payload["spec"]
         spec = EnvSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec_d.items()})
-        from learner.agent import make_agent
-
         algo = make_agent(job, spec, device=device)
         algo.load_state_dict(payload["state"])
-    except CheckpointError:
-        raise
     except Exception as exc:
         raise CheckpointError(f"checkpoint {path}: does not match this Convoy's networks ({exc}); retrain") from None
     return algo, job, payload.get("counters", {})
-
-
-__all__ = ["CheckpointError", "load_checkpoint", "make_algorithm", "read_checkpoint", "save_checkpoint"]

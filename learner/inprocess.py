@@ -9,7 +9,6 @@ learner process will, and to the env only through the batched interface, so the 
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from envs.batched import BatchedEnv, StepResult
+from envs.rollout import ci95_half
 from learner.algorithm import ActOutput, Algorithm, Progress, epsilon_at
 from learner.checkpoint import save_checkpoint
 from learner.metrics import MetricsWriter, plot_curves
@@ -62,11 +62,6 @@ def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.nda
         "episode": episode.copy(),
         **out.extras,
     }
-
-
-def ci95(x: np.ndarray) -> float:
-    """Half-width of a normal 95 % confidence interval of the mean."""
-    return float(1.96 * x.std(ddof=1) / math.sqrt(len(x))) if len(x) > 1 else float("nan")
 
 
 def evaluate(
@@ -231,7 +226,7 @@ class Trainer:
             rand = evaluate(env, self.algo, n, seed=self.job.seed + 10_000, epsilon=1.0)
         finally:
             env.close()
-        return float(greedy.mean()), ci95(greedy), float(rand.mean())
+        return float(greedy.mean()), ci95_half(greedy), float(rand.mean())
 
 
 class _Bar:

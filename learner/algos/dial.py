@@ -23,7 +23,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from envs.batched import EnvSpec
@@ -245,7 +244,7 @@ class DIAL(Algorithm):
     def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
         """Each agent's TD loss ``[N]``, a mean over steps and envs (importance-weighted under replay)."""
         q_all, q, y = self.sequence_q(batch)
-        err = F.smooth_l1_loss(q, y, reduction="none") if self.cfg.huber else 0.5 * (q - y) ** 2
+        err = self.td_error(q, y)
         valid = batch["valid"].float() if "valid" in batch else torch.ones_like(err[..., 0])
         w = valid * self.is_weights(q_all, batch) if self.cfg.replay else valid
         return (err * w.unsqueeze(-1)).sum(dim=(0, 1)) / valid.sum().clamp_min(1.0)
