@@ -14,6 +14,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from learner.fused_mlp import fused_mlp
+
 
 def pick_device(name: str = "auto") -> torch.device:
     """``auto`` means CUDA when present, else CPU; an explicit name is taken as given."""
@@ -54,25 +56,15 @@ class GroupMLP(nn.Module):
         self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in itertools.pairwise(sizes))
 
     def forward(self, x: Tensor) -> Tensor:
-        """All layers in one layout: ``[rows, in]`` (shared) or ``[N, rows, in]`` (per agent), reshaped once.
-
-        ReLU runs in place on each matmul's own output (not on a view of it: an in-place op on a view makes autograd
-        copy the whole base back, which cost more than the matmuls), halving the activation traffic.
-        """
-        last = len(self.layers) - 1
+        """All layers in one layout, ``[rows, in]`` (shared) or ``[N, rows, in]`` (per agent), reshaped once, through
+        one autograd node (``learner.fused_mlp``: biases folded into widening matmuls, ReLU masks applied in place)."""
         if self.layers[0].groups == 1:
-            h = x.reshape(-1, x.shape[-1])
-            for i, layer in enumerate(self.layers):
-                h = torch.addmm(layer.bias[0], h, layer.weight[0])
-                if i < last:
-                    h = torch.relu_(h)
+            # views, not ``weight[0]``: a select's backward writes its gradient into a fresh zero tensor
+            params = [(la.weight.view(la.weight.shape[1:]), la.bias.view(-1)) for la in self.layers]
+            h = fused_mlp(x.reshape(-1, x.shape[-1]), params)
             return h.reshape(*x.shape[:-1], h.shape[-1])
         n = x.shape[-2]
-        h = x.reshape(-1, n, x.shape[-1]).transpose(0, 1)  # [N, rows, in]
-        for i, layer in enumerate(self.layers):
-            h = torch.baddbmm(layer.bias.unsqueeze(1), h, layer.weight)
-            if i < last:
-                h = torch.relu_(h)
+        h = fused_mlp(x.reshape(-1, n, x.shape[-1]).transpose(0, 1), [(la.weight, la.bias) for la in self.layers])
         return h.transpose(0, 1).reshape(*x.shape[:-1], h.shape[-1])
 
     def flops_per_row(self) -> int:
