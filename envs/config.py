@@ -25,9 +25,13 @@ class ConfigError(ValueError):
 
 def allowed_range(model: type[BaseModel], name: str) -> str | None:
     """Human-readable range of a numeric field, from its ``Field(ge=…, le=…)`` constraints."""
-    info = model.model_fields.get(name)
+    head, _, rest = name.partition(".")
+    info = model.model_fields.get(head)
     if info is None:
         return None
+    if rest:  # a nested model's field: runtime.actors
+        sub = info.annotation
+        return allowed_range(sub, rest) if isinstance(sub, type) and issubclass(sub, BaseModel) else None
     low = high = None
     for m in info.metadata:
         if isinstance(m, Ge):
@@ -54,7 +58,7 @@ def build_config(model: type[M], **values: Any) -> M:
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = [str(p) for p in err.get("loc", ())]
-        field = loc[0] if loc else model.__name__
+        field = ".".join(loc) if loc else model.__name__  # nested models: runtime.actors
         given = err.get("input")
         msg = err.get("msg", "invalid value")
         cause = err.get("ctx", {}).get("error")

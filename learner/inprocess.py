@@ -8,8 +8,6 @@ learner process will, and to the env only through the batched interface, so the 
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -20,10 +18,9 @@ import numpy as np
 import torch
 
 from envs.batched import BatchedEnv, StepResult
-from envs.rollout import ci95_half
 from learner.algorithm import ActOutput, Algorithm, Progress, epsilon_at
 from learner.checkpoint import save_checkpoint
-from learner.metrics import MetricsWriter, plot_curves
+from learner.runlog import RunLog, final_eval, write_artefacts
 from protocol.config import JobConfig
 
 
@@ -115,22 +112,17 @@ class Trainer:
         job, env, algo = self.job, self.env, self.algo
         b, n = env.num_envs, env.spec.n_agents
         torch.manual_seed(job.seed)
-        writer = MetricsWriter(self.out_dir) if self.out_dir else None
+        log = RunLog(job.steps, job.log_every, self.out_dir, self.show_progress)
         obs = env.reset(seed=job.seed)
         state = algo.initial_state(b)
         ep_ret = np.zeros((b, n))
         episode_id = np.zeros(b, dtype=np.int64)  # episodes finished when each env's episode began (SER's clock)
         finished: list[float] = []
-        window: list[float] = []
-        losses: list[float] = []
         chunk: dict[str, list[np.ndarray]] = {}
-        env_steps = updates_at_row = 0
+        env_steps = 0
         owed = 0.0
-        next_log, next_ckpt = job.log_every, job.checkpoint_every
-        rows: list[dict[str, float]] = []
-        t0 = t_row = time.perf_counter()
-        steps_at_row = 0
-        bar = _Bar(job.steps, self.show_progress)
+        next_ckpt = job.checkpoint_every
+        t0 = time.perf_counter()
         try:
             while env_steps < job.steps:
                 algo.progress = Progress(env_steps, len(finished), job.steps)
@@ -144,7 +136,7 @@ class Trainer:
                 if done.any():
                     rets = ep_ret[done].mean(axis=1).tolist()
                     finished.extend(rets)
-                    window.extend(rets)
+                    log.episodes(rets)
                     ep_ret[done] = 0.0
                     episode_id[done] = len(finished)
                 state = algo.reset_state(out.state, done)
@@ -157,39 +149,17 @@ class Trainer:
                     if algo.can_update():
                         owed += algo.updates_for(t_len * b)
                     while owed >= 1.0 and algo.can_update():
-                        info = algo.update()
-                        losses.append(info["loss"])
+                        log.loss(algo.update()["loss"])
                         owed -= 1.0
-                if env_steps >= next_log or env_steps >= job.steps:
-                    now = time.perf_counter()
-                    row = {
-                        "env_steps": env_steps,
-                        "episodes": len(finished),
-                        "updates": algo.updates,
-                        "return": float(np.mean(window)) if window else float("nan"),
-                        "loss": float(np.mean(losses)) if losses else float("nan"),
-                        "epsilon": eps,
-                        "env_steps_per_s": (env_steps - steps_at_row) / max(now - t_row, 1e-9),
-                        "updates_per_s": (algo.updates - updates_at_row) / max(now - t_row, 1e-9),
-                        "wall_s": now - t0,
-                    }
-                    rows.append(row)
-                    if writer:
-                        writer.write(row)
-                    bar.update(env_steps, row)
-                    window, losses = [], []
-                    t_row, steps_at_row, updates_at_row = now, env_steps, algo.updates
-                    next_log += job.log_every
+                log.maybe_row(env_steps, len(finished), algo.updates, eps)
                 if self.out_dir and env_steps >= next_ckpt:
                     self._checkpoint(env_steps, len(finished))
                     next_ckpt += job.checkpoint_every
         finally:
-            bar.close()
-            if writer:
-                writer.close()
+            log.close()
         wall = time.perf_counter() - t0
         tail = finished[-max(1, len(finished) // 10) :] if finished else [float("nan")]
-        eval_ret, eval_ci, rand_ret = self._final_eval()
+        eval_ret, eval_ci, rand_ret = final_eval(algo, job.eval_episodes, job.seed, self.make_eval_env)
         result = TrainResult(
             env_steps=env_steps,
             updates=algo.updates,
@@ -202,68 +172,14 @@ class Trainer:
             eval_ci95=eval_ci,
             random_return=rand_ret,
             out_dir=str(self.out_dir) if self.out_dir else None,
-            rows=rows,
+            rows=log.rows,
         )
         if self.out_dir:
             self._checkpoint(env_steps, len(finished))
-            (self.out_dir / "summary.json").write_text(json.dumps(result.as_dict(), indent=2) + "\n")
-            plot_curves(rows, self.out_dir / "curve.png", title=f"{job.algo} on {job.env}", baseline=rand_ret)
+            write_artefacts(self.out_dir, result.as_dict(), log.rows, title=f"{job.algo} on {job.env}")
         return result
 
     def _checkpoint(self, env_steps: int, episodes: int) -> None:
         assert self.out_dir is not None
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": self.algo.updates}
         save_checkpoint(self.out_dir / "checkpoint.pt", self.algo, self.job, counters)
-
-    def _final_eval(self) -> tuple[float, float, float]:
-        """Greedy return ± CI and the random policy's return on fresh eval envs (seed offset from training)."""
-        if self.job.eval_episodes == 0 or self.make_eval_env is None:
-            return float("nan"), float("nan"), float("nan")
-        n = self.job.eval_episodes
-        env = self.make_eval_env(min(n, 256))
-        try:
-            greedy = evaluate(env, self.algo, n, seed=self.job.seed + 10_000)
-            rand = evaluate(env, self.algo, n, seed=self.job.seed + 10_000, epsilon=1.0)
-        finally:
-            env.close()
-        return float(greedy.mean()), ci95_half(greedy), float(rand.mean())
-
-
-class _Bar:
-    """A live rich progress bar in a terminal; one plain line per metric row when output goes to a file or pipe
-    (a bar redrawn into a log is unreadable); silent when disabled."""
-
-    def __init__(self, total: int, enabled: bool) -> None:
-        self.progress = None
-        self.total = total
-        self.lines = enabled and not sys.stdout.isatty()
-        if not enabled or self.lines:
-            return
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.progress = Progress(
-            TextColumn("[bold]train"),
-            BarColumn(bar_width=24),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[info]}"),
-            TimeRemainingColumn(),
-        )
-        self.progress.start()
-        self.task = self.progress.add_task("train", total=total, info="")
-
-    @staticmethod
-    def describe(row: dict[str, float]) -> str:
-        return (
-            f"return {row['return']:.2f} · loss {row['loss']:.3f} · ε {row['epsilon']:.2f} · "
-            f"{row['env_steps_per_s']:,.0f} steps/s · {row['updates_per_s']:,.0f} upd/s"
-        )
-
-    def update(self, steps: int, row: dict[str, float]) -> None:
-        if self.lines:
-            print(f"{steps:>{len(f'{self.total:,}')},}/{self.total:,} steps · {self.describe(row)}", flush=True)
-        elif self.progress is not None:
-            self.progress.update(self.task, completed=steps, info=self.describe(row))
-
-    def close(self) -> None:
-        if self.progress is not None:
-            self.progress.stop()

@@ -10,21 +10,31 @@ from typing import IO, Any
 
 
 class MetricsWriter:
-    """Appends one row per call to ``metrics.jsonl`` and ``metrics.csv`` in ``out_dir`` (flushed each row)."""
+    """Appends one row per call to ``metrics.jsonl`` and ``metrics.csv`` in ``out_dir`` (flushed each row).
 
-    def __init__(self, out_dir: str | Path) -> None:
+    ``resume_at``: a learner restarted from a checkpoint taken at that env step keeps the rows up to it and drops
+    the ones written after it (their steps are being redone), so the history has neither gaps nor duplicates.
+    """
+
+    def __init__(self, out_dir: str | Path, resume_at: int | None = None) -> None:
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.rows: list[dict[str, Any]] = read_rows(self.out_dir) if resume_at is not None else []
+        self.rows = [r for r in self.rows if r.get("env_steps", 0) <= (resume_at or 0)]
         self._jsonl: IO[str] = open(self.out_dir / "metrics.jsonl", "w")  # noqa: SIM115 (closed in close())
         self._csv_fh: IO[str] = open(self.out_dir / "metrics.csv", "w", newline="")  # noqa: SIM115
         self._csv: csv.DictWriter | None = None
+        kept, self.rows = self.rows, []
+        for row in kept:
+            self.write(row)
 
     def write(self, row: dict[str, Any]) -> None:
+        self.rows.append(row)
         clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
         self._jsonl.write(json.dumps(clean) + "\n")
         self._jsonl.flush()
         if self._csv is None:
-            self._csv = csv.DictWriter(self._csv_fh, fieldnames=list(row))
+            self._csv = csv.DictWriter(self._csv_fh, fieldnames=list(row), extrasaction="ignore")
             self._csv.writeheader()
         self._csv.writerow(row)
         self._csv_fh.flush()
@@ -32,6 +42,21 @@ class MetricsWriter:
     def close(self) -> None:
         self._jsonl.close()
         self._csv_fh.close()
+
+
+def read_rows(out_dir: str | Path) -> list[dict[str, Any]]:
+    """The rows of ``out_dir/metrics.jsonl`` (None back to NaN); a torn last line is skipped."""
+    path = Path(out_dir) / "metrics.jsonl"
+    rows: list[dict[str, Any]] = []
+    if not path.is_file():
+        return rows
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        rows.append({k: (math.nan if v is None else v) for k, v in row.items()})
+    return rows
 
 
 def plot_curves(rows: list[dict[str, float]], path: str | Path, title: str, baseline: float | None = None) -> Path:

@@ -14,6 +14,7 @@ from typing import Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from envs.config import ConfigError, build_config
+from protocol.session import ZenohSettings
 
 
 class AlgoConfig(BaseModel):
@@ -214,6 +215,38 @@ def resolve_algo(algo: str, env: str, params: dict[str, Any] | None = None) -> A
     return cfg.model_copy(update=fill) if fill else cfg
 
 
+class RuntimeConfig(BaseModel):
+    """How the distributed runtime runs a job (ignored by ``--inprocess``): processes, flow control, transport."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    actors: int = Field(2, ge=1, le=256, description="Actor processes, each stepping num_envs envs.")
+    publish_steps: int = Field(
+        8, ge=1, le=4096, description="Env steps per published chunk (DIAL: its unroll; one sequence per chunk)."
+    )
+    weights_every: int = Field(10, ge=1, description="Learner updates between weight broadcasts (also every 1 s).")
+    epsilon_spread: float = Field(
+        0.0,
+        ge=0,
+        le=16,
+        description="Ape-X ε spread α: actor i of N explores with ε(t)^(1 + α·i/(N−1)); 0 = all follow ε(t).",
+    )
+    slack_steps: int = Field(
+        4096,
+        ge=1,
+        description="Env steps actors may run ahead of the learner's replay ratio before they are throttled.",
+    )
+    actor_device: Literal["cpu", "auto", "cuda"] = Field(
+        "cpu", description="Torch device of actors' inference (small batches: CPU unless envs are many)."
+    )
+    inbox: int = Field(256, ge=1, description="Chunks the learner queues off the Zenoh thread (oldest dropped).")
+    max_restarts: int = Field(
+        5, ge=0, description="Crashes of one role within restart_window_s before the job fails with the reason."
+    )
+    restart_window_s: float = Field(60.0, gt=0, description="Window for max_restarts.")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
+
+
 class JobConfig(BaseModel):
     """One training job: which algorithm on which env, for how long, and how to report."""
 
@@ -233,6 +266,7 @@ class JobConfig(BaseModel):
     checkpoint_every: int = Field(50_000, ge=1, description="Env steps between checkpoints.")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; auto = CUDA when present.")
     torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
+    runtime: RuntimeConfig = Field(default_factory=RuntimeConfig, description="Distributed runtime settings.")
 
     @model_validator(mode="after")
     def _check(self) -> JobConfig:

@@ -209,9 +209,11 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
     ro.set_defaults(func=cmd_env_rollout)
 
+    from services.roles_cmd import add_role_parsers
     from services.train_cmd import add_train_parser
 
     add_train_parser(sub)
+    add_role_parsers(sub)
     return parser
 
 

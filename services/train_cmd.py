@@ -1,4 +1,5 @@
-"""``convoy train``: the command that trains an algorithm (in-process until the distributed runtime lands)."""
+"""``convoy train``: the command that trains an algorithm — distributed (actors + learner over Zenoh) by default,
+in one process with ``--inprocess``."""
 
 from __future__ import annotations
 
@@ -45,39 +46,45 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
         values["torch_threads"] = args.threads
     if args.hierarchical:
         values["hierarchical"] = True
+    if args.actors is not None:
+        values["runtime"] = {**values.get("runtime", {}), "actors": args.actors}
     values["env_params"] = env_params(args, values.get("env_params"))
     values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
     return job_config(**values)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from services.training import run_inprocess
+    from services.training import run_distributed, run_inprocess
 
     job = job_from_args(args)
     out = Path(args.out) if args.out else Path("runs") / f"{job.algo}-{job.env}"
     cfg = job.algo_config()
-    if not args.inprocess:
-        console.print("[dim]the distributed runtime is not built yet; training in-process[/]")
+    where = "in this process" if args.inprocess else f"{job.runtime.actors} actor processes + a learner (Zenoh)"
     console.print(
         f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
-        f"{job.steps:,} env steps, "
-        f"{job.num_envs} envs, hidden {cfg.hidden}, seed {job.seed} → {out}/",
+        f"{job.steps:,} env steps, {job.num_envs} envs{'' if args.inprocess else ' per actor'}, hidden {cfg.hidden}, "
+        f"seed {job.seed}, {where} → {out}/",
         highlight=False,
         soft_wrap=True,
     )
-    result = run_inprocess(job, out, progress=not args.no_progress)
+    if args.inprocess:
+        s = run_inprocess(job, out, progress=not args.no_progress).as_dict()
+    else:
+        s = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id)
     table = Table(title=f"{job.algo} on {job.env}")
     table.add_column("figure")
     table.add_column("value", justify="right")
-    table.add_row("env steps", f"{result.env_steps:,}")
-    table.add_row("episodes", f"{result.episodes:,}")
-    table.add_row("updates", f"{result.updates:,}")
-    table.add_row("wall time", f"{result.wall_s:.1f} s")
-    table.add_row("env steps/s", f"{result.env_steps_per_s:,.0f}")
-    table.add_row("updates/s", f"{result.updates_per_s:,.1f}")
-    table.add_row("training return (last 10 %)", f"{result.final_return:.3f}")
-    table.add_row(f"greedy eval return ({job.eval_episodes} eps)", f"{result.eval_return:.3f} ± {result.eval_ci95:.3f}")
-    table.add_row("random policy return", f"{result.random_return:.3f}")
+    table.add_row("env steps", f"{s['env_steps']:,}")
+    table.add_row("episodes", f"{s['episodes']:,}")
+    table.add_row("updates", f"{s['updates']:,}")
+    table.add_row("wall time", f"{s['wall_s']:.1f} s")
+    table.add_row("env steps/s", f"{s['env_steps'] / max(s['wall_s'], 1e-9):,.0f}")
+    table.add_row("updates/s", f"{s['updates'] / max(s['wall_s'], 1e-9):,.1f}")
+    table.add_row("training return (last 10 %)", f"{s['final_return']:.3f}")
+    table.add_row(f"greedy eval return ({job.eval_episodes} eps)", f"{s['eval_return']:.3f} ± {s['eval_ci95']:.3f}")
+    table.add_row("random policy return", f"{s['random_return']:.3f}")
+    if "dropped" in s:
+        table.add_row("messages dropped (corrupt / foreign)", f"{s['dropped']:,}")
     console.print(table)
     console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt, summary.json")
     return 0
@@ -111,8 +118,20 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         epilog=_algo_epilog(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    tr.add_argument(
+        "--inprocess", action="store_true", help="run envs and learner in this one process (the reference baseline)"
+    )
+    tr.add_argument("--job-id", help="Zenoh job id (default: the --out directory's name + a random suffix)")
+    add_job_arguments(tr)
+    tr.add_argument("--out", metavar="DIR", help="output directory (default runs/ALGO-ENV)")
+    tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
+    tr.set_defaults(func=cmd_train)
+
+
+def add_job_arguments(tr: argparse.ArgumentParser) -> None:
+    """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     d = JobConfig.model_fields
-    tr.add_argument("--inprocess", action="store_true", help="run envs and learner in this one process")
+    tr.add_argument("--actors", type=int, help="actor processes (default 2; distributed runs only)")
     tr.add_argument("--algo", help=f"algorithm (default {d['algo'].default}): {', '.join(ALGO_CONFIGS)}")
     tr.add_argument("--env", help=f"environment (default {d['env'].default}): {', '.join(ENVS)}")
     tr.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents)")
@@ -130,6 +149,3 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device (default auto: CUDA if present)")
     tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
-    tr.add_argument("--out", metavar="DIR", help="output directory (default runs/ALGO-ENV)")
-    tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
-    tr.set_defaults(func=cmd_train)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -30,3 +31,22 @@ def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: b
         return trainer.run()
     finally:
         env.close()
+
+
+def default_job_id(out_dir: str | Path) -> str:
+    """A key-safe job id from the output directory's name plus a short random suffix (two runs never collide)."""
+    import re
+    import secrets
+
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "-", Path(out_dir).resolve().name).strip("-.") or "job"
+    return f"{stem[:48]}-{secrets.token_hex(3)}"
+
+
+def run_distributed(
+    job: JobConfig, out_dir: str | Path, progress: bool = True, job_id: str | None = None
+) -> dict[str, Any]:
+    """Train ``job`` with ``job.runtime.actors`` actor processes and a learner process on this machine."""
+    from services.jobrunner import JobRunner
+
+    runner = JobRunner(job_id or default_job_id(out_dir), job, out_dir, progress=progress)
+    return runner.run()

@@ -1,0 +1,182 @@
+"""The actor process: steps a batch of envs with the newest weights and publishes joint-transition chunks.
+
+One torch thread (actors share the machine with the learner). Between env steps the actor swaps in the newest
+weights it has received (only the newest matters: ``Inbox.latest``), keeps to the learner's flow-control budget (it
+waits rather than run ahead of the replay ratio), explores with its own ε (Ape-X spread, ``runtime.epsilon_spread``)
+and reports env-steps/s and policy lag (learner version − acting version) as metrics every second.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from envs import make_batched
+from learner.agent import make_agent
+from learner.algorithm import Algorithm, epsilon_at
+from learner.inprocess import transition
+from protocol import keys, wire
+from protocol.config import JobConfig
+from protocol.inbox import Inbox
+from protocol.session import ZenohSettings, open_session
+
+METRICS_EVERY_S = 1.0
+
+
+def actor_epsilon(base: float, index: int, actors: int, spread: float) -> float:
+    """Ape-X style: actor ``index`` of ``actors`` explores with ``base^(1 + spread·index/(actors−1))``."""
+    if spread <= 0 or actors <= 1 or base <= 0:
+        return base
+    return float(base ** (1.0 + spread * min(index, actors - 1) / (actors - 1)))
+
+
+def load_weights(algo: Algorithm, state: dict[str, np.ndarray]) -> None:
+    """Received arrays (read-only views on the payload) into the policy networks."""
+    algo.load_policy_state({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
+
+
+@dataclass
+class ActorStats:
+    env_steps: int = 0
+    chunks: int = 0
+    episodes: int = 0
+    returns: list[float] = field(default_factory=list)
+    throttled_s: float = 0.0
+
+
+class Actor:
+    """One actor of job ``job_id``; ``run`` until the learner's budget ends the job, a stop, or SIGTERM."""
+
+    def __init__(
+        self, job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int | None = None
+    ) -> None:
+        self.job_id, self.job, self.index, self.ident = job_id, job, index, ident
+        self.settings = settings
+        self.seed = job.seed + 1000 * (index + 1) if seed is None else seed
+        self.stopping = False
+        self.stats = ActorStats()
+
+    def stop(self, *_: Any) -> None:
+        self.stopping = True
+
+    def run(self) -> int:
+        torch.set_num_threads(1)
+        torch.manual_seed(self.seed)
+        session = open_session(self.settings)
+        try:
+            weights_in, budget_in, stop_in = Inbox({"weights"}, 4), Inbox({"budget"}, 16), Inbox({"command"}, 4)
+            self._declared = [  # kept referenced: an undeclared token or subscriber would vanish
+                session.liveliness().declare_token(keys.alive(self.job_id, "actor", self.ident)),
+                session.declare_subscriber(keys.weights(self.job_id), weights_in),
+                session.declare_subscriber(keys.ctl(self.job_id, "budget"), budget_in),
+                session.declare_subscriber(keys.ctl(self.job_id, "stop"), stop_in),
+            ]
+            import zenoh
+
+            block = zenoh.CongestionControl.BLOCK
+            pub = session.declare_publisher(keys.exp(self.job_id, self.ident), congestion_control=block)
+            metrics_pub = session.declare_publisher(keys.metrics(self.job_id, "actor", self.ident))
+            return self._loop(weights_in, budget_in, stop_in, pub, metrics_pub)
+        finally:
+            session.close()
+
+    def _loop(self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any) -> int:
+        job, rt = self.job, self.job.runtime
+        env = make_batched(job.env, job.num_envs, **job.env_params)
+        algo = make_agent(job, env.spec, device=rt.actor_device)
+        cfg = job.algo_config()
+        t_len = algo.chunk_len if algo.chunk_len > 1 else rt.publish_steps
+        version = -1
+        budget: wire.Message | None = None
+        sent_since_budget = 0
+        seq = 0
+        b, n = env.num_envs, env.spec.n_agents
+        try:
+            obs = env.reset(seed=self.seed)
+            state = algo.initial_state(b)
+            ep_ret = np.zeros((b, n))
+            episode_id = np.zeros(b, dtype=np.int64)
+            chunk: dict[str, list[np.ndarray]] = {}
+            chunk_returns: list[float] = []
+            t_metrics = time.perf_counter()
+            steps_at_metrics = 0
+            while not self.stopping:
+                if stop_in.drain():
+                    break
+                newest = weights_in.latest()
+                if newest is not None and newest.body["version"] != version:  # a restarted learner may go back
+                    load_weights(algo, newest.body["state"])
+                    version = newest.body["version"]
+                for msg in budget_in.drain():
+                    budget, sent_since_budget = msg, 0
+                if version < 0 or budget is None:  # no weights yet: the learner is starting
+                    time.sleep(0.01)
+                    continue
+                allowed, ingested = budget.body["allowed_steps"], budget.body["ingested_steps"]
+                if ingested >= job.steps:
+                    break  # the learner has all the data the job asked for
+                if len(chunk.get("obs", ())) == 0 and ingested + sent_since_budget + t_len * b > allowed:
+                    t0 = time.perf_counter()
+                    msg = budget_in.get(timeout=0.05)
+                    if msg is not None:
+                        budget, sent_since_budget = msg, 0
+                    self.stats.throttled_s += time.perf_counter() - t0
+                    continue
+                eps = actor_epsilon(epsilon_at(cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
+                out = algo.act(obs, eps, state)
+                res = env.step(out.actions)
+                for k, v in transition(obs, out, res, episode_id).items():
+                    chunk.setdefault(k, []).append(v)
+                ep_ret += res.reward
+                done = res.done
+                if done.any():
+                    rets = ep_ret[done].mean(axis=1).tolist()
+                    chunk_returns.extend(rets)
+                    self.stats.episodes += len(rets)
+                    ep_ret[done] = 0.0
+                    episode_id[done] = self.stats.episodes
+                state = algo.reset_state(out.state, done)
+                obs = res.obs
+                if len(chunk["obs"]) >= t_len:
+                    arrays = {k: np.stack(v) for k, v in chunk.items()}
+                    body = wire.chunk_body(arrays, self.ident, version, t_len * b, chunk_returns)
+                    seq += 1
+                    pub.put(wire.encode("chunk", body, self.ident, seq))
+                    self.stats.env_steps += t_len * b
+                    self.stats.chunks += 1
+                    self.stats.returns.extend(chunk_returns)
+                    sent_since_budget += t_len * b
+                    chunk, chunk_returns = {}, []
+                now = time.perf_counter()
+                if now - t_metrics >= METRICS_EVERY_S:
+                    lag = max(0, budget.body["version"] - version)
+                    values = {
+                        "env_steps": self.stats.env_steps,
+                        "env_steps_per_s": (self.stats.env_steps - steps_at_metrics) / (now - t_metrics),
+                        "policy_version": version,
+                        "policy_lag": lag,
+                        "episodes": self.stats.episodes,
+                        "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
+                        "throttled_s": self.stats.throttled_s,
+                        "epsilon": eps,
+                        "dropped": weights_in.drops + budget_in.drops + stop_in.drops,
+                    }
+                    metrics_pub.put(wire.encode("metrics", wire.metrics_body("actor", self.ident, values), self.ident))
+                    self.stats.returns = []
+                    t_metrics, steps_at_metrics = now, self.stats.env_steps
+        finally:
+            env.close()
+        return 0
+
+
+def run_actor(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int | None) -> int:
+    """Process entry point (spawned by a host agent or run by ``convoy actor``); SIGTERM stops it cleanly."""
+    actor = Actor(job_id, job, index, ident, settings, seed)
+    signal.signal(signal.SIGTERM, actor.stop)
+    signal.signal(signal.SIGINT, actor.stop)
+    return actor.run()

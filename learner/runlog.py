@@ -1,0 +1,155 @@
+"""What every training loop reports, in one place: metric rows, the progress display, the final evaluation and the
+run's artefacts (``metrics.jsonl/csv``, ``summary.json``, ``curve.png``).
+
+The in-process trainer and the distributed learner both log through :class:`RunLog`, so a row means the same in
+both and the distributed runtime can be compared with its baseline column for column.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.batched import BatchedEnv
+from envs.rollout import ci95_half
+from learner.metrics import MetricsWriter, plot_curves
+
+
+class RunLog:
+    """Accumulates returns and losses between rows; ``maybe_row`` emits a row every ``log_every`` env steps."""
+
+    def __init__(
+        self,
+        total_steps: int,
+        log_every: int,
+        out_dir: str | Path | None = None,
+        progress: bool = True,
+        resume_at: int | None = None,
+        first_step: int = 0,
+        first_updates: int = 0,
+    ) -> None:
+        self.total, self.log_every = total_steps, log_every
+        self.writer = MetricsWriter(out_dir, resume_at=resume_at) if out_dir is not None else None
+        self.rows: list[dict[str, Any]] = list(self.writer.rows) if self.writer else []
+        self.window: list[float] = []
+        self.losses: list[float] = []
+        self.next_row = (first_step // log_every + 1) * log_every
+        self.t0 = self.t_row = time.perf_counter()
+        self.steps_at_row, self.updates_at_row = first_step, first_updates
+        self.wall_before = float(self.rows[-1].get("wall_s", 0.0)) if self.rows else 0.0
+        self.bar = ProgressDisplay(total_steps, progress)
+
+    def episodes(self, returns: list[float]) -> None:
+        self.window.extend(returns)
+
+    def loss(self, value: float) -> None:
+        self.losses.append(value)
+
+    def maybe_row(self, env_steps: int, episodes: int, updates: int, epsilon: float, **extra: float) -> dict | None:
+        """A row (written, shown, returned) when ``env_steps`` passed the next row's step or the end."""
+        if env_steps < self.next_row and env_steps < self.total:
+            return None
+        now = time.perf_counter()
+        dt = max(now - self.t_row, 1e-9)
+        row = {
+            "env_steps": env_steps,
+            "episodes": episodes,
+            "updates": updates,
+            "return": float(np.mean(self.window)) if self.window else math.nan,
+            "loss": float(np.mean(self.losses)) if self.losses else math.nan,
+            "epsilon": epsilon,
+            "env_steps_per_s": (env_steps - self.steps_at_row) / dt,
+            "updates_per_s": (updates - self.updates_at_row) / dt,
+            "wall_s": self.wall_before + now - self.t0,
+            **extra,
+        }
+        self.rows.append(row)
+        if self.writer:
+            self.writer.write(row)
+        self.bar.update(env_steps, row)
+        self.window, self.losses = [], []
+        self.t_row, self.steps_at_row, self.updates_at_row = now, env_steps, updates
+        while self.next_row <= env_steps:
+            self.next_row += self.log_every
+        return row
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.writer:
+            self.writer.close()
+
+
+def final_eval(
+    algo: Any, episodes: int, seed: int, make_eval_env: Callable[[int], BatchedEnv] | None
+) -> tuple[float, float, float]:
+    """Greedy return ± 95 % CI and the random policy's return on fresh eval envs (seed offset from training)."""
+    from learner.inprocess import evaluate
+
+    if episodes == 0 or make_eval_env is None:
+        return math.nan, math.nan, math.nan
+    env = make_eval_env(min(episodes, 256))
+    try:
+        greedy = evaluate(env, algo, episodes, seed=seed + 10_000)
+        rand = evaluate(env, algo, episodes, seed=seed + 10_000, epsilon=1.0)
+    finally:
+        env.close()
+    return float(greedy.mean()), ci95_half(greedy), float(rand.mean())
+
+
+def write_artefacts(out_dir: str | Path, summary: dict[str, Any], rows: list[dict[str, Any]], title: str) -> None:
+    """``summary.json`` and ``curve.png`` (the random policy's return as the baseline line)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if rows:
+        plot_curves(rows, out / "curve.png", title=title, baseline=summary.get("random_return"))
+
+
+class ProgressDisplay:
+    """A live rich progress bar in a terminal; one plain line per metric row when output goes to a file or pipe
+    (a bar redrawn into a log is unreadable); silent when disabled."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.progress = None
+        self.total = total
+        self.lines = enabled and not sys.stdout.isatty()
+        if not enabled or self.lines:
+            return
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.progress = Progress(
+            TextColumn("[bold]train"),
+            BarColumn(bar_width=24),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[info]}"),
+            TimeRemainingColumn(),
+        )
+        self.progress.start()
+        self.task = self.progress.add_task("train", total=total, info="")
+
+    @staticmethod
+    def describe(row: dict[str, Any]) -> str:
+        text = (
+            f"return {row['return']:.2f} · loss {row['loss']:.3f} · ε {row['epsilon']:.2f} · "
+            f"{row['env_steps_per_s']:,.0f} steps/s · {row['updates_per_s']:,.0f} upd/s"
+        )
+        if "policy_lag" in row:
+            text += f" · lag {row['policy_lag']:.1f} · actors {row.get('actors_alive', 0):.0f}"
+        return text
+
+    def update(self, steps: int, row: dict[str, Any]) -> None:
+        if self.lines:
+            print(f"{steps:>{len(f'{self.total:,}')},}/{self.total:,} steps · {self.describe(row)}", flush=True)
+        elif self.progress is not None:
+            self.progress.update(self.task, completed=min(steps, self.total), info=self.describe(row))
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()

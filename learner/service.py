@@ -1,0 +1,231 @@
+"""The learner process: ingests actors' chunks from Zenoh, runs the job's algorithm, broadcasts weights.
+
+* Chunks arrive on Zenoh's thread and go through an :class:`~protocol.inbox.Inbox` (decoded and validated there,
+  bounded, never blocking the network); this loop drains it, checks each chunk against the job's transition schema
+  (field names, dtypes and per-step shapes of a probe step — anything else is dropped and counted) and inserts it
+  into the algorithm's replay.
+* Updates follow the data (``replay_ratio``: sampled per inserted transition), exactly as in-process. When the
+  learner falls behind, the ``budget`` it publishes stops growing and actors wait: the samples-per-insert ratio
+  holds and nothing grows without bound (replay capacity is fixed, the inbox is bounded).
+* Weights (version = update count) go out every ``weights_every`` updates and at least every second, so a new or
+  respawned actor gets them at once. Checkpoints are atomic; a restarted learner resumes from the last one (update
+  counter, optimizer, ε schedule, metric history cut at that step) and its actors carry on.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from envs import make_batched
+from learner.agent import make_agent
+from learner.algorithm import Algorithm, Progress, epsilon_at
+from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from learner.inprocess import transition
+from learner.runlog import RunLog, final_eval, write_artefacts
+from learner.runtime import configure_learner
+from protocol import keys, wire
+from protocol.config import JobConfig
+from protocol.inbox import Inbox
+from protocol.session import ZenohSettings, open_session
+
+WEIGHTS_EVERY_S = 1.0
+BUDGET_EVERY_S = 0.02
+
+
+def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step."""
+    env = make_batched(job.env, 1, **job.env_params)
+    try:
+        obs = env.reset(seed=0)
+        out = algo.act(obs, 1.0, algo.initial_state(1))
+        res = env.step(out.actions)
+        row = transition(obs, out, res, np.zeros(1, dtype=np.int64))
+    finally:
+        env.close()
+    return {k: (np.asarray(v).dtype.str, np.asarray(v).shape[1:]) for k, v in row.items()}
+
+
+class Learner:
+    def __init__(self, job_id: str, job: JobConfig, out_dir: str | Path, settings: ZenohSettings) -> None:
+        self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
+        self.stopping = False
+        self.dropped_schema = 0
+
+    def stop(self, *_: Any) -> None:
+        self.stopping = True
+
+    def _restore(self, algo: Algorithm) -> dict[str, Any]:
+        path = self.out_dir / "checkpoint.pt"
+        if not path.is_file():
+            return {}
+        try:
+            saved, job, counters = load_checkpoint(path, device=str(algo.device))
+        except CheckpointError as exc:  # keep the bad file for inspection, start afresh
+            print(f"learner: {exc}; starting from scratch", flush=True)
+            path.rename(path.with_suffix(".unreadable"))
+            return {}
+        if (job.algo, job.env, job.env_params) != (self.job.algo, self.job.env, self.job.env_params):
+            raise CheckpointError(f"checkpoint {path}: belongs to {job.algo} on {job.env}; use another --out")
+        algo.load_state_dict(saved.state_dict())
+        return counters
+
+    def run(self) -> int:
+        job, rt = self.job, self.job.runtime
+        configure_learner(job.torch_threads)
+        torch.manual_seed(job.seed)
+        probe = make_batched(job.env, 1, **job.env_params)
+        spec = probe.spec
+        probe.close()
+        algo = make_agent(job, spec)
+        schema = transition_schema(job, algo)
+        counters = self._restore(algo)
+        session = open_session(self.settings)
+        import zenoh
+
+        block = zenoh.CongestionControl.BLOCK
+        inbox = Inbox({"chunk"}, maxlen=rt.inbox)
+        self._keep = [
+            session.liveliness().declare_token(keys.alive(self.job_id, "learner", "0")),
+            session.declare_subscriber(keys.exp_all(self.job_id), inbox),
+        ]
+        self.pub_weights = session.declare_publisher(keys.weights(self.job_id), congestion_control=block)
+        self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
+        self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
+        try:
+            return self._loop(algo, schema, inbox, counters)
+        finally:
+            session.close()
+
+    def _publish_weights(self, algo: Algorithm) -> None:
+        state = {k: v.numpy() for k, v in algo.policy_state().items()}
+        body = wire.weights_body(algo.updates, algo.name, state)
+        self.pub_weights.put(wire.encode("weights", body, "learner"))
+
+    def _publish_budget(self, allowed: int, ingested: int, version: int) -> None:
+        body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
+        self.pub_budget.put(wire.encode("budget", body, "learner"))
+
+    def _valid(self, arrays: dict[str, np.ndarray], schema: dict[str, tuple[str, tuple[int, ...]]]) -> bool:
+        if set(arrays) != set(schema):
+            return False
+        return all(a.dtype.str == schema[k][0] and a.shape[2:] == schema[k][1] for k, a in arrays.items())
+
+    def _loop(self, algo: Algorithm, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
+        job, rt, cfg = self.job, self.job.runtime, self.job.algo_config()
+        env_steps = int(counters.get("env_steps", 0))
+        episodes = int(counters.get("episodes", 0))
+        resumed = bool(counters)
+        log = RunLog(
+            job.steps,
+            job.log_every,
+            self.out_dir,
+            progress=False,
+            resume_at=env_steps if resumed else None,
+            first_step=env_steps,
+            first_updates=algo.updates,
+        )
+        owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
+        next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
+        t_weights = t_budget = 0.0
+        last_weights_version = -1
+        lags: list[float] = []
+        ingested_chunks = 0
+        chunk_steps = job.num_envs * rt.publish_steps
+        t0 = time.perf_counter()
+        try:
+            while env_steps < job.steps and not self.stopping:
+                now = time.perf_counter()
+                if algo.updates - last_weights_version >= rt.weights_every or now - t_weights >= WEIGHTS_EVERY_S:
+                    self._publish_weights(algo)
+                    last_weights_version, t_weights = algo.updates, now
+                if now - t_budget >= BUDGET_EVERY_S:
+                    # chunks still queued count as taken: actors wait while the learner catches up
+                    queued = len(inbox) * chunk_steps
+                    self._publish_budget(env_steps + max(0, rt.slack_steps - queued), env_steps, algo.updates)
+                    t_budget = now
+                msg = inbox.get(timeout=0.01)
+                if msg is None:
+                    continue
+                arrays = msg.body["arrays"]
+                if not self._valid(arrays, schema):
+                    self.dropped_schema += 1
+                    continue
+                arrays = dict(arrays)
+                arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
+                algo.progress = Progress(env_steps, episodes, job.steps)
+                algo.observe(arrays)
+                t_len, b = arrays["obs"].shape[:2]
+                chunk_steps = t_len * b
+                env_steps += chunk_steps
+                episodes += len(msg.body["returns"])
+                log.episodes(msg.body["returns"])
+                lags.append(algo.updates - msg.body["policy_version"])
+                ingested_chunks += 1
+                if algo.can_update():  # the updates this chunk is owed, as in-process: samples per insert exact
+                    owed += algo.updates_for(chunk_steps)
+                while owed >= 1.0 and algo.can_update():
+                    log.loss(algo.update()["loss"])
+                    owed -= 1.0
+                row = log.maybe_row(
+                    env_steps,
+                    episodes,
+                    algo.updates,
+                    epsilon_at(cfg, env_steps, job.steps),
+                    policy_lag=float(np.mean(lags)) if lags else 0.0,
+                    dropped=float(inbox.drops + self.dropped_schema),
+                    chunks=float(ingested_chunks),
+                )
+                if row is not None:
+                    self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
+                    lags = []
+                if env_steps >= next_ckpt:
+                    self._checkpoint(algo, env_steps, episodes)
+                    next_ckpt += job.checkpoint_every
+            if self.stopping:
+                self._checkpoint(algo, env_steps, episodes)
+                return 0
+            self._publish_budget(job.steps, env_steps, algo.updates)  # tells actors the job has its data
+        finally:
+            log.close()
+        self._checkpoint(algo, env_steps, episodes)
+        wall = time.perf_counter() - t0
+        eval_ret, eval_ci, rand_ret = final_eval(
+            algo, job.eval_episodes, job.seed, lambda n: make_batched(job.env, n, **job.env_params)
+        )
+        rows = log.rows
+        summary = {
+            "env_steps": env_steps,
+            "updates": algo.updates,
+            "episodes": episodes,
+            "wall_s": rows[-1]["wall_s"] if rows else wall,
+            "final_return": float(np.nanmean([r["return"] for r in rows[-max(1, len(rows) // 10) :]]))
+            if rows
+            else float("nan"),
+            "eval_return": eval_ret,
+            "eval_ci95": eval_ci,
+            "random_return": rand_ret,
+            "dropped": inbox.drops + self.dropped_schema,
+            "dropped_by_reason": {**inbox.dropped, "schema": self.dropped_schema},
+        }
+        write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")
+        done = {"done": 1.0, "eval_return": eval_ret, "env_steps": env_steps, "updates": algo.updates}
+        self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
+        return 0
+
+    def _checkpoint(self, algo: Algorithm, env_steps: int, episodes: int) -> None:
+        counters = {"env_steps": env_steps, "episodes": episodes, "updates": algo.updates}
+        save_checkpoint(self.out_dir / "checkpoint.pt", algo, self.job, counters)
+
+
+def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:
+    """Process entry point (spawned by a host agent or run by ``convoy learner``); SIGTERM checkpoints and exits."""
+    learner = Learner(job_id, job, out_dir, settings)
+    signal.signal(signal.SIGTERM, learner.stop)
+    signal.signal(signal.SIGINT, learner.stop)
+    return learner.run()

@@ -1,0 +1,117 @@
+"""A host agent: runs one job's roles on this machine and keeps them running — ``convoy host``.
+
+On one laptop ``convoy train`` does this itself (``services.jobrunner``). Across machines each host runs a host
+agent for the roles it offers (a learner host, actor hosts), all joined through Zenoh routers: the agent starts its
+processes with a :class:`~services.procs.ProcessGroup` (respawn, restart from checkpoint, fail after repeated
+crashes), declares its own liveliness token, and takes ``scale`` and ``stop`` commands on
+``convoy/hosts/<name>/cmd`` (wire kind ``command``: ``{"op": "scale", "args": {"actors": n}}``). It exits when its
+learner has finished the job, or — on an actor host — when the learner's budget says the job has all its data.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from protocol import keys
+from protocol.config import JobConfig
+from protocol.inbox import Inbox
+from protocol.session import ZenohSettings, open_session
+from services.procs import JobFailed, ProcessGroup
+
+
+class HostAgent:
+    def __init__(
+        self,
+        name: str,
+        job_id: str,
+        job: JobConfig,
+        roles: tuple[str, ...],
+        actors: int,
+        out_dir: str | Path,
+        settings: ZenohSettings,
+    ) -> None:
+        self.name, self.job_id, self.job, self.roles = keys.check_id(name, "host name"), job_id, job, roles
+        self.actors, self.out_dir, self.settings = actors, Path(out_dir), settings
+        self.stopping = False
+
+    def stop(self, *_: Any) -> None:
+        self.stopping = True
+
+    def run(self) -> int:
+        session = open_session(self.settings)
+        cmds, budget = Inbox({"command"}, 64), Inbox({"budget"}, 4)
+        keep = [
+            session.liveliness().declare_token(keys.alive(self.job_id, "host", self.name)),
+            session.declare_subscriber(keys.host(self.name, "cmd"), cmds),
+            session.declare_subscriber(keys.ctl(self.job_id, "budget"), budget),
+        ]
+        child = self.settings.child() if self.settings.mode == "peer" else self.settings
+        group = ProcessGroup(self.job_id, self.job, str(self.out_dir), child)
+        ingested = 0
+        try:
+            if "learner" in self.roles:
+                group.start_learner()
+            if "actor" in self.roles:
+                group.scale_actors(self.actors)
+            while not self.stopping:
+                for msg in cmds.drain():
+                    op, args = msg.body["op"], msg.body["args"]
+                    if op == "scale" and "actor" in self.roles and isinstance(args.get("actors"), int):
+                        group.scale_actors(max(0, args["actors"]))
+                    elif op == "stop":
+                        self.stopping = True
+                for ev in group.poll():
+                    print(f"[{self.name}] {ev.kind} {ev.ident} {ev.detail}".rstrip(), flush=True)
+                    if ev.kind == "failed":
+                        raise JobFailed(ev.detail)
+                last = budget.latest()
+                if last is not None:
+                    ingested = last.body["ingested_steps"]
+                if self._done(group, ingested):
+                    break
+                time.sleep(0.05)
+        finally:
+            group.stop_all()
+            del keep
+            session.close()
+        return 0
+
+    def _done(self, group: ProcessGroup, ingested: int) -> bool:
+        """A learner host is done when its learner finished; an actor host when the job has all its data."""
+        if "learner" in self.roles:
+            return "learner" in group.finished
+        return ingested >= self.job.steps or ("actor" in group.finished and not group.actors)
+
+
+def run_host(
+    name: str,
+    job_id: str,
+    job: JobConfig,
+    roles: tuple[str, ...],
+    actors: int,
+    out_dir: str,
+    settings: ZenohSettings,
+) -> int:
+    agent = HostAgent(name, job_id, job, roles, actors, out_dir, settings)
+    signal.signal(signal.SIGTERM, agent.stop)
+    signal.signal(signal.SIGINT, agent.stop)
+    return agent.run()
+
+
+def run_router(settings: ZenohSettings) -> int:
+    """A Zenoh router in this process (``convoy router``) until SIGTERM/SIGINT: what ``zenohd`` does, for machines
+    where the ``eclipse/zenoh`` image or binary is not at hand."""
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stopping.append(1))
+    session = open_session(settings.model_copy(update={"mode": "router"}))
+    print(f"router listening on {', '.join(settings.listen) or 'tcp/[::]:7447'}", flush=True)
+    try:
+        while not stopping:
+            time.sleep(0.1)
+    finally:
+        session.close()
+    return 0

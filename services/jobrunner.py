@@ -1,0 +1,142 @@
+"""Run one distributed job on this machine: a learner and N actors as processes, connected by Zenoh (peer mode on
+loopback), watched until the learner has finished — what ``convoy train`` does by default.
+
+The runner opens the root Zenoh session (listening on a free loopback port; its children connect to it and gossip
+connects them to each other), starts the processes through a :class:`~services.procs.ProcessGroup`, follows their
+liveliness tokens and metrics, shows progress (steps, return, updates/s, policy lag, actors alive), reacts to
+crashes (respawn / restart / fail with the reason) and takes live scaling requests (``scale``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from learner.runlog import ProgressDisplay
+from protocol import keys, wire
+from protocol.config import JobConfig
+from protocol.inbox import Inbox
+from protocol.session import ZenohSettings, free_port, loopback, open_session
+from services.procs import Event, JobFailed, ProcessGroup
+
+
+class AliveSet:
+    """Who holds a liveliness token of a job right now (a liveliness subscriber with history)."""
+
+    def __init__(self, session: Any, job_id: str) -> None:
+        import zenoh
+
+        self._lock = threading.Lock()
+        self.members: set[tuple[str, str]] = set()
+        self._put, self._delete = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
+        self._sub = session.liveliness().declare_subscriber(keys.alive_all(job_id), self._on, history=True)
+
+    def _on(self, sample: Any) -> None:
+        parsed = keys.parse_alive(str(sample.key_expr))
+        if parsed is None:
+            return
+        member = (parsed[1], parsed[2])
+        with self._lock:
+            if sample.kind == self._delete:
+                self.members.discard(member)
+            else:
+                self.members.add(member)
+
+    def count(self, role: str) -> int:
+        with self._lock:
+            return sum(1 for r, _ in self.members if r == role)
+
+    def ids(self, role: str) -> set[str]:
+        with self._lock:
+            return {i for r, i in self.members if r == role}
+
+
+class JobRunner:
+    def __init__(
+        self,
+        job_id: str,
+        job: JobConfig,
+        out_dir: str | Path,
+        progress: bool = True,
+        on_event: Any = None,
+    ) -> None:
+        self.job_id, self.job, self.out_dir = keys.check_id(job_id, "job id"), job, Path(out_dir)
+        self.progress = progress
+        self.on_event = on_event or (lambda ev: print(f"[{ev.kind}] {ev.ident} {ev.detail}".rstrip(), flush=True))
+        self._wanted: int | None = None
+        self._lock = threading.Lock()
+        self.group: ProcessGroup | None = None
+        self.alive: AliveSet | None = None
+        self.last_row: dict[str, float] = {}
+        self.actor_metrics: dict[str, dict[str, float]] = {}
+        self.events: list[Event] = []
+        self.started = threading.Event()
+
+    def scale(self, actors: int) -> None:
+        """Ask for ``actors`` actor processes; takes effect within the runner's next poll (live)."""
+        if actors < 1:
+            raise ValueError(f"actors: must be ≥ 1 (got {actors})")
+        with self._lock:
+            self._wanted = actors
+
+    def root_settings(self) -> ZenohSettings:
+        base = self.job.runtime.zenoh
+        if base.mode == "peer" and not base.listen:
+            return base.model_copy(update={"listen": (loopback(free_port()),)})
+        return base
+
+    def run(self) -> dict[str, Any]:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        root = self.root_settings()
+        session = open_session(root)
+        display = ProgressDisplay(self.job.steps, self.progress)
+        group = self.group = ProcessGroup(self.job_id, self.job, str(self.out_dir), root.child())
+        try:
+            self.alive = AliveSet(session, self.job_id)
+            metrics = Inbox({"metrics"}, maxlen=4096)
+            sub = session.declare_subscriber(keys.metrics_all(self.job_id), metrics)
+            stop_pub = session.declare_publisher(keys.ctl(self.job_id, "stop"))
+            group.start_learner()
+            group.scale_actors(self.job.runtime.actors)
+            self.started.set()
+            while "learner" not in group.finished:
+                with self._lock:
+                    wanted, self._wanted = self._wanted, None
+                if wanted is not None:
+                    group.scale_actors(wanted)
+                for ev in group.poll():
+                    self.events.append(ev)
+                    self.on_event(ev)
+                    if ev.kind == "failed":
+                        raise JobFailed(ev.detail)
+                for msg in metrics.drain():
+                    self._metric(msg, display)
+                time.sleep(0.05)
+            stop_pub.put(wire.encode("command", {"op": "stop", "args": {}}, "runner"))
+            del sub
+        finally:
+            group.stop_all()
+            display.close()
+            session.close()
+        path = self.out_dir / "summary.json"
+        return json.loads(path.read_text()) if path.is_file() else {}
+
+    def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
+        values, role = msg.body["values"], msg.body["role"]
+        if role == "actor":
+            self.actor_metrics[msg.body["id"]] = values
+            return
+        if role != "learner" or "return" not in values:
+            return
+        row = dict(values)
+        row["actors_alive"] = float(self.alive.count("actor")) if self.alive else math.nan
+        live = self.alive.ids("actor") if self.alive else set()
+        row["actor_env_steps_per_s"] = sum(
+            m.get("env_steps_per_s", 0.0) for i, m in self.actor_metrics.items() if i in live
+        )
+        self.last_row = row
+        display.update(int(row["env_steps"]), row)
