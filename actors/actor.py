@@ -60,6 +60,7 @@ class Actor:
         self.seed = job.seed + 1000 * (index + 1) if seed is None else seed
         self.stopping = False
         self.stats = ActorStats()
+        self.bad_weights = 0
 
     def stop(self, *_: Any) -> None:
         self.stopping = True
@@ -110,8 +111,11 @@ class Actor:
                     break
                 newest = weights_in.latest()
                 if newest is not None and newest.body["version"] != version:  # a restarted learner may go back
-                    load_weights(algo, newest.body["state"])
-                    version = newest.body["version"]
+                    try:
+                        load_weights(algo, newest.body["state"])
+                        version = newest.body["version"]
+                    except (RuntimeError, KeyError, ValueError, TypeError):  # well-formed, but not this job's nets
+                        self.bad_weights += 1
                 for msg in budget_in.drain():
                     budget, sent_since_budget = msg, 0
                 if version < 0 or budget is None:  # no weights yet: the learner is starting
@@ -164,7 +168,7 @@ class Actor:
                         "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
                         "throttled_s": self.stats.throttled_s,
                         "epsilon": eps,
-                        "dropped": weights_in.drops + budget_in.drops + stop_in.drops,
+                        "dropped": weights_in.drops + budget_in.drops + stop_in.drops + self.bad_weights,
                     }
                     metrics_pub.put(wire.encode("metrics", wire.metrics_body("actor", self.ident, values), self.ident))
                     self.stats.returns = []

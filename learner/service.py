@@ -97,6 +97,9 @@ class Learner:
         self.pub_weights = session.declare_publisher(keys.weights(self.job_id), congestion_control=block)
         self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
         self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
+        if counters:  # say so: the supervisor reports it, tests check how far back the restart went
+            values = {"resumed_updates": algo.updates, "resumed_env_steps": counters.get("env_steps", 0)}
+            self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
         try:
             return self._loop(algo, schema, inbox, counters)
         finally:

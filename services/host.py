@@ -49,7 +49,7 @@ class HostAgent:
             session.declare_subscriber(keys.ctl(self.job_id, "budget"), budget),
         ]
         child = self.settings.child() if self.settings.mode == "peer" else self.settings
-        group = ProcessGroup(self.job_id, self.job, str(self.out_dir), child)
+        group = ProcessGroup(self.job_id, self.job, str(self.out_dir), child, roles=self.roles, host=self.name)
         ingested = 0
         try:
             if "learner" in self.roles:

@@ -74,6 +74,7 @@ class JobRunner:
         self.last_row: dict[str, float] = {}
         self.actor_metrics: dict[str, dict[str, float]] = {}
         self.events: list[Event] = []
+        self.resumes: list[dict[str, float]] = []
         self.started = threading.Event()
 
     def scale(self, actors: int) -> None:
@@ -130,6 +131,13 @@ class JobRunner:
         if role == "actor":
             self.actor_metrics[msg.body["id"]] = values
             return
+        if role == "learner" and "resumed_updates" in values:
+            self.resumes.append(values)
+            print(
+                f"[resumed] learner from its checkpoint: {values['resumed_env_steps']:,.0f} env steps, "
+                f"{values['resumed_updates']:,.0f} updates",
+                flush=True,
+            )
         if role != "learner" or "return" not in values:
             return
         row = dict(values)

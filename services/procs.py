@@ -14,6 +14,7 @@ import multiprocessing as mp
 import os
 import signal
 import time
+import zlib
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,6 +37,20 @@ def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSett
     raise SystemExit(run_learner(job_id, job, out_dir, settings))
 
 
+def _spare_main(conn: Any) -> None:
+    """A warm spare: imports what an actor needs (torch, Zenoh, the envs — seconds on a small machine), then waits
+    for the arguments of the actor it is to become. A crashed actor is replaced by the spare at once."""
+    import actors.actor  # noqa: F401
+    import learner.agent  # noqa: F401
+
+    try:
+        args = conn.recv()
+    except (EOFError, OSError):
+        return
+    if args is not None:
+        _actor_main(*args)
+
+
 @dataclass
 class Slot:
     role: str
@@ -44,9 +59,12 @@ class Slot:
     proc: Any
     started: float = field(default_factory=time.monotonic)
 
+    prefix: str = ""
+
     @property
     def ident(self) -> str:
-        return f"{self.role}-{self.index}" if self.generation == 0 else f"{self.role}-{self.index}.{self.generation}"
+        base = f"{self.prefix}{self.role}-{self.index}"
+        return base if self.generation == 0 else f"{base}.{self.generation}"
 
 
 @dataclass
@@ -71,23 +89,54 @@ class ProcessGroup:
         out_dir: str,
         settings: ZenohSettings,
         roles: tuple[str, ...] = ("learner", "actor"),
+        host: str = "",
     ) -> None:
+        """``host``: this machine's name in a multi-host job; it prefixes actor ids and salts their seeds, so actors
+        of different hosts never share a key or a seed."""
         self.job_id, self.job, self.out_dir, self.settings, self.roles = job_id, job, out_dir, settings, roles
+        self.host = host
         self.actors: dict[int, Slot] = {}
         self.learner: Slot | None = None
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
         self.finished: set[str] = set()  # roles whose processes exited 0
         self.failed: str | None = None
         self.wanted_actors = 0
+        self._spare: Any = None
+        self._spare_conn: Any = None
 
     # ----------------------------------------------------------------------------------------------- starting
     def _spawn_actor(self, index: int, generation: int) -> Slot:
-        slot = Slot("actor", index, generation, None)
-        seed = self.job.seed + 1000 * (index + 1) + 7919 * generation
+        slot = Slot("actor", index, generation, None, prefix=f"{self.host}." if self.host else "")
+        # distinct across hosts (the host name), indices and respawns: no two actors replay the same episodes
+        seed = self.job.seed + 1000 * (index + 1) + 7919 * generation + (zlib.crc32(self.host.encode()) % 10**6) * 10**4
         args = (self.job_id, self.job, index, slot.ident, self.settings, seed)
-        slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
-        slot.proc.start()
+        spare = self._take_spare()
+        if spare is not None:
+            slot.proc = spare
+        else:
+            slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
+            slot.proc.start()
+        if spare is not None:
+            self._spare_conn.send(args)
+            self._spare_conn.close()
+        self._start_spare()
         return slot
+
+    def _start_spare(self) -> None:
+        """Keep one warm, imported process ready to become the next (re)spawned actor."""
+        if "actor" not in self.roles or self._spare is not None:
+            return
+        parent, child = _CTX.Pipe()
+        self._spare = _CTX.Process(target=_spare_main, args=(child,), name="actor-spare", daemon=True)
+        self._spare.start()
+        child.close()
+        self._spare_conn = parent
+
+    def _take_spare(self) -> Any:
+        spare, self._spare = self._spare, None
+        if spare is not None and spare.is_alive():
+            return spare
+        return None
 
     def _spawn_learner(self, generation: int) -> Slot:
         slot = Slot("learner", 0, generation, None)
@@ -114,8 +163,12 @@ class ProcessGroup:
 
     # ------------------------------------------------------------------------------------------------ watching
     def pids(self) -> dict[str, int]:
+        """Every process of the group by id (the warm spare as ``actor-spare``): what tests clean up by PID."""
         slots = list(self.actors.values()) + ([self.learner] if self.learner else [])
-        return {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
+        out = {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
+        if self._spare is not None and self._spare.pid:
+            out["actor-spare"] = self._spare.pid
+        return out
 
     def alive_actors(self) -> int:
         return sum(1 for s in self.actors.values() if s.proc.is_alive())
@@ -180,6 +233,9 @@ class ProcessGroup:
     def stop_all(self, timeout: float = 10.0) -> None:
         """SIGTERM everything, wait up to ``timeout``, then SIGKILL what is left (by PID)."""
         slots = list(self.actors.values()) + ([self.learner] if self.learner else [])
+        spare = self._take_spare()
+        if spare is not None:
+            slots.append(Slot("actor", -1, 0, spare))
         for slot in slots:
             self._terminate(slot)
         deadline = time.monotonic() + timeout

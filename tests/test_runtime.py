@@ -1,0 +1,261 @@
+"""The distributed runtime end to end: real actor and learner processes talking over Zenoh on 127.0.0.1.
+
+Every test starts its own processes (spawn), on free ports, and stops them by PID in a ``finally``; none depends
+on another's state. Sizes are CI-sized: referential game or a small treadmill with small networks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import keys
+from protocol.config import job_config
+from protocol.session import ZenohSettings, free_port, loopback, open_session
+from services.jobrunner import JobRunner
+from services.training import run_inprocess
+
+REFERENTIAL = {
+    "env": "referential",
+    "num_envs": 32,
+    "log_every": 1000,
+    "eval_episodes": 200,
+    "algo_params": {"hidden": [64], "learning_starts": 256},
+}
+TREADMILL = {
+    "env": "treadmill",
+    "num_envs": 16,
+    "log_every": 1000,
+    "eval_episodes": 0,
+    "env_params": {"length": 30, "width": 12},
+    "algo_params": {"hidden": [32, 12], "learning_starts": 256, "replay_ratio": 0.25},
+}
+
+
+def wait_for(cond: Callable[[], bool], timeout: float, what: str, every: float = 0.02) -> float:
+    """Seconds until ``cond()`` held; fails the test naming ``what`` after ``timeout``."""
+    t0 = time.monotonic()
+    while not cond():
+        if time.monotonic() - t0 > timeout:
+            pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(every)
+    return time.monotonic() - t0
+
+
+class Background:
+    """A JobRunner in a thread; ``result`` / ``error`` once it returns; processes stopped by PID at the end."""
+
+    def __init__(self, runner: JobRunner) -> None:
+        self.runner, self.result, self.error = runner, None, None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        try:
+            self.result = self.runner.run()
+        except BaseException as exc:  # reported by join()
+            self.error = exc
+
+    def __enter__(self) -> Background:
+        self.thread.start()
+        assert self.runner.started.wait(60), "runner did not start its processes"
+        return self
+
+    def join(self, timeout: float) -> dict:
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), f"job did not finish within {timeout:g} s"
+        if self.error:
+            raise self.error
+        return self.result
+
+    def __exit__(self, *exc: object) -> None:
+        group = self.runner.group
+        if self.thread.is_alive() and group is not None:
+            pids = list(group.pids().values())
+            for pid in pids:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        self.thread.join(30)
+
+
+def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) -> None:
+    """Equivalence: 1 actor + the learner over Zenoh reach the success the in-process trainer reaches."""
+    job = job_config(algo="ma-mesn", steps=12_000, seed=0, runtime={"actors": 1}, **REFERENTIAL)
+    inproc = run_inprocess(job, tmp_path / "inproc", progress=False).as_dict()
+    dist = JobRunner("equiv", job, tmp_path / "dist", progress=False).run()
+    assert inproc["eval_return"] >= 0.9, inproc
+    assert dist["eval_return"] >= 0.9, dist
+    assert abs(dist["eval_return"] - inproc["eval_return"]) <= 0.1
+    # the same samples-per-insert ratio: updates follow the data in both
+    assert dist["updates"] == pytest.approx(inproc["updates"] * dist["env_steps"] / inproc["env_steps"], rel=0.1)
+    assert dist["dropped"] == 0
+
+
+def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Path) -> None:
+    job = job_config(algo="idqn", steps=60_000, seed=1, runtime={"actors": 2}, **TREADMILL)
+    runner = JobRunner("killactor", job, tmp_path, progress=False)
+    with Background(runner) as bg:
+        wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "2 actors alive")
+        victim = runner.group.actors[0]
+        os.kill(victim.proc.pid, signal.SIGKILL)
+        killed_at = time.monotonic()
+        respawn_s = wait_for(
+            lambda: 0 in runner.group.actors and runner.group.actors[0].generation == 1, 2.0, "the actor's respawn"
+        )
+        assert runner.group.actors[0].proc.is_alive()
+        wait_for(lambda: "actor-0.1" in runner.alive.ids("actor"), 30, "the respawned actor's liveliness token")
+        token_s = time.monotonic() - killed_at
+        summary = bg.join(120)
+    assert respawn_s < 2.0
+    print(f"respawned {respawn_s:.2f} s after kill -9; its liveliness token {token_s:.2f} s after")
+    assert summary["env_steps"] >= job.steps
+    kinds = [(e.kind, e.ident) for e in runner.events]
+    assert ("crashed", "actor-0") in kinds and ("respawned", "actor-0.1") in kinds
+
+
+def test_killed_learner_resumes_from_its_checkpoint(tmp_path: Path) -> None:
+    every = 4_000
+    job = job_config(algo="idqn", steps=60_000, seed=2, checkpoint_every=every, runtime={"actors": 1}, **TREADMILL)
+    cfg = job.algo_config()
+    per_interval = every * cfg.replay_ratio / cfg.batch_size  # updates between two checkpoints
+    runner = JobRunner("killlearner", job, tmp_path, progress=False)
+    with Background(runner) as bg:
+        wait_for(lambda: (tmp_path / "checkpoint.pt").is_file() and runner.last_row.get("env_steps", 0) > 2 * every,
+                 90, "a checkpoint and two intervals of progress")  # fmt: skip
+        before = runner.last_row["updates"]
+        os.kill(runner.group.learner.proc.pid, signal.SIGKILL)
+        wait_for(lambda: runner.group.learner is not None and runner.group.learner.generation == 1, 5, "restart")
+        summary = bg.join(180)
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    steps = [r["env_steps"] for r in rows]
+    assert steps == sorted(steps) and len(steps) == len(set(steps)), "metric history has duplicates after restart"
+    assert len(runner.resumes) == 1
+    resumed = runner.resumes[0]["resumed_updates"]
+    print(f"updates before kill -9: {before:.0f}; the restarted learner resumed at {resumed:.0f}")
+    assert before - per_interval - 1 <= resumed <= before + per_interval + 1  # back at most one checkpoint interval
+    assert summary["env_steps"] >= job.steps
+    kinds = [(e.kind, e.role) for e in runner.events]
+    assert ("crashed", "learner") in kinds and ("respawned", "learner") in kinds
+
+
+def test_actor_count_scales_live_and_throughput_follows(tmp_path: Path) -> None:
+    values = {**TREADMILL, "algo_params": {**TREADMILL["algo_params"], "replay_ratio": 0.02}}
+    job = job_config(algo="idqn", steps=10**8, seed=3, runtime={"actors": 1}, **values)
+    runner = JobRunner("scale", job, tmp_path, progress=False)
+
+    def rate(ids: int, settle: float = 3.0) -> float:
+        wait_for(lambda: runner.alive.count("actor") == ids, 60, f"{ids} actors alive")
+        time.sleep(settle)
+        live = runner.alive.ids("actor")
+        got = [m["env_steps_per_s"] for i, m in runner.actor_metrics.items() if i in live]
+        return float(sum(got))
+
+    with Background(runner):
+        one = rate(1)
+        runner.scale(3)
+        three = rate(3)
+        runner.scale(1)
+        back = rate(1)
+        learner_pid = runner.group.learner.proc.pid
+        assert runner.group.learner.generation == 0  # scaling never restarted the learner
+    print(f"env-steps/s: 1 actor {one:,.0f} → 3 actors {three:,.0f} → 1 actor {back:,.0f} (learner pid {learner_pid})")
+    assert three > 1.3 * one
+    assert back < 0.8 * three
+
+
+def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None:
+    import zenoh
+
+    from protocol import wire
+
+    job = job_config(algo="idqn", steps=40_000, seed=4, runtime={"actors": 1}, **TREADMILL)
+    runner = JobRunner("garbage", job, tmp_path, progress=False)
+    rng = np.random.default_rng(0)
+    valid = wire.encode("budget", {"allowed_steps": 1, "ingested_steps": 0, "version": 0}, "x")
+    with Background(runner) as bg:
+        wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 1, 60, "the actor")
+        wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
+        settings = runner.group.settings  # a peer of the job's network
+        session = open_session(settings)
+        try:
+            block = zenoh.CongestionControl.BLOCK
+            targets = [keys.exp("garbage", "intruder"), keys.weights("garbage"), keys.ctl("garbage", "budget")]
+            pubs = [session.declare_publisher(k, congestion_control=block) for k in targets]
+            wait_for(lambda: all(p.matching_status.matching for p in pubs), 10, "the job's subscribers to match")
+            sent = [0, 0, 0]
+            for i in range(10_000):
+                kind = i % 3
+                choice = i % 4
+                if choice == 0:
+                    payload = rng.bytes(int(rng.integers(0, 300)))
+                elif choice == 1:
+                    payload = valid[: int(rng.integers(0, len(valid)))]
+                elif choice == 2:
+                    payload = b"\x81\xa1v\x07"  # {"v": 7}: a foreign schema version
+                else:
+                    payload = b"\x93\x01\x02\x03"  # a msgpack list
+                pubs[kind].put(payload)
+                sent[kind] += 1
+            time.sleep(1.5)  # the actor reports drops in its next metrics message
+        finally:
+            session.close()
+        actor_drops = max(m.get("dropped", 0) for m in runner.actor_metrics.values())
+        summary = bg.join(120)
+    assert not [e for e in runner.events if e.kind in ("crashed", "failed")], runner.events
+    assert summary["env_steps"] >= job.steps
+    assert summary["dropped"] >= sent[0]  # every garbage chunk was counted, none inserted
+    assert actor_drops >= sent[1] + sent[2] - 5  # weights + budget garbage (the actor's drops, within a second)
+
+
+def test_router_topology_as_local_processes(tmp_path: Path) -> None:
+    """Multi-host shape: a router, a learner host and an actor host, connected only through the router's TCP
+    endpoint (client mode, no shared memory)."""
+    port = free_port()
+    endpoint = loopback(port)
+    job_flags = "--job-id mh --env referential --steps 8000 --num-envs 32 --hp hidden=32 --hp learning_starts=256"
+    job_flags = [*job_flags.split(), "--eval-episodes", "50", "--log-every", "2000"]
+    net = ["--mode", "client", "--connect", endpoint, "--no-shm"]
+    cmd = [sys.executable, "-m", "services.cli"]
+    procs: list[subprocess.Popen] = []
+    logs = tmp_path / "logs"
+    logs.mkdir()
+
+    def start(name: str, args: list[str]) -> subprocess.Popen:
+        fh = open(logs / f"{name}.log", "w")  # noqa: SIM115 (closed with the process)
+        p = subprocess.Popen([*cmd, *args], stdout=fh, stderr=subprocess.STDOUT, cwd=Path(__file__).parents[1])
+        procs.append(p)
+        return p
+
+    try:
+        start("router", ["router", "--listen", endpoint])
+        learner = start("learner", ["host", "--name", "learner-host", "--roles", "learner", "--out",
+                                    str(tmp_path / "run"), *job_flags, *net])  # fmt: skip
+        actor_args = ["host", "--name", "actor-host", "--roles", "actor", "--actors", "2", *job_flags, *net]
+        actors = start("actors", actor_args)
+        assert learner.wait(180) == 0, (logs / "learner.log").read_text()
+        assert actors.wait(60) == 0, (logs / "actors.log").read_text()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["env_steps"] >= 8000 and summary["updates"] > 0
+    assert summary["eval_return"] > summary["random_return"]
+    # no session listened on loopback but the router: the others were clients
+    assert ZenohSettings(mode="client", connect=(endpoint,)).mode == "client"
