@@ -1,4 +1,4 @@
-# Convoy — `make run` trains MA-MeSN on the treadmill (in-process), `make test` checks.
+# Convoy — `make run` trains MA-MeSN on the treadmill (2 actor processes + a learner over Zenoh), `make test` checks.
 # Both create .venv on first use: torch==2.13.0 first (a local CPU wheel on our machines), then the project.
 PYTHON ?= python3
 VENV   := .venv
@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.convoy-installed
 OUT    ?= runs/demo
 
-.PHONY: run demo test lint bench clean
+.PHONY: run run-inprocess demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,8 +17,13 @@ $(STAMP): pyproject.toml
 
 STEPS  ?= 100000
 
+ACTORS ?= 2
+
 run: $(STAMP)
-	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 --out $(OUT)
+	$(BIN)/convoy train --algo ma-mesn --env treadmill --actors $(ACTORS) --steps $(STEPS) --seed 0 --out $(OUT)
+
+run-inprocess: $(STAMP)
+	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 --out $(OUT)-inprocess
 
 demo: $(STAMP)
 	$(BIN)/convoy env rollout --env treadmill --agents 3 --adversaries 1 --episodes 20 --policy scripted \
@@ -37,6 +42,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/learner_throughput.py --markdown runs/bench/learner_throughput.md
 	$(BIN)/python benchmarks/inference_scaling.py --markdown runs/bench/inference_scaling.md
 	$(BIN)/python benchmarks/speaker_listener.py --json runs/bench/speaker_listener.json
+	$(BIN)/python benchmarks/runtime.py --markdown runs/bench/runtime.md
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis

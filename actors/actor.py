@@ -22,6 +22,7 @@ from learner.algorithm import Algorithm, epsilon_at
 from learner.inprocess import transition
 from protocol import keys, wire
 from protocol.config import JobConfig
+from protocol.exitcodes import STOPPED, ParentWatch
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
@@ -89,7 +90,8 @@ class Actor:
     def _loop(self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any) -> int:
         job, rt = self.job, self.job.runtime
         env = make_batched(job.env, job.num_envs, **job.env_params)
-        algo = make_agent(job, env.spec, device=rt.actor_device)
+        # the actor's own seed for exploration too (make_agent seeds the ε-greedy generator with the job's seed)
+        algo = make_agent(job.model_copy(update={"seed": self.seed}), env.spec, device=rt.actor_device)
         cfg = job.algo_config()
         t_len = algo.chunk_len if algo.chunk_len > 1 else rt.publish_steps
         version = -1
@@ -106,9 +108,12 @@ class Actor:
             chunk_returns: list[float] = []
             t_metrics = time.perf_counter()
             steps_at_metrics = 0
+            watch = ParentWatch()
             while not self.stopping:
-                if stop_in.drain():
+                if watch.orphaned():
                     break
+                if stop_in.drain():
+                    return 0
                 newest = weights_in.latest()
                 if newest is not None and newest.body["version"] != version:  # a restarted learner may go back
                     try:
@@ -123,7 +128,7 @@ class Actor:
                     continue
                 allowed, ingested = budget.body["allowed_steps"], budget.body["ingested_steps"]
                 if ingested >= job.steps:
-                    break  # the learner has all the data the job asked for
+                    return 0  # the learner has all the data the job asked for
                 if len(chunk.get("obs", ())) == 0 and ingested + sent_since_budget + t_len * b > allowed:
                     t0 = time.perf_counter()
                     msg = budget_in.get(timeout=0.05)
@@ -175,7 +180,7 @@ class Actor:
                     t_metrics, steps_at_metrics = now, self.stats.env_steps
         finally:
             env.close()
-        return 0
+        return STOPPED  # a signal, not the end of the job: a supervisor that still wants this actor respawns it
 
 
 def run_actor(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int | None) -> int:

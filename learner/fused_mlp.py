@@ -12,7 +12,7 @@ gradient. Here
 * the input gradient is computed only when the input needs one (observations do not, messages do).
 
 Measured on the treadmill learner (IDQN, batch 256, 1 thread): see the README's learner-throughput section. The
-maths is exactly that of ``Linear → ReLU → … → Linear`` (``tests/test_learner_core.py`` compares both, values and
+maths is exactly that of ``Linear → ReLU → … → Linear`` (``tests/test_fused_mlp.py`` compares both, values and
 gradients).
 """
 

@@ -45,9 +45,11 @@ class JointReplay:
         if m > self.capacity:  # only the newest rows can survive
             rows = {k: v[-self.capacity :] for k, v in rows.items()}
             m = self.capacity
-        idx = (self._next + np.arange(m)) % self.capacity
+        first = min(m, self.capacity - self._next)  # up to the end of the ring, then the wrapped rest: 2 slices
         for k, v in rows.items():
-            self._data[k][idx] = v
+            buf = self._data[k]
+            buf[self._next : self._next + first] = v[:first]
+            buf[: m - first] = v[first:]
         self._next = (self._next + m) % self.capacity
         self._size = min(self._size + m, self.capacity)
 

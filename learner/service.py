@@ -31,6 +31,7 @@ from learner.runlog import RunLog, final_eval, write_artefacts
 from learner.runtime import configure_learner
 from protocol import keys, wire
 from protocol.config import JobConfig
+from protocol.exitcodes import STOPPED, ParentWatch
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
@@ -140,9 +141,14 @@ class Learner:
         lags: list[float] = []
         ingested_chunks = 0
         chunk_steps = job.num_envs * rt.publish_steps
+        slack = rt.slack(job.num_envs)
         t0 = time.perf_counter()
         try:
+            watch = ParentWatch()
             while env_steps < job.steps and not self.stopping:
+                if watch.orphaned():
+                    self.stopping = True
+                    break
                 now = time.perf_counter()
                 if algo.updates - last_weights_version >= rt.weights_every or now - t_weights >= WEIGHTS_EVERY_S:
                     self._publish_weights(algo)
@@ -150,7 +156,7 @@ class Learner:
                 if now - t_budget >= BUDGET_EVERY_S:
                     # chunks still queued count as taken: actors wait while the learner catches up
                     queued = len(inbox) * chunk_steps
-                    self._publish_budget(env_steps + max(0, rt.slack_steps - queued), env_steps, algo.updates)
+                    self._publish_budget(env_steps + max(0, slack - queued), env_steps, algo.updates)
                     t_budget = now
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
@@ -190,9 +196,9 @@ class Learner:
                 if env_steps >= next_ckpt:
                     self._checkpoint(algo, env_steps, episodes)
                     next_ckpt += job.checkpoint_every
-            if self.stopping:
+            if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
                 self._checkpoint(algo, env_steps, episodes)
-                return 0
+                return STOPPED
             self._publish_budget(job.steps, env_steps, algo.updates)  # tells actors the job has its data
         finally:
             log.close()

@@ -18,6 +18,7 @@ from envs.config import allowed_range, build_config
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
 from services.args import env_params
+from services.procs import JobFailed
 
 console = Console()
 err_console = Console(stderr=True)
@@ -225,6 +226,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValidationError) as exc:
         err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
         return 2
+    except JobFailed as exc:
+        err_console.print(f"[bold red]job failed:[/] {exc}", highlight=False, soft_wrap=True)
+        return 1
     except KeyboardInterrupt:
         err_console.print("interrupted")
         return 130

@@ -76,6 +76,11 @@ class JobRunner:
         self.events: list[Event] = []
         self.resumes: list[dict[str, float]] = []
         self.started = threading.Event()
+        self._stop = threading.Event()
+
+    def stop(self) -> None:
+        """Ask ``run`` to stop the job: processes get SIGTERM (the learner checkpoints), then ``run`` returns."""
+        self._stop.set()
 
     def scale(self, actors: int) -> None:
         """Ask for ``actors`` actor processes; takes effect within the runner's next poll (live)."""
@@ -104,7 +109,7 @@ class JobRunner:
             group.start_learner()
             group.scale_actors(self.job.runtime.actors)
             self.started.set()
-            while "learner" not in group.finished:
+            while "learner" not in group.finished and not self._stop.is_set():
                 with self._lock:
                     wanted, self._wanted = self._wanted, None
                 if wanted is not None:

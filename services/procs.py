@@ -23,6 +23,7 @@ from protocol.config import JobConfig
 from protocol.session import ZenohSettings
 
 _CTX = mp.get_context("spawn")
+SPARE_AFTER_S = 5.0  # seconds after the group starts before the warm spare actor is prepared
 
 
 def _actor_main(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int) -> None:
@@ -103,6 +104,7 @@ class ProcessGroup:
         self.wanted_actors = 0
         self._spare: Any = None
         self._spare_conn: Any = None
+        self.t_started = time.monotonic()
 
     # ----------------------------------------------------------------------------------------------- starting
     def _spawn_actor(self, index: int, generation: int) -> Slot:
@@ -119,7 +121,7 @@ class ProcessGroup:
         if spare is not None:
             self._spare_conn.send(args)
             self._spare_conn.close()
-        self._start_spare()
+            self._start_spare()  # the next replacement (the first spare starts once the job runs: see poll)
         return slot
 
     def _start_spare(self) -> None:
@@ -192,6 +194,8 @@ class ProcessGroup:
         events: list[Event] = []
         if self.failed:
             return events
+        if self._spare is None and time.monotonic() - self.t_started > SPARE_AFTER_S:
+            self._start_spare()  # not at start-up, where its imports would compete with the job's processes
         for index, slot in list(self.actors.items()):
             code = slot.proc.exitcode
             if code is None:

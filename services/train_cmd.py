@@ -54,6 +54,7 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from services.procs import JobFailed
     from services.training import run_distributed, run_inprocess
 
     job = job_from_args(args)
@@ -70,7 +71,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.inprocess:
         s = run_inprocess(job, out, progress=not args.no_progress).as_dict()
     else:
-        s = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id)
+        s = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
+        if not s:
+            raise JobFailed(f"the learner stopped before the job finished; {out}/checkpoint.pt holds its progress")
     table = Table(title=f"{job.algo} on {job.env}")
     table.add_column("figure")
     table.add_column("value", justify="right")

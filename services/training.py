@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from envs import make_batched
 from envs.batched import BatchedEnv
-from learner.agent import make_agent
-from learner.inprocess import Trainer, TrainResult
-from learner.runtime import configure_learner
 from protocol.config import JobConfig
+
+if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
+    from learner.inprocess import TrainResult
 
 
 def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
@@ -22,6 +20,12 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
 
 def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
+    import torch
+
+    from learner.agent import make_agent
+    from learner.inprocess import Trainer
+    from learner.runtime import configure_learner
+
     configure_learner(job.torch_threads)
     torch.manual_seed(job.seed)
     env = make_env(job)
@@ -43,10 +47,19 @@ def default_job_id(out_dir: str | Path) -> str:
 
 
 def run_distributed(
-    job: JobConfig, out_dir: str | Path, progress: bool = True, job_id: str | None = None
+    job: JobConfig,
+    out_dir: str | Path,
+    progress: bool = True,
+    job_id: str | None = None,
+    stop_on_sigterm: bool = False,
 ) -> dict[str, Any]:
-    """Train ``job`` with ``job.runtime.actors`` actor processes and a learner process on this machine."""
+    """Train ``job`` with ``job.runtime.actors`` actor processes and a learner process on this machine;
+    ``stop_on_sigterm`` (the CLI): SIGTERM stops the job cleanly — children stopped, the learner checkpointed."""
+    import signal
+
     from services.jobrunner import JobRunner
 
     runner = JobRunner(job_id or default_job_id(out_dir), job, out_dir, progress=progress)
+    if stop_on_sigterm:
+        signal.signal(signal.SIGTERM, lambda *_: runner.stop())
     return runner.run()

@@ -79,13 +79,15 @@ class Background:
         return self.result
 
     def __exit__(self, *exc: object) -> None:
+        self.runner.stop()  # the runner stops its processes (SIGTERM, then SIGKILL by PID) and returns
+        self.thread.join(60)
         group = self.runner.group
-        if self.thread.is_alive() and group is not None:
-            pids = list(group.pids().values())
-            for pid in pids:
+        if self.thread.is_alive() and group is not None:  # belt and braces: never leave a process behind
+            for pid in group.pids().values():
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
-        self.thread.join(30)
+            self.thread.join(30)
+        assert not self.thread.is_alive(), "the job runner did not stop"
 
 
 def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) -> None:
@@ -102,10 +104,12 @@ def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) ->
 
 
 def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Path) -> None:
-    job = job_config(algo="idqn", steps=60_000, seed=1, runtime={"actors": 2}, **TREADMILL)
+    job = job_config(algo="idqn", steps=200_000, seed=1, runtime={"actors": 2}, **TREADMILL)
     runner = JobRunner("killactor", job, tmp_path, progress=False)
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "2 actors alive")
+        wait_for(lambda: "actor-spare" in runner.group.pids(), 30, "the warm spare")  # mid-job: start-up is over
+        time.sleep(4.0)  # the spare has finished its imports
         victim = runner.group.actors[0]
         os.kill(victim.proc.pid, signal.SIGKILL)
         killed_at = time.monotonic()
@@ -117,6 +121,7 @@ def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Pat
         token_s = time.monotonic() - killed_at
         summary = bg.join(120)
     assert respawn_s < 2.0
+    assert token_s < 2.0  # the replacement is up, not only started
     print(f"respawned {respawn_s:.2f} s after kill -9; its liveliness token {token_s:.2f} s after")
     assert summary["env_steps"] >= job.steps
     kinds = [(e.kind, e.ident) for e in runner.events]
@@ -169,8 +174,9 @@ def test_actor_count_scales_live_and_throughput_follows(tmp_path: Path) -> None:
         learner_pid = runner.group.learner.proc.pid
         assert runner.group.learner.generation == 0  # scaling never restarted the learner
     print(f"env-steps/s: 1 actor {one:,.0f} → 3 actors {three:,.0f} → 1 actor {back:,.0f} (learner pid {learner_pid})")
-    assert three > 1.3 * one
-    assert back < 0.8 * three
+    # 2 cores: one actor fills one, three share both with the learner (benchmarks/runtime.py measures ~1.5×)
+    assert three > 1.2 * one
+    assert back < 0.85 * three
 
 
 def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None:
@@ -222,8 +228,8 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
     endpoint (client mode, no shared memory)."""
     port = free_port()
     endpoint = loopback(port)
-    job_flags = "--job-id mh --env referential --steps 8000 --num-envs 32 --hp hidden=32 --hp learning_starts=256"
-    job_flags = [*job_flags.split(), "--eval-episodes", "50", "--log-every", "2000"]
+    job_flags = "--job-id mh --env referential --steps 12000 --num-envs 32 --hp hidden=64 --hp learning_starts=256"
+    job_flags = [*job_flags.split(), "--eval-episodes", "200", "--log-every", "2000"]
     net = ["--mode", "client", "--connect", endpoint, "--no-shm"]
     cmd = [sys.executable, "-m", "services.cli"]
     procs: list[subprocess.Popen] = []
@@ -255,7 +261,23 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
                 p.kill()
                 p.wait(5)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["env_steps"] >= 8000 and summary["updates"] > 0
+    assert summary["env_steps"] >= 12000 and summary["updates"] > 0
     assert summary["eval_return"] > summary["random_return"]
     # no session listened on loopback but the router: the others were clients
     assert ZenohSettings(mode="client", connect=(endpoint,)).mode == "client"
+
+
+def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: Path) -> None:
+    import torch
+
+    from services.procs import JobFailed
+
+    if torch.cuda.is_available():
+        pytest.skip("needs a machine without CUDA (the learner must crash on device=cuda)")
+    job = job_config(algo="idqn", steps=10_000, device="cuda", runtime={"actors": 1, "max_restarts": 1}, **TREADMILL)
+    runner = JobRunner("crashloop", job, tmp_path, progress=False)
+    t0 = time.monotonic()
+    with pytest.raises(JobFailed, match=r"learner crashed 2 times .* raise runtime.max_restarts or fix the cause"):
+        runner.run()
+    assert time.monotonic() - t0 < 60
+    assert runner.group is not None and not runner.group.pids()  # every process stopped

@@ -1,0 +1,30 @@
+"""Exit codes of Convoy's worker processes, which supervisors (``services.procs``) act on.
+
+0 means the process finished its part of the job (actor: the learner has all the data; learner: the job is done)
+and is not restarted. ``STOPPED`` (143, the shell's code for SIGTERM) means a signal stopped it before that — a
+supervisor that still wants the process starts it again, like after any other crash.
+"""
+
+DONE = 0
+STOPPED = 143
+
+
+class ParentWatch:
+    """Notices when the process that started this one has died (the process is re-parented): a worker whose
+    supervisor was killed must not wait for ever for a learner or actors that will never come back."""
+
+    def __init__(self) -> None:
+        import os
+        import time
+
+        self._os, self._time = os, time
+        self.parent = os.getppid()
+        self._next = 0.0
+
+    def orphaned(self) -> bool:
+        """True once the parent is gone; checks at most once a second (cheap enough for a hot loop)."""
+        now = self._time.monotonic()
+        if now < self._next:
+            return False
+        self._next = now + 1.0
+        return self._os.getppid() != self.parent
