@@ -19,7 +19,7 @@ import torch
 from envs import make_batched
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, epsilon_at
-from learner.inprocess import transition
+from learner.stepping import EnvStepper
 from protocol import keys, wire
 from protocol.config import JobConfig
 from protocol.exitcodes import STOPPED, ParentWatch
@@ -45,7 +45,6 @@ def load_weights(algo: Algorithm, state: dict[str, np.ndarray]) -> None:
 class ActorStats:
     env_steps: int = 0
     chunks: int = 0
-    episodes: int = 0
     returns: list[float] = field(default_factory=list)
     throttled_s: float = 0.0
 
@@ -98,13 +97,9 @@ class Actor:
         budget: wire.Message | None = None
         sent_since_budget = 0
         seq = 0
-        b, n = env.num_envs, env.spec.n_agents
+        b = env.num_envs
         try:
-            obs = env.reset(seed=self.seed)
-            state = algo.initial_state(b)
-            ep_ret = np.zeros((b, n))
-            episode_id = np.zeros(b, dtype=np.int64)
-            chunk: dict[str, list[np.ndarray]] = {}
+            stepper = EnvStepper(env, algo, self.seed)
             chunk_returns: list[float] = []
             t_metrics = time.perf_counter()
             steps_at_metrics = 0
@@ -129,7 +124,7 @@ class Actor:
                 allowed, ingested = budget.body["allowed_steps"], budget.body["ingested_steps"]
                 if ingested >= job.steps:
                     return 0  # the learner has all the data the job asked for
-                if len(chunk.get("obs", ())) == 0 and ingested + sent_since_budget + t_len * b > allowed:
+                if stepper.chunk_steps == 0 and ingested + sent_since_budget + t_len * b > allowed:
                     t0 = time.perf_counter()
                     msg = budget_in.get(timeout=0.05)
                     if msg is not None:
@@ -137,22 +132,9 @@ class Actor:
                     self.stats.throttled_s += time.perf_counter() - t0
                     continue
                 eps = actor_epsilon(epsilon_at(cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
-                out = algo.act(obs, eps, state)
-                res = env.step(out.actions)
-                for k, v in transition(obs, out, res, episode_id).items():
-                    chunk.setdefault(k, []).append(v)
-                ep_ret += res.reward
-                done = res.done
-                if done.any():
-                    rets = ep_ret[done].mean(axis=1).tolist()
-                    chunk_returns.extend(rets)
-                    self.stats.episodes += len(rets)
-                    ep_ret[done] = 0.0
-                    episode_id[done] = self.stats.episodes
-                state = algo.reset_state(out.state, done)
-                obs = res.obs
-                if len(chunk["obs"]) >= t_len:
-                    arrays = {k: np.stack(v) for k, v in chunk.items()}
+                chunk_returns.extend(stepper.step(eps))
+                if stepper.chunk_steps >= t_len:
+                    arrays = stepper.take_chunk()
                     body = wire.chunk_body(arrays, self.ident, version, t_len * b, chunk_returns)
                     seq += 1
                     pub.put(wire.encode("chunk", body, self.ident, seq))
@@ -160,7 +142,7 @@ class Actor:
                     self.stats.chunks += 1
                     self.stats.returns.extend(chunk_returns)
                     sent_since_budget += t_len * b
-                    chunk, chunk_returns = {}, []
+                    chunk_returns = []
                 now = time.perf_counter()
                 if now - t_metrics >= METRICS_EVERY_S:
                     lag = max(0, budget.body["version"] - version)
@@ -169,7 +151,7 @@ class Actor:
                         "env_steps_per_s": (self.stats.env_steps - steps_at_metrics) / (now - t_metrics),
                         "policy_version": version,
                         "policy_lag": lag,
-                        "episodes": self.stats.episodes,
+                        "episodes": stepper.episodes,
                         "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
                         "throttled_s": self.stats.throttled_s,
                         "epsilon": eps,

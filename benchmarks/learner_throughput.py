@@ -61,9 +61,9 @@ from report import cpu_model, markdown_table
 
 from envs.registry import make_batched
 from learner.algorithm import Algorithm, Progress
-from learner.inprocess import transition
 from learner.registry import ALGORITHMS
 from learner.runtime import configure_learner
+from learner.stepping import EnvStepper
 from protocol.config import ENV_DEFAULTS
 
 try:
@@ -91,25 +91,11 @@ def rusage() -> tuple[int, float]:
 
 def collect(algo: Algorithm, env: Any, steps: int, seed: int) -> dict[str, np.ndarray]:
     """``steps`` env steps of random play as one chunk ``[T, B, …]``, with the fields the in-process trainer stores
-    (``learner.inprocess.Trainer``) plus the algorithm's own extras."""
-    obs = env.reset(seed=seed)
-    b = env.num_envs
-    state = algo.initial_state(b)
-    episode = np.zeros(b, dtype=np.int64)
-    finished = 0
-    chunk: dict[str, list[np.ndarray]] = {}
+    plus the algorithm's own extras (the same ``EnvStepper`` the trainer and the actors use)."""
+    stepper = EnvStepper(env, algo, seed)
     for _ in range(steps):
-        out = algo.act(obs, 1.0, state)
-        res = env.step(out.actions)
-        for k, v in transition(obs, out, res, episode).items():
-            chunk.setdefault(k, []).append(v)
-        done = res.done
-        if done.any():
-            finished += int(done.sum())
-            episode[done] = finished
-        state = algo.reset_state(out.state, done)
-        obs = res.obs
-    return {k: np.stack(v) for k, v in chunk.items()}
+        stepper.step(1.0)
+    return stepper.take_chunk()
 
 
 # ------------------------------------------------------------------------------------------------ the cases

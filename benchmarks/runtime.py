@@ -190,13 +190,12 @@ def stop_group(proc: subprocess.Popen, timeout: float = 20.0) -> None:
 # ======================================================================================================= part 1
 def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[bytes], dict[str, Any], int]:
     """``count`` real treadmill chunks ``[steps, num_envs, …]`` (MA-MeSN acting with ε = 1, as an actor builds them:
-    ``learner.inprocess.transition`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
+    ``learner.stepping.EnvStepper`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
     learner's transition schema (field → dtype, per-step shape) and the transitions per chunk."""
-    import numpy as np
 
     from envs import make_batched
     from learner.agent import make_agent
-    from learner.inprocess import transition
+    from learner.stepping import EnvStepper
     from protocol import wire
     from protocol.config import job_config
 
@@ -204,30 +203,14 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
     env = make_batched(ENV, num_envs)
     try:
         algo = make_agent(job, env.spec, device="cpu")
-        obs = env.reset(seed=seed)
-        state = algo.initial_state(num_envs)
-        ep_ret = np.zeros((num_envs, env.spec.n_agents))
-        episode = np.zeros(num_envs, dtype=np.int64)
-        finished = 0
+        stepper = EnvStepper(env, algo, seed)
         payloads: list[bytes] = []
         schema: dict[str, Any] = {}
         for c in range(count):
-            chunk: dict[str, list[np.ndarray]] = {}
             returns: list[float] = []
             for _ in range(steps):
-                out = algo.act(obs, 1.0, state)
-                res = env.step(out.actions)
-                for k, v in transition(obs, out, res, episode).items():
-                    chunk.setdefault(k, []).append(v)
-                ep_ret += res.reward
-                if res.done.any():
-                    returns.extend(ep_ret[res.done].mean(axis=1).tolist())
-                    ep_ret[res.done] = 0.0
-                    finished += int(res.done.sum())
-                    episode[res.done] = finished
-                state = algo.reset_state(out.state, res.done)
-                obs = res.obs
-            arrays = {k: np.stack(v) for k, v in chunk.items()}
+                returns.extend(stepper.step(1.0))
+            arrays = stepper.take_chunk()
             schema = {k: (a.dtype.str, tuple(a.shape[2:])) for k, a in arrays.items()}
             body = wire.chunk_body(arrays, "actor-0", 0, steps * num_envs, returns)
             payloads.append(wire.encode("chunk", body, "actor-0", c + 1))

@@ -17,10 +17,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.batched import BatchedEnv, StepResult
-from learner.algorithm import ActOutput, Algorithm, Progress, epsilon_at
+from envs.batched import BatchedEnv
+from learner.algorithm import Algorithm, Progress, epsilon_at
 from learner.checkpoint import save_checkpoint
 from learner.runlog import RunLog, final_eval, write_artefacts
+from learner.stepping import EnvStepper
 from protocol.config import JobConfig
 
 
@@ -45,20 +46,6 @@ class TrainResult:
         d = dict(self.__dict__)
         d.pop("rows")
         return d
-
-
-def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:
-    """One step of B envs as the joint transition every algorithm's ``observe`` expects (plus the act's extras)."""
-    return {
-        "obs": obs,
-        "action": out.actions,
-        "reward": res.reward.astype(np.float32),
-        "next_obs": res.final_obs,
-        "terminated": res.terminated,
-        "truncated": res.truncated,
-        "episode": episode.copy(),
-        **out.extras,
-    }
 
 
 def evaluate(
@@ -110,15 +97,10 @@ class Trainer:
 
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
-        b, n = env.num_envs, env.spec.n_agents
         torch.manual_seed(job.seed)
         log = RunLog(job.steps, job.log_every, self.out_dir, self.show_progress)
-        obs = env.reset(seed=job.seed)
-        state = algo.initial_state(b)
-        ep_ret = np.zeros((b, n))
-        episode_id = np.zeros(b, dtype=np.int64)  # episodes finished when each env's episode began (SER's clock)
+        stepper = EnvStepper(env, algo, job.seed)
         finished: list[float] = []
-        chunk: dict[str, list[np.ndarray]] = {}
         env_steps = 0
         owed = 0.0
         next_ckpt = job.checkpoint_every
@@ -127,27 +109,15 @@ class Trainer:
             while env_steps < job.steps:
                 algo.progress = Progress(env_steps, len(finished), job.steps)
                 eps = epsilon_at(self.cfg, env_steps, job.steps)
-                out = algo.act(obs, eps, state)
-                res = env.step(out.actions)
-                for k, v in transition(obs, out, res, episode_id).items():
-                    chunk.setdefault(k, []).append(v)
-                ep_ret += res.reward
-                done = res.done
-                if done.any():
-                    rets = ep_ret[done].mean(axis=1).tolist()
-                    finished.extend(rets)
-                    log.episodes(rets)
-                    ep_ret[done] = 0.0
-                    episode_id[done] = len(finished)
-                state = algo.reset_state(out.state, done)
-                obs = res.obs
-                env_steps += b
-                if len(chunk["obs"]) >= algo.chunk_len:
-                    t_len = len(chunk["obs"])
-                    algo.observe({k: np.stack(v) for k, v in chunk.items()})
-                    chunk = {}
+                rets = stepper.step(eps)
+                finished.extend(rets)
+                log.episodes(rets)
+                env_steps += env.num_envs
+                if stepper.chunk_steps >= algo.chunk_len:
+                    t_len = stepper.chunk_steps
+                    algo.observe(stepper.take_chunk())
                     if algo.can_update():
-                        owed += algo.updates_for(t_len * b)
+                        owed += algo.updates_for(t_len * env.num_envs)
                     while owed >= 1.0 and algo.can_update():
                         log.loss(algo.update()["loss"])
                         owed -= 1.0

@@ -26,9 +26,9 @@ from envs import make_batched
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress, epsilon_at
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from learner.inprocess import transition
 from learner.runlog import RunLog, final_eval, write_artefacts
 from learner.runtime import configure_learner
+from learner.stepping import EnvStepper
 from protocol import keys, wire
 from protocol.config import JobConfig
 from protocol.exitcodes import STOPPED, ParentWatch
@@ -43,13 +43,12 @@ def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, t
     """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step."""
     env = make_batched(job.env, 1, **job.env_params)
     try:
-        obs = env.reset(seed=0)
-        out = algo.act(obs, 1.0, algo.initial_state(1))
-        res = env.step(out.actions)
-        row = transition(obs, out, res, np.zeros(1, dtype=np.int64))
+        stepper = EnvStepper(env, algo, seed=0)
+        stepper.step(1.0)
+        chunk = stepper.take_chunk()
     finally:
         env.close()
-    return {k: (np.asarray(v).dtype.str, np.asarray(v).shape[1:]) for k, v in row.items()}
+    return {k: (v.dtype.str, v.shape[2:]) for k, v in chunk.items()}
 
 
 class Learner:
