@@ -44,6 +44,13 @@ class ZenohSettings(BaseModel):
         None, description="password for usrpwd authentication (never written to job files or checkpoints)."
     )
 
+    def rooted(self) -> ZenohSettings:
+        """Settings for the process that starts others on this machine: in peer mode it must listen (on a free
+        loopback port unless ``listen`` says otherwise) so that its children can connect to it."""
+        if self.mode == "peer" and not self.listen:
+            return self.model_copy(update={"listen": (loopback(free_port()),)})
+        return self
+
     def child(self, listen_port: bool = True) -> ZenohSettings:
         """The settings a spawned process on this machine uses: connect to what this process listens on (peer
         mode) and listen on its own free loopback port, so gossip can connect the children to each other."""

@@ -41,14 +41,15 @@ class HostAgent:
         self.stopping = True
 
     def run(self) -> int:
-        session = open_session(self.settings)
+        settings = self.settings.rooted()  # peer mode on one machine: the agent is its children's root
+        session = open_session(settings)
         cmds, budget = Inbox({"command"}, 64), Inbox({"budget"}, 4)
         keep = [
             session.liveliness().declare_token(keys.alive(self.job_id, "host", self.name)),
             session.declare_subscriber(keys.host(self.name, "cmd"), cmds),
             session.declare_subscriber(keys.ctl(self.job_id, "budget"), budget),
         ]
-        child = self.settings.child() if self.settings.mode == "peer" else self.settings
+        child = settings.child()
         group = ProcessGroup(self.job_id, self.job, str(self.out_dir), child, roles=self.roles, host=self.name)
         ingested = 0
         try:

@@ -20,7 +20,7 @@ from learner.runlog import ProgressDisplay
 from protocol import keys, wire
 from protocol.config import JobConfig
 from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, free_port, loopback, open_session
+from protocol.session import open_session
 from services.procs import Event, JobFailed, ProcessGroup
 
 
@@ -89,15 +89,9 @@ class JobRunner:
         with self._lock:
             self._wanted = actors
 
-    def root_settings(self) -> ZenohSettings:
-        base = self.job.runtime.zenoh
-        if base.mode == "peer" and not base.listen:
-            return base.model_copy(update={"listen": (loopback(free_port()),)})
-        return base
-
     def run(self) -> dict[str, Any]:
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        root = self.root_settings()
+        root = self.job.runtime.zenoh.rooted()
         session = open_session(root)
         display = ProgressDisplay(self.job.steps, self.progress)
         group = self.group = ProcessGroup(self.job_id, self.job, str(self.out_dir), root.child())
