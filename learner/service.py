@@ -36,7 +36,7 @@ from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
 WEIGHTS_EVERY_S = 1.0
-BUDGET_EVERY_S = 0.02
+BUDGET_EVERY_S = 0.005
 
 
 def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, tuple[int, ...]]]:

@@ -248,7 +248,7 @@ class RuntimeConfig(BaseModel):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 
     def slack(self, num_envs: int) -> int:
-        """``slack_steps``, or two chunks per actor: enough to keep actors busy across a 20 ms budget period,
+        """``slack_steps``, or two chunks per actor: enough to keep actors busy across a 5 ms budget period,
         small enough that queued data does not age into policy lag (4096 steps gave ~70 updates of lag)."""
         return self.slack_steps or 2 * self.actors * self.publish_steps * num_envs
 
