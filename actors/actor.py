@@ -44,7 +44,6 @@ def load_weights(algo: Algorithm, state: dict[str, np.ndarray]) -> None:
 @dataclass
 class ActorStats:
     env_steps: int = 0
-    chunks: int = 0
     returns: list[float] = field(default_factory=list)
     throttled_s: float = 0.0
 
@@ -139,7 +138,6 @@ class Actor:
                     seq += 1
                     pub.put(wire.encode("chunk", body, self.ident, seq))
                     self.stats.env_steps += t_len * b
-                    self.stats.chunks += 1
                     self.stats.returns.extend(chunk_returns)
                     sent_since_budget += t_len * b
                     chunk_returns = []

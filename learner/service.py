@@ -25,12 +25,12 @@ import torch
 from envs import make_batched
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from learner.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from learner.runlog import RunLog, final_eval, write_artefacts
 from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
 from protocol import keys, wire
-from protocol.config import JobConfig
+from protocol.config import ConfigError, JobConfig, job_config
 from protocol.exitcodes import STOPPED, ParentWatch
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
@@ -61,19 +61,27 @@ class Learner:
         self.stopping = True
 
     def _restore(self, algo: Algorithm) -> dict[str, Any]:
+        """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
+        return its counters; an unreadable file is set aside and the job starts afresh."""
         path = self.out_dir / "checkpoint.pt"
         if not path.is_file():
             return {}
         try:
-            saved, job, counters = load_checkpoint(path, device=str(algo.device))
-        except CheckpointError as exc:  # keep the bad file for inspection, start afresh
-            print(f"learner: {exc}; starting from scratch", flush=True)
+            payload = read_checkpoint(path)
+            job = job_config(**payload["job"])
+        except (CheckpointError, ConfigError, KeyError, TypeError) as exc:  # keep the bad file, start afresh
+            print(f"learner: checkpoint {path} unusable ({exc}); starting from scratch", flush=True)
             path.rename(path.with_suffix(".unreadable"))
             return {}
         if (job.algo, job.env, job.env_params) != (self.job.algo, self.job.env, self.job.env_params):
             raise CheckpointError(f"checkpoint {path}: belongs to {job.algo} on {job.env}; use another --out")
-        algo.load_state_dict(saved.state_dict())
-        return counters
+        try:
+            algo.load_state_dict(payload["state"])
+        except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
+            print(f"learner: checkpoint {path} does not match the job's networks ({exc}); starting from scratch")
+            path.rename(path.with_suffix(".unreadable"))
+            return {}
+        return dict(payload.get("counters", {}))
 
     def run(self) -> int:
         job, rt = self.job, self.job.runtime

@@ -98,7 +98,7 @@ class JobRunner:
         try:
             self.alive = AliveSet(session, self.job_id)
             metrics = Inbox({"metrics"}, maxlen=4096)
-            sub = session.declare_subscriber(keys.metrics_all(self.job_id), metrics)
+            self._declared = session.declare_subscriber(keys.metrics_all(self.job_id), metrics)  # kept referenced
             stop_pub = session.declare_publisher(keys.ctl(self.job_id, "stop"))
             group.start_learner()
             group.scale_actors(self.job.runtime.actors)
@@ -117,13 +117,14 @@ class JobRunner:
                     self._metric(msg, display)
                 time.sleep(0.05)
             stop_pub.put(wire.encode("command", {"op": "stop", "args": {}}, "runner"))
-            del sub
+            finished = "learner" in group.finished
         finally:
             group.stop_all()
             display.close()
             session.close()
         path = self.out_dir / "summary.json"
-        return json.loads(path.read_text()) if path.is_file() else {}
+        # a job stopped early has no summary of its own (one left by an earlier run in out_dir is not this job's)
+        return json.loads(path.read_text()) if finished and path.is_file() else {}
 
     def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
         values, role = msg.body["values"], msg.body["role"]

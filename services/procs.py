@@ -101,7 +101,6 @@ class ProcessGroup:
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
         self.finished: set[str] = set()  # roles whose processes exited 0
         self.failed: str | None = None
-        self.wanted_actors = 0
         self._spare: Any = None
         self._spare_conn: Any = None
         self.t_started = time.monotonic()
@@ -113,12 +112,11 @@ class ProcessGroup:
         seed = self.job.seed + 1000 * (index + 1) + 7919 * generation + (zlib.crc32(self.host.encode()) % 10**6) * 10**4
         args = (self.job_id, self.job, index, slot.ident, self.settings, seed)
         spare = self._take_spare()
-        if spare is not None:
-            slot.proc = spare
-        else:
+        if spare is None:
             slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
             slot.proc.start()
-        if spare is not None:
+        else:
+            slot.proc = spare
             self._spare_conn.send(args)
             self._spare_conn.close()
             self._start_spare()  # the next replacement (the first spare starts once the job runs: see poll)
@@ -155,7 +153,6 @@ class ProcessGroup:
         """Start or stop actors until ``n`` run (highest indices stop first, with SIGTERM)."""
         if n < 0:
             raise ValueError(f"actors: must be ≥ 0 (got {n})")
-        self.wanted_actors = n
         for index in range(n):
             if index not in self.actors:
                 self.actors[index] = self._spawn_actor(index, 0)
