@@ -43,6 +43,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/inference_scaling.py --markdown runs/bench/inference_scaling.md
 	$(BIN)/python benchmarks/speaker_listener.py --json runs/bench/speaker_listener.json
 	$(BIN)/python benchmarks/runtime.py --markdown runs/bench/runtime.md
+	$(BIN)/python benchmarks/decentralized.py --json runs/bench/decentralized.json --plot runs/bench/decentralized.png
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .ruff_cache .hypothesis

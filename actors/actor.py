@@ -18,7 +18,7 @@ import torch
 
 from envs import make_batched
 from learner.agent import make_agent
-from learner.algorithm import Algorithm, epsilon_at
+from learner.algorithm import Algorithm, Progress, epsilon_at
 from learner.stepping import EnvStepper
 from protocol import keys, wire
 from protocol.config import JobConfig
@@ -130,6 +130,9 @@ class Actor:
                         budget, sent_since_budget = msg, 0
                     self.stats.throttled_s += time.perf_counter() - t0
                     continue
+                algo.progress = Progress(
+                    ingested, stepper.episodes, job.steps, training=True
+                )  # schedules, fingerprints
                 eps = actor_epsilon(epsilon_at(cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
                 chunk_returns.extend(stepper.step(eps))
                 if stepper.chunk_steps >= t_len:

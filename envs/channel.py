@@ -64,23 +64,43 @@ class MessageChannel:
             else:
                 self._pending[envs] = 0
 
+    def _delay(self, msg: np.ndarray) -> np.ndarray:
+        """With ``latency=1`` the previous call's messages (zeros at first, or when the layout changed)."""
+        if not self.cfg.latency:
+            return msg
+        fresh = self._pending is None or self._pending.shape != msg.shape
+        sent, self._pending = (np.zeros_like(msg) if fresh else self._pending), msg.copy()
+        return sent
+
+    def _impair(self, heard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flip bits and drop whole messages of ``heard [..., bits]`` (modified in place): (bits, delivered)."""
+        if self.cfg.flip > 0:
+            flips = self._rng.random(heard.shape) < self.cfg.flip
+            heard = np.where(flips, 1.0 - heard, heard).astype(np.float32)
+        delivered = self._rng.random(heard.shape[:-1]) >= self.cfg.drop
+        return heard, delivered
+
     def transmit(self, messages: np.ndarray) -> Received:
         """Send ``[B, N, bits]`` messages through the channel; returns what each receiver got."""
         msg = np.asarray(messages, dtype=np.float32)
         if msg.ndim != 3:
             raise ValueError(f"messages: expected shape [B, N, bits], got {msg.shape}")
-        if self.cfg.latency:
-            sent, self._pending = (self._pending if self._pending is not None else np.zeros_like(msg)), msg.copy()
-        else:
-            sent = msg
+        sent = self._delay(msg)
         b, n, bits = sent.shape
-        heard = np.broadcast_to(sent[:, None, :, :], (b, n, n, bits)).copy()
-        if self.cfg.flip > 0:
-            flips = self._rng.random(heard.shape) < self.cfg.flip
-            heard = np.where(flips, 1.0 - heard, heard).astype(np.float32)
-        delivered = self._rng.random((b, n, n)) >= self.cfg.drop
+        heard, delivered = self._impair(np.broadcast_to(sent[:, None, :, :], (b, n, n, bits)).copy())
         own = np.eye(n, dtype=bool)
         delivered |= own
         heard[own[None].repeat(b, 0)] = np.broadcast_to(sent[:, :, :], (b, n, bits)).reshape(-1, bits)
         heard *= delivered[..., None]
         return Received(heard, delivered)
+
+    def deliver(self, heard: np.ndarray) -> Received:
+        """Impair messages already laid out per receiver and sender, ``[B, R, S, bits]``: each (receiver, sender)
+        message is dropped or has its bits flipped independently (what a policy hears from its peers; the
+        algorithms decide the layout, e.g. MA-BoN's one broadcast is S = 1)."""
+        msg = np.asarray(heard, dtype=np.float32)
+        if msg.ndim != 4:
+            raise ValueError(f"heard: expected shape [B, receivers, senders, bits], got {msg.shape}")
+        out, delivered = self._impair(self._delay(msg).copy())
+        out *= delivered[..., None]
+        return Received(out, delivered)

@@ -36,6 +36,7 @@ class Progress:
     env_steps: int = 0
     episodes: int = 0
     total_steps: int = 1
+    training: bool = False  # set by the loops that collect training data (schedules that only apply to them)
 
 
 @dataclass
@@ -73,11 +74,15 @@ def td_target(
     return reward + gamma * cont * best
 
 
+def decay_progress(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
+    """How far the exploration schedule has run, 0 → 1 over min(fraction × run, max steps), then 1."""
+    horizon = max(1, min(int(cfg.eps_decay_fraction * total_steps), cfg.eps_decay_max_steps))
+    return min(1.0, env_steps / horizon)
+
+
 def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
     """Linear decay from ``eps_start`` to ``eps_end`` over min(fraction × run, max steps), then constant."""
-    horizon = max(1, min(int(cfg.eps_decay_fraction * total_steps), cfg.eps_decay_max_steps))
-    frac = min(1.0, env_steps / horizon)
-    return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+    return cfg.eps_start + decay_progress(cfg, env_steps, total_steps) * (cfg.eps_end - cfg.eps_start)
 
 
 class Algorithm(ABC):
@@ -139,8 +144,9 @@ class Algorithm(ABC):
         """Clear the recurrent state of envs whose episode just ended."""
         return state
 
-    def extras(self, obs: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-env arrays to store with each transition (e.g. a fingerprint); none by default."""
+    def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
+        """Per-env arrays to store with each transition (a fingerprint, an observation history), given the
+        observations and the recurrent state after this act; none by default."""
         return {}
 
     @torch.no_grad()
@@ -152,7 +158,7 @@ class Algorithm(ABC):
         return ActOutput(
             actions=actions,
             messages=None if msgs is None else msgs.cpu().numpy(),
-            extras=self.extras(obs),
+            extras=self.extras(obs, new_state),
             state=new_state,
         )
 
@@ -204,13 +210,20 @@ class Algorithm(ABC):
         batch = self.sample()
         losses = self.agent_losses(batch)
         loss = losses.sum()
+        aux, stats = self.aux_loss(batch)
+        total = loss if aux is None else loss + aux
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        total.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
         self.optimizer.step()
         self.updates += 1
         self.after_update()
-        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm)}
+        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), **stats}
+
+    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+        """A loss trained alongside the TD losses on the same batch (the memory modules' supervised message
+        prediction) and figures to report with it; none by default."""
+        return None, {}
 
     def after_update(self) -> None:
         """Sync the targets every ``target_update`` updates (DIAL syncs by episodes instead)."""

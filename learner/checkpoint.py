@@ -18,14 +18,12 @@ import torch
 
 from envs.batched import EnvSpec
 from learner.agent import make_agent
-from learner.algorithm import Algorithm
+from learner.algorithm import Algorithm, Progress
+from learner.errors import CheckpointError
 from protocol.config import JobConfig, job_config
 
 FORMAT = 1
-
-
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used; the message names the path and the fix."""
+__all__ = ["CheckpointError", "load_checkpoint", "read_checkpoint", "save_checkpoint"]
 
 
 def save_checkpoint(path: str | Path, algo: Algorithm, job: JobConfig, counters: dict[str, Any]) -> Path:
@@ -87,6 +85,9 @@ def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Algorithm, 
         spec = EnvSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec_d.items()})
         algo = make_agent(job, spec, device=device)
         algo.load_state_dict(payload["state"])
+        counters = payload.get("counters", {})
+        # a loaded policy acts as it did when saved (fingerprints, schedules), not as at step 0
+        algo.progress = Progress(int(counters.get("env_steps", 0)), int(counters.get("episodes", 0)), job.steps)
     except Exception as exc:
         raise CheckpointError(f"checkpoint {path}: does not match this Convoy's networks ({exc}); retrain") from None
     return algo, job, payload.get("counters", {})

@@ -61,7 +61,7 @@ def evaluate(
     limit = max_iters or env.spec.max_steps + 1
     for rnd in range(-(-episodes // b)):
         obs = env.reset(seed=seed + rnd)
-        state = algo.initial_state(b)
+        state = algo.reset_state(algo.initial_state(b), np.ones(b, dtype=bool))  # nothing in flight from a round
         ep_ret = np.zeros(b)
         active = np.ones(b, dtype=bool)
         for _ in range(limit):
@@ -88,8 +88,11 @@ class Trainer:
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
         out_dir: str | Path | None = None,
         progress: bool = True,
+        on_row: Callable[[int], dict[str, float]] | None = None,
     ) -> None:
+        """``on_row(env_steps)``: figures measured at every metric row and added to it (periodic evaluation)."""
         self.job, self.env, self.algo = job, env, algo
+        self.on_row = on_row
         self.make_eval_env = make_eval_env
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.show_progress = progress
@@ -107,7 +110,7 @@ class Trainer:
         t0 = time.perf_counter()
         try:
             while env_steps < job.steps:
-                algo.progress = Progress(env_steps, len(finished), job.steps)
+                algo.progress = Progress(env_steps, len(finished), job.steps, training=True)
                 eps = epsilon_at(self.cfg, env_steps, job.steps)
                 rets = stepper.step(eps)
                 finished.extend(rets)
@@ -119,9 +122,10 @@ class Trainer:
                     if algo.can_update():
                         owed += algo.updates_for(t_len * env.num_envs)
                     while owed >= 1.0 and algo.can_update():
-                        log.loss(algo.update()["loss"])
+                        log.update(algo.update())
                         owed -= 1.0
-                log.maybe_row(env_steps, len(finished), algo.updates, eps)
+                extra = self.on_row(env_steps) if self.on_row and log.row_due(env_steps) else {}
+                log.maybe_row(env_steps, len(finished), algo.updates, eps, **extra)
                 if self.out_dir and env_steps >= next_ckpt:
                     self._checkpoint(env_steps, len(finished))
                     next_ckpt += job.checkpoint_every

@@ -33,11 +33,20 @@ class MetricsWriter:
         clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
         self._jsonl.write(json.dumps(clean) + "\n")
         self._jsonl.flush()
-        if self._csv is None:
-            self._csv = csv.DictWriter(self._csv_fh, fieldnames=list(row), extrasaction="ignore")
-            self._csv.writeheader()
-        self._csv.writerow(row)
+        if self._csv is None or not set(row) <= set(self._csv.fieldnames):
+            self._rewrite_csv()  # the first row, or a column that appears later (e.g. once updates begin)
+        else:
+            self._csv.writerow(row)
         self._csv_fh.flush()
+
+    def _rewrite_csv(self) -> None:
+        """Write the CSV afresh with every column seen so far (rows lacking one leave it empty)."""
+        fields = list(dict.fromkeys(k for r in self.rows for k in r))
+        self._csv_fh.seek(0)
+        self._csv_fh.truncate()
+        self._csv = csv.DictWriter(self._csv_fh, fieldnames=fields, extrasaction="ignore")
+        self._csv.writeheader()
+        self._csv.writerows(self.rows)
 
     def close(self) -> None:
         self._jsonl.close()

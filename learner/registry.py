@@ -17,6 +17,9 @@ ALGORITHMS: dict[str, str] = {
     "ims": "learner.algos.ims:IMS",
     "ma-mesn": "learner.algos.ma_mesn:MAMeSN",
     "ma-bon": "learner.algos.ma_bon:MABoN",
+    "ma-mesn-mm": "learner.algos.ma_mesn_mm:MAMeSNMM",
+    "ma-bon-mm": "learner.algos.ma_bon_mm:MABoNMM",
+    "codbc": "learner.algos.codbc:CoDBC",
 }
 
 

@@ -40,6 +40,7 @@ class RunLog:
         self.rows: list[dict[str, Any]] = list(self.writer.rows) if self.writer else []
         self.window: list[float] = []
         self.losses: list[float] = []
+        self.extra: dict[str, list[float]] = {}  # an algorithm's own update figures (memory accuracy, …)
         self.next_row = (first_step // log_every + 1) * log_every
         self.t0 = self.t_row = time.perf_counter()
         self.steps_at_row, self.updates_at_row = first_step, first_updates
@@ -52,9 +53,20 @@ class RunLog:
     def loss(self, value: float) -> None:
         self.losses.append(value)
 
+    def update(self, stats: dict[str, float]) -> None:
+        """One update's figures: the TD loss, and whatever else the algorithm reports (averaged per row)."""
+        self.losses.append(stats["loss"])
+        for key, value in stats.items():
+            if key not in ("loss", "grad_norm"):
+                self.extra.setdefault(key, []).append(value)
+
+    def row_due(self, env_steps: int) -> bool:
+        """Whether ``maybe_row`` will emit a row at this step."""
+        return env_steps >= self.next_row or env_steps >= self.total
+
     def maybe_row(self, env_steps: int, episodes: int, updates: int, epsilon: float, **extra: float) -> dict | None:
         """A row (written, shown, returned) when ``env_steps`` passed the next row's step or the end."""
-        if env_steps < self.next_row and env_steps < self.total:
+        if not self.row_due(env_steps):
             return None
         now = time.perf_counter()
         dt = max(now - self.t_row, 1e-9)
@@ -68,13 +80,14 @@ class RunLog:
             "env_steps_per_s": (env_steps - self.steps_at_row) / dt,
             "updates_per_s": (updates - self.updates_at_row) / dt,
             "wall_s": self.wall_before + now - self.t0,
+            **{k: float(np.mean(v)) for k, v in self.extra.items()},
             **extra,
         }
         self.rows.append(row)
         if self.writer:
             self.writer.write(row)
         self.bar.update(env_steps, row)
-        self.window, self.losses = [], []
+        self.window, self.losses, self.extra = [], [], {}
         self.t_row, self.steps_at_row, self.updates_at_row = now, env_steps, updates
         while self.next_row <= env_steps:
             self.next_row += self.log_every

@@ -174,7 +174,7 @@ class Learner:
                     continue
                 arrays = dict(arrays)
                 arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
-                algo.progress = Progress(env_steps, episodes, job.steps)
+                algo.progress = Progress(env_steps, episodes, job.steps, training=True)
                 algo.observe(arrays)
                 t_len, b = arrays["obs"].shape[:2]
                 chunk_steps = t_len * b
@@ -186,7 +186,7 @@ class Learner:
                 if algo.can_update():  # the updates this chunk is owed, as in-process: samples per insert exact
                     owed += algo.updates_for(chunk_steps)
                 while owed >= 1.0 and algo.can_update():
-                    log.loss(algo.update()["loss"])
+                    log.update(algo.update())
                     owed -= 1.0
                 row = log.maybe_row(
                     env_steps,

@@ -144,6 +144,49 @@ class BoNConfig(GumbelConfig):
     )
 
 
+class MemoryFields(BaseModel):
+    """The LSTM memory module of the ``-mm`` variants (section 4.1: decentralised execution without a channel)."""
+
+    memory_window: int = Field(
+        8, ge=1, le=256, description="Own observations (this step and the ones before) the memory module reads."
+    )
+    memory_hidden: int = Field(128, ge=1, le=65536, description="LSTM units of each agent's memory module.")
+    memory_coef: float = Field(1.0, gt=0, le=1000, description="Weight of the message-prediction loss (BCE).")
+
+
+class MeSNMMConfig(MeSNConfig, MemoryFields):
+    """MA-MeSN-MM: MA-MeSN plus a memory module per agent predicting the messages it hears."""
+
+
+class BoNMMConfig(BoNConfig, MemoryFields):
+    """MA-BoN-MM: MA-BoN plus a memory module per agent predicting the broadcast message."""
+
+
+class CoDBCConfig(AlgoConfig):
+    """CoDBC: per-agent behaviour cloning of a trained centralised policy (run after it, as the paper does)."""
+
+    teacher: str | None = Field(
+        None, description="Checkpoint of the trained centralised policy to clone (e.g. runs/ma-mesn/checkpoint.pt)."
+    )
+    teacher_fraction: float = Field(
+        1.0,
+        ge=0,
+        le=1,
+        description="Share of envs the teacher drives at step 0, decaying linearly to 0 with ε (DAgger's β); "
+        "the student drives the rest, and the teacher labels every visited state.",
+    )
+
+    @model_validator(mode="after")
+    def _teacher(self) -> CoDBCConfig:
+        if not self.teacher:
+            raise ConfigError(
+                "teacher",
+                "CoDBC clones a trained centralised policy: set algo_params teacher=PATH to its checkpoint "
+                "(train one first, e.g. `convoy train --algo ma-mesn`)",
+            )
+        return self
+
+
 ALGO_CONFIGS: dict[str, type[AlgoConfig]] = {
     "idqn": IDQNConfig,
     "dqn-ser": SERConfig,
@@ -151,6 +194,9 @@ ALGO_CONFIGS: dict[str, type[AlgoConfig]] = {
     "ims": IMSConfig,
     "ma-mesn": MeSNConfig,
     "ma-bon": BoNConfig,
+    "ma-mesn-mm": MeSNMMConfig,
+    "ma-bon-mm": BoNMMConfig,
+    "codbc": CoDBCConfig,
 }
 ALGO_SUMMARIES: dict[str, str] = {
     "idqn": "independent DQN, no communication",
@@ -159,6 +205,9 @@ ALGO_SUMMARIES: dict[str, str] = {
     "ims": "IMS / CommNet: P iterations of averaged messages",
     "ma-mesn": "MA-MeSN: message networks + policy networks (Algorithm 1)",
     "ma-bon": "MA-BoN: one broadcast message, all agents in one pass",
+    "ma-mesn-mm": "MA-MeSN + LSTM memory modules: runs with no channel (decentralised)",
+    "ma-bon-mm": "MA-BoN + LSTM memory modules: runs with no channel (decentralised)",
+    "codbc": "CoDBC: per-agent behaviour cloning of a trained centralised policy",
 }
 
 # What the paper fixes per environment; applied to fields left at None.

@@ -17,6 +17,7 @@ from envs import ENVS, ConfigError, make_batched
 from envs.config import allowed_range, build_config
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
+from learner.errors import CheckpointError
 from services.args import env_params
 from services.procs import JobFailed
 
@@ -210,10 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
     ro.set_defaults(func=cmd_env_rollout)
 
+    from services.eval_cmd import add_eval_parsers
     from services.roles_cmd import add_role_parsers
     from services.train_cmd import add_train_parser
 
     add_train_parser(sub)
+    add_eval_parsers(sub)
     add_role_parsers(sub)
     return parser
 
@@ -223,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, ValidationError) as exc:
+    except (ConfigError, ValidationError, CheckpointError) as exc:
         err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
         return 2
     except JobFailed as exc:

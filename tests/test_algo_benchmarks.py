@@ -77,3 +77,20 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
             assert r["transitions_per_update"] == 4 * r["chunk_len"]
         else:
             assert r["transitions_per_update"] == r["batch_size"] == 32
+
+
+def test_decentralized_quick_run_reports_every_method_and_the_channel_table(tmp_path: Path) -> None:
+    out, png = tmp_path / "dec.json", tmp_path / "dec.png"
+    proc = run_quick("decentralized.py", "--seeds", "0", "--json", str(out), "--plot", str(png), "--out", str(tmp_path))
+    assert "MA-MeSN-MM (no channel)" in proc.stdout and "Channel robustness" in proc.stdout
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    data = json.loads(out.read_text())
+    assert {r["method"] for r in data["runs"]} == {"ma-mesn-mm", "idqn", "dqn-ser", "codbc"}
+    codbc = next(r for r in data["runs"] if r["method"] == "codbc")
+    assert codbc["total_env_steps"] == 2 * data["settings"]["steps"]  # it needs its teacher's run first
+    assert all(math.isfinite(r["final_return"]) and r["curve"] for r in data["runs"])
+    drops = sorted({(r["drop"], r["method"]) for r in data["channel"]})
+    assert drops == [(d, m) for d in (0.0, 0.5, 1.0) for m in ("ma-mesn", "ma-mesn-mm")]
+    zero = {r["method"]: r["return"] for r in data["channel"] if r["drop"] == 0.0}
+    assert zero["ma-mesn"] == zero["ma-mesn-mm"]  # nothing is lost at drop 0: the same policy, the same episodes
+    assert (tmp_path / "ma-mesn-mm-0" / "checkpoint.pt").is_file()

@@ -9,6 +9,12 @@ messages arrive one step late (DIAL sends at t−1, as the paper notes) can comm
 target on every round, the listener still sees zeros, and only the listener's guess on the last round is scored.
 With ``rounds=1`` the game is exactly the one-step game, draw for draw.
 
+``listener_glimpse`` (needs ``rounds ≥ 2``) shows the listener the target on the first round only. A feed-forward
+listener has forgotten it by the scored last round, so it still needs the speaker's message; a listener with a
+memory of its own observations does not. This is the smallest game in which the memory-module variants
+(MA-MeSN-MM) can replace the channel by a prediction from the agent's own history, as the paper's cars predict
+their neighbours' messages from what they have seen.
+
 Choices made where the paper is silent:
 
 * Observations are ``[K]`` float32 for both agents: the speaker's is the target's one-hot, the listener's is all
@@ -35,11 +41,11 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from envs import rng
 from envs.batched import EnvSpec, StepResult, check_actions
-from envs.config import build_config
+from envs.config import ConfigError, build_config
 
 SPEAKER, LISTENER = "speaker", "listener"
 AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)
@@ -58,6 +64,19 @@ class ReferentialConfig(BaseModel):
         description="Steps per game with the same target; only the last round's guess is scored "
         "(> 1 lets messages sent one step late, as DIAL's, reach the listener).",
     )
+    listener_glimpse: bool = Field(
+        False,
+        description="The listener also sees the target, on the first round only (needs rounds ≥ 2): solvable "
+        "without messages by a listener that remembers its own observations.",
+    )
+
+    @model_validator(mode="after")
+    def _glimpse(self) -> ReferentialConfig:
+        if self.listener_glimpse and self.rounds < 2:
+            raise ConfigError(
+                "listener_glimpse", "needs rounds ≥ 2 (with one round the listener would see the scored target)"
+            )
+        return self
 
 
 def _spec(cfg: ReferentialConfig) -> EnvSpec:
@@ -91,6 +110,8 @@ class ReferentialBatch:
         self._targets = (u * self.config.n_targets).astype(np.int64)
         obs = np.zeros((self.num_envs, 2, self.config.n_targets), dtype=np.float32)
         obs[np.arange(self.num_envs), 0, self._targets] = 1.0
+        if self.config.listener_glimpse:
+            obs[np.arange(self.num_envs), 1, self._targets] = 1.0
         return obs
 
     def reset(self, seed: int | np.ndarray | None = None) -> np.ndarray:
@@ -117,6 +138,9 @@ class ReferentialBatch:
         else:
             hit = np.zeros(self.num_envs, dtype=np.float32)
             final_obs = final_obs.copy()  # the game goes on with this obs; the caller may keep final_obs
+            if self.config.listener_glimpse:
+                self._obs = self._obs.copy()
+                self._obs[:, 1] = 0.0  # the glimpse was the first round's only
         return StepResult(
             obs=self._obs.copy(),
             reward=np.repeat(hit[:, None], 2, axis=1),

@@ -10,6 +10,8 @@ every agent's input — which the ``fingerprint`` switch adds on top.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -38,7 +40,7 @@ class DQNSER(IndependentDQN):
             dtype=np.float32,
         )
 
-    def extras(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+    def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
         if not self.cfg.fingerprint:
             return {}
         return {"fingerprint": np.broadcast_to(self.fingerprint(), (obs.shape[0], self.FP_DIM)).copy()}

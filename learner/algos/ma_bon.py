@@ -29,11 +29,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
+from learner.listening import HearsMessages
 from learner.nets import GroupMLP, id_width, message_bits, with_agent_id
 from protocol.config import BoNConfig
 
 
-class MABoN(Algorithm):
+class MABoN(HearsMessages, Algorithm):
     """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
 
     name = "ma-bon"
@@ -44,6 +45,7 @@ class MABoN(Algorithm):
         if self.cfg.message_bits is None:
             raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
         self.bits: int = int(self.cfg.message_bits)
+        self.senders = 1
         self.use_id: bool = self.shared and bool(self.cfg.agent_id)
         groups = 1 if self.shared else self.n_agents
         obs_in = self.obs_dim + id_width(self.n_agents, self.use_id)
@@ -60,17 +62,25 @@ class MABoN(Algorithm):
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
         return message_bits(nets["message"](joint), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
 
+    def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""
+        x = with_agent_id(obs, self.use_id)
+        sent = self.broadcast(nets, x, train).expand(*x.shape[:-1], self.bits)
+        return x, sent, sent
+
+    def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
+        """g′: every agent's Q-values ``[..., N, A]`` in one call."""
+        return nets["policy"](torch.cat([x, heard], dim=-1))
+
     def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
         """Q-values ``[..., N, A]`` and ``bm`` per agent ``[..., N, bits]``; ``received`` (``[..., N, bits]``)
         overrides what each agent hears (for channel models, white-noise probes and memory modules)."""
-        x = with_agent_id(obs, self.use_id)
-        sent = self.broadcast(nets, x, train).expand(*x.shape[:-1], self.bits)
-        heard = sent if received is None else received
-        return nets["policy"](torch.cat([x, heard], dim=-1)), sent
+        x, sent, heard = self.speak(nets, obs, train)
+        return self.listen(nets, x, heard if received is None else received), sent
 
-    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
-        q, sent = self.forward(self.online, obs, train=False)
-        return q, sent.contiguous(), None
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, Any]:
+        x, sent, heard = self.speak(self.online, obs, False)
+        return self.listen(self.online, x, self.hear(heard.contiguous())), sent.contiguous(), None
 
     def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)

@@ -16,11 +16,12 @@ import torch
 from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
+from learner.listening import HearsMessages
 from learner.nets import GroupMLP, gather_others, id_width, message_bits, others_index, with_agent_id
 from protocol.config import MeSNConfig
 
 
-class MAMeSN(Algorithm):
+class MAMeSN(HearsMessages, Algorithm):
     """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
 
     name = "ma-mesn"
@@ -30,6 +31,7 @@ class MAMeSN(Algorithm):
     def build(self) -> dict[str, nn.Module]:
         self.bits: int = int(self.cfg.message_bits)
         self.peers = others_index(self.n_agents).to(self.device)
+        self.senders = self.n_agents - 1
         groups = 1 if self.shared else self.n_agents
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         msg_in = (self.n_agents - 1) * self.bits
@@ -42,17 +44,25 @@ class MAMeSN(Algorithm):
         """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
         return message_bits(nets["message"](x), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
 
+    def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
+        x = with_agent_id(obs, self.shared)
+        sent = self.messages(nets, x, train)
+        return x, sent, gather_others(sent, self.peers)
+
+    def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
+        """f″: Q-values ``[..., N, A]`` from each agent's own input and the messages it heard."""
+        return nets["policy"](torch.cat([x, heard], dim=-1))
+
     def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
         """Q-values ``[..., N, A]`` and the messages sent; ``received`` overrides what each agent hears
         (``[..., N, (N−1)·bits]``: for channel models, white-noise probes and memory modules)."""
-        x = with_agent_id(obs, self.shared)
-        sent = self.messages(nets, x, train)
-        heard = gather_others(sent, self.peers) if received is None else received
-        return nets["policy"](torch.cat([x, heard], dim=-1)), sent
+        x, sent, heard = self.speak(nets, obs, train)
+        return self.listen(nets, x, heard if received is None else received), sent
 
-    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
-        q, sent = self.forward(self.online, obs, train=False)
-        return q, sent, None
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, Any]:
+        x, sent, heard = self.speak(self.online, obs, False)
+        return self.listen(self.online, x, self.hear(heard)), sent, None
 
     def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)

@@ -1,0 +1,123 @@
+"""CoDBC (section 6.4): per-agent behaviour cloning of a trained centralised cooperative policy.
+
+The paper's decentralised baseline: after MA-MeSN has converged, each agent learns to imitate the centralised
+(expert) policy from its own observation only, so it runs without messages. It needs the expert first — which is
+the point the paper makes against it (~8000 more episodes, run sequentially) and what MA-MeSN-MM avoids.
+
+How it learns here (choices where the paper says only "imitation learning"):
+
+* The student is one network per agent (shared with an agent id, per ``share_params``) on the agent's own
+  observation; its outputs are action logits, acted on ε-greedily like every other algorithm's Q-values.
+* DAgger-style data: at step 0 the teacher drives a share ``teacher_fraction`` of the envs, decaying linearly to 0
+  with the ε schedule; the student drives the rest. Every visited state is labelled at update time with the
+  teacher's greedy joint action (the teacher reads the *joint* observation stored in the transition and its true
+  messages), so the student learns also in the states its own mistakes lead to.
+* Loss: each agent's cross-entropy to the teacher's action, masked to its own action count, summed over agents.
+  No target network, no bootstrapping (``gamma``, ``double_q``, ``target_update`` do not apply).
+* The teacher is any trained feed-forward Convoy checkpoint of the same env shape (MA-MeSN is the paper's; MA-BoN,
+  the ``-mm`` variants, IMS and the independent learners work too); DIAL (messages from t−1) and hierarchical runs
+  are refused. It is loaded on first use, so evaluating a CoDBC checkpoint needs only the student.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from envs.config import ConfigError
+from learner.algorithm import NEG, ActOutput, Algorithm, decay_progress
+from learner.nets import GroupMLP, id_width, with_agent_id
+from protocol.config import CoDBCConfig
+
+TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
+
+
+class CoDBC(Algorithm):
+    """A decentralised student per agent, trained to reproduce the teacher's greedy actions."""
+
+    name = "codbc"
+    config_model = CoDBCConfig
+
+    def build(self) -> dict[str, nn.Module]:
+        groups = 1 if self.shared else self.n_agents
+        self._teacher: Algorithm | None = None
+        self._agreement = float("nan")
+        return {
+            "policy": GroupMLP(groups, self.obs_dim + id_width(self.n_agents, self.shared), self.cfg.hidden, self.n_act)
+        }
+
+    @property
+    def teacher(self) -> Algorithm:
+        """The centralised policy being cloned, loaded from ``cfg.teacher`` on first use (frozen, greedy)."""
+        if self._teacher is None:
+            from learner.checkpoint import CheckpointError, load_checkpoint
+
+            try:
+                algo, job, _ = load_checkpoint(self.cfg.teacher, device=str(self.device))
+            except CheckpointError as exc:
+                raise ConfigError("teacher", str(exc)) from None
+            if job.hierarchical or algo.name not in TEACHERS:
+                kind = "hierarchical " + job.algo if job.hierarchical else algo.name
+                raise ConfigError(
+                    "teacher",
+                    f"{self.cfg.teacher} holds a {kind} policy; CoDBC clones a feed-forward one: {', '.join(TEACHERS)}",
+                )
+            if algo.spec != self.spec:
+                raise ConfigError(
+                    "teacher",
+                    f"{self.cfg.teacher} was trained on {algo.spec}, this job's env is "
+                    f"{self.spec}; train the teacher on the same env parameters",
+                )
+            algo.online.requires_grad_(False)
+            self._teacher = algo
+        return self._teacher
+
+    def logits(self, obs: Tensor) -> Tensor:
+        return self.online["policy"](with_agent_id(obs, self.shared)).masked_fill(~self.action_mask, NEG)
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
+        return self.logits(obs), None, None
+
+    def teacher_actions(self, obs: Tensor) -> Tensor:
+        q, _, _ = self.teacher.greedy_q(obs, None)
+        return q.masked_fill(~self.action_mask, NEG).argmax(dim=-1)
+
+    def teacher_share(self) -> float:
+        """DAgger's β: the share of envs the teacher drives — only while collecting training data."""
+        p = self.progress
+        if not p.training:
+            return 0.0  # evaluation (and a loaded checkpoint) measures the student alone
+        return self.cfg.teacher_fraction * (1.0 - decay_progress(self.cfg, p.env_steps, p.total_steps))
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
+        """The student's ε-greedy actions, with the teacher driving a decaying share of the envs (DAgger's β)."""
+        out = super().act(obs, epsilon, state)
+        beta = self.teacher_share()
+        if beta > 0:
+            drive = self.rng.random(obs.shape[0]) < beta
+            if drive.any():
+                rows = torch.as_tensor(obs[drive], dtype=torch.float32, device=self.device)
+                out.actions[drive] = self.teacher_actions(rows).cpu().numpy()
+        return out
+
+    def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
+        logits = self.logits(batch["obs"])  # [M, N, A]
+        with torch.no_grad():
+            labels = self.teacher_actions(batch["obs"])  # [M, N]
+            self._agreement = float((logits.argmax(dim=-1) == labels).float().mean())
+        ce = F.cross_entropy(logits.flatten(0, 1), labels.flatten(), reduction="none").view_as(labels)
+        return ce.mean(dim=0)
+
+    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+        return None, {"teacher_agreement": self._agreement}
+
+    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError("CoDBC learns by behaviour cloning (agent_losses), not from TD targets")
+
+    def after_update(self) -> None:
+        """No target network to sync."""

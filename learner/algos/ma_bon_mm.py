@@ -1,0 +1,18 @@
+"""MA-BoN-MM (section 4.2): MA-BoN with an LSTM memory module per agent predicting the broadcast message.
+
+Training is MA-BoN's plus the memory module's supervised loss (``learner.memory``); at execution g′ reads the true
+broadcast, the agent's own prediction of it (no channel), or the broadcast with lost copies replaced by predictions.
+"""
+
+from __future__ import annotations
+
+from learner.algos.ma_bon import MABoN
+from learner.memory import MemoryModule
+from protocol.config import BoNMMConfig
+
+
+class MABoNMM(MemoryModule, MABoN):
+    """MA-BoN whose agents also learn to predict the broadcast message."""
+
+    name = "ma-bon-mm"
+    config_model = BoNMMConfig

@@ -1,0 +1,191 @@
+"""The emergent-communication analysis of a trained policy (the paper's Table 1): what ``convoy analyze`` runs.
+
+It plays the greedy policy, records every agent's message and action at every step, and reports (figures from
+``learner.comm_metrics``, which follows Lowe et al. 2019):
+
+* speaker consistency MI(agent's message, its own action) and instantaneous coordination MI(speaker's message at t,
+  listener's action after hearing it), each next to its shuffled-pairs baseline and per message bit, with the
+  number of samples — a 2-byte vocabulary biases plug-in MI upward, so the raw figure alone proves little;
+* message entropy;
+* the message-input norm: the L2 norm of the listener policy's first-layer weights on its message inputs (next to
+  the same norm on its observation inputs, per weight, for scale);
+* the return with the true messages and with white noise in place of them (and, for the ``-mm`` variants, with the
+  memory module's predictions and no channel).
+
+Samples come from ``B`` envs stepped for ``T`` steps with auto-reset (the policy's own state distribution, several
+episodes per env), so the time axis is kept for the speaker → listener pairing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from envs.batched import BatchedEnv
+from envs.config import ConfigError
+from learner.algorithm import Algorithm
+from learner.comm_metrics import (
+    MetricFigure,
+    cooccurrence_plot,
+    instantaneous_coordination,
+    markdown_table,
+    message_entropy,
+    plot_figures,
+    speaker_consistency,
+    symbols,
+)
+from learner.evaluation import evaluate_policy
+from learner.listening import HearsMessages
+from learner.memory import MemoryModule
+
+
+@dataclass
+class Recording:
+    """Messages sent ``[T, B, N, bits]`` and actions taken ``[T, B, N]`` by the greedy policy."""
+
+    messages: np.ndarray
+    actions: np.ndarray
+
+
+@dataclass
+class Analysis:
+    """Every figure of the table, plus where the files went."""
+
+    algo: str
+    env: str
+    figures: list[MetricFigure]
+    files: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def title(self) -> str:
+        return f"Emergent communication of {self.algo} on {self.env}"
+
+    def table(self) -> str:
+        return markdown_table(self.figures, title=self.title)
+
+    def as_dict(self) -> dict:
+        return {"algo": self.algo, "env": self.env, "figures": [asdict(f) for f in self.figures], "files": self.files}
+
+
+def check_analysable(algo: Algorithm) -> None:
+    if not isinstance(algo, HearsMessages):
+        raise ConfigError(
+            "checkpoint",
+            f"{algo.name} sends no discrete per-agent messages to analyse; analyse ma-mesn, ma-bon or their -mm "
+            "variants",
+        )
+
+
+@torch.no_grad()
+def record(algo: Algorithm, env: BatchedEnv, steps: int, seed: int) -> Recording:
+    """``steps`` greedy steps of every env (auto-reset), recording messages and actions."""
+    check_analysable(algo)
+    obs = env.reset(seed=seed)
+    state = algo.initial_state(env.num_envs)
+    msgs, acts = [], []
+    for _ in range(steps):
+        out = algo.act(obs, 0.0, state)
+        assert out.messages is not None
+        msgs.append(out.messages)
+        acts.append(out.actions)
+        res = env.step(out.actions)
+        state = algo.reset_state(out.state, res.done)
+        obs = res.obs
+    return Recording(np.stack(msgs).round().astype(np.int8), np.stack(acts))
+
+
+def message_input_norm(algo: Algorithm) -> MetricFigure:
+    """L2 norm of the policy network's first-layer weights on its message inputs (mean over listener groups)."""
+    check_analysable(algo)
+    first = algo.online["policy"].layers[0].weight.detach()  # [G, inputs, out]; messages are the last inputs
+    width = algo.senders * algo.bits
+    msg_w, obs_w = first[:, -width:], first[:, :-width]
+    msg_norm = float(msg_w.flatten(1).norm(dim=1).mean())
+    obs_norm = float(obs_w.flatten(1).norm(dim=1).mean())
+    rms_ratio = (msg_norm / math.sqrt(msg_w[0].numel())) / max(obs_norm / math.sqrt(obs_w[0].numel()), 1e-12)
+    return MetricFigure(
+        name="Message input norm (MIN)",
+        key="message_input_norm",
+        value=msg_norm,
+        unit="L2",
+        note=f"{width} message inputs; observation-input norm {obs_norm:.2f}; per-weight RMS message/obs "
+        f"{rms_ratio:.2f}",
+    )
+
+
+def return_figures(algo: Algorithm, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
+    """Greedy return with the true messages, with white noise in their place and (memory modules) predicted."""
+    sources = ["sent", "noise"] + (["predicted"] if isinstance(algo, MemoryModule) else [])
+    names = {
+        "sent": "Cumulative reward (true messages)",
+        "noise": "Cumulative reward with white noise",
+        "predicted": "Cumulative reward with predicted messages (no channel)",
+    }
+    out = []
+    for src in sources:
+        res = evaluate_policy(algo, env, episodes, seed=seed, messages=src)  # type: ignore[arg-type]
+        out.append(
+            MetricFigure(
+                name=names[src],
+                key=f"return_{src}",
+                value=res.mean,
+                unit="return",
+                samples=len(res.returns),
+                note=f"± {res.ci95:.2f} (95 % CI)",
+            )
+        )
+    return out
+
+
+def analyze(
+    algo: Algorithm,
+    env: BatchedEnv,
+    env_name: str,
+    steps: int,
+    episodes: int,
+    seed: int,
+    out_dir: str | Path | None = None,
+    repeats: int = 20,
+) -> Analysis:
+    """Table 1 for ``algo``: communication figures from ``steps × B`` samples, returns from ``episodes`` episodes."""
+    rec = record(algo, env, steps, seed)
+    rng = np.random.default_rng(seed)
+    t, b, n, k = rec.messages.shape
+    flat_msgs, flat_acts = rec.messages.reshape(t * b, n, k), rec.actions.reshape(t * b, n)
+    sc = speaker_consistency(flat_msgs, flat_acts, rng, repeats)
+    ic = instantaneous_coordination(rec.messages, rec.actions, rng, repeats)
+    figures = [sc, ic, message_entropy(flat_msgs), message_input_norm(algo), *return_figures(algo, env, episodes, seed)]
+    result = Analysis(algo.name, env_name, figures)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        result.files["table"] = str(out / "table.md")
+        result.files["json"] = str(out / "analysis.json")
+        result.files["metrics_png"] = str(plot_figures(figures, out / "metrics.png", title=result.title))
+        speaker, listener = _best_pair(rec, env.spec.n_actions)
+        result.files["cooccurrence_png"] = str(
+            cooccurrence_plot(
+                symbols(rec.messages[:, :, speaker]).ravel(),
+                rec.actions[:, :, listener].ravel(),
+                out / "cooccurrence.png",
+                xlabel=f"message of {env.spec.agent_ids[speaker]} (symbol)",
+                ylabel=f"action of {env.spec.agent_ids[listener]}",
+            )
+        )
+        Path(result.files["table"]).write_text(result.table() + "\n")
+        Path(result.files["json"]).write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+    return result
+
+
+def _best_pair(rec: Recording, n_actions: tuple[int, ...]) -> tuple[int, int]:
+    """The (speaker, listener) pair to draw: the first listener with a choice, heard from its first peer."""
+    n = rec.actions.shape[-1]
+    listeners = [j for j in range(n) if n_actions[j] > 1] or [0]
+    j = listeners[0]
+    i = next((s for s in range(n) if s != j), j)
+    return i, j

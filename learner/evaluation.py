@@ -1,0 +1,109 @@
+"""Greedy evaluation of a trained policy under a chosen message source: what ``convoy eval`` and the benchmarks run.
+
+``evaluate_policy`` plays whole episodes (each env's first episode, reseeded per round, as the trainer's final
+evaluation does) with the algorithm's ``listening`` set for the duration: the true messages, a lossy channel,
+the memory module's predictions or white noise (``learner.listening``). Algorithms without discrete messages
+accept only the true source, so a probe can never silently measure nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from envs.batched import BatchedEnv
+from envs.channel import MessageChannel
+from envs.config import ConfigError
+from envs.rollout import ci95_half
+from learner.algorithm import Algorithm
+from learner.listening import HearsMessages, Listening, Source
+from learner.memory import MemoryModule
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    """Per-episode returns (mean over agents) and what the agents heard while playing them."""
+
+    returns: np.ndarray
+    messages: str
+    channel: str | None
+
+    @property
+    def mean(self) -> float:
+        return float(self.returns.mean())
+
+    @property
+    def ci95(self) -> float:
+        return ci95_half(self.returns, single=0.0)
+
+    def describe(self) -> str:
+        heard = self.messages + (f" through channel {self.channel}" if self.channel else "")
+        return f"{self.mean:.3f} ± {self.ci95:.3f} (95 % CI, {len(self.returns)} episodes, messages: {heard})"
+
+
+def parse_channel(spec: str, seed: int | None = None) -> MessageChannel:
+    """``drop=0.3,flip=0.01,latency=1`` → a channel, or a ConfigError naming ``channel`` and the bad key."""
+    try:
+        return MessageChannel.from_spec(spec, seed=seed)
+    except ValueError as exc:  # ConfigError included: prefix the option it came from
+        raise ConfigError("channel", str(exc)) from None
+
+
+def listening_for(
+    algo: Algorithm,
+    messages: Source = "sent",
+    channel: str | None = None,
+    seed: int | None = None,
+    fill_lost: Literal["predicted", "zeros"] = "predicted",
+) -> Listening | None:
+    """The ``Listening`` an evaluation asks for, or a ConfigError that says which algorithms support it."""
+    if messages == "sent" and not channel:
+        return None
+    if not isinstance(algo, HearsMessages):
+        raise ConfigError(
+            "messages" if messages != "sent" else "channel",
+            f"{algo.name} has no discrete message channel to replace or impair; channel and message probes apply "
+            "to ma-mesn, ma-bon, ma-mesn-mm and ma-bon-mm",
+        )
+    if messages == "predicted" and not isinstance(algo, MemoryModule):
+        raise ConfigError(
+            "messages", f"{algo.name} has no memory module to predict messages; train ma-mesn-mm or ma-bon-mm"
+        )
+    chan = parse_channel(channel, seed) if channel else None
+    return Listening(messages, chan, seed=seed, fill_lost=fill_lost)
+
+
+@contextmanager
+def listening(algo: Algorithm, how: Listening | None) -> Iterator[None]:
+    """Let ``algo`` hear through ``how`` inside the block (training always hears the true messages)."""
+    before = getattr(algo, "listening", None)
+    if isinstance(algo, HearsMessages):
+        algo.listening = how
+    try:
+        yield
+    finally:
+        if isinstance(algo, HearsMessages):
+            algo.listening = before
+
+
+def evaluate_policy(
+    algo: Algorithm,
+    env: BatchedEnv,
+    episodes: int,
+    seed: int,
+    messages: Source = "sent",
+    channel: str | None = None,
+    epsilon: float = 0.0,
+    fill_lost: Literal["predicted", "zeros"] = "predicted",
+) -> EvalResult:
+    """Returns of ``episodes`` greedy (or ε-greedy) episodes with the agents hearing ``messages``/``channel``."""
+    from learner.inprocess import evaluate
+
+    how = listening_for(algo, messages, channel, seed, fill_lost)
+    with listening(algo, how):
+        returns = evaluate(env, algo, episodes, seed=seed, epsilon=epsilon)
+    return EvalResult(returns, messages, channel or None)

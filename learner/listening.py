@@ -1,0 +1,106 @@
+"""What agents hear at execution: the true messages, a lossy channel, the memory module's predictions, or noise.
+
+Training always uses the true messages (centralised training). Evaluation may put something else between the
+message networks and the policy networks, which is how the paper probes its models (section 6.3: white noise in
+place of messages; section 6.4: no channel at all, the memory module's prediction instead). Every algorithm whose
+messages are discrete bits (MA-MeSN, MA-BoN and their ``-mm`` variants) exposes what each receiver hears as
+``[B, receivers, senders, bits]`` — MA-MeSN: the N − 1 peers; MA-BoN: its one broadcast — and passes it through
+``Listening.hear`` before the policy network reads it.
+
+* ``sent``: the true messages, through ``channel`` when one is set (``envs.channel``: drops, bit flips, latency).
+  A dropped message arrives as zeros — or, for a memory-module algorithm, as the module's prediction: that is the
+  "mix" of true and predicted messages when the channel loses packets.
+* ``predicted``: no channel at all; every message is the memory module's prediction (fully decentralised).
+* ``noise``: uniformly random bits in place of every message (Table 1's "reward with white noise").
+
+``fill_lost="zeros"`` makes a memory-module algorithm hear zeros for lost messages, like a plain MA-MeSN/MA-BoN: the
+same trained policy with and without its memory, for the channel-robustness comparison.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, get_args
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from envs.channel import MessageChannel
+from envs.config import ConfigError
+
+Source = Literal["sent", "predicted", "noise"]
+SOURCES: tuple[str, ...] = get_args(Source)
+
+
+class Listening:
+    """Turns the true messages (and, for memory modules, their predictions) into what the policies hear."""
+
+    def __init__(
+        self,
+        source: Source = "sent",
+        channel: MessageChannel | None = None,
+        seed: int | None = None,
+        fill_lost: Literal["predicted", "zeros"] = "predicted",
+    ) -> None:
+        if source not in SOURCES:
+            raise ConfigError("messages", f"unknown source {source!r}; choose one of: {', '.join(SOURCES)}")
+        if channel is not None and source != "sent":
+            raise ConfigError("channel", f"a channel carries true messages; it does not apply to messages={source}")
+        self.source, self.channel, self.fill_lost = source, channel, fill_lost
+        self._gen = torch.Generator().manual_seed(int(np.random.SeedSequence(seed).generate_state(1)[0]))
+
+    @property
+    def needs_prediction(self) -> bool:
+        """Whether a memory-module algorithm must run its module this step (predictions replace lost messages)."""
+        return self.source == "predicted" or (self.channel is not None and self.fill_lost == "predicted")
+
+    def hear(self, true: Tensor, predicted: Tensor | None = None) -> Tensor:
+        """What every receiver hears, ``[B, R, S, bits]`` in 0/1, from the true messages of the same layout."""
+        if self.source == "noise":
+            return torch.randint(0, 2, true.shape, generator=self._gen).to(true)
+        if self.source == "predicted":
+            if predicted is None:
+                raise ConfigError(
+                    "messages", "'predicted' needs a memory-module algorithm (ma-mesn-mm, ma-bon-mm); use sent or noise"
+                )
+            return predicted
+        if self.channel is None:
+            return true
+        got = self.channel.deliver(true.detach().cpu().numpy())
+        heard = torch.as_tensor(got.bits, device=true.device, dtype=true.dtype)
+        if predicted is None:
+            return heard  # lost messages stay zeros
+        delivered = torch.as_tensor(got.delivered, device=true.device).unsqueeze(-1)
+        return torch.where(delivered, heard, predicted)
+
+    def reset(self, done: np.ndarray) -> None:
+        """Forget in-flight messages of envs whose episode ended (channel latency)."""
+        if self.channel is not None and done.any():
+            self.channel.reset(np.flatnonzero(done))
+
+
+class HearsMessages:
+    """Mixin for algorithms whose policies read discrete messages laid out ``[..., N, senders·bits]``.
+
+    The algorithm provides ``speak`` (observations → id-augmented inputs, messages sent, messages heard) and
+    ``listen`` (inputs + heard → Q-values); ``hear`` applies the evaluation's ``listening`` (None in training and
+    by default: the true messages, untouched).
+    """
+
+    listening: Listening | None = None
+    senders: int  # messages each agent hears per step (MA-MeSN: N − 1 peers, MA-BoN: 1 broadcast)
+    bits: int
+
+    def reset_state(self, state: Any, done: np.ndarray) -> Any:
+        """Also forget the channel's in-flight messages of envs whose episode ended (latency)."""
+        if self.listening is not None:
+            self.listening.reset(done)
+        return super().reset_state(state, done)  # type: ignore[misc]
+
+    def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:
+        if self.listening is None:
+            return heard
+        shape = heard.shape
+        split = (*shape[:-1], self.senders, self.bits)
+        pred = None if predicted is None else predicted.reshape(split)
+        return self.listening.hear(heard.reshape(split), pred).reshape(shape)

@@ -1,0 +1,142 @@
+"""The message memory module (section 4.1): an LSTM per agent that predicts, from the agent's own observation
+history, the messages the others would send — so the trained cooperative policy can run with no channel at all.
+
+``MemoryModule`` is a mixin over a message-passing algorithm (MA-MeSN, MA-BoN: anything with ``speak``/``listen``/
+``hear``, see ``learner.listening``). It adds:
+
+* **a history window** as the acting state: each env's last ``memory_window`` observations of every agent
+  ``[B, L, N, D + 1]`` (the extra column marks real steps, so the zero padding before an episode's first step is
+  distinguishable from an all-zero observation); it is stored with every transition (``history``, float16 to halve
+  replay and wire bytes — observations are normalised to about [−1, 1]), so the module trains on exactly the
+  inputs it sees at execution;
+* **a supervised loss trained in parallel** with centralised training, on the same batch and by the same optimizer:
+  binary cross-entropy between the module's bit logits and the messages each agent heard at that step — the
+  *execution* messages (argmax, no Gumbel noise) of the current message networks, detached, so the loss reaches
+  the memory module only and the TD losses never see it;
+* **execution from predictions**: when the evaluation's ``Listening`` asks for them (``predicted``: no channel; a
+  lossy channel: predictions replace dropped messages), the policy network reads the prediction ``logits > 0``.
+
+Choices made where the paper is silent: a fixed window (default 8 steps) rather than a carried LSTM state, so a
+replayed transition is self-contained (no burn-in, no stored hidden states that go stale as the weights change)
+and training and execution read identical inputs; one LSTM layer of ``memory_hidden`` units, its input projection
+done for all steps in one matmul; shared or per-agent weights following ``share_params`` (agent id appended when
+shared), all agents in one batched call per step.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from learner.nets import GroupLinear, id_width, with_agent_id
+
+HISTORY = "history"
+
+
+class GroupLSTM(nn.Module):
+    """One LSTM per agent group over a window ``[M, L, N, in]`` → logits ``[M, N, out]`` from the last step."""
+
+    def __init__(self, groups: int, in_features: int, hidden: int, out_features: int) -> None:
+        super().__init__()
+        self.hidden = hidden
+        self.inp = GroupLinear(groups, in_features, 4 * hidden)
+        self.rec = GroupLinear(groups, hidden, 4 * hidden)
+        self.head = GroupLinear(groups, hidden, out_features)
+        with torch.no_grad():  # forget gate open at the start (Jozefowicz et al. 2015): memories survive early on
+            self.inp.bias[:, hidden : 2 * hidden].fill_(1.0)
+            self.rec.bias.zero_()
+
+    def forward(self, seq: Tensor) -> Tensor:
+        m, steps, n, _ = seq.shape
+        gates_in = self.inp(seq)  # every step's input projection in one call
+        h = seq.new_zeros(m, n, self.hidden)
+        c = torch.zeros_like(h)
+        for t in range(steps):
+            i, f, g, o = (gates_in[:, t] + self.rec(h)).chunk(4, dim=-1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+            h = torch.sigmoid(o) * torch.tanh(c)
+        return self.head(h)
+
+
+class MemoryModule:
+    """Mixin: put it before a ``HearsMessages`` algorithm, e.g. ``class MAMeSNMM(MemoryModule, MAMeSN)``."""
+
+    # provided by the algorithm it is mixed into
+    cfg: Any
+    online: nn.ModuleDict
+    device: torch.device
+    shared: bool
+    n_agents: int
+    obs_dim: int
+    senders: int
+    bits: int
+    listening: Any
+
+    def build(self) -> dict[str, nn.Module]:
+        nets = super().build()  # type: ignore[misc]
+        self.window = int(self.cfg.memory_window)
+        groups = 1 if self.shared else self.n_agents
+        width = self.obs_dim + 1 + id_width(self.n_agents, self.shared)
+        nets["memory"] = GroupLSTM(groups, width, int(self.cfg.memory_hidden), self.senders * self.bits)
+        return nets
+
+    # --- acting: the window is the recurrent state -------------------------------------------------------------
+    def initial_state(self, num_envs: int) -> Tensor:
+        return torch.zeros(num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
+
+    def reset_state(self, state: Tensor, done: np.ndarray) -> Tensor:
+        state = super().reset_state(state, done)  # type: ignore[misc]  # the channel's in-flight messages
+        if not done.any():
+            return state
+        state = state.clone()
+        state[torch.as_tensor(done, device=state.device)] = 0.0
+        return state
+
+    def push(self, state: Tensor | None, obs: Tensor) -> Tensor:
+        """The window after this step: the oldest observation out, ``obs`` (marked real) in."""
+        if state is None:
+            state = self.initial_state(obs.shape[0])
+        step = torch.cat([obs, obs.new_ones(*obs.shape[:-1], 1)], dim=-1).unsqueeze(1)
+        return torch.cat([state[:, 1:], step], dim=1)
+
+    def predict(self, nets: nn.ModuleDict, window: Tensor) -> Tensor:
+        """Bit logits ``[M, N, senders·bits]`` of the messages each agent will hear, from its own window."""
+        return nets["memory"](with_agent_id(window.float(), self.shared))
+
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, Tensor]:
+        window = self.push(state, obs)
+        x, sent, heard = self.speak(self.online, obs, False)  # type: ignore[attr-defined]
+        predicted = None
+        if self.listening is not None and self.listening.needs_prediction:
+            predicted = (self.predict(self.online, window) > 0).to(heard.dtype)
+        q = self.listen(self.online, x, self.hear(heard.contiguous(), predicted))  # type: ignore[attr-defined]
+        return q, sent.contiguous(), window
+
+    def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
+        extra = super().extras(obs, state)  # type: ignore[misc]
+        if state is not None:
+            extra[HISTORY] = state.to(torch.float16).cpu().numpy()
+        return extra
+
+    # --- learning: supervised, in parallel with the TD losses ---------------------------------------------------
+    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+        if HISTORY not in batch:
+            raise KeyError(f"{type(self).__name__} needs '{HISTORY}' in its transitions: collect them with its act()")
+        logits = self.predict(self.online, batch[HISTORY])
+        with torch.no_grad():
+            _, _, heard = self.speak(self.online, batch["obs"], False)  # type: ignore[attr-defined]
+            target = heard.reshape(logits.shape)
+        bce = F.binary_cross_entropy_with_logits(logits, target)
+        with torch.no_grad():
+            right = (logits > 0) == (target > 0.5)
+            msg_right = right.reshape(*right.shape[:-1], self.senders, self.bits).all(dim=-1)
+        stats = {
+            "memory_loss": float(bce.detach()),
+            "memory_bit_acc": float(right.float().mean()),
+            "memory_msg_acc": float(msg_right.float().mean()),
+        }
+        return self.cfg.memory_coef * bce, stats

@@ -1,0 +1,180 @@
+"""``convoy eval`` and ``convoy analyze``: measure a trained checkpoint — its return under a chosen message source
+or channel, and the emergent-communication figures of the paper's Table 1."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from envs import ConfigError
+from learner.listening import SOURCES
+
+console = Console()
+
+CHANNEL_HELP = (
+    "put a lossy channel between senders and receivers, e.g. drop=0.3,flip=0.01 (keys: drop, flip, latency=0|1); "
+    "memory-module algorithms (-mm) replace lost messages with their predictions, the others hear zeros"
+)
+
+
+def load(path: str, device: str) -> tuple[Any, Any, dict[str, Any]]:
+    """(algorithm, job, counters) of a checkpoint; a bad file is a CheckpointError that says what to do."""
+    from learner.checkpoint import load_checkpoint
+
+    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
+        raise ConfigError("--device", f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
+
+    return load_checkpoint(path, device=device)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from learner.evaluation import evaluate_policy, parse_channel
+    from services.training import make_env
+
+    if args.episodes < 1:
+        raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
+    if args.channel:
+        parse_channel(args.channel)  # a typo fails before the checkpoint is loaded
+    algo, job, counters = load(args.checkpoint, args.device)
+    if args.gif and job.env != "treadmill":
+        raise ConfigError("--gif", f"only the treadmill renders GIFs ({args.checkpoint} was trained on {job.env})")
+    console.print(
+        f"[bold]{args.checkpoint}[/]: {job.algo}{' (hierarchical)' if job.hierarchical else ''} on {job.env}, "
+        f"trained {counters.get('env_steps', 0):,} env steps / {counters.get('updates', 0):,} updates",
+        highlight=False,
+        soft_wrap=True,
+    )
+    env = make_env(job, min(args.episodes, args.num_envs))
+    try:
+        result = evaluate_policy(algo, env, args.episodes, seed=args.seed, messages=args.messages, channel=args.channel)
+        rand = evaluate_policy(algo, env, args.episodes, seed=args.seed, epsilon=1.0)
+    finally:
+        env.close()
+    console.print(f"greedy return:  {result.describe()}", highlight=False, soft_wrap=True)
+    console.print(f"random policy:  {rand.mean:.3f} ± {rand.ci95:.3f}", highlight=False)
+    if args.gif:
+        frames = gif_episode(algo, job, args)
+        console.print(f"wrote {args.gif} ({frames} frames of one greedy episode)")
+    if args.json:
+        summary = {
+            "checkpoint": args.checkpoint,
+            "algo": job.algo,
+            "env": job.env,
+            "messages": args.messages,
+            "channel": args.channel,
+            "episodes": args.episodes,
+            "mean_return": result.mean,
+            "ci95": result.ci95,
+            "random_return": rand.mean,
+            "returns": result.returns.tolist(),
+        }
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+        console.print(f"wrote {args.json}")
+    return 0
+
+
+def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
+    """Play one greedy treadmill episode (same message source and channel) and write it as a GIF."""
+    import torch
+
+    from envs.rollout import rollout
+    from envs.treadmill import TreadmillEngine, render_frame, write_gif
+    from learner.evaluation import listening, listening_for
+
+    cfg = job.env_config()
+    env = TreadmillEngine(cfg, 1, autoreset=False)
+    state = algo.initial_state(1)
+
+    @torch.no_grad()
+    def policy(obs: Any) -> Any:
+        nonlocal state
+        out = algo.act(obs, 0.0, state)
+        state = out.state
+        return out.actions
+
+    def draw() -> Any:
+        return render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)
+
+    with listening(algo, listening_for(algo, args.messages, args.channel, args.seed)):
+        result = rollout(env, policy, seed=args.seed, render=draw)
+    Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
+    write_gif(result.frames, args.gif)
+    return len(result.frames)
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from learner.analysis import analyze
+    from services.training import make_env
+
+    for flag in ("samples", "episodes", "repeats"):
+        if getattr(args, flag) < 1:
+            raise ConfigError(f"--{flag}", f"must be ≥ 1 (got {getattr(args, flag)})")
+    algo, job, _ = load(args.checkpoint, args.device)
+    out = Path(args.out) if args.out else Path(args.checkpoint).resolve().parent / "analysis"
+    env = make_env(job, args.num_envs)
+    try:
+        steps = -(-args.samples // env.num_envs)
+        result = analyze(algo, env, job.env, steps, args.episodes, args.seed, out_dir=out, repeats=args.repeats)
+    finally:
+        env.close()
+    console.print(result.table(), highlight=False, soft_wrap=True)
+    console.print()
+    for what, path in result.files.items():
+        console.print(f"wrote {path}  ({what})", highlight=False)
+    return 0
+
+
+def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
+    ev = sub.add_parser(
+        "eval",
+        help="evaluate a checkpoint's greedy policy (message source, channel, GIF)",
+        description="Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % "
+        "confidence interval, next to the random policy's. --messages and --channel probe the communication: "
+        "white noise in place of messages, the memory module's predictions (no channel, -mm algorithms), or a "
+        "lossy channel.",
+    )
+    ev.add_argument("checkpoint", help="a checkpoint.pt written by convoy train")
+    ev.add_argument("--episodes", type=int, default=100, help="greedy episodes to play (default: %(default)s)")
+    ev.add_argument(
+        "--messages",
+        choices=SOURCES,
+        default="sent",
+        help="what the agents hear: sent (the true messages), predicted (the memory module's predictions, no "
+        "channel: -mm algorithms) or noise (uniform random bits) (default: %(default)s)",
+    )
+    ev.add_argument("--channel", metavar="SPEC", help=CHANNEL_HELP)
+    ev.add_argument("--gif", metavar="PATH", help="also write an animated GIF of one greedy episode (treadmill)")
+    ev.add_argument("--json", metavar="PATH", help="write the figures and every episode's return as JSON")
+    ev.add_argument("--seed", type=int, default=12345, help="seed of the evaluation envs (default: %(default)s)")
+    ev.add_argument("--num-envs", type=int, default=256, help="envs played at once (default: %(default)s)")
+    ev.add_argument("--device", default="auto", help="torch device: auto, cpu or cuda (default: %(default)s)")
+    ev.set_defaults(func=cmd_eval)
+
+    an = sub.add_parser(
+        "analyze",
+        help="emergent-communication metrics of a checkpoint (the paper's Table 1)",
+        description="Record the greedy policy's messages and actions and report speaker consistency, "
+        "instantaneous coordination (plug-in mutual information in nats, each next to its shuffled-pairs "
+        "baseline and per message bit), message entropy, the message-input norm and the return with true "
+        "messages vs white noise (and predicted messages for -mm algorithms). Writes table.md, analysis.json, "
+        "metrics.png and cooccurrence.png.",
+    )
+    an.add_argument("checkpoint", help="a checkpoint.pt of ma-mesn, ma-bon, ma-mesn-mm or ma-bon-mm")
+    an.add_argument(
+        "--samples",
+        type=int,
+        default=20_000,
+        help="env steps × envs recorded for the MI figures (default: %(default)s)",
+    )
+    an.add_argument("--episodes", type=int, default=100, help="episodes per return figure (default: %(default)s)")
+    an.add_argument("--repeats", type=int, default=20, help="shuffles for each baseline (default: %(default)s)")
+    an.add_argument("--out", metavar="DIR", help="where to write the files (default: analysis/ next to the checkpoint)")
+    an.add_argument("--seed", type=int, default=12345, help="seed of the envs and shuffles (default: %(default)s)")
+    an.add_argument("--num-envs", type=int, default=256, help="envs played at once (default: %(default)s)")
+    an.add_argument("--device", default="auto", help="torch device: auto, cpu or cuda (default: %(default)s)")
+    an.set_defaults(func=cmd_analyze)
