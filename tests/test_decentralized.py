@@ -10,7 +10,8 @@ module of the ``-mm`` variants learns. So, from one trained model each:
 * the instantaneous coordination MI(speaker's message, listener's action) is far above its shuffled baseline;
 * with the channel cut off (drop = 1) and the memory module's predictions in place of the lost messages, most of
   the success is kept, while the same policy hearing zeros for them falls to chance;
-* independent DQN (feed-forward, no messages) cannot beat chance on this game.
+* independent DQN (feed-forward, no messages) cannot beat chance on this game;
+* and plain MA-MeSN on the original one-round game passes the same communication probes.
 """
 
 from __future__ import annotations
@@ -82,3 +83,21 @@ def test_the_memory_module_keeps_most_of_the_success_with_the_channel_cut_off(tr
 
 def test_independent_dqn_stays_at_chance_on_the_glimpse_game(tmp_path: Path) -> None:
     assert success(train("idqn", tmp_path)) < 1 / K + 0.15
+
+
+def test_plain_ma_mesn_on_the_one_round_game_communicates_by_every_probe(tmp_path: Path) -> None:
+    """The same probes on plain MA-MeSN and the original game (no glimpse, no memory module)."""
+    job = job_config(
+        algo="ma-mesn", env="referential", env_params={"n_targets": K}, algo_params=HP, steps=25_000, num_envs=64,
+        seed=0, eval_episodes=0,
+    )  # fmt: skip
+    run_inprocess(job, out_dir=tmp_path, progress=False)
+    algo, job2, _ = load_checkpoint(tmp_path / "checkpoint.pt", device="cpu")
+    env = make_env(job2, 200)
+    assert success((algo, env)) >= 0.9
+    assert success((algo, env), messages="noise") < 1 / K + 0.15
+    assert success((algo, env), channel="drop=1.0") < 1 / K + 0.15  # no memory module: lost messages are zeros
+    result = analyze(algo, env, "referential", steps=20, episodes=50, seed=4, repeats=10)
+    ic = next(f for f in result.figures if f.key == "instantaneous_coordination")
+    assert ic.shuffled is not None and ic.shuffled_std is not None
+    assert ic.value > 0.8 * np.log(K) and ic.value > ic.shuffled + 20 * max(ic.shuffled_std, 1e-3)
