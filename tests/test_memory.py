@@ -622,3 +622,22 @@ def test_glimpse_shows_the_target_on_the_first_round_only() -> None:
     np.testing.assert_array_equal(res.obs[:, 1], eye[env.targets])
     plain = make_batched("referential", b, n_targets=k, rounds=3)
     assert (plain.reset(seed=0)[:, 1] == 0).all()
+
+
+def test_shared_fused_lstm_matches_the_grouped_cell() -> None:
+    """One group runs torch's fused LSTM, several groups a stepped cell: the same maths, gate for gate."""
+    from learner.memory import GroupLSTM
+
+    torch.manual_seed(0)
+    fused, stepped = GroupLSTM(1, 5, 7, 3), GroupLSTM(2, 5, 7, 3)
+    with torch.no_grad():
+        for g in range(2):  # both groups of the stepped cell get the fused LSTM's weights
+            stepped.inp.weight[g] = fused.lstm.weight_ih_l0.T
+            stepped.inp.bias[g] = fused.lstm.bias_ih_l0
+            stepped.rec.weight[g] = fused.lstm.weight_hh_l0.T
+            stepped.rec.bias[g] = fused.lstm.bias_hh_l0
+            stepped.head.weight[g] = fused.head.weight[0]
+            stepped.head.bias[g] = fused.head.bias[0]
+    seq = torch.randn(4, 6, 2, 5)  # [M, L, N, in]
+    torch.testing.assert_close(fused(seq), stepped(seq))
+    assert fused.lstm.bias_ih_l0[7:14].eq(1.0).all()  # forget gate opened at init
