@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.convoy-installed
 OUT    ?= runs/demo
 
-.PHONY: run run-inprocess demo test lint bench clean
+.PHONY: run run-inprocess serve demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ run: $(STAMP)
 
 run-inprocess: $(STAMP)
 	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 --out $(OUT)-inprocess
+
+serve: $(STAMP)
+	$(BIN)/convoy serve --port $(or $(PORT),8000) --data runs/service
 
 demo: $(STAMP)
 	$(BIN)/convoy env rollout --env treadmill --agents 3 --adversaries 1 --episodes 20 --policy scripted \

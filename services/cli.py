@@ -212,11 +212,15 @@ def build_parser() -> argparse.ArgumentParser:
     ro.set_defaults(func=cmd_env_rollout)
 
     from services.eval_cmd import add_eval_parsers
+    from services.jobs_cmd import add_jobs_parser
     from services.roles_cmd import add_role_parsers
+    from services.serve_cmd import add_serve_parser
     from services.train_cmd import add_train_parser
 
     add_train_parser(sub)
     add_eval_parsers(sub)
+    add_serve_parser(sub)
+    add_jobs_parser(sub)
     add_role_parsers(sub)
     return parser
 

@@ -1,0 +1,125 @@
+"""Request and response bodies of the job service (OpenAPI at ``/docs``), shared with ``convoy jobs``.
+
+A submitted job is validated by the same ``protocol.config.job_config`` as ``convoy train`` and the processes, so
+a bad value gets the same message everywhere: the field, what was given and the allowed range. Bodies forbid
+unknown fields (a typo is an error, not a silently ignored setting) and bound every count, so one request cannot
+ask for a thousand processes.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.config import JobConfig, job_config
+
+MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
+
+
+class JobSubmit(BaseModel):
+    """``POST /jobs``: what to train, on what, for how long, with how many actor processes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    algo: str = Field("ma-mesn", max_length=32, description="Algorithm (see `convoy train --help`).")
+    env: str = Field("treadmill", max_length=32, description="Environment (see `convoy env list`).")
+    env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
+    algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
+    hierarchical: bool = Field(False, description="Hierarchical DQN around the algorithm (treadmill).")
+    actors: int = Field(2, ge=1, le=MAX_ACTORS, description="Actor processes.")
+    steps: int = Field(100_000, ge=1, le=1_000_000_000, description="Total env steps.")
+    num_envs: int = Field(16, ge=1, le=4096, description="Envs stepped together per actor.")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of envs, exploration and network init.")
+    eval_episodes: int = Field(20, ge=0, le=10_000, description="Greedy episodes evaluated at the end.")
+    log_every: int = Field(2_000, ge=1, le=1_000_000_000, description="Env steps between metric rows.")
+    checkpoint_every: int = Field(50_000, ge=1, le=1_000_000_000, description="Env steps between checkpoints.")
+    name: str | None = Field(
+        None, pattern=r"^[A-Za-z0-9_.-]{1,32}$", description="Prefix of the job id (letters, digits, _ . -)."
+    )
+
+    def job_config(self) -> JobConfig:
+        """The validated job (ConfigError naming the field otherwise)."""
+        values = self.model_dump(exclude={"actors", "name"})
+        return job_config(**values, runtime={"actors": self.actors})
+
+
+class JobPatch(BaseModel):
+    """``PATCH /jobs/{id}``: scale the actor count of a job, live when it runs."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    actors: int = Field(..., ge=1, le=MAX_ACTORS, description="Actor processes wanted.")
+
+
+class JobResume(BaseModel):
+    """``POST /jobs/{id}/resume``: continue from the last checkpoint, optionally with another actor count or a
+    larger step budget."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    actors: int | None = Field(None, ge=1, le=MAX_ACTORS, description="Actor processes (default: as before).")
+    steps: int | None = Field(None, ge=1, le=1_000_000_000, description="New total env-step budget.")
+
+
+class EvalRequest(BaseModel):
+    """``POST /jobs/{id}/evaluate``: greedy episodes of the job's last checkpoint (``convoy eval``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    episodes: int = Field(100, ge=1, le=5_000, description="Greedy episodes.")
+    messages: Literal["sent", "predicted", "noise"] = Field("sent", description="What the agents hear.")
+    channel: str | None = Field(None, max_length=200, description="Lossy channel, e.g. drop=0.3,flip=0.01.")
+    seed: int = Field(12345, ge=0, le=2**31 - 1, description="Seed of the evaluation envs.")
+
+
+class Progress(BaseModel):
+    env_steps: int = 0
+    fraction: float = 0.0
+    updates: int | None = None
+    return_: float | None = Field(None, alias="return", serialization_alias="return")
+    loss: float | None = None
+    env_steps_per_s: float | None = None
+    updates_per_s: float | None = None
+    policy_lag: float | None = None
+
+    model_config = ConfigDict(populate_by_name=True)
+
+
+class JobView(BaseModel):
+    """A job as ``GET /jobs/{id}`` shows it."""
+
+    id: str
+    state: str
+    algo: str
+    env: str
+    actors: int = Field(description="Actor processes requested.")
+    actors_alive: int = Field(description="Actor processes holding a liveliness token now.")
+    steps: int
+    progress: Progress
+    created_at: float
+    updated_at: float
+    error: str | None = None
+    last_checkpoint: str | None = None
+    queue_position: int | None = None
+    config: dict[str, Any]
+
+
+class JobList(BaseModel):
+    jobs: list[JobView]
+
+
+class MetricsPage(BaseModel):
+    """Metric rows after ``since`` in step order; poll again with ``since = last_step`` for the next ones."""
+
+    job: str
+    rows: list[dict[str, Any]]
+    last_step: int | None
+
+
+class ErrorBody(BaseModel):
+    """Every error: which field, what is wrong, what to do."""
+
+    field: str
+    problem: str
+    fix: str

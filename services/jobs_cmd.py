@@ -1,0 +1,563 @@
+"""``convoy jobs``: the command-line client of the job service (``convoy serve``), one subcommand per API route.
+
+``submit``, ``list``, ``status``, ``scale``, ``stop``, ``resume``, ``delete``, ``logs`` and ``watch`` speak HTTP to
+``--url`` (``CONVOY_API_URL``, default http://127.0.0.1:8000) with ``--token`` (``CONVOY_API_TOKEN``) as the bearer
+token of the mutating routes. Every error the API answers is printed as one line ``error: <field>: <problem> —
+<fix>`` with exit code 2; a service that does not answer is ``error: cannot reach <url> (...)``, also exit 2.
+``watch`` exits 0 when the job completes or is stopped and 1 when it fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+import httpx
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+from rich.text import Text
+
+from api.models import MAX_ACTORS, JobSubmit
+from services.args import env_params, parse_pairs
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+FINAL_STATES = ("completed", "stopped", "failed")
+STATES = ("queued", "starting", "running", "stopping", "stopped", "completed", "failed")
+LOG_COLUMNS = ("env_steps", "episodes", "updates", "return", "loss", "env_steps_per_s", "policy_lag", "actors_alive")
+HTTP_TIMEOUT_S = 30.0
+
+
+class CliError(Exception):
+    """An error to print as one line ``error: <field>: <problem> — <fix>`` and exit with ``code``."""
+
+    def __init__(self, field: str, problem: str, fix: str = "", code: int = 2) -> None:
+        super().__init__(problem)
+        self.field, self.problem, self.fix, self.code = field, problem, fix, code
+
+    def line(self) -> str:
+        text = f"{self.field}: {self.problem}" if self.field else self.problem
+        return " ".join((f"{text} — {self.fix}" if self.fix else text).split())  # one line, whatever the server said
+
+
+class Unreachable(CliError):
+    """The service did not answer at all."""
+
+    def __init__(self, url: str) -> None:
+        super().__init__("", f"cannot reach {url} (is `convoy serve` running?)")
+
+
+def api_error(resp: httpx.Response) -> CliError:
+    """The API's ``{"field", "problem", "fix"}`` body as a CliError; anything else still as one line."""
+    try:
+        body = resp.json()
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and {"field", "problem"} <= body.keys():
+        return CliError(str(body["field"]), str(body["problem"]), str(body.get("fix") or ""))
+    text = " ".join(resp.text.split())[:200] or resp.reason_phrase
+    problem = f"{resp.status_code} {resp.reason_phrase} from {resp.request.url}: {text}"
+    return CliError("http", problem, "is --url the address of `convoy serve`? (its API docs are at URL/docs)")
+
+
+class Api:
+    """A thin httpx client of the job API that turns every failure into a ``CliError``."""
+
+    def __init__(self, url: str, token: str | None, timeout: float = HTTP_TIMEOUT_S) -> None:
+        self.url = url.rstrip("/")
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        try:
+            self.client = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
+        except (httpx.InvalidURL, ValueError) as exc:
+            raise CliError("--url", f"{url!r} is not a URL ({exc})", f"give one like {DEFAULT_URL}") from None
+
+    def __enter__(self) -> Api:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.client.close()
+
+    def call(self, method: str, path: str, **kwargs: Any) -> Any:
+        """The decoded JSON answer of one request (None for an empty body)."""
+        try:
+            resp = self.client.request(method, path, **kwargs)
+        except (httpx.ConnectError, httpx.ConnectTimeout):
+            raise Unreachable(self.url) from None
+        except (httpx.UnsupportedProtocol, httpx.InvalidURL) as exc:
+            raise CliError("--url", f"{self.url!r}: {exc}", f"give one like {DEFAULT_URL}") from None
+        except httpx.TransportError as exc:
+            problem = f"{method} {self.url}{path} failed: {type(exc).__name__} {exc}".strip()
+            raise CliError("http", problem, "check that `convoy serve` is healthy (GET /healthz)") from None
+        if resp.status_code >= 400:
+            raise api_error(resp)
+        if not resp.content:
+            return None
+        try:
+            return resp.json()
+        except ValueError:
+            raise CliError("http", f"{method} {path}: the answer is not JSON", "is --url a convoy service?") from None
+
+
+# --- formatting --------------------------------------------------------------------------------------------------
+
+
+def fmt(value: Any, digits: int = 4) -> str:
+    """A metric value for a table: ints as they are, floats with ``digits`` significant digits, None as –."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–" if value is None else str(value)
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, int) or (isinstance(value, float) and value.is_integer() and abs(value) < 1e15):
+        return str(int(value))
+    if isinstance(value, float):
+        return f"{value:.0f}" if abs(value) >= 10**digits else f"{value:.{digits}g}"
+    return str(value)
+
+
+def print_json(out: Console, data: Any) -> None:
+    """Indented JSON, never wrapped or coloured (for scripts and ``jq``)."""
+    out.print(json.dumps(data, indent=2), highlight=False, markup=False, soft_wrap=True)
+
+
+def first(*values: Any) -> Any:
+    """The first value that is not None (None if all are)."""
+    return next((v for v in values if v is not None), None)
+
+
+def alive_of(job: dict[str, Any]) -> str:
+    return f"{job['actors_alive']}/{job['actors']}"
+
+
+def state_text(job: dict[str, Any]) -> str:
+    if job["state"] == "queued" and job.get("queue_position"):
+        return f"queued #{job['queue_position']}"
+    return str(job["state"])
+
+
+def summary_line(job: dict[str, Any], elapsed: float | None = None) -> str:
+    """One line: the job's state, env steps, return, updates, time watched and error."""
+    prog = job["progress"]
+    parts = [f"job {job['id']} {job['state']}: {prog['env_steps']:,}/{job['steps']:,} env steps"]
+    if prog.get("return") is not None:
+        parts.append(f"return {fmt(prog['return'])}")
+    if prog.get("updates") is not None:
+        parts.append(f"{prog['updates']:,} updates")
+    if elapsed is not None:
+        parts.append(f"watched {elapsed:.1f} s")
+    if job.get("error"):
+        parts.append(f"error: {' '.join(str(job['error']).split())}")
+    return ", ".join(parts)
+
+
+# --- commands ----------------------------------------------------------------------------------------------------
+
+
+def submit_body(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``POST /jobs`` body from the flags; flags not given are left to the service's defaults."""
+    body: dict[str, Any] = {}
+    for name in ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "log_every", "name"):
+        value = getattr(args, name)
+        if value is not None:
+            body[name] = value
+    if args.checkpoint_every is not None:
+        body["checkpoint_every"] = args.checkpoint_every
+    if args.hierarchical:
+        body["hierarchical"] = True
+    params = env_params(args)
+    if params:
+        body["env_params"] = params
+    hp = parse_pairs(args.hp, "--hp")
+    if hp:
+        body["algo_params"] = hp
+    return body
+
+
+def cmd_submit(api: Api, args: argparse.Namespace, out: Console) -> int:
+    job = api.call("POST", "/jobs", json=submit_body(args))
+    if args.json:
+        print_json(out, job)
+    else:
+        out.print(f"submitted {job['id']}: {state_text(job)}", highlight=False, markup=False, soft_wrap=True)
+        out.print(f"follow it with: convoy jobs watch {job['id']}", highlight=False, markup=False, soft_wrap=True)
+    return 0
+
+
+def cmd_list(api: Api, args: argparse.Namespace, out: Console) -> int:
+    params = {"state": args.state} if args.state else None
+    jobs = api.call("GET", "/jobs", params=params)["jobs"]
+    if args.json:
+        print_json(out, jobs)
+        return 0
+    if not jobs:
+        out.print(f"no {args.state + ' ' if args.state else ''}jobs", highlight=False)
+        return 0
+    table = Table(title=f"jobs at {api.url}")
+    table.add_column("id", no_wrap=True)
+    table.add_column("algo/env")
+    table.add_column("state")
+    table.add_column("progress", justify="right")
+    table.add_column("actors", justify="right", header_style="bold")
+    table.add_column("return", justify="right")
+    for job in jobs:
+        prog = job["progress"]
+        cells = (job["id"], f"{job['algo']}/{job['env']}", state_text(job), f"{prog['fraction']:.0%}")
+        table.add_row(*(Text(c) for c in (*cells, alive_of(job), fmt(prog.get("return")))))
+    out.print(table)
+    out.print("actors: alive/requested", highlight=False)
+    return 0
+
+
+def cmd_status(api: Api, args: argparse.Namespace, out: Console) -> int:
+    job = api.call("GET", f"/jobs/{args.id}")
+    if args.json:
+        print_json(out, job)
+        return 0
+    prog, cfg = job["progress"], job["config"]
+    table = Table(title=f"job {job['id']}", show_header=False)
+    table.add_column("field", style="bold")
+    table.add_column("value", overflow="fold")
+    rows: list[tuple[str, str]] = [
+        ("state", state_text(job)),
+        ("algo / env", f"{job['algo']} / {job['env']}"),
+        ("actors alive/requested", alive_of(job)),
+        ("env steps", f"{prog['env_steps']:,} of {job['steps']:,} ({prog['fraction']:.0%})"),
+        ("updates", fmt(prog.get("updates"))),
+        ("return", fmt(prog.get("return"))),
+        ("loss", fmt(prog.get("loss"))),
+        ("env steps/s", fmt(prog.get("env_steps_per_s"), 3)),
+        ("updates/s", fmt(prog.get("updates_per_s"), 3)),
+        ("policy lag", fmt(prog.get("policy_lag"), 3)),
+        ("env params", json.dumps(cfg.get("env_params", {}))),
+        ("algo params", json.dumps(cfg.get("algo_params", {}))),
+        ("num envs / seed", f"{cfg.get('num_envs')} / {cfg.get('seed')}"),
+        ("last checkpoint", job.get("last_checkpoint") or "–"),
+        ("created", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(job["created_at"]))),
+        ("updated", time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(job["updated_at"]))),
+    ]
+    if job.get("error"):
+        rows.append(("error", job["error"]))
+    for name, value in rows:
+        table.add_row(name, Text(value))
+    out.print(table)
+    return 0
+
+
+def cmd_scale(api: Api, args: argparse.Namespace, out: Console) -> int:
+    job = api.call("PATCH", f"/jobs/{args.id}", json={"actors": args.actors})
+    out.print(
+        f"{job['id']}: {job['actors']} actors requested ({state_text(job)})",
+        highlight=False,
+        markup=False,
+        soft_wrap=True,
+    )
+    return 0
+
+
+def cmd_stop(api: Api, args: argparse.Namespace, out: Console) -> int:
+    job = api.call("POST", f"/jobs/{args.id}/stop")
+    out.print(f"{job['id']}: {state_text(job)}", highlight=False, markup=False, soft_wrap=True)
+    return 0
+
+
+def cmd_resume(api: Api, args: argparse.Namespace, out: Console) -> int:
+    body = {k: v for k, v in (("actors", args.actors), ("steps", args.steps)) if v is not None}
+    job = api.call("POST", f"/jobs/{args.id}/resume", json=body)
+    text = f"{job['id']}: {state_text(job)}, {job['actors']} actors, {job['steps']:,} env steps in all"
+    out.print(text, highlight=False, markup=False, soft_wrap=True)
+    return 0
+
+
+def cmd_delete(api: Api, args: argparse.Namespace, out: Console) -> int:
+    api.call("DELETE", f"/jobs/{args.id}")
+    out.print(
+        f"deleted {args.id} (its processes, history, metrics and files)", highlight=False, markup=False, soft_wrap=True
+    )
+    return 0
+
+
+def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
+    params: dict[str, Any] = {}
+    if args.since is not None:
+        params["since"] = args.since
+    if args.names:
+        params["names"] = args.names
+    if args.limit is not None:
+        params["limit"] = args.limit
+    page = api.call("GET", f"/jobs/{args.id}/metrics", params=params)
+    rows: list[dict[str, Any]] = page["rows"]
+    if args.json:
+        for row in rows:
+            out.print(json.dumps(row), highlight=False, markup=False, soft_wrap=True)
+        return 0
+    if not rows:
+        out.print(f"no metric rows for {args.id}{' after step ' + str(args.since) if args.since is not None else ''}")
+        return 0
+    seen: dict[str, None] = {}
+    for row in rows:
+        seen.update(dict.fromkeys(row))
+    if args.names:
+        wanted = ["env_steps"] + [n.strip() for n in args.names.split(",") if n.strip() and n.strip() != "env_steps"]
+        columns = [c for c in wanted if c in seen]
+    else:
+        columns = [c for c in LOG_COLUMNS if c in seen]
+    table = Table(title=f"metrics of {args.id}")
+    for col in columns:
+        table.add_column(col, justify="right", no_wrap=col == "env_steps")
+    for row in rows:
+        table.add_row(*(Text(fmt(row.get(col))) for col in columns))
+    out.print(table)
+    more = "" if args.names else " (--names a,b for other columns, --json for all)"
+    out.print(
+        f"{len(rows)} rows; newer ones: convoy jobs logs {args.id} --since {page['last_step']}{more}",
+        highlight=False,
+        markup=False,
+        soft_wrap=True,
+    )
+    return 0
+
+
+def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Poll the job and its new metric rows every ``--interval`` seconds until it rests in a final state."""
+    t0 = time.monotonic()
+    job = api.call("GET", f"/jobs/{args.id}")
+    start = int(job["progress"]["env_steps"])
+    cursor: int | None = start - 1 if start > 0 else None  # the latest row, not a long job's whole history
+    last: dict[str, Any] = {}
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TaskProgressColumn(),
+        TextColumn("{task.fields[state]}"),
+        TextColumn("return {task.fields[ret]}"),
+        TextColumn("{task.fields[speed]} env-steps/s"),
+        TextColumn("actors {task.fields[alive]}"),
+        TextColumn("lag {task.fields[lag]}"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=out, auto_refresh=False) as bar:
+        task = bar.add_task(job["id"], total=job["steps"], state="", ret="–", speed="–", alive="–", lag="–")
+        while True:
+            params = {"since": cursor} if cursor is not None else {}
+            page = api.call("GET", f"/jobs/{args.id}/metrics", params=params)
+            if page["rows"]:
+                last = page["rows"][-1]
+                cursor = page["last_step"]
+            elif cursor is not None and (page["last_step"] or 0) < cursor:
+                cursor, last = page["last_step"], {}  # a resume cut the history back to its checkpoint: rewind
+            prog = job["progress"]
+            bar.update(
+                task,
+                total=job["steps"],
+                completed=min(prog["env_steps"], job["steps"]),
+                state=state_text(job),
+                ret=fmt(first(last.get("return"), prog.get("return"))),
+                speed=fmt(first(last.get("env_steps_per_s"), prog.get("env_steps_per_s")), 3),
+                alive=alive_of(job),
+                lag=fmt(first(last.get("policy_lag"), prog.get("policy_lag")), 3),
+            )
+            bar.refresh()
+            if job["state"] in FINAL_STATES:
+                break
+            if args.timeout is not None and time.monotonic() - t0 > args.timeout:
+                raise CliError(
+                    "watch",
+                    f"job {args.id} is still {job['state']} after {args.timeout:g} s",
+                    "watch it again, or give a larger --timeout",
+                )
+            time.sleep(args.interval)
+            job = api.call("GET", f"/jobs/{args.id}")
+    line = summary_line(job, time.monotonic() - t0)
+    if job["state"] == "failed":
+        raise CliError("", line, f"see its log, then `convoy jobs resume {args.id}`", code=1)
+    out.print(line, highlight=False, markup=False, soft_wrap=True)
+    return 0
+
+
+COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
+    "submit": cmd_submit,
+    "list": cmd_list,
+    "status": cmd_status,
+    "scale": cmd_scale,
+    "stop": cmd_stop,
+    "resume": cmd_resume,
+    "delete": cmd_delete,
+    "logs": cmd_logs,
+    "watch": cmd_watch,
+}
+
+
+def cmd_jobs(args: argparse.Namespace) -> int:
+    """Run one ``convoy jobs`` subcommand; API and connection errors become one line on stderr and an exit code."""
+    out, err = Console(), Console(stderr=True)
+    url = args.url or os.environ.get("CONVOY_API_URL", "").strip() or DEFAULT_URL
+    token = args.token if args.token is not None else os.environ.get("CONVOY_API_TOKEN", "").strip() or None
+    try:
+        with Api(url, token) as api:
+            return COMMANDS[args.jobs_command](api, args, out)
+    except CliError as exc:
+        err.print(Text.assemble(("error:", "bold red"), " ", exc.line()), soft_wrap=True)
+        return exc.code
+
+
+# --- parser ------------------------------------------------------------------------------------------------------
+
+
+def _connection_options(p: argparse.ArgumentParser, default: Any) -> None:
+    p.add_argument(
+        "--url",
+        default=default,
+        help=f"the service's address (default: $CONVOY_API_URL, else {DEFAULT_URL})",
+    )
+    p.add_argument(
+        "--token",
+        default=default,
+        help="bearer token of the mutating commands (default: $CONVOY_API_TOKEN; `convoy serve` prints it)",
+    )
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
+    """``convoy jobs …``: the subcommands, each with a complete ``--help``."""
+    jobs = sub.add_parser(
+        "jobs",
+        help="submit, watch and control the jobs of a running `convoy serve`",
+        description="Talk to the job service started by `convoy serve` (its REST API, OpenAPI at URL/docs). "
+        "Reading commands need no token; submit, scale, stop, resume and delete send 'Authorization: Bearer "
+        "TOKEN'. API errors are printed as 'error: FIELD: PROBLEM — FIX' with exit code 2.",
+        epilog="examples:\n"
+        "  convoy jobs submit --algo ma-mesn --steps 200000 --actors 2 --set n_agents=3 --hp lr=0.001\n"
+        "  convoy jobs list --state running\n"
+        "  convoy jobs watch ma-mesn-1a2b3c\n"
+        "  convoy jobs logs ma-mesn-1a2b3c --names return,loss --since 10000\n"
+        "  convoy jobs scale ma-mesn-1a2b3c 4\n"
+        "  convoy jobs resume ma-mesn-1a2b3c --steps 400000",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _connection_options(jobs, None)
+    jsub = jobs.add_subparsers(dest="jobs_command", required=True, metavar="JOBS_COMMAND")
+    common = argparse.ArgumentParser(add_help=False)
+    _connection_options(common, argparse.SUPPRESS)  # also accepted after the subcommand
+
+    def add(name: str, help_text: str, description: str) -> argparse.ArgumentParser:
+        p = jsub.add_parser(name, help=help_text, description=description, parents=[common])
+        p.set_defaults(func=cmd_jobs)
+        return p
+
+    d = JobSubmit.model_fields
+    p = add(
+        "submit",
+        "submit a training job",
+        "Submit a job (POST /jobs) and print its id and state. The flags are those of `convoy train`; the ones "
+        "not given take the service's defaults. The job waits in the queue until the service has processes free "
+        "(actors + 2).",
+    )
+    p.add_argument("--algo", help=f"algorithm (default {d['algo'].default}; see `convoy train --help`)")
+    p.add_argument("--env", help=f"environment (default {d['env'].default}; see `convoy env list`)")
+    p.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents)")
+    p.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="env parameter, repeatable")
+    p.add_argument("--hp", action="append", metavar="KEY=VALUE", help="algorithm hyper-parameter, repeatable")
+    p.add_argument("--steps", type=int, help=f"total env steps (default {d['steps'].default:,})")
+    p.add_argument("--num-envs", type=int, help=f"envs stepped together per actor (default {d['num_envs'].default})")
+    p.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")
+    p.add_argument("--actors", type=int, help=f"actor processes, 1–{MAX_ACTORS} (default {d['actors'].default})")
+    p.add_argument("--hierarchical", action="store_true", help="hierarchical DQN around the algorithm (treadmill)")
+    p.add_argument(
+        "--eval-episodes", type=int, help=f"greedy episodes at the end (default {d['eval_episodes'].default})"
+    )
+    p.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default:,})")
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        help=f"env steps between checkpoints (default {d['checkpoint_every'].default:,})",
+    )
+    p.add_argument("--name", help="prefix of the job id: letters, digits, _ . - (default: the algorithm)")
+    p.add_argument("--json", action="store_true", help="print the new job as JSON")
+
+    p = add(
+        "list",
+        "list the jobs",
+        "List the jobs (GET /jobs), oldest first: id, algorithm/env, state, progress, actors alive/requested and "
+        "the last training return.",
+    )
+    p.add_argument("--state", help=f"only jobs in this state: {', '.join(STATES)}")
+    p.add_argument("--json", action="store_true", help="print the jobs as JSON")
+
+    p = add("status", "show one job", "Show every field of one job (GET /jobs/ID).")
+    p.add_argument("id", help="job id (see `convoy jobs list`)")
+    p.add_argument("--json", action="store_true", help="print the job as JSON")
+
+    p = add(
+        "scale",
+        "change the actor count of a queued or running job",
+        "Ask for ACTORS actor processes (PATCH /jobs/ID); a running job scales live. A finished job is scaled by "
+        "`convoy jobs resume ID --actors N` instead.",
+    )
+    p.add_argument("id", help="job id")
+    p.add_argument("actors", type=int, help=f"actor processes wanted, 1–{MAX_ACTORS}")
+
+    p = add(
+        "stop",
+        "stop a job (it checkpoints first)",
+        "Stop a job (POST /jobs/ID/stop): a queued job is cancelled, a running one checkpoints and stops. "
+        "`convoy jobs resume ID` continues it.",
+    )
+    p.add_argument("id", help="job id")
+
+    p = add(
+        "resume",
+        "continue a stopped, failed or completed job",
+        "Queue a stopped, failed or completed job again (POST /jobs/ID/resume); it continues from its last "
+        "checkpoint, optionally with another actor count or a larger step budget.",
+    )
+    p.add_argument("id", help="job id")
+    p.add_argument("--actors", type=int, help="actor processes (default: as before)")
+    p.add_argument("--steps", type=int, help="new total env-step budget (default: as before)")
+
+    p = add(
+        "delete",
+        "delete a job with its history and files",
+        "Delete a job (DELETE /jobs/ID): its processes are ended, its history, metrics and output files removed.",
+    )
+    p.add_argument("id", help="job id")
+
+    p = add(
+        "logs",
+        "print a job's metric rows",
+        "Print the metric rows of a job (GET /jobs/ID/metrics) as a table, one row per --log-every env steps. "
+        f"Columns: {', '.join(LOG_COLUMNS)}, or those named by --names.",
+    )
+    p.add_argument("id", help="job id")
+    p.add_argument("--since", type=int, metavar="STEP", help="only rows with env_steps > STEP")
+    p.add_argument("--names", metavar="A,B", help="only these metrics (comma-separated), e.g. return,loss")
+    p.add_argument("--limit", type=int, metavar="N", help="at most N rows")
+    p.add_argument("--json", action="store_true", help="one JSON object per row, every metric")
+
+    p = add(
+        "watch",
+        "follow a job live until it finishes",
+        "Show a live progress bar of a job with its return, env-steps/s, actors alive and policy lag, polling "
+        "GET /jobs/ID and its new metric rows, until the job completes, stops or fails; then print a one-line "
+        "summary. Exit code 0 when it completed or stopped, 1 when it failed. Ctrl-C stops watching, not the job.",
+    )
+    p.add_argument("id", help="job id")
+    p.add_argument(
+        "--interval", type=_positive, default=1.0, metavar="S", help="seconds between polls (default: %(default)s)"
+    )
+    p.add_argument(
+        "--timeout", type=_positive, metavar="S", help="give up (exit 2) after S seconds (default: wait for the end)"
+    )

@@ -1,0 +1,385 @@
+"""What runs the job service's jobs: ``JobService`` starts, watches, scales, stops and resumes them, and keeps the
+store current — the ``JobControl`` that ``api.app`` drives.
+
+How a job runs. The service's own Zenoh session is a **router** on a fixed loopback port. Each job is one
+``convoy host`` process (the host agent of the distributed runtime, roles learner + actors) in client mode towards
+that router, started in its own session (``start_new_session``) with its PID recorded in the store. The service
+hears the job's metrics and liveliness tokens through the router and sends it ``scale``/``stop`` commands — the
+same wire messages a multi-host deployment uses. Because the host is not the service's child in any sense that a
+crash propagates to, killing the service leaves the job running; a restarted service on the same port is
+reconnected to by the job's clients (Zenoh clients reconnect by themselves), finds the PID alive and *reattaches*,
+back-filling the metric rows it missed from the job's ``metrics.jsonl``. A job whose processes died meanwhile is
+failed with the reason and queued again, so it resumes from its last checkpoint: no job is forgotten.
+
+Scheduling: a job needs ``actors + 2`` processes (learner, host agent, actors); jobs start in submission order
+while the ``max_processes`` budget allows, the others wait with a visible queue position.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from api.models import EvalRequest
+from api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
+from learner.metrics import read_rows
+from protocol import keys, wire
+from protocol.config import ConfigError, JobConfig, job_config
+from protocol.inbox import Inbox
+from protocol.session import ZenohSettings, loopback, open_session
+from services.jobrunner import AliveSet
+
+PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
+STOP_GRACE_S = 20.0
+
+
+def pid_alive(pid: int | None) -> bool:
+    """Whether ``pid`` is a live (not zombie) process."""
+    if not pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+class Tracked:
+    """A job this service is watching: its host process, Zenoh subscriptions and what it last reported."""
+
+    def __init__(self, rec: JobRecord, session: Any, proc: subprocess.Popen | None) -> None:
+        self.pid: int = int(proc.pid if proc is not None else rec.progress.get("host_pid", 0))
+        self.proc = proc
+        self.alive = AliveSet(session, rec.id)
+        self.inbox = Inbox({"metrics"}, maxlen=4096)
+        self.sub = session.declare_subscriber(keys.metrics_all(rec.id), self.inbox)
+        self.stop_asked: float | None = None
+        self.ckpt_mtime = 0.0
+
+    def exited(self) -> int | None:
+        """The host's exit code once it has exited (−1 when it was not our child), else None."""
+        if self.proc is not None:
+            return self.proc.poll()
+        return None if pid_alive(self.pid) else -1
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.alive._sub.undeclare()
+
+
+class JobService:
+    """Runs the jobs of one store on this machine (``convoy serve``)."""
+
+    def __init__(
+        self, data_dir: str | Path, zenoh_port: int, max_processes: int = 8, python: str = sys.executable
+    ) -> None:
+        self.data_dir = Path(data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.store = JobStore(self.data_dir / "jobs.sqlite")
+        self.max_processes, self.python = max_processes, python
+        self.endpoint = loopback(zenoh_port)
+        self.session = open_session(ZenohSettings(mode="router", listen=(self.endpoint,)))
+        self.tracked: dict[str, Tracked] = {}
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._reconcile()
+        self._thread = threading.Thread(target=self._loop, name="jobservice", daemon=True)
+        self._thread.start()
+
+    # --- JobControl ----------------------------------------------------------------------------------------------
+    def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord:
+        need = actors + 2
+        if need > self.max_processes:
+            raise ConfigError(
+                "actors",
+                f"{actors} actors need {need} processes; this service runs at most {self.max_processes} "
+                "(convoy serve --max-processes)",
+            )
+        job_id = f"{name or job.algo}-{secrets.token_hex(3)}"
+        out = self.data_dir / "jobs" / job_id
+        return self.store.create(job_id, job.model_dump(mode="json"), actors, out_dir=str(out))
+
+    def scale(self, job_id: str, actors: int) -> JobRecord:
+        with self._lock:
+            rec = self.store.get(job_id)
+            if rec.state not in ACTIVE_STATES:
+                raise StoreError(
+                    f"job {job_id!r} is {rec.state}; scale it by resuming: POST /jobs/{job_id}/resume "
+                    f'{{"actors": {actors}}}'
+                )
+            if actors + 2 > self.max_processes:
+                raise ConfigError("actors", f"{actors} actors need {actors + 2} processes; the limit is "
+                                  f"{self.max_processes} (convoy serve --max-processes)")  # fmt: skip
+            rec = self.store.update(job_id, actors=actors)
+            if job_id in self.tracked:
+                self._command(job_id, "scale", {"actors": actors})
+            return rec
+
+    def stop(self, job_id: str) -> JobRecord:
+        with self._lock:
+            rec = self.store.get(job_id)
+            if rec.state == JobState.queued:
+                return self.store.transition(job_id, JobState.stopped, "stopped before it started")
+            rec = self.store.transition(job_id, JobState.stopping, "stop requested")
+            if job_id in self.tracked:
+                self.tracked[job_id].stop_asked = time.monotonic()
+                self._command(job_id, "stop", {})
+            return rec
+
+    def resume(self, job_id: str, actors: int | None, steps: int | None) -> JobRecord:
+        with self._lock:
+            rec = self.store.get(job_id)
+            if rec.state in ACTIVE_STATES:
+                raise StoreError(f"job {job_id!r} is {rec.state}; only a stopped, failed or completed job resumes")
+            config = dict(rec.config)
+            if steps is not None:
+                config = job_config(**{**config, "steps": steps}).model_dump(mode="json")
+            n = actors or rec.actors
+            if n + 2 > self.max_processes:
+                raise ConfigError("actors", f"{n} actors need {n + 2} processes; the limit is {self.max_processes}")
+            self.store.update(job_id, actors=n, config=config)
+            return self.store.transition(job_id, JobState.queued, "resume requested")
+
+    def delete(self, job_id: str) -> None:
+        with self._lock:
+            rec = self.store.get(job_id)
+            tracked = self.tracked.pop(job_id, None)
+            if tracked is not None:
+                self._kill(tracked)
+                tracked.close()
+            self.store.delete(job_id)
+        if rec.out_dir and Path(rec.out_dir).is_dir():
+            shutil.rmtree(rec.out_dir, ignore_errors=True)
+
+    def actors_alive(self, job_id: str) -> int:
+        tracked = self.tracked.get(job_id)
+        return tracked.alive.count("actor") if tracked is not None else 0
+
+    def checkpoints(self, job_id: str) -> list[dict[str, Any]]:
+        out = self._out(job_id)
+        files = sorted(out.glob("*.pt")) if out.is_dir() else []
+        return [
+            {"name": f.name, "bytes": f.stat().st_size, "modified": f.stat().st_mtime, "url": f"checkpoints/{f.name}"}
+            for f in files
+        ]
+
+    def checkpoint_file(self, job_id: str, name: str) -> Path:
+        path = self._out(job_id) / name
+        if not name.endswith(".pt") or not path.is_file():
+            raise FileNotFoundError(
+                f"job {job_id!r} has no checkpoint {name!r}; list them with GET /jobs/{job_id}/checkpoints"
+            )
+        return path
+
+    def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]:
+        from learner.checkpoint import load_checkpoint
+        from learner.errors import CheckpointError
+        from learner.evaluation import evaluate_policy
+        from services.training import make_env
+
+        path = self._out(job_id) / "checkpoint.pt"
+        try:
+            algo, job, counters = load_checkpoint(path, device="cpu")
+        except CheckpointError as exc:
+            raise ConfigError("checkpoint", f"{exc}") from None
+        env = make_env(job, min(request.episodes, 256))
+        try:
+            res = evaluate_policy(algo, env, request.episodes, request.seed, request.messages, request.channel)
+        finally:
+            env.close()
+        return {
+            "job": job_id,
+            "checkpoint_env_steps": counters.get("env_steps"),
+            "episodes": request.episodes,
+            "messages": request.messages,
+            "channel": request.channel,
+            "mean_return": res.mean,
+            "ci95": res.ci95,
+        }
+
+    def close(self) -> None:
+        """Stop watching (the jobs keep running; a restarted service reattaches them)."""
+        self._stop.set()
+        self._thread.join(timeout=5)
+        with self._lock:
+            for tracked in self.tracked.values():
+                tracked.close()
+            self.tracked.clear()
+        self.session.close()
+        self.store.close()
+
+    # --- the watch loop ------------------------------------------------------------------------------------------
+    def _loop(self) -> None:
+        while not self._stop.wait(0.2):
+            try:
+                with self._lock:
+                    self._tick()
+            except Exception as exc:  # never let one bad tick kill the watcher; say why
+                print(f"jobservice: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+
+    def _tick(self) -> None:
+        for job_id, tracked in list(self.tracked.items()):
+            if not self.store.exists(job_id):
+                continue
+            self._ingest(job_id, tracked)
+            rec = self.store.get(job_id)
+            if rec.state == JobState.starting and tracked.alive.count("learner"):
+                rec = self.store.transition(job_id, JobState.running, "learner alive")
+            self._note_checkpoint(rec, tracked)
+            code = tracked.exited()
+            if code is not None:
+                self._finished(rec, tracked, code)
+            elif (
+                rec.state == JobState.stopping
+                and tracked.stop_asked is not None
+                and time.monotonic() - tracked.stop_asked > STOP_GRACE_S
+            ):
+                self._kill(tracked)
+        self._schedule()
+
+    def _ingest(self, job_id: str, tracked: Tracked) -> None:
+        rows = []
+        progress: dict[str, Any] = {}
+        for msg in tracked.inbox.drain():
+            values, role = msg.body["values"], msg.body["role"]
+            if role != "learner":
+                continue
+            if "resumed_env_steps" in values:
+                self.store.cut_metrics(job_id, int(values["resumed_env_steps"]))
+            elif "return" in values and "env_steps" in values:
+                row = {**values, "env_steps": int(values["env_steps"]), "actors_alive": tracked.alive.count("actor")}
+                rows.append(row)
+                progress.update({k: row[k] for k in PROGRESS_KEYS if k in row})
+        if rows:
+            self.store.append_metrics(job_id, rows)
+            self.store.update(job_id, progress=progress)
+
+    def _note_checkpoint(self, rec: JobRecord, tracked: Tracked) -> None:
+        path = self._out(rec.id) / "checkpoint.pt"
+        try:
+            mtime = path.stat().st_mtime
+        except OSError:
+            return
+        if mtime != tracked.ckpt_mtime:
+            tracked.ckpt_mtime = mtime
+            self.store.update(rec.id, last_checkpoint=str(path))
+
+    def _finished(self, rec: JobRecord, tracked: Tracked, code: int) -> None:
+        self._ingest(rec.id, tracked)
+        self._backfill(rec.id)
+        summary = self._out(rec.id) / "summary.json"
+        started = float(rec.progress.get("started_at", 0.0))
+        done = summary.is_file() and summary.stat().st_mtime >= started
+        if rec.state == JobState.stopping:
+            self.store.transition(rec.id, JobState.stopped, f"host exited ({code})")
+        elif done and code in (0, -1):
+            result = json.loads(summary.read_text())
+            keep = {k: result[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in result}
+            self.store.update(rec.id, progress=keep)
+            self.store.transition(rec.id, JobState.completed, "the learner has all its steps")
+        else:
+            self.store.transition(rec.id, JobState.failed, f"host exited with code {code}: {self._log_tail(rec.id)}")
+        tracked.close()
+        self.tracked.pop(rec.id, None)
+
+    def _schedule(self) -> None:
+        used = sum(self.store.get(j).actors + 2 for j in self.tracked if self.store.exists(j))
+        for rec in self.store.list(JobState.queued):
+            if used + rec.actors + 2 > self.max_processes:
+                break  # first come, first served: later jobs wait behind this one
+            self._start(rec)
+            used += rec.actors + 2
+
+    def _start(self, rec: JobRecord) -> None:
+        out = self._out(rec.id)
+        out.mkdir(parents=True, exist_ok=True)
+        config = dict(rec.config)
+        runtime = dict(config.get("runtime", {}))
+        runtime.update(
+            actors=rec.actors, zenoh={**runtime.get("zenoh", {}), "mode": "client", "connect": [self.endpoint]}
+        )
+        config["runtime"] = runtime
+        (out / "job.json").write_text(json.dumps(config, indent=2))
+        cmd = [
+            self.python, "-m", "services.cli", "host", "--job-id", rec.id, "--name", host_name(rec.id),
+            "--roles", "learner,actor", "--actors", str(rec.actors), "--out", str(out),
+            "--config", str(out / "job.json"),
+        ]  # fmt: skip
+        log = open(out / "host.log", "ab")  # noqa: SIM115 (the child owns it; closed below, the fd is inherited)
+        try:
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        finally:
+            log.close()
+        self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": time.time()})
+        rec = self.store.transition(rec.id, JobState.starting, f"host pid {proc.pid}")
+        self.tracked[rec.id] = Tracked(rec, self.session, proc)
+
+    def _reconcile(self) -> None:
+        """After a (re)start: reattach jobs whose host still runs, fail and requeue those whose host is gone."""
+        for rec in self.store.list():
+            if rec.state not in (JobState.starting, JobState.running, JobState.stopping):
+                continue
+            pid = int(rec.progress.get("host_pid", 0))
+            if pid_alive(pid):
+                self._backfill(rec.id)
+                self.tracked[rec.id] = Tracked(rec, self.session, None)
+                if rec.state == JobState.stopping:
+                    self.tracked[rec.id].stop_asked = time.monotonic()
+            elif rec.state == JobState.stopping:
+                self.store.transition(rec.id, JobState.stopped, "its processes ended while the service was down")
+            else:
+                self.store.transition(rec.id, JobState.failed, "its processes ended while the service was down")
+                self.store.transition(rec.id, JobState.queued, "resuming from its last checkpoint")
+
+    def _backfill(self, job_id: str) -> None:
+        """Rows the learner wrote while nobody listened (service down, messages lost) from its metrics.jsonl."""
+        last = self.store.last_step(job_id) or 0
+        rows = [r for r in read_rows(self._out(job_id)) if int(r.get("env_steps", 0)) > last]
+        if rows:
+            self.store.append_metrics(job_id, [{**r, "env_steps": int(r["env_steps"])} for r in rows])
+            self.store.update(job_id, progress={k: rows[-1][k] for k in PROGRESS_KEYS if k in rows[-1]})
+
+    # --- helpers -------------------------------------------------------------------------------------------------
+    def _out(self, job_id: str) -> Path:
+        rec = self.store.get(job_id)
+        return Path(rec.out_dir) if rec.out_dir else self.data_dir / "jobs" / job_id
+
+    def _command(self, job_id: str, op: str, args: dict[str, Any]) -> None:
+        self.session.put(keys.host(host_name(job_id), "cmd"), wire.encode("command", {"op": op, "args": args}, "api"))
+
+    def _kill(self, tracked: Tracked) -> None:
+        """SIGTERM the host's process group (it stops its children and checkpoints), SIGKILL if it lingers."""
+        for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+            try:
+                os.killpg(tracked.pid, sig)
+            except (ProcessLookupError, PermissionError):
+                return
+            t_end = time.monotonic() + wait
+            while time.monotonic() < t_end:
+                if tracked.exited() is not None:
+                    return
+                time.sleep(0.1)
+
+    def _log_tail(self, job_id: str) -> str:
+        path = self._out(job_id) / "host.log"
+        try:
+            lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            return "no log"
+        return lines[-1][-300:] if lines else "empty log"
+
+
+def host_name(job_id: str) -> str:
+    return keys.check_id(f"h-{job_id}", "host name")

@@ -1,0 +1,77 @@
+"""``convoy serve``: the job service — REST API, dashboard and the jobs it runs — on this machine."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+from pathlib import Path
+
+from envs import ConfigError
+
+
+def api_token(data_dir: Path) -> tuple[str, str]:
+    """(token, where it came from): ``CONVOY_API_TOKEN``, else the one saved on first start, else a new one."""
+    env = os.environ.get("CONVOY_API_TOKEN", "").strip()
+    if env:
+        return env, "CONVOY_API_TOKEN"
+    path = data_dir / "api_token"
+    if path.is_file() and path.read_text().strip():
+        return path.read_text().strip(), str(path)
+    token = secrets.token_urlsafe(24)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    path.touch(mode=0o600)
+    path.write_text(token + "\n")
+    return token, f"new, saved in {path}"
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from services.jobservice import JobService
+
+    for flag in ("port", "zenoh_port"):
+        if not 1 <= getattr(args, flag) <= 65535:
+            raise ConfigError(f"--{flag.replace('_', '-')}", f"must be a TCP port 1–65535 (got {getattr(args, flag)})")
+    if args.max_processes < 3:
+        raise ConfigError("--max-processes", f"a job needs at least 3 processes (got {args.max_processes})")
+    data = Path(args.data)
+    token, origin = api_token(data)
+    service = JobService(data, args.zenoh_port, args.max_processes)
+    app = create_app(service, token)
+    print(f"convoy serve: http://{args.host}:{args.port}/  (API docs /docs, data {data}, zenoh {service.endpoint})")
+    print(f"API token ({origin}): {token}", flush=True)
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
+    finally:
+        service.close()
+    return 0
+
+
+def add_serve_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run the job service: REST API, dashboard, and the jobs it starts",
+        description="Serve the REST job API (OpenAPI at /docs) and the dashboard (/) and run the submitted jobs on "
+        "this machine. Jobs, their history and metrics live in DATA/jobs.sqlite; jobs keep running if the service "
+        "stops and are reattached when it starts again. Mutating requests need 'Authorization: Bearer TOKEN': "
+        "CONVOY_API_TOKEN, or a token generated on first start, saved in DATA/api_token and printed.",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s, this machine only)")
+    p.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
+    p.add_argument("--data", default="runs/service", help="jobs database and job outputs (default: %(default)s)")
+    p.add_argument(
+        "--zenoh-port",
+        type=int,
+        default=7448,
+        help="loopback port of the service's Zenoh router (default: %(default)s)",
+    )
+    p.add_argument(
+        "--max-processes",
+        type=int,
+        default=8,
+        help="processes all running jobs may use together (default: %(default)s)",
+    )
+    p.add_argument("--log-level", default="warning", help="uvicorn log level (default: %(default)s)")
+    p.set_defaults(func=cmd_serve)

@@ -1,0 +1,117 @@
+"""The job service end to end: a real ``convoy serve`` on 127.0.0.1, real job processes, httpx as the client.
+
+* lifecycle: submit a small job, watch it run, scale 1 → 2 actors and see the alive count follow, stop it, resume
+  it with another actor count and a larger budget, watch it complete, fetch its checkpoint, evaluate it;
+* restart: SIGKILL the API during a job; a new API on the same data finds the job, with its full metric history
+  (no gaps or duplicates), and the job keeps running to completion.
+"""
+
+from __future__ import annotations
+
+import io
+import itertools
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from tests.service_fixture import AUTH, SMALL_JOB, Service
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def submit(svc: Service, **extra: object) -> str:
+    resp = svc.client.post("/jobs", json={**SMALL_JOB, **extra}, headers=AUTH)
+    assert resp.status_code == 201, resp.text
+    body = resp.json()
+    assert body["state"] == "queued" and body["queue_position"] is not None
+    return body["id"]
+
+
+def steps_of(svc: Service, job_id: str) -> list[int]:
+    rows = svc.client.get(f"/jobs/{job_id}/metrics", params={"names": "return"}).json()["rows"]
+    return [r["env_steps"] for r in rows]
+
+
+def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None:
+    svc = Service(tmp_path / "svc").start()
+    try:
+        job = submit(svc, steps=2_000_000, actors=1)
+        svc.wait(job, lambda v: v["state"] == "running" and v["actors_alive"] == 1, what="running with 1 actor")
+        svc.wait(job, lambda v: v["progress"]["env_steps"] > 3000, what="metrics flowing")
+
+        resp = svc.client.patch(f"/jobs/{job}", json={"actors": 2}, headers=AUTH)
+        assert resp.status_code == 200 and resp.json()["actors"] == 2
+        svc.wait(job, lambda v: v["actors_alive"] == 2, what="a second actor alive")
+        svc.wait(job, lambda v: v["last_checkpoint"] is not None, what="a checkpoint")
+
+        assert svc.client.post(f"/jobs/{job}/stop", headers=AUTH).json()["state"] == "stopping"
+        stopped = svc.wait(job, lambda v: v["state"] == "stopped", what="stopped")
+        at_stop = stopped["progress"]["env_steps"]
+        assert 0 < at_stop < 2_000_000
+
+        resp = svc.client.post(f"/jobs/{job}/resume", json={"actors": 1, "steps": at_stop + 20_000}, headers=AUTH)
+        assert resp.status_code == 200 and resp.json()["state"] == "queued" and resp.json()["actors"] == 1
+        done = svc.wait(job, lambda v: v["state"] in ("completed", "failed"), timeout=120, what="completed")
+        assert done["state"] == "completed", done["error"]
+        assert done["progress"]["env_steps"] >= at_stop + 20_000
+
+        steps = steps_of(svc, job)
+        assert steps == sorted(set(steps)), "metric history has duplicates or is out of order"
+        assert steps[-1] >= at_stop + 20_000
+
+        listing = svc.client.get(f"/jobs/{job}/checkpoints").json()["checkpoints"]
+        assert [c["name"] for c in listing] == ["checkpoint.pt"]
+        blob = svc.client.get(f"/jobs/{job}/checkpoints/checkpoint.pt")
+        assert blob.status_code == 200 and zipfile.is_zipfile(io.BytesIO(blob.content))  # a torch.save archive
+
+        ev = svc.client.post(f"/jobs/{job}/evaluate", json={"episodes": 8}, headers=AUTH)
+        assert ev.status_code == 200 and ev.json()["episodes"] == 8 and ev.json()["checkpoint_env_steps"] > at_stop
+
+        assert svc.client.get("/jobs", params={"state": "completed"}).json()["jobs"][0]["id"] == job
+        assert 'convoy_jobs{state="completed"} 1.0' in svc.client.get("/metrics").text
+    finally:
+        svc.stop()
+
+
+def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path: Path) -> None:
+    data = tmp_path / "svc"
+    svc = Service(data).start()
+    again: Service | None = None
+    try:
+        job = submit(svc, steps=120_000, actors=1)
+        svc.wait(job, lambda v: v["progress"]["env_steps"] >= 8000, what="some progress")
+        before = steps_of(svc, job)
+        svc.kill()  # SIGKILL: no chance to clean up
+
+        again = Service(data, port=svc.port, zenoh_port=svc.zenoh_port).start()
+        view = again.client.get(f"/jobs/{job}").json()
+        assert view["state"] in ("running", "completed"), view
+        after = steps_of(again, job)
+        assert after[: len(before)] == before  # nothing lost
+        again.wait(job, lambda v: v["state"] == "completed", timeout=150, what="completed after the restart")
+        final = steps_of(again, job)
+        assert final == sorted(set(final)) and final[-1] >= 120_000
+        gaps = [b - a for a, b in itertools.pairwise(final) if b - a > 2 * SMALL_JOB["log_every"]]
+        assert not gaps, f"metric history has gaps: {gaps}"
+    finally:
+        if again is not None:
+            again.stop()
+        svc.stop()
+
+
+def test_jobs_beyond_the_process_budget_wait_in_a_queue(tmp_path: Path) -> None:
+    svc = Service(tmp_path / "svc", max_processes=5).start()  # room for one job with 1 actor (3 processes)
+    try:
+        first = submit(svc, steps=20_000, actors=1)
+        second = submit(svc, steps=20_000, actors=1)
+        svc.wait(first, lambda v: v["state"] == "running", what="the first job running")
+        waiting = svc.client.get(f"/jobs/{second}").json()
+        assert waiting["state"] == "queued" and waiting["queue_position"] == 1
+        too_big = svc.client.post("/jobs", json={**SMALL_JOB, "steps": 1000, "actors": 4}, headers=AUTH)
+        assert too_big.status_code == 422 and too_big.json()["field"] == "actors"  # could never fit
+        svc.wait(first, lambda v: v["state"] == "completed", timeout=120, what="the first job completed")
+        svc.wait(second, lambda v: v["state"] in ("running", "completed"), timeout=60, what="the second job started")
+        svc.wait(second, lambda v: v["state"] == "completed", timeout=120, what="the second job completed")
+    finally:
+        svc.stop()

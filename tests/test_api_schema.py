@@ -1,0 +1,382 @@
+"""Bad input never gives a 5xx: schemathesis against a live ``convoy serve``, plus hand-written error cases.
+
+One real service runs for the whole module on 127.0.0.1 with ``--max-processes 3``. Its first job (the *blocker*,
+1 actor = 3 processes) takes the whole budget and its process group is frozen with SIGSTOP right after it starts,
+so it holds the budget without using the CPU: every job submitted later — by schemathesis (``POST /jobs`` is fuzzed
+too) or by hand — stays ``queued`` and no generated body can start training. Jobs asking for 2 or more actors need
+more than 3 processes and are refused with 422 (field ``actors``). The teardown ends the API first (so nothing
+queued can start) and then the blocker's process group, by PID.
+
+Case count: schemathesis runs each of the ``N_OPERATIONS`` operations through its examples, coverage and fuzzing
+phases; the fuzzing phase alone generates up to ``MAX_EXAMPLES`` cases per operation. Every case the test function
+sees is counted per operation, and the last test asserts that the sum is at least ``MIN_CASES`` (1000) and that
+every operation was exercised. Every case carries the bearer token, so mutating routes are tested past the auth
+check; only ``not_a_server_error`` is checked.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import requests
+import schemathesis
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+
+from tests.service_fixture import AUTH, SMALL_JOB, TOKEN, Service
+
+pytestmark = pytest.mark.timeout(240)
+
+MAX_EXAMPLES = 100
+MIN_CASES = 1000
+N_OPERATIONS = 14  # every route in /openapi.json (the dashboard and /static are not in the schema)
+CASES: Counter[str] = Counter()
+
+
+class BudgetService(Service):
+    """``Service`` with extra ``convoy serve`` arguments (later flags override the fixture's defaults)."""
+
+    def __init__(self, data: Path, extra_args: list[str] | None = None) -> None:
+        super().__init__(data)
+        self.extra_args = list(extra_args or [])
+
+    def start(self, timeout: float = 60.0) -> BudgetService:
+        env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
+        cmd = [sys.executable, "-m", "services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
+        cmd += ["--zenoh-port", str(self.zenoh_port), "--max-processes", "8", *self.extra_args]
+        self.data.mkdir(parents=True, exist_ok=True)
+        log = open(self.data.parent / f"serve-{self.port}.log", "ab")  # noqa: SIM115
+        self.proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
+        log.close()
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"convoy serve exited with {self.proc.returncode}")
+            try:
+                if self.client.get("/healthz").status_code == 200:
+                    return self
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise TimeoutError("convoy serve did not answer /healthz")
+
+
+def _killpg(pid: int, sig: signal.Signals) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, sig)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BudgetService]:
+    svc = BudgetService(tmp_path_factory.mktemp("schema") / "svc", ["--max-processes", "3"])
+    frozen: list[int] = []
+    try:
+        svc.start()
+        body = {**SMALL_JOB, "steps": 1_000_000, "actors": 1, "name": "blocker"}
+        resp = svc.client.post("/jobs", json=body, headers=AUTH)
+        assert resp.status_code == 201, resp.text
+        blocker = resp.json()["id"]
+        view = svc.wait(blocker, lambda v: v["state"] != "queued", timeout=30, what="the blocker to start")
+        assert view["state"] in ("starting", "running"), view
+        pids = svc.host_pids()
+        assert len(pids) == 1, pids
+        frozen = pids
+        _killpg(pids[0], signal.SIGSTOP)  # holds the 3-process budget, uses no CPU
+        svc.blocker = blocker  # type: ignore[attr-defined]
+        yield svc
+    finally:
+        svc.stop()  # the API first: with it gone no queued job can start; then the blocker's group (SIGKILL)
+        for pid in frozen:
+            _killpg(pid, signal.SIGKILL)
+            _killpg(pid, signal.SIGCONT)
+
+
+@pytest.fixture(scope="module")
+def api_schema(service: BudgetService) -> Any:
+    return schemathesis.openapi.from_url(f"{service.url}/openapi.json")
+
+
+@pytest.fixture(scope="module")
+def http() -> Iterator[requests.Session]:
+    with requests.Session() as session:
+        yield session
+
+
+def assert_error(resp: httpx.Response, status: int, field: str | None = None) -> dict[str, Any]:
+    """The response has ``status`` and the one error shape, naming ``field`` and saying how to fix it."""
+    assert resp.status_code == status, f"{resp.status_code} != {status}: {resp.text}"
+    body = resp.json()
+    assert set(body) == {"field", "problem", "fix"}, body
+    assert body["field"] and body["problem"] and body["fix"].strip(), body
+    if field is not None:
+        assert body["field"] == field, body
+    return body
+
+
+def submit(svc: Service, **extra: Any) -> httpx.Response:
+    return svc.client.post("/jobs", json={**SMALL_JOB, "steps": 20_000, "actors": 1, **extra}, headers=AUTH)
+
+
+@pytest.fixture(scope="module")
+def queued_job(service: BudgetService) -> str:
+    """A job that stays queued behind the blocker."""
+    resp = submit(service, name="waiting")
+    assert resp.status_code == 201, resp.text
+    job = resp.json()
+    assert job["state"] == "queued" and job["queue_position"] >= 1, job
+    return job["id"]
+
+
+# --- generated cases ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def _schemathesis_on_pytest_9(request: pytest.FixtureRequest) -> None:
+    """schemathesis 4's lazy ``from_fixture`` reads ``node._nodeid``, which pytest 9 no longer has."""
+    if not hasattr(request.node, "_nodeid"):
+        request.node._nodeid = request.node.nodeid
+
+
+schema = schemathesis.pytest.from_fixture("api_schema")
+
+
+@schema.parametrize()
+@settings(max_examples=MAX_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), print_blob=True)
+def test_generated_requests_never_give_a_server_error(
+    case: schemathesis.Case, service: BudgetService, http: requests.Session
+) -> None:
+    if case.operation.path.endswith("/events") and isinstance(case.query, dict):
+        case.query.setdefault("timeout", 1)  # a stream: never leave it open for its default 300 s
+    CASES[case.operation.label] += 1
+    response = case.call(base_url=service.url, session=http, headers=AUTH, timeout=20)
+    case.validate_response(response, checks=[not_a_server_error])
+
+
+# --- hand-written cases -------------------------------------------------------------------------------------------
+
+
+def test_unknown_algorithm(service: BudgetService) -> None:
+    body = assert_error(submit(service, algo="no-such-algo"), 422, "algo")
+    assert "no-such-algo" in body["problem"]
+
+
+@pytest.mark.parametrize("actors", [0, -1, -1000])
+def test_actors_not_positive(service: BudgetService, actors: int) -> None:
+    assert_error(submit(service, actors=actors), 422, "actors")
+
+
+@pytest.mark.parametrize("actors", [65, 1000, 2**40])
+def test_actors_above_the_api_limit(service: BudgetService, actors: int) -> None:
+    body = assert_error(submit(service, actors=actors), 422, "actors")
+    assert "64" in body["fix"]
+
+
+def test_actors_above_the_process_budget(service: BudgetService, queued_job: str) -> None:
+    body = assert_error(submit(service, actors=2), 422, "actors")
+    assert "4 processes" in body["problem"] and "3" in body["problem"]
+    assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 5}, headers=AUTH), 422, "actors")
+
+
+def test_bad_env_and_algo_params(service: BudgetService) -> None:
+    assert_error(submit(service, env_params={"n_agents": 0}), 422, "n_agents")
+    assert_error(submit(service, env_params={"no_such_param": 1}), 422, "no_such_param")
+    assert_error(submit(service, algo_params={"hidden": "wide"}), 422, "hidden")
+    assert_error(submit(service, env="no-such-env"), 422, "env")
+    assert_error(submit(service, steps=0), 422, "steps")
+    assert_error(submit(service, name="bad name/with slash"), 422, "name")
+
+
+@pytest.mark.parametrize("raw", [b"{", b"{'algo': 'x'}", b"not json", b'{"actors": 1,}'])
+def test_malformed_json_body(service: BudgetService, raw: bytes) -> None:
+    headers = {**AUTH, "Content-Type": "application/json"}
+    assert_error(service.client.post("/jobs", content=raw, headers=headers), 400, "body")
+
+
+@pytest.mark.parametrize("body", [[], "a string", 3, None])
+def test_body_that_is_not_an_object(service: BudgetService, body: Any) -> None:
+    assert_error(service.client.post("/jobs", json=body, headers=AUTH), 422)
+
+
+def test_unknown_field_in_body(service: BudgetService, queued_job: str) -> None:
+    body = assert_error(submit(service, learning_rate=0.1), 422, "learning_rate")
+    assert "extra" in body["problem"].lower() or "not permitted" in body["problem"].lower()
+    patch = service.client.patch(f"/jobs/{queued_job}", json={"actors": 1, "replicas": 2}, headers=AUTH)
+    assert_error(patch, 422, "replicas")
+    resume = service.client.post(f"/jobs/{queued_job}/resume", json={"budget": 5}, headers=AUTH)
+    assert_error(resume, 422, "budget")
+
+
+def test_missing_token(service: BudgetService, queued_job: str) -> None:
+    assert_error(service.client.post("/jobs", json={**SMALL_JOB, "actors": 1}), 401, "Authorization")
+    assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 1}), 401, "Authorization")
+    for path in (f"/jobs/{queued_job}/stop", f"/jobs/{queued_job}/resume", f"/jobs/{queued_job}/evaluate"):
+        assert_error(service.client.post(path, json={}), 401, "Authorization")
+    assert_error(service.client.delete(f"/jobs/{queued_job}"), 401, "Authorization")
+    assert service.client.get(f"/jobs/{queued_job}").json()["state"] == "queued"
+
+
+@pytest.mark.parametrize(
+    "header",
+    [
+        "Bearer wrong-token",
+        "Bearer test-token extra",
+        "bearer test-tokenX",
+        "Basic dGVzdC10b2tlbg==",
+        "test-token",
+        "Bearer",
+    ],
+)
+def test_wrong_token(service: BudgetService, queued_job: str, header: str) -> None:
+    auth = {"Authorization": header}
+    assert_error(service.client.post("/jobs", json={**SMALL_JOB, "actors": 1}, headers=auth), 401, "Authorization")
+    assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 1}, headers=auth), 401, "Authorization")
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "body"),
+    [
+        ("GET", "/jobs/{id}", None),
+        ("PATCH", "/jobs/{id}", {"actors": 1}),
+        ("POST", "/jobs/{id}/stop", None),
+        ("POST", "/jobs/{id}/resume", {}),
+        ("DELETE", "/jobs/{id}", None),
+        ("GET", "/jobs/{id}/metrics", None),
+        ("GET", "/jobs/{id}/events", None),
+        ("GET", "/jobs/{id}/checkpoints", None),
+        ("GET", "/jobs/{id}/checkpoints/checkpoint.pt", None),
+        ("POST", "/jobs/{id}/evaluate", {"episodes": 2}),
+    ],
+)
+def test_unknown_job(service: BudgetService, method: str, path: str, body: Any) -> None:
+    url = path.format(id="no-such-job")
+    resp = service.client.request(method, url, json=body, headers=AUTH)
+    err = assert_error(resp, 404, "id")
+    assert "no-such-job" in err["problem"]
+
+
+@pytest.mark.parametrize("job_id", ["bad id", "a" * 65, "semi;colon", "ünïcode"])
+def test_malformed_job_id(service: BudgetService, job_id: str) -> None:
+    assert_error(service.client.get(f"/jobs/{job_id}"), 422, "job_id")
+
+
+def test_body_over_64_kib(service: BudgetService) -> None:
+    big = {**SMALL_JOB, "actors": 1, "env_params": {"pad": "x" * (65 * 1024)}}
+    body = assert_error(service.client.post("/jobs", json=big, headers=AUTH), 413, "body")
+    assert "65536" in body["problem"]
+    assert_error(service.client.post("/jobs", content=b"{" + b" " * 70_000 + b"}", headers=AUTH), 413, "body")
+
+
+def test_chunked_body_over_64_kib(service: BudgetService) -> None:
+    def chunks() -> Iterator[bytes]:
+        yield b'{"name": "'
+        for _ in range(80):
+            yield b"x" * 1024
+        yield b'"}'
+
+    resp = service.client.post("/jobs", content=chunks(), headers={**AUTH, "Content-Type": "application/json"})
+    assert_error(resp, 413, "body")
+
+
+@pytest.mark.parametrize("state", ["done", "QUEUED", "", "1"])
+def test_bad_state_filter(service: BudgetService, state: str) -> None:
+    body = assert_error(service.client.get("/jobs", params={"state": state}), 422, "state")
+    assert "queued" in body["fix"] or "queued" in body["problem"]
+
+
+def test_state_filter(service: BudgetService, queued_job: str) -> None:
+    jobs = service.client.get("/jobs", params={"state": "queued"}).json()["jobs"]
+    assert queued_job in [j["id"] for j in jobs] and all(j["state"] == "queued" for j in jobs)
+
+
+@pytest.mark.parametrize(("param", "value"), [("since", "ten"), ("since", "1.5"), ("since", "-2"), ("limit", "0")])
+def test_bad_metrics_query(service: BudgetService, queued_job: str, param: str, value: str) -> None:
+    assert_error(service.client.get(f"/jobs/{queued_job}/metrics", params={param: value}), 422, param)
+
+
+def test_metrics_of_a_job_without_rows(service: BudgetService, queued_job: str) -> None:
+    page = service.client.get(f"/jobs/{queued_job}/metrics", params={"since": 0, "names": "return,loss"}).json()
+    assert page == {"job": queued_job, "rows": [], "last_step": None}
+
+
+def test_checkpoint_download_of_a_missing_file(service: BudgetService, queued_job: str) -> None:
+    for name in ("checkpoint.pt", "nothing-here.pt", "job.json", "..pt"):
+        resp = service.client.get(f"/jobs/{queued_job}/checkpoints/{name}")
+        assert_error(resp, 404, "name")
+    assert service.client.get(f"/jobs/{queued_job}/checkpoints").json() == {"job": queued_job, "checkpoints": []}
+
+
+def test_resume_of_a_queued_job(service: BudgetService, queued_job: str) -> None:
+    body = assert_error(service.client.post(f"/jobs/{queued_job}/resume", json={}, headers=AUTH), 409)
+    assert "queued" in body["problem"]
+
+
+def test_stop_resume_and_delete_of_a_job_that_never_ran(service: BudgetService) -> None:
+    resp = submit(service, name="cancel-me")
+    assert resp.status_code == 201, resp.text
+    job = resp.json()["id"]
+    assert service.client.post(f"/jobs/{job}/stop", headers=AUTH).json()["state"] == "stopped"
+    assert_error(service.client.post(f"/jobs/{job}/stop", headers=AUTH), 409, "state")
+    assert_error(service.client.patch(f"/jobs/{job}", json={"actors": 1}, headers=AUTH), 409)
+    resume = service.client.post(f"/jobs/{job}/resume", json={"actors": 2}, headers=AUTH)
+    assert_error(resume, 422, "actors")  # 4 processes > the budget of 3
+    assert_error(service.client.post(f"/jobs/{job}/resume", json={"steps": 0}, headers=AUTH), 422, "steps")
+    resume = service.client.post(f"/jobs/{job}/resume", json={"steps": 30_000}, headers=AUTH)
+    assert resume.status_code == 200 and resume.json()["state"] == "queued" and resume.json()["steps"] == 30_000
+    assert service.client.post(f"/jobs/{job}/stop", headers=AUTH).json()["state"] == "stopped"
+    assert service.client.delete(f"/jobs/{job}", headers=AUTH).status_code == 204
+    assert_error(service.client.get(f"/jobs/{job}"), 404, "id")
+
+
+def test_evaluate_without_a_checkpoint(service: BudgetService, queued_job: str) -> None:
+    path = f"/jobs/{queued_job}/evaluate"
+    assert_error(service.client.post(path, json={"episodes": 2}, headers=AUTH), 422, "checkpoint")
+    assert_error(service.client.post(path, json={"episodes": 0}, headers=AUTH), 422, "episodes")
+    assert_error(service.client.post(path, json={"messages": "shouted"}, headers=AUTH), 422, "messages")
+
+
+def test_events_of_a_queued_job_close_after_the_timeout(service: BudgetService, queued_job: str) -> None:
+    t0 = time.monotonic()
+    resp = service.client.get(f"/jobs/{queued_job}/events", params={"timeout": 1})
+    assert resp.status_code == 200 and "event: state" in resp.text and '"queued"' in resp.text
+    assert time.monotonic() - t0 < 10
+    assert_error(service.client.get(f"/jobs/{queued_job}/events", params={"timeout": 0}), 422, "timeout")
+
+
+def test_docs_health_and_prometheus(service: BudgetService) -> None:
+    spec = service.client.get("/openapi.json")
+    assert spec.status_code == 200 and "/jobs" in spec.json()["paths"]
+    assert service.client.get("/docs").status_code == 200
+    health = service.client.get("/healthz")
+    assert health.status_code == 200 and health.json()["ok"] is True
+    prom = service.client.get("/metrics")
+    assert prom.status_code == 200 and "convoy_jobs" in prom.text
+    assert 'convoy_jobs{state="queued"}' in prom.text
+
+
+def test_the_blocker_held_the_budget(service: BudgetService) -> None:
+    """Nothing generated or submitted here ever started: the only job that left the queue is the blocker."""
+    jobs = service.client.get("/jobs").json()["jobs"]
+    started = [j["id"] for j in jobs if j["state"] not in ("queued", "stopped")]
+    assert started == [service.blocker], started  # type: ignore[attr-defined]
+    assert service.host_pids() and len(service.host_pids()) == 1
+
+
+def test_generated_case_count() -> None:
+    """The sum over operations reaches MIN_CASES and every operation was exercised."""
+    if not CASES:
+        pytest.skip("counts the cases of test_generated_requests_never_give_a_server_error: run the whole module")
+    total = sum(CASES.values())
+    assert len(CASES) == N_OPERATIONS, sorted(CASES)
+    assert total >= MIN_CASES, dict(CASES)
+    print(f"schemathesis: {total} cases over {len(CASES)} operations: {dict(sorted(CASES.items()))}")

@@ -1,0 +1,60 @@
+"""The dashboard in a real browser: headless Chromium (Debian's ``chromium``, driven by Playwright's Python package
+with ``executable_path``) against a real ``convoy serve`` running a real job.
+
+It loads the page, sees the running job's return curve grow, enters the token, clicks Scale and sees the alive
+actor count follow, and saves the screenshot the README shows (``docs/dashboard.png``).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tests.service_fixture import AUTH, SMALL_JOB, TOKEN, Service
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+pytestmark = [
+    pytest.mark.timeout(240),
+    pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium (apt-get install chromium; .ci/run does)"),
+]
+
+
+def test_dashboard_shows_a_growing_curve_and_scales_a_job(tmp_path: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    svc = Service(tmp_path / "svc").start()
+    try:
+        resp = svc.client.post(
+            "/jobs", json={**SMALL_JOB, "steps": 2_000_000, "actors": 1, "name": "demo"}, headers=AUTH
+        )
+        job = resp.json()["id"]
+        svc.wait(job, lambda v: v["state"] == "running" and v["progress"]["env_steps"] > 2000, what="running")
+        errors: list[str] = []
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(svc.url + "/")
+            page.wait_for_selector(f'#jobs [data-job-id="{job}"]')
+            page.wait_for_function(f"window.convoy && window.convoy.selected === {job!r}")
+            page.wait_for_function("window.convoy.points.return >= 2", timeout=30_000)
+            first = page.evaluate("window.convoy.points.return")
+            page.wait_for_function(f"window.convoy.points.return > {first}", timeout=30_000)  # the curve grows
+
+            page.fill("#token", TOKEN)
+            page.fill("#actors-input", "2")
+            page.click("#scale-btn")
+            page.wait_for_function("document.querySelector('#actors-alive').textContent.trim() === '2'", timeout=30_000)
+            assert svc.client.get(f"/jobs/{job}").json()["actors"] == 2
+            page.wait_for_timeout(1500)  # one more redraw of every chart for the picture
+            DOCS.mkdir(exist_ok=True)
+            page.screenshot(path=str(DOCS / "dashboard.png"))
+            browser.close()
+        assert not errors, errors
+        assert (DOCS / "dashboard.png").stat().st_size > 10_000
+    finally:
+        svc.stop()
