@@ -127,7 +127,7 @@ def test_broken_compose_file_fails_validation(tmp_path: Path) -> None:
 
 def test_topology(config: dict[str, Any]) -> None:
     services = config["services"]
-    assert set(services) == {"router", *HOSTS}  # the api service arrives with `convoy serve`
+    assert set(services) == {"router", "api", *HOSTS}
 
     router = services["router"]
     assert router["image"].startswith("eclipse/zenoh:")
@@ -155,9 +155,21 @@ def test_topology(config: dict[str, Any]) -> None:
     learner_mounts = {v["target"]: v for v in services["learner"]["volumes"]}
     assert learner_mounts["/runs"]["type"] == "volume" and learner_mounts["/runs"]["source"] in config["volumes"]
 
-    published = [(name, p) for name, svc in services.items() for p in svc.get("ports", [])]
-    assert [name for name, _ in published] == ["router"]
-    assert not [p for _, p in published if p["target"] in (8000, 8080)], "nothing serves the API yet"
+    published = {name: [(p["target"], p["host_ip"]) for p in svc.get("ports", [])] for name, svc in services.items()}
+    assert published["api"] == [(8000, "127.0.0.1")]  # the API on loopback unless CONVOY_API_PUBLISH opens it
+    assert {name for name, ports in published.items() if ports} == {"router", "api"}
+
+
+def test_api_service_runs_convoy_serve_with_the_real_cli(config: dict[str, Any]) -> None:
+    from services.cli import build_parser
+
+    api = config["services"]["api"]
+    assert api["command"][0] == "convoy"
+    args = build_parser().parse_args(api["command"][1:])
+    assert args.command == "serve" and (args.host, args.port, args.data) == ("0.0.0.0", 8000, "/runs/service")
+    assert api["environment"]["CONVOY_API_TOKEN"] == ""  # from the environment; generated when unset
+    mounts = {v["target"]: v for v in api["volumes"]}
+    assert mounts["/runs"]["type"] == "volume"
 
 
 def test_endpoints_and_credentials_come_from_the_environment() -> None:
