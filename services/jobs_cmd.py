@@ -25,6 +25,7 @@ from rich.text import Text
 
 from api.models import MAX_ACTORS, JobSubmit
 from services.args import env_params, parse_pairs
+from services.train_cmd import add_job_flags
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 FINAL_STATES = ("completed", "stopped", "failed")
@@ -465,21 +466,7 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         "not given take the service's defaults. The job waits in the queue until the service has processes free "
         "(actors + 2).",
     )
-    p.add_argument("--algo", help=f"algorithm (default {d['algo'].default}; see `convoy train --help`)")
-    p.add_argument("--env", help=f"environment (default {d['env'].default}; see `convoy env list`)")
-    p.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents)")
-    p.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="env parameter, repeatable")
-    p.add_argument("--hp", action="append", metavar="KEY=VALUE", help="algorithm hyper-parameter, repeatable")
-    p.add_argument("--steps", type=int, help=f"total env steps (default {d['steps'].default:,})")
-    p.add_argument("--num-envs", type=int, help=f"envs stepped together per actor (default {d['num_envs'].default})")
-    p.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")
-    p.add_argument("--actors", type=int, help=f"actor processes, 1–{MAX_ACTORS} (default {d['actors'].default})")
-    p.add_argument("--hierarchical", action="store_true", help="hierarchical DQN around the algorithm (treadmill)")
-    p.add_argument(
-        "--eval-episodes", type=int, help=f"greedy episodes at the end (default {d['eval_episodes'].default})"
-    )
-    p.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default:,})")
+    add_job_flags(p)
     p.add_argument(
         "--checkpoint-every",
         type=int,

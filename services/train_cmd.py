@@ -133,6 +133,14 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
 
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
+    add_job_flags(tr)
+    tr.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device (default auto: CUDA if present)")
+    tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
+    tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
+
+
+def add_job_flags(tr: argparse.ArgumentParser) -> None:
+    """What to train, on what, for how long: the job flags of ``convoy train`` and ``convoy jobs submit`` alike."""
     d = JobConfig.model_fields
     tr.add_argument("--actors", type=int, help="actor processes (default 2; distributed runs only)")
     tr.add_argument("--algo", help=f"algorithm (default {d['algo'].default}): {', '.join(ALGO_CONFIGS)}")
@@ -149,6 +157,3 @@ def add_job_arguments(tr: argparse.ArgumentParser) -> None:
         "--eval-episodes", type=int, help=f"greedy episodes at the end (default {d['eval_episodes'].default})"
     )
     tr.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default})")
-    tr.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device (default auto: CUDA if present)")
-    tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
-    tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")

@@ -19,12 +19,9 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections import Counter
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -34,7 +31,7 @@ import schemathesis
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
-from tests.service_fixture import AUTH, SMALL_JOB, TOKEN, Service
+from tests.service_fixture import AUTH, SMALL_JOB, Service
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -44,42 +41,14 @@ N_OPERATIONS = 14  # every route in /openapi.json (the dashboard and /static are
 CASES: Counter[str] = Counter()
 
 
-class BudgetService(Service):
-    """``Service`` with extra ``convoy serve`` arguments (later flags override the fixture's defaults)."""
-
-    def __init__(self, data: Path, extra_args: list[str] | None = None) -> None:
-        super().__init__(data)
-        self.extra_args = list(extra_args or [])
-
-    def start(self, timeout: float = 60.0) -> BudgetService:
-        env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
-        cmd = [sys.executable, "-m", "services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
-        cmd += ["--zenoh-port", str(self.zenoh_port), "--max-processes", "8", *self.extra_args]
-        self.data.mkdir(parents=True, exist_ok=True)
-        log = open(self.data.parent / f"serve-{self.port}.log", "ab")  # noqa: SIM115
-        self.proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
-        log.close()
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"convoy serve exited with {self.proc.returncode}")
-            try:
-                if self.client.get("/healthz").status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise TimeoutError("convoy serve did not answer /healthz")
-
-
 def _killpg(pid: int, sig: signal.Signals) -> None:
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(pid, sig)
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BudgetService]:
-    svc = BudgetService(tmp_path_factory.mktemp("schema") / "svc", ["--max-processes", "3"])
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    svc = Service(tmp_path_factory.mktemp("schema") / "svc", max_processes=3)
     frozen: list[int] = []
     try:
         svc.start()
@@ -103,7 +72,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BudgetService]
 
 
 @pytest.fixture(scope="module")
-def api_schema(service: BudgetService) -> Any:
+def api_schema(service: Service) -> Any:
     return schemathesis.openapi.from_url(f"{service.url}/openapi.json")
 
 
@@ -129,7 +98,7 @@ def submit(svc: Service, **extra: Any) -> httpx.Response:
 
 
 @pytest.fixture(scope="module")
-def queued_job(service: BudgetService) -> str:
+def queued_job(service: Service) -> str:
     """A job that stays queued behind the blocker."""
     resp = submit(service, name="waiting")
     assert resp.status_code == 201, resp.text
@@ -154,7 +123,7 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 @schema.parametrize()
 @settings(max_examples=MAX_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), print_blob=True)
 def test_generated_requests_never_give_a_server_error(
-    case: schemathesis.Case, service: BudgetService, http: requests.Session
+    case: schemathesis.Case, service: Service, http: requests.Session
 ) -> None:
     if case.operation.path.endswith("/events") and isinstance(case.query, dict):
         case.query.setdefault("timeout", 1)  # a stream: never leave it open for its default 300 s
@@ -166,29 +135,29 @@ def test_generated_requests_never_give_a_server_error(
 # --- hand-written cases -------------------------------------------------------------------------------------------
 
 
-def test_unknown_algorithm(service: BudgetService) -> None:
+def test_unknown_algorithm(service: Service) -> None:
     body = assert_error(submit(service, algo="no-such-algo"), 422, "algo")
     assert "no-such-algo" in body["problem"]
 
 
 @pytest.mark.parametrize("actors", [0, -1, -1000])
-def test_actors_not_positive(service: BudgetService, actors: int) -> None:
+def test_actors_not_positive(service: Service, actors: int) -> None:
     assert_error(submit(service, actors=actors), 422, "actors")
 
 
 @pytest.mark.parametrize("actors", [65, 1000, 2**40])
-def test_actors_above_the_api_limit(service: BudgetService, actors: int) -> None:
+def test_actors_above_the_api_limit(service: Service, actors: int) -> None:
     body = assert_error(submit(service, actors=actors), 422, "actors")
     assert "64" in body["fix"]
 
 
-def test_actors_above_the_process_budget(service: BudgetService, queued_job: str) -> None:
+def test_actors_above_the_process_budget(service: Service, queued_job: str) -> None:
     body = assert_error(submit(service, actors=2), 422, "actors")
     assert "4 processes" in body["problem"] and "3" in body["problem"]
     assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 5}, headers=AUTH), 422, "actors")
 
 
-def test_bad_env_and_algo_params(service: BudgetService) -> None:
+def test_bad_env_and_algo_params(service: Service) -> None:
     assert_error(submit(service, env_params={"n_agents": 0}), 422, "n_agents")
     assert_error(submit(service, env_params={"no_such_param": 1}), 422, "no_such_param")
     assert_error(submit(service, algo_params={"hidden": "wide"}), 422, "hidden")
@@ -198,17 +167,17 @@ def test_bad_env_and_algo_params(service: BudgetService) -> None:
 
 
 @pytest.mark.parametrize("raw", [b"{", b"{'algo': 'x'}", b"not json", b'{"actors": 1,}'])
-def test_malformed_json_body(service: BudgetService, raw: bytes) -> None:
+def test_malformed_json_body(service: Service, raw: bytes) -> None:
     headers = {**AUTH, "Content-Type": "application/json"}
     assert_error(service.client.post("/jobs", content=raw, headers=headers), 400, "body")
 
 
 @pytest.mark.parametrize("body", [[], "a string", 3, None])
-def test_body_that_is_not_an_object(service: BudgetService, body: Any) -> None:
+def test_body_that_is_not_an_object(service: Service, body: Any) -> None:
     assert_error(service.client.post("/jobs", json=body, headers=AUTH), 422)
 
 
-def test_unknown_field_in_body(service: BudgetService, queued_job: str) -> None:
+def test_unknown_field_in_body(service: Service, queued_job: str) -> None:
     body = assert_error(submit(service, learning_rate=0.1), 422, "learning_rate")
     assert "extra" in body["problem"].lower() or "not permitted" in body["problem"].lower()
     patch = service.client.patch(f"/jobs/{queued_job}", json={"actors": 1, "replicas": 2}, headers=AUTH)
@@ -217,7 +186,7 @@ def test_unknown_field_in_body(service: BudgetService, queued_job: str) -> None:
     assert_error(resume, 422, "budget")
 
 
-def test_missing_token(service: BudgetService, queued_job: str) -> None:
+def test_missing_token(service: Service, queued_job: str) -> None:
     assert_error(service.client.post("/jobs", json={**SMALL_JOB, "actors": 1}), 401, "Authorization")
     assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 1}), 401, "Authorization")
     for path in (f"/jobs/{queued_job}/stop", f"/jobs/{queued_job}/resume", f"/jobs/{queued_job}/evaluate"):
@@ -237,7 +206,7 @@ def test_missing_token(service: BudgetService, queued_job: str) -> None:
         "Bearer",
     ],
 )
-def test_wrong_token(service: BudgetService, queued_job: str, header: str) -> None:
+def test_wrong_token(service: Service, queued_job: str, header: str) -> None:
     auth = {"Authorization": header}
     assert_error(service.client.post("/jobs", json={**SMALL_JOB, "actors": 1}, headers=auth), 401, "Authorization")
     assert_error(service.client.patch(f"/jobs/{queued_job}", json={"actors": 1}, headers=auth), 401, "Authorization")
@@ -258,7 +227,7 @@ def test_wrong_token(service: BudgetService, queued_job: str, header: str) -> No
         ("POST", "/jobs/{id}/evaluate", {"episodes": 2}),
     ],
 )
-def test_unknown_job(service: BudgetService, method: str, path: str, body: Any) -> None:
+def test_unknown_job(service: Service, method: str, path: str, body: Any) -> None:
     url = path.format(id="no-such-job")
     resp = service.client.request(method, url, json=body, headers=AUTH)
     err = assert_error(resp, 404, "id")
@@ -266,18 +235,18 @@ def test_unknown_job(service: BudgetService, method: str, path: str, body: Any) 
 
 
 @pytest.mark.parametrize("job_id", ["bad id", "a" * 65, "semi;colon", "ünïcode"])
-def test_malformed_job_id(service: BudgetService, job_id: str) -> None:
+def test_malformed_job_id(service: Service, job_id: str) -> None:
     assert_error(service.client.get(f"/jobs/{job_id}"), 422, "job_id")
 
 
-def test_body_over_64_kib(service: BudgetService) -> None:
+def test_body_over_64_kib(service: Service) -> None:
     big = {**SMALL_JOB, "actors": 1, "env_params": {"pad": "x" * (65 * 1024)}}
     body = assert_error(service.client.post("/jobs", json=big, headers=AUTH), 413, "body")
     assert "65536" in body["problem"]
     assert_error(service.client.post("/jobs", content=b"{" + b" " * 70_000 + b"}", headers=AUTH), 413, "body")
 
 
-def test_chunked_body_over_64_kib(service: BudgetService) -> None:
+def test_chunked_body_over_64_kib(service: Service) -> None:
     def chunks() -> Iterator[bytes]:
         yield b'{"name": "'
         for _ in range(80):
@@ -289,39 +258,39 @@ def test_chunked_body_over_64_kib(service: BudgetService) -> None:
 
 
 @pytest.mark.parametrize("state", ["done", "QUEUED", "", "1"])
-def test_bad_state_filter(service: BudgetService, state: str) -> None:
+def test_bad_state_filter(service: Service, state: str) -> None:
     body = assert_error(service.client.get("/jobs", params={"state": state}), 422, "state")
     assert "queued" in body["fix"] or "queued" in body["problem"]
 
 
-def test_state_filter(service: BudgetService, queued_job: str) -> None:
+def test_state_filter(service: Service, queued_job: str) -> None:
     jobs = service.client.get("/jobs", params={"state": "queued"}).json()["jobs"]
     assert queued_job in [j["id"] for j in jobs] and all(j["state"] == "queued" for j in jobs)
 
 
 @pytest.mark.parametrize(("param", "value"), [("since", "ten"), ("since", "1.5"), ("since", "-2"), ("limit", "0")])
-def test_bad_metrics_query(service: BudgetService, queued_job: str, param: str, value: str) -> None:
+def test_bad_metrics_query(service: Service, queued_job: str, param: str, value: str) -> None:
     assert_error(service.client.get(f"/jobs/{queued_job}/metrics", params={param: value}), 422, param)
 
 
-def test_metrics_of_a_job_without_rows(service: BudgetService, queued_job: str) -> None:
+def test_metrics_of_a_job_without_rows(service: Service, queued_job: str) -> None:
     page = service.client.get(f"/jobs/{queued_job}/metrics", params={"since": 0, "names": "return,loss"}).json()
     assert page == {"job": queued_job, "rows": [], "last_step": None}
 
 
-def test_checkpoint_download_of_a_missing_file(service: BudgetService, queued_job: str) -> None:
+def test_checkpoint_download_of_a_missing_file(service: Service, queued_job: str) -> None:
     for name in ("checkpoint.pt", "nothing-here.pt", "job.json", "..pt"):
         resp = service.client.get(f"/jobs/{queued_job}/checkpoints/{name}")
         assert_error(resp, 404, "name")
     assert service.client.get(f"/jobs/{queued_job}/checkpoints").json() == {"job": queued_job, "checkpoints": []}
 
 
-def test_resume_of_a_queued_job(service: BudgetService, queued_job: str) -> None:
+def test_resume_of_a_queued_job(service: Service, queued_job: str) -> None:
     body = assert_error(service.client.post(f"/jobs/{queued_job}/resume", json={}, headers=AUTH), 409)
     assert "queued" in body["problem"]
 
 
-def test_stop_resume_and_delete_of_a_job_that_never_ran(service: BudgetService) -> None:
+def test_stop_resume_and_delete_of_a_job_that_never_ran(service: Service) -> None:
     resp = submit(service, name="cancel-me")
     assert resp.status_code == 201, resp.text
     job = resp.json()["id"]
@@ -338,14 +307,14 @@ def test_stop_resume_and_delete_of_a_job_that_never_ran(service: BudgetService) 
     assert_error(service.client.get(f"/jobs/{job}"), 404, "id")
 
 
-def test_evaluate_without_a_checkpoint(service: BudgetService, queued_job: str) -> None:
+def test_evaluate_without_a_checkpoint(service: Service, queued_job: str) -> None:
     path = f"/jobs/{queued_job}/evaluate"
     assert_error(service.client.post(path, json={"episodes": 2}, headers=AUTH), 422, "checkpoint")
     assert_error(service.client.post(path, json={"episodes": 0}, headers=AUTH), 422, "episodes")
     assert_error(service.client.post(path, json={"messages": "shouted"}, headers=AUTH), 422, "messages")
 
 
-def test_events_of_a_queued_job_close_after_the_timeout(service: BudgetService, queued_job: str) -> None:
+def test_events_of_a_queued_job_close_after_the_timeout(service: Service, queued_job: str) -> None:
     t0 = time.monotonic()
     resp = service.client.get(f"/jobs/{queued_job}/events", params={"timeout": 1})
     assert resp.status_code == 200 and "event: state" in resp.text and '"queued"' in resp.text
@@ -353,7 +322,7 @@ def test_events_of_a_queued_job_close_after_the_timeout(service: BudgetService, 
     assert_error(service.client.get(f"/jobs/{queued_job}/events", params={"timeout": 0}), 422, "timeout")
 
 
-def test_docs_health_and_prometheus(service: BudgetService) -> None:
+def test_docs_health_and_prometheus(service: Service) -> None:
     spec = service.client.get("/openapi.json")
     assert spec.status_code == 200 and "/jobs" in spec.json()["paths"]
     assert service.client.get("/docs").status_code == 200
@@ -364,7 +333,7 @@ def test_docs_health_and_prometheus(service: BudgetService) -> None:
     assert 'convoy_jobs{state="queued"}' in prom.text
 
 
-def test_the_blocker_held_the_budget(service: BudgetService) -> None:
+def test_the_blocker_held_the_budget(service: Service) -> None:
     """Nothing generated or submitted here ever started: the only job that left the queue is the blocker."""
     jobs = service.client.get("/jobs").json()["jobs"]
     started = [j["id"] for j in jobs if j["state"] not in ("queued", "stopped")]
