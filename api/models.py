@@ -8,11 +8,11 @@ ask for a thousand processes.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from protocol.config import JobConfig, job_config
+from protocol.config import JobConfig, MessageSource, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 
@@ -68,7 +68,7 @@ class EvalRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     episodes: int = Field(100, ge=1, le=5_000, description="Greedy episodes.")
-    messages: Literal["sent", "predicted", "noise"] = Field("sent", description="What the agents hear.")
+    messages: MessageSource = Field("sent", description="What the agents hear.")
     channel: str | None = Field(None, max_length=200, description="Lossy channel, e.g. drop=0.3,flip=0.01.")
     seed: int = Field(12345, ge=0, le=2**31 - 1, description="Seed of the evaluation envs.")
 

@@ -27,8 +27,9 @@ from torch import Tensor
 
 from envs.channel import MessageChannel
 from envs.config import ConfigError
+from protocol.config import MessageSource
 
-Source = Literal["sent", "predicted", "noise"]
+Source = MessageSource
 SOURCES: tuple[str, ...] = get_args(Source)
 
 

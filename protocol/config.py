@@ -16,6 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from envs.config import ConfigError, build_config
 from protocol.session import ZenohSettings
 
+MessageSource = Literal["sent", "predicted", "noise"]
+MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (learner.listening)
+
 
 class AlgoConfig(BaseModel):
     """Hyper-parameters shared by every algorithm (section 6.1 of the paper unless noted)."""

@@ -11,7 +11,7 @@ from typing import Any
 from rich.console import Console
 
 from envs import ConfigError
-from learner.listening import SOURCES
+from protocol.config import MESSAGE_SOURCES
 
 console = Console()
 
@@ -142,7 +142,7 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--episodes", type=int, default=100, help="greedy episodes to play (default: %(default)s)")
     ev.add_argument(
         "--messages",
-        choices=SOURCES,
+        choices=MESSAGE_SOURCES,
         default="sent",
         help="what the agents hear: sent (the true messages), predicted (the memory module's predictions, no "
         "channel: -mm algorithms) or noise (uniform random bits) (default: %(default)s)",

@@ -82,3 +82,14 @@ def test_env_list(capsys) -> None:
     assert main(["env", "list", "--params"]) == 0
     out = capsys.readouterr().out
     assert "n_targets (default 4, 2 ≤ n_targets ≤ 64)" in out and "keep_env_channel (default False)" in out
+
+
+def test_building_the_cli_imports_no_torch() -> None:
+    """Every `convoy` command, and the parent of a distributed job, starts without torch (~1.2 s on 2 cores):
+    commands import their heavy modules when they run."""
+    import subprocess
+    import sys
+
+    code = "import sys, services.cli; services.cli.build_parser(); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
