@@ -35,11 +35,12 @@ from api.models import (
     MetricsPage,
     Progress,
 )
-from api.store import FINAL_STATES, InvalidTransition, JobRecord, JobState, JobStore, StoreError, UnknownJob
+from api.store import FINAL_STATES, JobRecord, JobState, JobStore, StoreError, UnknownJob
 from protocol.config import ConfigError, JobConfig
 
 STATIC = Path(__file__).parent / "static"
 MAX_BODY = 64 * 1024
+PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
 
 
@@ -120,6 +121,19 @@ class BodyLimit:
         await send({"type": "http.response.body", "body": body})
 
 
+def error_response(status: int, field: str, problem: str, fix: str) -> JSONResponse:
+    return JSONResponse(ErrorBody(field=field, problem=problem, fix=fix).model_dump(), status_code=status)
+
+
+def _handler(status: int, field: str, fix: str) -> Any:
+    """An exception handler answering ``status`` with the exception's message as the problem."""
+
+    async def handle(_: Request, exc: Exception) -> JSONResponse:
+        return error_response(status, field, str(exc), fix)
+
+    return handle
+
+
 def create_app(control: JobControl, token: str) -> FastAPI:
     """The FastAPI app over ``control``; ``token`` guards every mutating route."""
     app = FastAPI(
@@ -140,40 +154,26 @@ def create_app(control: JobControl, token: str) -> FastAPI:
         loc = [str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path")]
         field = ".".join(loc) or "body"
         if err.get("type") == "json_invalid":
-            body = ErrorBody(field="body", problem="the body is not valid JSON", fix="send a JSON object")
-            return JSONResponse(body.model_dump(), status_code=400)
+            return error_response(400, "body", "the body is not valid JSON", "send a JSON object")
         ctx = err.get("ctx") or {}
         words = {"ge": "≥", "gt": ">", "le": "≤", "lt": "<", "pattern": "matching", "expected": "one of"}
         bound = " and ".join(f"{words[k]} {v}" for k, v in ctx.items() if k in words)
         fix = f"give {field} {bound}" if bound else "see the schema at /docs"
-        body = ErrorBody(field=field, problem=str(err.get("msg", "invalid")), fix=fix)
-        return JSONResponse(body.model_dump(), status_code=422)
+        return error_response(422, field, str(err.get("msg", "invalid")), fix)
 
     @app.exception_handler(ConfigError)
     async def _config(_: Request, exc: ConfigError) -> JSONResponse:
         text = str(exc).split(": ", 1)[-1]
-        body = ErrorBody(field=exc.field, problem=text, fix="change this field (GET /docs lists every parameter)")
-        return JSONResponse(body.model_dump(), status_code=422)
+        return error_response(422, exc.field, text, "change this field (GET /docs lists every parameter)")
 
-    @app.exception_handler(UnknownJob)
-    async def _unknown(_: Request, exc: UnknownJob) -> JSONResponse:
-        body = ErrorBody(field="id", problem=str(exc), fix="list the jobs with GET /jobs")
-        return JSONResponse(body.model_dump(), status_code=404)
-
-    @app.exception_handler(InvalidTransition)
-    async def _transition(_: Request, exc: InvalidTransition) -> JSONResponse:
-        body = ErrorBody(field="state", problem=str(exc), fix="check the job's state with GET /jobs/{id}")
-        return JSONResponse(body.model_dump(), status_code=409)
-
-    @app.exception_handler(FileNotFoundError)
-    async def _missing(_: Request, exc: FileNotFoundError) -> JSONResponse:
-        body = ErrorBody(field="name", problem=str(exc), fix="list the files with GET /jobs/{id}/checkpoints")
-        return JSONResponse(body.model_dump(), status_code=404)
-
-    @app.exception_handler(StoreError)
-    async def _store(_: Request, exc: StoreError) -> JSONResponse:
-        body = ErrorBody(field="state", problem=str(exc), fix="check the job's state with GET /jobs/{id}")
-        return JSONResponse(body.model_dump(), status_code=409)
+    # the store's and the files' errors: (status, field, fix); the most specific class wins (UnknownJob, then
+    # StoreError for every other refusal, InvalidTransition included)
+    for exc_type, (status, field, fix) in {
+        UnknownJob: (404, "id", "list the jobs with GET /jobs"),
+        StoreError: (409, "state", "check the job's state with GET /jobs/{id}"),
+        FileNotFoundError: (404, "name", "list the files with GET /jobs/{id}/checkpoints"),
+    }.items():
+        app.add_exception_handler(exc_type, _handler(status, field, fix))
 
     app.add_middleware(BodyLimit, limit=MAX_BODY)
 
@@ -204,9 +204,7 @@ def create_app(control: JobControl, token: str) -> FastAPI:
             progress=Progress(
                 env_steps=env_steps,
                 fraction=min(1.0, env_steps / steps),
-                **{k: finite(prog.get(k)) for k in ("updates", "loss", "env_steps_per_s", "updates_per_s")},
-                policy_lag=finite(prog.get("policy_lag")),
-                **{"return": finite(prog.get("return"))},
+                **{k: finite(prog.get(k)) for k in PROGRESS_FIELDS},
             ),
             created_at=rec.created_at,
             updated_at=rec.updated_at,

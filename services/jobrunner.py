@@ -50,6 +50,9 @@ class AliveSet:
         with self._lock:
             return sum(1 for r, _ in self.members if r == role)
 
+    def close(self) -> None:
+        self._sub.undeclare()
+
     def ids(self, role: str) -> set[str]:
         with self._lock:
             return {i for r, i in self.members if r == role}

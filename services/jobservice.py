@@ -76,7 +76,7 @@ class Tracked:
 
     def close(self) -> None:
         self.sub.undeclare()
-        self.alive._sub.undeclare()
+        self.alive.close()
 
 
 class JobService:
@@ -170,9 +170,10 @@ class JobService:
     def checkpoints(self, job_id: str) -> list[dict[str, Any]]:
         out = self._out(job_id)
         files = sorted(out.glob("*.pt")) if out.is_dir() else []
+        stats = [(f, f.stat()) for f in files]
         return [
-            {"name": f.name, "bytes": f.stat().st_size, "modified": f.stat().st_mtime, "url": f"checkpoints/{f.name}"}
-            for f in files
+            {"name": f.name, "bytes": st.st_size, "modified": st.st_mtime, "url": f"checkpoints/{f.name}"}
+            for f, st in stats
         ]
 
     def checkpoint_file(self, job_id: str, name: str) -> Path:
