@@ -1,13 +1,16 @@
 """The actor process: steps a batch of envs with the newest weights and publishes joint-transition chunks.
 
-One torch thread (actors share the machine with the learner). Between env steps the actor swaps in the newest
-weights it has received (only the newest matters: ``Inbox.latest``), keeps to the learner's flow-control budget (it
-waits rather than run ahead of the replay ratio), explores with its own ε (Ape-X spread, ``runtime.epsilon_spread``)
-and reports env-steps/s and policy lag (learner version − acting version) as metrics every second.
+One torch thread and a lower CPU priority (``runtime.actor_nice``): actors share the machine with the learner, and
+when cores are short the learner, which every actor waits for, should not wait for a time slice. Between env steps
+the actor swaps in the newest weights it has received (only the newest matters: ``Inbox.latest``), keeps to the
+learner's flow-control budget (it waits rather than run ahead of the replay ratio), explores with its own ε (Ape-X
+spread, ``runtime.epsilon_spread``) and reports env-steps/s and policy lag (learner version − acting version) as
+metrics every second.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from dataclasses import dataclass, field
@@ -65,6 +68,8 @@ class Actor:
         self.stopping = True
 
     def run(self) -> int:
+        if self.job.runtime.actor_nice and hasattr(os, "nice"):
+            os.nice(self.job.runtime.actor_nice)  # the learner first where cores are shared (see RuntimeConfig)
         torch.set_num_threads(1)
         torch.manual_seed(self.seed)
         session = open_session(self.settings)

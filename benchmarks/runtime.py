@@ -39,20 +39,21 @@ step ≈ 80–90 µs per env step at hidden (1024, 12); one update ≈ 6–7 ms 
 replay_ratio 0.5. Tried (one seed each, same machine; distributed env-steps/s ÷ in-process): hidden (1024, 12) at
 replay_ratio 0.5 → 1.7–2.0× (the best balance); at 0.75 → 1.6–1.8×; (2048, 12) at 0.5 → 1.7× (in-process needs
 ~30 s to the threshold); the paper's (4096, 12) at 0.25 → 1.75×; (256, 12) at 1.0 learns as fast per step but is
-cheaper per step, so the runs are short and start-up weighs more. The distributed start-up (the CLI, then a learner
-and two actors, each importing torch and building its networks) is ≈ 4–5 s longer than in-process (≈ 6.5–8 s vs
-≈ 2.5–3 s) and is inside the measured time, so the threshold has to lie well into training: with 300,000 steps
-(ε over 60,000) both modes reached 30 within ~15 s and start-up decided the ratio; with 500,000 in-process needs
-~100–150k steps (≈ 20–30 s, depending on the machine's load). Random play returns ~13–16 on this treadmill and
-trained policies 30–50 (training is unstable past ~300k steps, so higher thresholds are not reached reliably); 30
-over three rows is past the noise of single ε-greedy rows. The env steps each mode needs to reach it vary by
-0.6–1.9× between seeds and modes (the distributed runs needed more in most of the eight pairs tried), which moves
-the ratio more than the runtime's speed does — hence two seeds, each reported with its decomposition.
+cheaper per step, so the runs are short and start-up weighs more. Start-up is inside the measured time: when every
+role process was spawned and imported torch itself, the distributed start-up was 1–5 s longer than in-process; the
+roles are now forks of a forkserver that imported torch once, and the gap is ≈ 0.2–0.6 s. The threshold still lies
+well into training: with 300,000 steps (ε over 60,000) both modes reached 30 within ~15 s; with 500,000 in-process
+needs ~120–200k steps (≈ 17–27 s, depending on the machine's load). Random play returns ~13–16 on this treadmill
+and trained policies 30–50 (training is unstable past ~300k steps, so higher thresholds are not reached reliably);
+30 over three rows is past the noise of single ε-greedy rows. The env steps each mode needs to reach it vary by
+0.7–1.9× between seeds and modes, which moves a single seed's ratio more than the runtime's speed does — hence five
+seeds (the median is the verdict), each reported with its decomposition into env-steps/s, env steps and start-up.
 
 Run from the repository root: ``python benchmarks/runtime.py`` (several minutes); ``--quick`` for a smoke test of
 well under a minute (tiny networks and counts, one repetition, a trivial threshold); ``--parts 1 3`` runs some parts;
 ``--json`` / ``--markdown`` save the figures. Every child process is joined, then terminated, then killed by PID;
-everything binds to 127.0.0.1 only; processes start with the spawn method.
+everything binds to 127.0.0.1 only; processes start with the spawn method (``convoy train``'s roles: forks of its
+forkserver).
 """
 
 from __future__ import annotations
@@ -989,7 +990,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--log-every", type=int, default=5_000)
     g.add_argument("--threshold", type=float, default=30.0, help="mean training return to reach")
     g.add_argument("--window", type=int, default=3, help="metric rows averaged for the threshold")
-    g.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    g.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     g.add_argument("--max-seconds", type=float, default=400.0, help="give a run up after this long")
     p.add_argument("--workdir", type=Path, help="keep run directories here (default: a temporary directory)")
     p.add_argument("--markdown", type=Path, metavar="PATH", help="also write the tables (Markdown) to PATH")

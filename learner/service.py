@@ -6,10 +6,14 @@
   into the algorithm's replay.
 * Updates follow the data (``replay_ratio``: sampled per inserted transition), exactly as in-process. When the
   learner falls behind, the ``budget`` it publishes stops growing and actors wait: the samples-per-insert ratio
-  holds and nothing grows without bound (replay capacity is fixed, the inbox is bounded).
-* Weights (version = update count) go out every ``weights_every`` updates and at least every second, so a new or
-  respawned actor gets them at once. Checkpoints are atomic; a restarted learner resumes from the last one (update
-  counter, optimizer, ε schedule, metric history cut at that step) and its actors carry on.
+  holds and nothing grows without bound (replay capacity is fixed, the inbox is bounded). The budget goes out as
+  soon as a chunk is taken in, *before* that chunk's updates: an actor waiting for credit resumes while the learner
+  updates, instead of one update (milliseconds) later. Otherwise it is repeated every ``BUDGET_EVERY_S`` (actors that
+  join, or wait, hear it).
+* Weights (version = update count) go out every ``weights_every`` updates and at least every second — every 0.1 s
+  while no chunk comes in (at start, actors that subscribed after a broadcast are waiting for their first weights),
+  so a new or respawned actor gets them at once. Checkpoints are atomic; a restarted learner resumes from the last
+  one (update counter, optimizer, ε schedule, metric history cut at that step) and its actors carry on.
 """
 
 from __future__ import annotations
@@ -36,7 +40,8 @@ from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
 WEIGHTS_EVERY_S = 1.0
-BUDGET_EVERY_S = 0.005
+WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights
+BUDGET_EVERY_S = 0.02
 
 
 def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, tuple[int, ...]]]:
@@ -143,13 +148,19 @@ class Learner:
         )
         owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
         next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
-        t_weights = t_budget = 0.0
+        t_weights = t_budget = t_chunk = 0.0
         last_weights_version = -1
         lags: list[float] = []
         ingested_chunks = 0
         chunk_steps = job.num_envs * rt.publish_steps
         slack = rt.slack(job.num_envs)
         t0 = time.perf_counter()
+
+        def allowance() -> int:
+            """Steps actors may have sent: chunks still queued count as taken, so actors wait while the learner
+            catches up."""
+            return env_steps + max(0, slack - len(inbox) * chunk_steps)
+
         try:
             watch = ParentWatch()
             while env_steps < job.steps and not self.stopping:
@@ -157,13 +168,12 @@ class Learner:
                     self.stopping = True
                     break
                 now = time.perf_counter()
-                if algo.updates - last_weights_version >= rt.weights_every or now - t_weights >= WEIGHTS_EVERY_S:
+                heartbeat = WEIGHTS_IDLE_EVERY_S if now - t_chunk > WEIGHTS_IDLE_EVERY_S else WEIGHTS_EVERY_S
+                if algo.updates - last_weights_version >= rt.weights_every or now - t_weights >= heartbeat:
                     self._publish_weights(algo)
                     last_weights_version, t_weights = algo.updates, now
                 if now - t_budget >= BUDGET_EVERY_S:
-                    # chunks still queued count as taken: actors wait while the learner catches up
-                    queued = len(inbox) * chunk_steps
-                    self._publish_budget(env_steps + max(0, slack - queued), env_steps, algo.updates)
+                    self._publish_budget(allowance(), env_steps, algo.updates)
                     t_budget = now
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
@@ -180,6 +190,8 @@ class Learner:
                 chunk_steps = t_len * b
                 env_steps += chunk_steps
                 episodes += len(msg.body["returns"])
+                self._publish_budget(allowance(), env_steps, algo.updates)  # credit now, not after the updates
+                t_budget = t_chunk = time.perf_counter()
                 log.episodes(msg.body["returns"])
                 lags.append(algo.updates - msg.body["policy_version"])
                 ingested_chunks += 1

@@ -289,6 +289,13 @@ class RuntimeConfig(BaseModel):
         description="Env steps actors may run ahead of the learner before they wait; None = 2 chunks per actor "
         "(more slack, more policy lag).",
     )
+    actor_nice: int = Field(
+        5,
+        ge=0,
+        le=19,
+        description="Niceness added to actor processes: where actors and the learner share cores, the learner (one "
+        "per job, what every actor waits for) gets the larger CPU share; 0 = equal shares.",
+    )
     actor_device: Literal["cpu", "auto", "cuda"] = Field(
         "cpu", description="Torch device of actors' inference (small batches: CPU unless envs are many)."
     )
@@ -300,7 +307,7 @@ class RuntimeConfig(BaseModel):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 
     def slack(self, num_envs: int) -> int:
-        """``slack_steps``, or two chunks per actor: enough to keep actors busy across a 5 ms budget period,
+        """``slack_steps``, or two chunks per actor: enough to keep actors busy while the learner takes in a chunk,
         small enough that queued data does not age into policy lag (4096 steps gave ~70 updates of lag)."""
         return self.slack_steps or 2 * self.actors * self.publish_steps * num_envs
 

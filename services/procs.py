@@ -1,11 +1,15 @@
 """Local process management for one job: start, respawn, scale and stop actor and learner processes.
 
-Used by the job runner of ``convoy train`` and by host agents (``convoy host``) alike. Processes start with the
-``spawn`` method (fork after a Zenoh session is open loses every message), get plain-data arguments (job config,
-Zenoh settings), and are tracked by PID. A crashed actor is respawned under a new id (its seed advanced, so it does
-not replay the same episodes); a crashed learner is restarted and resumes from its checkpoint; more than
-``max_restarts`` crashes of one role within ``restart_window_s`` fail the job with the reason. Exit code 0 means a
-process finished its part of the job and is not restarted.
+Used by the job runner of ``convoy train`` and by host agents (``convoy host``) alike. Processes start from a
+*forkserver* that has imported what every role needs (torch, the envs, the algorithms) once and never opens a Zenoh
+session: a role process is a fork of it, so the job's processes do not each spend ~1.5 s of CPU importing torch side
+by side at start-up, and a crashed actor is back in a fraction of a second. Forking the job's own process is not an
+option (fork after a Zenoh session is open loses every message); where the platform has no forkserver the ``spawn``
+method is used. Processes get plain-data arguments (job config, Zenoh settings) and are tracked by PID. A crashed
+actor is respawned under a new id (its seed advanced, so it does not replay the same episodes); a crashed learner is
+restarted and resumes from its checkpoint; more than ``max_restarts`` crashes of one role within
+``restart_window_s`` fail the job with the reason. Exit code 0 means a process finished its part of the job and is
+not restarted.
 """
 
 from __future__ import annotations
@@ -22,8 +26,21 @@ from typing import Any
 from protocol.config import JobConfig
 from protocol.session import ZenohSettings
 
-_CTX = mp.get_context("spawn")
-SPARE_AFTER_S = 5.0  # seconds after the group starts before the warm spare actor is prepared
+# What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
+# torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's
+# first update while every actor waits for it.
+PRELOAD = ["actors.actor", "learner.agent", "learner.service", "torch._dynamo"]
+
+
+def _context() -> Any:
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(PRELOAD)
+    return ctx
+
+
+_CTX = _context()
 
 
 def _actor_main(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int) -> None:
@@ -36,20 +53,6 @@ def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSett
     from learner.service import run_learner
 
     raise SystemExit(run_learner(job_id, job, out_dir, settings))
-
-
-def _spare_main(conn: Any) -> None:
-    """A warm spare: imports what an actor needs (torch, Zenoh, the envs — seconds on a small machine), then waits
-    for the arguments of the actor it is to become. A crashed actor is replaced by the spare at once."""
-    import actors.actor  # noqa: F401
-    import learner.agent  # noqa: F401
-
-    try:
-        args = conn.recv()
-    except (EOFError, OSError):
-        return
-    if args is not None:
-        _actor_main(*args)
 
 
 @dataclass
@@ -101,9 +104,6 @@ class ProcessGroup:
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
         self.finished: set[str] = set()  # roles whose processes exited 0
         self.failed: str | None = None
-        self._spare: Any = None
-        self._spare_conn: Any = None
-        self.t_started = time.monotonic()
 
     # ----------------------------------------------------------------------------------------------- starting
     def _spawn_actor(self, index: int, generation: int) -> Slot:
@@ -111,32 +111,9 @@ class ProcessGroup:
         # distinct across hosts (the host name), indices and respawns: no two actors replay the same episodes
         seed = self.job.seed + 1000 * (index + 1) + 7919 * generation + (zlib.crc32(self.host.encode()) % 10**6) * 10**4
         args = (self.job_id, self.job, index, slot.ident, self.settings, seed)
-        spare = self._take_spare()
-        if spare is None:
-            slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
-            slot.proc.start()
-        else:
-            slot.proc = spare
-            self._spare_conn.send(args)
-            self._spare_conn.close()
-            self._start_spare()  # the next replacement (the first spare starts once the job runs: see poll)
+        slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
+        slot.proc.start()
         return slot
-
-    def _start_spare(self) -> None:
-        """Keep one warm, imported process ready to become the next (re)spawned actor."""
-        if "actor" not in self.roles or self._spare is not None:
-            return
-        parent, child = _CTX.Pipe()
-        self._spare = _CTX.Process(target=_spare_main, args=(child,), name="actor-spare", daemon=True)
-        self._spare.start()
-        child.close()
-        self._spare_conn = parent
-
-    def _take_spare(self) -> Any:
-        spare, self._spare = self._spare, None
-        if spare is not None and spare.is_alive():
-            return spare
-        return None
 
     def _spawn_learner(self, generation: int) -> Slot:
         slot = Slot("learner", 0, generation, None)
@@ -162,12 +139,9 @@ class ProcessGroup:
 
     # ------------------------------------------------------------------------------------------------ watching
     def pids(self) -> dict[str, int]:
-        """Every process of the group by id (the warm spare as ``actor-spare``): what tests clean up by PID."""
+        """Every process of the group by id: what tests clean up by PID."""
         slots = list(self.actors.values()) + ([self.learner] if self.learner else [])
-        out = {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
-        if self._spare is not None and self._spare.pid:
-            out["actor-spare"] = self._spare.pid
-        return out
+        return {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
 
     def alive_actors(self) -> int:
         return sum(1 for s in self.actors.values() if s.proc.is_alive())
@@ -191,8 +165,6 @@ class ProcessGroup:
         events: list[Event] = []
         if self.failed:
             return events
-        if self._spare is None and time.monotonic() - self.t_started > SPARE_AFTER_S:
-            self._start_spare()  # not at start-up, where its imports would compete with the job's processes
         for index, slot in list(self.actors.items()):
             code = slot.proc.exitcode
             if code is None:
@@ -234,9 +206,6 @@ class ProcessGroup:
     def stop_all(self, timeout: float = 10.0) -> None:
         """SIGTERM everything, wait up to ``timeout``, then SIGKILL what is left (by PID)."""
         slots = list(self.actors.values()) + ([self.learner] if self.learner else [])
-        spare = self._take_spare()
-        if spare is not None:
-            slots.append(Slot("actor", -1, 0, spare))
         for slot in slots:
             self._terminate(slot)
         deadline = time.monotonic() + timeout

@@ -186,6 +186,7 @@ def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:
         ({"env_params": {"n_agents": 0}}, "n_agents"),
         ({"steps": 0}, "steps"),
         ({"env": "referential", "hierarchical": True}, "hierarchical"),
+        ({"runtime": {"actor_nice": 20}}, "runtime.actor_nice"),
     ],
 )
 def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None:

@@ -108,9 +108,10 @@ def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Pat
     runner = JobRunner("killactor", job, tmp_path, progress=False)
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "2 actors alive")
-        wait_for(lambda: "actor-spare" in runner.group.pids(), 30, "the warm spare")  # mid-job: start-up is over
-        time.sleep(4.0)  # the spare has finished its imports
+        time.sleep(2.0)  # mid-job
         victim = runner.group.actors[0]
+        # actors yield to the learner on shared cores (runtime.actor_nice, default 5)
+        assert os.getpriority(os.PRIO_PROCESS, victim.proc.pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 5)
         os.kill(victim.proc.pid, signal.SIGKILL)
         killed_at = time.monotonic()
         respawn_s = wait_for(
