@@ -101,8 +101,9 @@ def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise
     if noise > 0:
         u = torch.rand_like(pairs).clamp_(1e-10, 1.0 - 1e-7)
         pairs = pairs - noise * torch.log(-torch.log(u))
-    soft = torch.softmax(pairs / tau, dim=-1)[..., 1]
-    hard = (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
+    diff = pairs[..., 1] - pairs[..., 0]
+    soft = torch.sigmoid(diff / tau)  # = softmax(pairs / tau)[..., 1]; softmax over a last dim of 2 is ~10× slower
+    hard = (diff > 0).to(logits.dtype)
     return hard + (soft - soft.detach())  # exactly 0/1 forward (x − x = 0), the soft gradient backward
 
 
