@@ -10,14 +10,21 @@ STOPPED = 143
 
 
 class ParentWatch:
-    """Notices when the process that started this one has died (the process is re-parented): a worker whose
-    supervisor was killed must not wait for ever for a learner or actors that will never come back."""
+    """Notices when the process that started this one has died: a worker whose supervisor was killed must not wait
+    for ever for a learner or actors that will never come back.
+
+    A multiprocessing child watches its parent's sentinel (``multiprocessing.parent_process()``): that is the
+    supervisor even when the child was forked by a forkserver, whose own lifetime the child's open descriptors
+    extend — re-parenting would never show. Anything else (``convoy actor`` from a shell) watches its parent PID.
+    """
 
     def __init__(self) -> None:
+        import multiprocessing
         import os
         import time
 
         self._os, self._time = os, time
+        self._mp_parent = multiprocessing.parent_process()
         self.parent = os.getppid()
         self._next = 0.0
 
@@ -27,4 +34,6 @@ class ParentWatch:
         if now < self._next:
             return False
         self._next = now + 1.0
+        if self._mp_parent is not None:
+            return not self._mp_parent.is_alive()
         return self._os.getppid() != self.parent

@@ -282,3 +282,48 @@ def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: P
         runner.run()
     assert time.monotonic() - t0 < 60
     assert runner.group is not None and not runner.group.pids()  # every process stopped
+
+
+def _descendants(root: int) -> set[int]:
+    """PIDs below ``root`` in the process tree (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError):
+                stat = (entry / "stat").read_text()
+                children.setdefault(int(stat[stat.rindex(")") + 2 :].split()[1]), []).append(int(entry.name))
+    found, todo = set(), [root]
+    while todo:
+        for kid in children.get(todo.pop(), []):
+            found.add(kid)
+            todo.append(kid)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] not in "ZX"
+    return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
+def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
+    """kill -9 of `convoy train`: its learner and actors (forks of its forkserver, which their open descriptors
+    keep alive) notice their supervisor is gone and exit, and the forkserver with them — nothing runs on."""
+    cfg = tmp_path / "job.json"
+    cfg.write_text(json.dumps({"algo": "idqn", "steps": 10_000_000, "runtime": {"actors": 2}, **TREADMILL}))
+    cmd = [sys.executable, "-m", "services.cli", "train", "--config", str(cfg), "--out", str(tmp_path / "run")]
+    with open(tmp_path / "train.log", "w") as log:
+        proc = subprocess.Popen([*cmd, "--no-progress"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: (tmp_path / "run" / "metrics.jsonl").is_file(), 60, "the job's first metric row", every=0.2)
+        roles = _descendants(proc.pid)
+        assert len(roles) >= 4, roles  # forkserver, learner, 2 actors (+ resource tracker)
+        proc.kill()
+        proc.wait(5)
+        gone_s = wait_for(lambda: not any(_alive(p) for p in roles), 10, "the orphaned processes to exit", every=0.1)
+        print(f"{len(roles)} processes gone {gone_s:.2f} s after kill -9 of the runner")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # the whole session, by its leader's PID
+        proc.wait(5)
