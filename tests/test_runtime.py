@@ -1,6 +1,6 @@
 """The distributed runtime end to end: real actor and learner processes talking over Zenoh on 127.0.0.1.
 
-Every test starts its own processes (spawn), on free ports, and stops them by PID in a ``finally``; none depends
+Every test starts its own processes (forks of the runner's forkserver), on free ports, and stops them by PID in a ``finally``; none depends
 on another's state. Sizes are CI-sized: referential game or a small treadmill with small networks.
 """
 
@@ -301,6 +301,7 @@ def _descendants(root: int) -> set[int]:
 
 
 def _alive(pid: int) -> bool:
+    """Running, not a zombie (``services.jobservice.pid_alive``'s signal 0 would count an unreaped exit as alive)."""
     with contextlib.suppress(OSError):
         return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] not in "ZX"
     return False
