@@ -1,7 +1,8 @@
 """The distributed runtime end to end: real actor and learner processes talking over Zenoh on 127.0.0.1.
 
-Every test starts its own processes (forks of the runner's forkserver), on free ports, and stops them by PID in a ``finally``; none depends
-on another's state. Sizes are CI-sized: referential game or a small treadmill with small networks.
+Every test starts its own processes (forks of the runner's forkserver), on free ports, and stops them by PID in a
+``finally``; none depends on another's state. Sizes are CI-sized: referential game or a small treadmill with small
+networks.
 """
 
 from __future__ import annotations
