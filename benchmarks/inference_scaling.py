@@ -17,6 +17,9 @@ linearly), DIAL ~quadratic (each of N agents reads the other N−1 agents' messa
 algorithm also appends a one-hot agent id (N columns) to each agent's input, which adds a small N² term everywhere.
 The figures are what this machine measures; nothing is asserted.
 
+Device: ``--device`` (default ``cpu``, where ``runtime.actor_device`` puts actors; ``auto``/``cuda`` for a GPU).
+``act`` returns numpy actions, so every timed call includes its round trip to the device and back.
+
 Why this way. One thread (``torch.set_num_threads(1)``, ``--threads``) pinned to one core, because an actor runs
 per core; warm-up calls first; a time budget per measurement and the median over ``--repeats`` rounds that visit
 every case once (a burst of contention on the shared machine hits one round of every case, not every round of one).
@@ -53,6 +56,7 @@ from report import cpu_model, markdown_table  # noqa: E402 (benchmarks/report.py
 
 from envs.registry import make_batched  # noqa: E402
 from learner.algorithm import Algorithm  # noqa: E402
+from learner.nets import pick_device  # noqa: E402
 from learner.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
 from protocol.config import ENV_DEFAULTS, resolve_algo  # noqa: E402
 
@@ -80,12 +84,38 @@ def importable_algorithms(names: Sequence[str], notes: list[str]) -> list[str]:
     return ok
 
 
-def build_algorithm(name: str, n_agents: int, num_envs: int, params: dict[str, Any], seed: int) -> tuple[Any, Any]:
-    """A treadmill batch (N agents + 1 adversary) and algorithm ``name`` at the env's resolved (paper) sizes."""
+def build_algorithm(
+    name: str, n_agents: int, num_envs: int, params: dict[str, Any], seed: int, device: str = "cpu"
+) -> tuple[Any, Any]:
+    """A treadmill batch (N agents + 1 adversary) and algorithm ``name`` at the env's resolved (paper) sizes, its
+    networks on ``device`` (``auto``: CUDA when present)."""
     env = make_batched(ENV, num_envs, n_agents=n_agents, n_adversaries=1)
     cfg = resolve_algo(name, ENV, params)
-    algo = make_algorithm(name, env.spec, cfg, device="cpu", seed=seed)
+    algo = make_algorithm(name, env.spec, cfg, device=device, seed=seed)
     return env, algo
+
+
+def add_device_arg(p: argparse.ArgumentParser, default: str, role: str) -> None:
+    """``--device`` with the config's choices (``protocol.config``: auto / cpu / cuda)."""
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default=default,
+        help=f"torch device of the networks (default {default}, as {role}; auto = CUDA when present)",
+    )
+
+
+def resolve_device(p: argparse.ArgumentParser, name: str) -> torch.device:
+    """The device ``--device`` names, or a usage error that says what to pick instead."""
+    if name == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: torch sees no CUDA device here; use --device auto (CUDA when present) or cpu")
+    return pick_device(name)
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for queued GPU work, so that a clock read after it times the work, not its launch."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def pin_cores(count: int, first: int | None = None) -> list[int] | None:
@@ -103,8 +133,11 @@ def pin_cores(count: int, first: int | None = None) -> list[int] | None:
     return chosen
 
 
-def machine_info(cores: list[int] | None, threads: int) -> dict[str, Any]:
+def machine_info(cores: list[int] | None, threads: int, device: torch.device | None = None) -> dict[str, Any]:
+    dev = device or torch.device("cpu")
     return {
+        "device": str(dev),
+        "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else cpu_model(),
         "cpu_model": cpu_model(),
         "pinned_cpus": cores,
         "cpu_count": os.cpu_count(),
@@ -191,9 +224,11 @@ class Case:
         return 1e3 * min(self.seconds_per_act)
 
 
-def make_case(name: str, n_agents: int, batch: int, params: dict[str, Any], seed: int, warmup: int) -> Case:
+def make_case(
+    name: str, n_agents: int, batch: int, params: dict[str, Any], seed: int, warmup: int, device: str
+) -> Case:
     """Build the algorithm, record real observations from random play, warm up and count one call's FLOPs."""
-    env, algo = build_algorithm(name, n_agents, batch, params, seed)
+    env, algo = build_algorithm(name, n_agents, batch, params, seed, device)
     rng = np.random.default_rng(seed)
     obs = env.reset(seed=seed)
     pool = []
@@ -339,6 +374,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--min-calls", type=int, default=3, help="at least this many calls per measurement (default 3)")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads, and CPUs pinned (default 1)")
     p.add_argument("--cpu", type=int, default=None, help="first CPU to pin to (default: the lowest allowed)")
+    add_device_arg(p, "cpu", "runtime.actor_device: actors act on CPU")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="smoke test: N 2 4 8, hidden 256 12, short budgets")
     p.add_argument("--markdown", type=Path, metavar="PATH", help="also write the table (Markdown) to PATH")
@@ -352,6 +388,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         args.seconds, args.repeats, args.warmup, args.min_calls = 0.02, 2, 2, 2
     if args.seconds <= 0 or args.repeats < 1 or args.batch < 1 or args.threads < 1 or min(args.agents) < 1:
         p.error("--seconds must be > 0 and --repeats, --batch, --threads, --agents ≥ 1")
+    args.device = resolve_device(p, args.device)
     args.agents = sorted(set(args.agents))
     return args
 
@@ -370,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for n in args.agents:
                 print(f"build {name} N={n} …", file=sys.stderr, flush=True)
-                cases.append(make_case(name, n, args.batch, params, args.seed, args.warmup))
+                cases.append(make_case(name, n, args.batch, params, args.seed, args.warmup, str(args.device)))
         except Exception as exc:  # an algorithm being written may import but not yet run
             cases = [c for c in cases if c.algo_name != name]
             msg = f"{name}: skipped, failed at N={n} ({type(exc).__name__}: {exc})"
@@ -388,8 +425,8 @@ def main(argv: list[str] | None = None) -> int:
     pinned = f"pinned to CPU {cores}" if cores is not None else "not pinned"
     heading = (
         f"Inference time per env step (one `act` call for B = {args.batch} env, all N agents) on the treadmill "
-        f"(N agents + 1 adversary), hidden {hidden}, {args.threads} torch thread(s) {pinned} of {os.cpu_count()} "
-        f"({cpu_model()}), torch {torch.__version__}.  \n"
+        f"(N agents + 1 adversary), hidden {hidden}, on {args.device}, {args.threads} torch thread(s) {pinned} of "
+        f"{os.cpu_count()} ({cpu_model()}), torch {torch.__version__}.  \n"
         f"Median of {args.repeats} × ≥ {args.seconds:g} s per case, after {args.warmup} warm-up calls. "
         f"k: least-squares slope of log time on log N (time ≈ c·N^k); FLOP k: the same for torch-counted FLOPs."
     )
@@ -406,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n(total {elapsed:.0f} s)", file=sys.stderr)
 
     payload = {
-        "machine": machine_info(cores, args.threads),
+        "machine": machine_info(cores, args.threads, args.device),
         "settings": {
             "env": ENV,
             "n_adversaries": 1,

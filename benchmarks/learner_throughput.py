@@ -27,6 +27,13 @@ shared weights) and batch size 64 (``--batch-size``, several values allowed):
   is the other operators, autograd and Python. Also the aten operator calls per update, and the minor page faults
   per timed update (``getrusage``), which count the fresh activation buffers the allocator had to map.
   (``torch.profiler`` is not used for this: on this torch it inflated the matmuls' self time ~4×.)
+* the other side of the roofline: the speed of a streaming read of ``--flush-mb`` MB (``sum``), which is what the
+  passes over activations too big for the caches run at.
+
+Device: ``--device`` (default ``auto``, as the learner's ``JobConfig.device``: CUDA when present). Every timed
+region is closed by a device synchronisation; on CUDA the peak is ``torch.mm`` on the GPU with torch's default TF32
+setting (recorded in the JSON), the "cold" flush streams ``--flush-mb`` through the GPU's L2 instead, and the
+streaming read is GPU memory.
 
 Target (from the issue): ≥ 0.5 of the matmul peak at the paper's sizes. It is reported, not asserted.
 
@@ -52,12 +59,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
 from inference_scaling import (
     ENV,
+    add_device_arg,
     build_algorithm,
     count_flops,
     fmt_count,
     importable_algorithms,
     machine_info,
     pin_cores,
+    resolve_device,
+    synchronize,
     write_outputs,
 )
 from report import cpu_model, markdown_table
@@ -136,8 +146,10 @@ class Case:
         spent, calls, faults, sys_s = 0.0, 0, 0, 0.0
         while spent < seconds or calls < min_updates:
             self.ready()
+            synchronize(self.algo.device)
             r0, t0 = rusage(), clock()
             self.algo.update()
+            synchronize(self.algo.device)
             spent += clock() - t0
             r1 = rusage()
             faults += r1[0] - r0[0]
@@ -175,7 +187,7 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
     }
     if args.hidden:
         params["hidden"] = tuple(args.hidden)
-    probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed)
+    probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed, str(args.device))
     probe_env.close()
     sequential = algo.chunk_len > 1  # DIAL: one update per observed [chunk_len, B] chunk
     envs = (args.dial_envs or batch_size) if sequential else COLLECT_ENVS
@@ -197,7 +209,7 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
         case.update()
     case.ready()
     case.flops, case.flops_by_op = count_flops(algo.update)
-    case.gemms = replay_gemms(record_gemms(case), args.flush_mb, args.gemm_repeats)
+    case.gemms = replay_gemms(record_gemms(case), args.flush_mb, args.gemm_repeats, args.device)
     return case
 
 
@@ -225,57 +237,78 @@ def record_gemms(case: Case) -> tuple[list[tuple[str, list[tuple[tuple[int, ...]
     return rec.gemms, rec.calls
 
 
-def replay_gemms(recorded: tuple[list, int], flush_mb: int, repeats: int) -> dict[str, Any]:
+def replay_gemms(recorded: tuple[list, int], flush_mb: int, repeats: int, device: torch.device) -> dict[str, Any]:
     """The update's GEMMs alone, on fresh operands of the same shapes and strides: seconds warm (each call repeated,
     median) and cold (``flush_mb`` MB streamed before every timed call, median), their FLOPs and the op calls."""
     gemms, calls = recorded
-    flush = torch.zeros(max(1, flush_mb) * (1 << 20) // 4)
+    flush = torch.zeros(max(1, flush_mb) * (1 << 20) // 4, device=device)
     clock = time.perf_counter
+
+    def timed(op: Any, operands: list[torch.Tensor], evict: bool) -> float:
+        times = []
+        for _ in range(repeats):
+            if evict:
+                flush.add_(1.0)  # evicts the operands (and everything else) from the caches
+            synchronize(device)
+            t0 = clock()
+            op(*operands)
+            synchronize(device)
+            times.append(clock() - t0)
+        return statistics.median(times)
+
     warm = cold = 0.0
     flops = 0
     for name, layout in gemms:
-        operands = [torch.empty_strided(shape, stride).normal_() for shape, stride in layout]
+        operands = [torch.empty_strided(shape, stride, device=device).normal_() for shape, stride in layout]
         op = getattr(torch.ops.aten, name).default
         *_, a, b = operands  # (bias,) a, b
         flops += 2 * int(np.prod(a.shape)) * (b.shape[-1] if b.dim() > 1 else 1)
         op(*operands)
-        times = []
-        for _ in range(repeats):
-            t0 = clock()
-            op(*operands)
-            times.append(clock() - t0)
-        warm += statistics.median(times)
-        times = []
-        for _ in range(repeats):
-            flush.add_(1.0)  # evicts the operands (and everything else) from the caches
-            t0 = clock()
-            op(*operands)
-            times.append(clock() - t0)
-        cold += statistics.median(times)
+        warm += timed(op, operands, evict=False)
+        cold += timed(op, operands, evict=True)
     return {"count": len(gemms), "flops": flops, "warm_s": warm, "cold_s": cold, "op_calls": calls}
 
 
 # ------------------------------------------------------------------------------------------------ the peak
-def matmul_peak(n: int, threads: int, repeats: int, min_seconds: float) -> dict[str, Any]:
-    """torch's own float32 GEMM speed on this machine and thread count: ``torch.mm`` of two n × n matrices."""
+def matmul_peak(n: int, threads: int, repeats: int, min_seconds: float, device: torch.device) -> dict[str, Any]:
+    """torch's own float32 GEMM speed on this device and thread count: ``torch.mm`` of two n × n matrices (on CUDA
+    with torch's default TF32 setting, which the learner's matmuls share)."""
     torch.set_num_threads(threads)
     gen = torch.Generator().manual_seed(0)
-    a, b = torch.randn(n, n, generator=gen), torch.randn(n, n, generator=gen)
-    out = torch.empty(n, n)
+    a, b = torch.randn(n, n, generator=gen).to(device), torch.randn(n, n, generator=gen).to(device)
+    out = torch.empty(n, n, device=device)
     for _ in range(2):
         torch.mm(a, b, out=out)
     rates = []
     for _ in range(repeats):
         clock = time.perf_counter
+        synchronize(device)
         calls, start = 0, clock()
         while True:
             torch.mm(a, b, out=out)
+            synchronize(device)
             calls += 1
             elapsed = clock() - start
             if elapsed >= min_seconds:
                 break
         rates.append(2.0 * n**3 * calls / elapsed / 1e9)
     return {"n": n, "gflops_median": statistics.median(rates), "gflops_best": max(rates), "all": rates}
+
+
+def read_bandwidth(mb: int, repeats: int, device: torch.device) -> float:
+    """GB/s of a streaming read (``sum``) over ``mb`` MB: the other side of the roofline. The paper's thin layers
+    (26–58 inputs → 4096 → 12) make an update pass over ``[rows, 4096]`` activations far more often than they fit
+    the caches, so this, not the matmul peak, is what the cold GEMMs and the elementwise passes run at."""
+    x = torch.ones(max(1, mb) * (1 << 20) // 4, device=device)
+    x.sum()
+    times = []
+    for _ in range(max(3, repeats)):
+        synchronize(device)
+        start = time.perf_counter()
+        x.sum()
+        synchronize(device)
+        times.append(time.perf_counter() - start)
+    return x.numel() * 4 / statistics.median(times) / 1e9
 
 
 # ------------------------------------------------------------------------------------------------ reporting
@@ -363,6 +396,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--flush-mb", type=int, default=64, help="MB streamed before each cold GEMM call (default 64)")
     p.add_argument("--min-updates", type=int, default=2, help="at least this many updates per measurement")
     p.add_argument("--peak-n", type=int, default=2048, help="size of the square matmul that defines the peak")
+    add_device_arg(p, "auto", "the learner: JobConfig.device")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="smoke test: hidden 256 12, batch 32, small replay")
     p.add_argument("--markdown", type=Path, metavar="PATH", help="also write the table (Markdown) to PATH")
@@ -384,6 +418,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         or min(args.batch_size) < 1
     ):
         p.error("--seconds must be > 0 and --repeats, --threads, --agents, --batch-size ≥ 1")
+    args.device = resolve_device(p, args.device)
     return args
 
 
@@ -406,28 +441,32 @@ def main(argv: list[str] | None = None) -> int:
                 notes.append(msg)
                 print(f"note: {msg}", file=sys.stderr)
 
-    peak = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5))
+    peak = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5), args.device)
     print(f"peak: torch.mm {args.peak_n}² → {peak['gflops_median']:.1f} GFLOP/s", file=sys.stderr)
     for r in range(args.repeats):
         for c in cases:
             t = c.measure(args.seconds, args.min_updates)
             print(f"[round {r + 1}/{args.repeats}] {c.algo_name} b={c.batch_size}: {1e3 * t:.2f} ms", file=sys.stderr)
-    peak_after = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5))
+    peak_after = matmul_peak(args.peak_n, args.threads, max(3, args.repeats), min(args.seconds, 0.5), args.device)
     peak_rates = peak["all"] + peak_after["all"]  # before and after the updates, so drift shows
     peak_gflops = statistics.median(peak_rates)
+    read_gbs = read_bandwidth(args.flush_mb, 9, args.device)
 
     hidden = tuple(args.hidden) if args.hidden else ENV_DEFAULTS[ENV]["hidden"]
+    machine = machine_info(cores, args.threads, args.device)
     pinned = f"pinned to CPU {cores}" if cores is not None else "not pinned"
     heading = (
-        f"Learner throughput on the treadmill (N = {args.agents} agents + 1 adversary), hidden {hidden}, "
-        f"{args.threads} torch thread(s) {pinned} of {os.cpu_count()} ({cpu_model()}), torch {torch.__version__}.  \n"
+        f"Learner throughput on the treadmill (N = {args.agents} agents + 1 adversary), hidden {hidden}, on "
+        f"{args.device} ({machine['device_name']}), {args.threads} torch thread(s) {pinned} of {os.cpu_count()} "
+        f"({cpu_model()}), torch {torch.__version__}.  \n"
         f"Median of {args.repeats} × ≥ {args.seconds:g} s of `update()` per case after {args.warmup} warm-up "
         f"updates; replay filled to {args.fill or args.capacity:,} rows. FLOPs: torch's FlopCounterMode over one "
         f"update (matmuls, forward + backward + targets). Peak: torch.mm of {args.peak_n}² float32, "
         f"{fmt_rate(peak_gflops)} GFLOP/s (median of {len(peak_rates)}, before and after; best "
         f"{fmt_rate(max(peak_rates))}). GEMMs alone: every GEMM of one update replayed by itself on operands of "
         f"the same shapes and strides, warm (repeated, median of {args.gemm_repeats}) and cold ({args.flush_mb} MB "
-        f"streamed before each call), summed, with their fraction of the peak; page faults: minor faults per timed "
+        f"streamed before each call), summed, with their fraction of the peak; memory: a streaming read of "
+        f"{args.flush_mb} MB runs at {read_gbs:.1f} GB/s; page faults: minor faults per timed "
         f"update (getrusage). DIAL (on-policy) learns from one chunk of B sequences × unroll steps per update instead "
         f"of a replay sample."
     )
@@ -438,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n(total {elapsed:.0f} s)", file=sys.stderr)
 
     payload = {
-        "machine": machine_info(cores, args.threads),
+        "machine": machine,
         "settings": {
             "env": ENV,
             "n_agents": args.agents,
@@ -456,12 +495,15 @@ def main(argv: list[str] | None = None) -> int:
         },
         "peak": {
             "op": "torch.mm float32",
+            "device": str(args.device),
+            "cuda_tf32": torch.backends.cuda.matmul.allow_tf32 if args.device.type == "cuda" else None,
             "n": args.peak_n,
             "gflops": peak_gflops,
             "gflops_best": max(peak_rates),
             "gflops_before": peak["all"],
             "gflops_after": peak_after["all"],
         },
+        "memory_read_gbs": read_gbs,
         "target_fraction": TARGET_FRACTION,
         "results": [
             {

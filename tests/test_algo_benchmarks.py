@@ -10,6 +10,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import pytest
+import torch
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -37,6 +40,7 @@ def test_inference_scaling_quick_run_writes_table_json_and_plot(tmp_path: Path) 
     assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     data = json.loads(out.read_text())
+    assert data["machine"]["device"] == "cpu"  # where actors act unless runtime.actor_device says otherwise
     assert data["settings"]["agents"] == [2, 4, 8]
     assert data["plot"] == str(png)
     measured = {r["algo"] for r in data["results"]}
@@ -63,6 +67,9 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
 
     data = json.loads(out.read_text())
     assert positive(data["peak"]["gflops"]) and data["peak"]["op"] == "torch.mm float32"
+    assert positive(data["memory_read_gbs"])  # the roofline's other side, measured in the same run
+    expected = "cuda" if torch.cuda.is_available() else "cpu"  # --device auto, as the learner's JobConfig.device
+    assert data["machine"]["device"] == data["peak"]["device"] == expected
     assert data["target_fraction"] == 0.5
     measured = {r["algo"] for r in data["results"]}
     assert "idqn" in measured
@@ -96,3 +103,28 @@ def test_decentralized_quick_run_reports_every_method_and_the_channel_table(tmp_
     zero = {r["method"]: r["return"] for r in data["channel"] if r["drop"] == 0.0}
     assert zero["ma-mesn"] == zero["ma-mesn-mm"]  # nothing is lost at drop 0: the same policy, the same episodes
     assert (tmp_path / "ma-mesn-mm-0" / "checkpoint.pt").is_file()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+@pytest.mark.parametrize("script", ["learner_throughput.py", "inference_scaling.py"])
+def test_benchmarks_refuse_cuda_where_there_is_none_and_say_what_to_pick(script: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick", "--device", "cuda"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 2
+    assert "--device cuda: torch sees no CUDA device here; use --device auto" in proc.stderr
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_learner_throughput_runs_on_cuda(tmp_path: Path) -> None:
+    out = tmp_path / "lt.json"
+    run_quick("learner_throughput.py", "--device", "cuda", "--algos", "idqn", "ma-bon", "--json", str(out))
+    data = json.loads(out.read_text())
+    assert data["machine"]["device"] == data["peak"]["device"] == "cuda"
+    assert positive(data["peak"]["gflops"]) and positive(data["memory_read_gbs"])
+    for r in data["results"]:
+        assert positive(r["fraction_of_peak"]) and r["gemms_alone"]["flops"] == r["flops_per_update"]
