@@ -58,7 +58,7 @@ from envs.registry import make_batched  # noqa: E402
 from learner.algorithm import Algorithm  # noqa: E402
 from learner.nets import pick_device  # noqa: E402
 from learner.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
-from protocol.config import ENV_DEFAULTS, resolve_algo  # noqa: E402
+from protocol.config import DEVICES, ENV_DEFAULTS, resolve_algo  # noqa: E402
 
 ENV = "treadmill"
 AGENT_COUNTS = (2, 4, 8, 16, 32, 64)
@@ -96,10 +96,10 @@ def build_algorithm(
 
 
 def add_device_arg(p: argparse.ArgumentParser, default: str, role: str) -> None:
-    """``--device`` with the config's choices (``protocol.config``: auto / cpu / cuda)."""
+    """``--device`` with the config's choices (``protocol.config.DEVICES``)."""
     p.add_argument(
         "--device",
-        choices=("auto", "cpu", "cuda"),
+        choices=DEVICES,
         default=default,
         help=f"torch device of the networks (default {default}, as {role}; auto = CUDA when present)",
     )

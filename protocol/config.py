@@ -9,12 +9,15 @@ resolved, so a user who sets them explicitly always wins.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from envs.config import ConfigError, build_config
 from protocol.session import ZenohSettings
+
+Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
+DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
 
 MessageSource = Literal["sent", "predicted", "noise"]
 MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (learner.listening)
@@ -296,7 +299,7 @@ class RuntimeConfig(BaseModel):
         description="Niceness added to actor processes: where actors and the learner share cores, the learner (one "
         "per job, what every actor waits for) gets the larger CPU share; 0 = equal shares.",
     )
-    actor_device: Literal["cpu", "auto", "cuda"] = Field(
+    actor_device: Device = Field(
         "cpu", description="Torch device of actors' inference (small batches: CPU unless envs are many)."
     )
     inbox: int = Field(256, ge=1, description="Chunks the learner queues off the Zenoh thread (oldest dropped).")
@@ -329,7 +332,7 @@ class JobConfig(BaseModel):
     eval_episodes: int = Field(20, ge=0, description="Greedy episodes evaluated at the end.")
     log_every: int = Field(2_000, ge=1, description="Env steps between metric rows.")
     checkpoint_every: int = Field(50_000, ge=1, description="Env steps between checkpoints.")
-    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="Torch device; auto = CUDA when present.")
+    device: Device = Field("auto", description="Torch device; auto = CUDA when present.")
     torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig, description="Distributed runtime settings.")
 

@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from envs import ENVS, ConfigError
-from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, AlgoConfig, JobConfig, job_config
+from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, job_config
 from services.args import env_params, parse_pairs
 
 console = Console()
@@ -134,7 +134,7 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     add_job_flags(tr)
-    tr.add_argument("--device", choices=["auto", "cpu", "cuda"], help="torch device (default auto: CUDA if present)")
+    tr.add_argument("--device", choices=DEVICES, help="torch device (default auto: CUDA if present)")
     tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
