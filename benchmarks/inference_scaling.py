@@ -85,10 +85,10 @@ def importable_algorithms(names: Sequence[str], notes: list[str]) -> list[str]:
 
 
 def build_algorithm(
-    name: str, n_agents: int, num_envs: int, params: dict[str, Any], seed: int, device: str = "cpu"
+    name: str, n_agents: int, num_envs: int, params: dict[str, Any], seed: int, device: torch.device
 ) -> tuple[Any, Any]:
     """A treadmill batch (N agents + 1 adversary) and algorithm ``name`` at the env's resolved (paper) sizes, its
-    networks on ``device`` (``auto``: CUDA when present)."""
+    networks on ``device``."""
     env = make_batched(ENV, num_envs, n_agents=n_agents, n_adversaries=1)
     cfg = resolve_algo(name, ENV, params)
     algo = make_algorithm(name, env.spec, cfg, device=device, seed=seed)
@@ -133,11 +133,10 @@ def pin_cores(count: int, first: int | None = None) -> list[int] | None:
     return chosen
 
 
-def machine_info(cores: list[int] | None, threads: int, device: torch.device | None = None) -> dict[str, Any]:
-    dev = device or torch.device("cpu")
+def machine_info(cores: list[int] | None, threads: int, device: torch.device) -> dict[str, Any]:
     return {
-        "device": str(dev),
-        "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else cpu_model(),
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_model(),
         "cpu_model": cpu_model(),
         "pinned_cpus": cores,
         "cpu_count": os.cpu_count(),
@@ -225,7 +224,7 @@ class Case:
 
 
 def make_case(
-    name: str, n_agents: int, batch: int, params: dict[str, Any], seed: int, warmup: int, device: str
+    name: str, n_agents: int, batch: int, params: dict[str, Any], seed: int, warmup: int, device: torch.device
 ) -> Case:
     """Build the algorithm, record real observations from random play, warm up and count one call's FLOPs."""
     env, algo = build_algorithm(name, n_agents, batch, params, seed, device)
@@ -407,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for n in args.agents:
                 print(f"build {name} N={n} …", file=sys.stderr, flush=True)
-                cases.append(make_case(name, n, args.batch, params, args.seed, args.warmup, str(args.device)))
+                cases.append(make_case(name, n, args.batch, params, args.seed, args.warmup, args.device))
         except Exception as exc:  # an algorithm being written may import but not yet run
             cases = [c for c in cases if c.algo_name != name]
             msg = f"{name}: skipped, failed at N={n} ({type(exc).__name__}: {exc})"

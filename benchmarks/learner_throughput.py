@@ -187,7 +187,7 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
     }
     if args.hidden:
         params["hidden"] = tuple(args.hidden)
-    probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed, str(args.device))
+    probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed, args.device)
     probe_env.close()
     sequential = algo.chunk_len > 1  # DIAL: one update per observed [chunk_len, B] chunk
     envs = (args.dial_envs or batch_size) if sequential else COLLECT_ENVS
