@@ -109,7 +109,12 @@ class Algorithm(ABC):
         self.progress = Progress()
         self.updates = 0
         self.replay = JointReplay(cfg.replay_capacity)
-        self.online: nn.ModuleDict = nn.ModuleDict(self.build()).to(self.device)
+        # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
+        # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            networks = self.build()
+        self.online: nn.ModuleDict = nn.ModuleDict(networks).to(self.device)
         self.target: nn.ModuleDict = copy.deepcopy(self.online)
         self.target.requires_grad_(False)
         self._optimizer: torch.optim.Optimizer | None = None

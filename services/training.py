@@ -20,15 +20,12 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
 
 def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
-    import torch
-
     from learner.agent import make_agent
     from learner.inprocess import Trainer
     from learner.runtime import configure_learner
 
     configure_learner(job.torch_threads)
-    torch.manual_seed(job.seed)
-    env = make_env(job)
+    env = make_env(job)  # the agent's initial weights follow job.seed, and Trainer.run seeds the training stream
     try:
         agent = make_agent(job, env.spec)
         trainer = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), out_dir=out_dir, progress=progress)

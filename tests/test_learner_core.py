@@ -10,7 +10,7 @@ from envs import ConfigError, make_batched
 from envs.batched import EnvSpec
 from learner.algorithm import epsilon_at, td_target
 from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from learner.registry import make_algorithm
+from learner.registry import ALGORITHMS, make_algorithm
 from learner.replay import JointReplay
 from protocol.config import job_config, resolve_algo
 
@@ -161,6 +161,28 @@ def test_checkpoint_reload_gives_identical_actions(tmp_path) -> None:
     np.testing.assert_array_equal(algo.act(obs, 0.0).actions, again.act(obs, 0.0).actions)
     np.testing.assert_array_equal(algo.act(obs, 0.0).messages, again.act(obs, 0.0).messages)
     assert job2 == job and counters["env_steps"] == 123 and again.updates == 5
+
+
+@pytest.mark.parametrize("name", [n for n in ALGORITHMS if n != "codbc"])  # CoDBC: same base class, needs a teacher
+def test_initial_weights_are_a_function_of_the_seed_alone(name: str) -> None:
+    """A caller that never seeds torch (a benchmark's first run in a process) still gets the same network for the
+    same seed, and building one does not move the caller's own torch stream."""
+    cfg = resolve_algo(name, "referential", {"hidden": (32,)})
+
+    def weights(seed: int, global_seed: int) -> dict[str, torch.Tensor]:
+        torch.manual_seed(global_seed)
+        return make_algorithm(name, SPEC, cfg, device="cpu", seed=seed).online.state_dict()
+
+    a, b, other = weights(3, 1), weights(3, 2), weights(4, 1)
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"{name}: {k} depends on torch's global RNG")
+    assert any(not torch.equal(a[k], other[k]) for k in a), f"{name}: seeds 3 and 4 built identical networks"
+    torch.manual_seed(5)
+    make_algorithm(name, SPEC, cfg, device="cpu", seed=3)
+    drawn = torch.rand(4)
+    torch.manual_seed(5)
+    torch.testing.assert_close(drawn, torch.rand(4), rtol=0, atol=0, msg="building an algorithm moved torch's RNG")
 
 
 def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:

@@ -482,13 +482,13 @@ def treadmill_job(algo: str, **algo_params: Any) -> Any:
 
 
 def save_teacher(path: Path, algo: str, env_params: dict[str, Any] | None = None, **algo_params: Any) -> Path:
-    """A checkpoint of an untrained ``algo`` (random weights) on a small treadmill."""
+    """A checkpoint of an untrained ``algo`` (random weights) on a small treadmill. Its seed (7) is not the
+    students' (0): with the same seed and sizes an untrained IDQN teacher and its student are the same network."""
     params = {"hidden": (32,), **algo_params}
     job = job_config(
-        algo=algo, env="treadmill", env_params=env_params or SMALL_TREADMILL, algo_params=params, device="cpu"
+        algo=algo, env="treadmill", env_params=env_params or SMALL_TREADMILL, algo_params=params, device="cpu", seed=7
     )
     env = make_batched("treadmill", 2, **job.env_params)
-    torch.manual_seed(7)
     teacher = make_agent(job, env.spec, device="cpu")
     return save_checkpoint(path, teacher, job, {"env_steps": 0, "episodes": 0, "updates": 0})
 
