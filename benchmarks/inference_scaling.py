@@ -6,7 +6,7 @@ treadmill (one adversary, the default 100 × 100 road, which has 625 spawn cells
 wall time of one ``algo.act(obs, 0.0, state)`` call for B = 1 env (``--batch``), i.e. the decision of all N agents
 for one env step, including the numpy ↔ torch conversions and ε-greedy bookkeeping an actor pays. Recurrent state
 (DIAL's messages from t−1) is carried from call to call as an actor would. The table also gives the parameter count
-and the matmul FLOPs of one call (``torch.utils.flop_counter.FlopCounterMode``), and fits the exponent k of
+and the matmul FLOPs of one call (torch's ``FlopCounterMode``, ``benchmarks/flops.py``), and fits the exponent k of
 time ≈ c·N^k by least squares on log-log axes over every N and over the upper half of N (fixed per-call overheads,
 a few hundred µs of Python and dispatch, flatten the curve at small N, so the upper half is the better estimate of
 the asymptotic order). The same fit on the FLOPs shows the order the architecture implies.
@@ -52,6 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
+from flops import count_flops  # noqa: E402 (benchmarks/flops.py, next to this script)
 from report import cpu_model, markdown_table  # noqa: E402 (benchmarks/report.py, next to this script)
 
 from envs.registry import make_batched  # noqa: E402
@@ -145,17 +146,6 @@ def machine_info(cores: list[int] | None, threads: int, device: torch.device) ->
         "torch": torch.__version__,
         "numpy": np.__version__,
     }
-
-
-def count_flops(fn: Callable[[], Any]) -> tuple[int, dict[str, int]]:
-    """FLOPs torch itself counts for ``fn()`` (matmuls/convs; forward and backward), total and by op."""
-    from torch.utils.flop_counter import FlopCounterMode
-
-    mode = FlopCounterMode(display=False)
-    with mode:
-        fn()
-    by_op = {str(op): int(v) for op, v in mode.get_flop_counts().get("Global", {}).items()}
-    return int(mode.get_total_flops()), by_op
 
 
 def timed_calls(fn: Callable[[], Any], seconds: float, min_calls: int) -> float:

@@ -15,12 +15,15 @@ shared weights) and batch size 64 (``--batch-size``, several values allowed):
 * ``update()`` is timed call by call after ``--warmup`` untimed updates: median over ``--repeats`` rounds (each ≥
   ``--seconds``) → updates/s, and transitions/s = transitions per update × updates/s;
 * the FLOPs of one update are counted by torch itself (``torch.utils.flop_counter.FlopCounterMode`` around one
-  ``update()``: every matmul of the forward passes, the backward pass and the target evaluations; elementwise work
-  such as ReLU, Gumbel sampling and Adam is not counted, so achieved GFLOP/s is matmul work per second of update);
+  ``update()``: every matmul of the forward passes, the backward pass and the target evaluations, and the fused
+  LSTM layers of the memory modules, which torch's own table counts as zero (``benchmarks/flops.py``); elementwise
+  work such as ReLU, Gumbel sampling and Adam is not counted, so achieved GFLOP/s is matmul work per second of
+  update);
 * the peak is torch's own: ``torch.mm`` of two square float32 matrices (``--peak-n``, 2048) with the same thread
   count, measured in the same run, so the fraction of peak compares like with like;
-* how far an update is from its own GEMMs: every GEMM one update runs (``mm``, ``addmm``, ``bmm``, ``baddbmm``
-  with their operands' shapes and strides, recorded by a ``TorchDispatchMode``) is replayed alone on fresh operands
+* how far an update is from its own GEMMs: every GEMM one update runs (``mm``, ``addmm``, ``bmm``, ``baddbmm``, and
+  the fused LSTM layer calls, whose oneDNN/cuDNN kernels are GEMMs plus gates, with their operands' shapes, strides
+  and dtypes, recorded by a ``TorchDispatchMode``) is replayed alone on fresh operands
   of the same layout — *warm* (the same call repeated, operands in cache: the speed the kernels have on these
   shapes) and *cold* (``--flush-mb`` of memory streamed before each call, as inside an update, whose activations
   do not fit the caches). Their sum is the update's GEMM time without anything else; the rest of ``ms/update``
@@ -55,13 +58,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.utils._pytree import tree_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
+from flops import RNN_FLOPS, count_flops, op_flops
 from inference_scaling import (
     ENV,
     add_device_arg,
     build_algorithm,
-    count_flops,
     fmt_count,
     importable_algorithms,
     machine_info,
@@ -213,22 +217,37 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
     return case
 
 
-def record_gemms(case: Case) -> tuple[list[tuple[str, list[tuple[tuple[int, ...], tuple[int, ...]]]]], int]:
-    """Every GEMM of one update as (aten op, [(shape, stride) of each tensor operand]), and the aten op calls."""
+@dataclass(frozen=True)
+class Layout:
+    """A tensor operand of a recorded GEMM, by shape, strides and dtype (the replay makes a fresh one like it)."""
+
+    shape: tuple[int, ...]
+    stride: tuple[int, ...]
+    dtype: torch.dtype
+
+
+Recorded = tuple[Any, list[Any]]  # (aten overload, its positional args with every tensor as a Layout)
+
+
+def record_gemms(case: Case) -> tuple[list[Recorded], int]:
+    """Every GEMM of one update — ``GEMM_OPS``, and the fused recurrent layers whose kernels are GEMMs plus gates
+    (``flops.RNN_FLOPS``: a CPU ``nn.LSTM`` layer is one oneDNN call) — and the aten op calls."""
     from torch.utils._python_dispatch import TorchDispatchMode
+
+    def layout(a: Any) -> Any:
+        return Layout(tuple(a.shape), tuple(a.stride()), a.dtype) if isinstance(a, torch.Tensor) else a
 
     class Recorder(TorchDispatchMode):
         def __init__(self) -> None:
             super().__init__()
-            self.gemms: list[tuple[str, list[tuple[tuple[int, ...], tuple[int, ...]]]]] = []
+            self.gemms: list[Recorded] = []
             self.calls = 0
 
         def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
             self.calls += 1
-            name = func.overloadpacket.__name__
-            if name in GEMM_OPS and not kwargs:
-                layout = [(tuple(a.shape), tuple(a.stride())) for a in args if isinstance(a, torch.Tensor)]
-                self.gemms.append((name, layout))
+            packet = func.overloadpacket
+            if (packet.__name__ in GEMM_OPS or packet in RNN_FLOPS) and not kwargs:
+                self.gemms.append((func, tree_map(layout, list(args))))
             return func(*args, **(kwargs or {}))
 
     case.ready()
@@ -237,14 +256,29 @@ def record_gemms(case: Case) -> tuple[list[tuple[str, list[tuple[tuple[int, ...]
     return rec.gemms, rec.calls
 
 
-def replay_gemms(recorded: tuple[list, int], flush_mb: int, repeats: int, device: torch.device) -> dict[str, Any]:
+def gemm_flops(func: Any, args: list[Any]) -> int:
+    """2·m·k·n of a GEMM (the last two tensor operands, batched or not); a fused RNN layer's by ``flops.op_flops``."""
+    rnn = op_flops(func, args)
+    if rnn is not None:
+        return rnn
+    *_, a, b = [t for t in args if isinstance(t, torch.Tensor)]  # (bias,) a, b
+    return 2 * int(np.prod(a.shape)) * (b.shape[-1] if b.dim() > 1 else 1)
+
+
+def replay_gemms(recorded: tuple[list[Recorded], int], flush_mb: int, repeats: int, device: torch.device) -> dict:
     """The update's GEMMs alone, on fresh operands of the same shapes and strides: seconds warm (each call repeated,
     median) and cold (``flush_mb`` MB streamed before every timed call, median), their FLOPs and the op calls."""
     gemms, calls = recorded
     flush = torch.zeros(max(1, flush_mb) * (1 << 20) // 4, device=device)
     clock = time.perf_counter
 
-    def timed(op: Any, operands: list[torch.Tensor], evict: bool) -> float:
+    def fresh(a: Any) -> Any:
+        if not isinstance(a, Layout):
+            return a
+        t = torch.empty_strided(a.shape, a.stride, dtype=a.dtype, device=device)
+        return t.normal_() if t.is_floating_point() else t.zero_()  # e.g. oneDNN's byte workspace
+
+    def timed(op: Any, operands: list[Any], evict: bool) -> float:
         times = []
         for _ in range(repeats):
             if evict:
@@ -258,11 +292,9 @@ def replay_gemms(recorded: tuple[list, int], flush_mb: int, repeats: int, device
 
     warm = cold = 0.0
     flops = 0
-    for name, layout in gemms:
-        operands = [torch.empty_strided(shape, stride, device=device).normal_() for shape, stride in layout]
-        op = getattr(torch.ops.aten, name).default
-        *_, a, b = operands  # (bias,) a, b
-        flops += 2 * int(np.prod(a.shape)) * (b.shape[-1] if b.dim() > 1 else 1)
+    for op, template in gemms:
+        operands = tree_map(fresh, template)
+        flops += gemm_flops(op, operands)
         op(*operands)
         warm += timed(op, operands, evict=False)
         cold += timed(op, operands, evict=True)
@@ -461,7 +493,8 @@ def main(argv: list[str] | None = None) -> int:
         f"({cpu_model()}), torch {torch.__version__}.  \n"
         f"Median of {args.repeats} × ≥ {args.seconds:g} s of `update()` per case after {args.warmup} warm-up "
         f"updates; replay filled to {args.fill or args.capacity:,} rows. FLOPs: torch's FlopCounterMode over one "
-        f"update (matmuls, forward + backward + targets). Peak: torch.mm of {args.peak_n}² float32, "
+        f"update (matmuls and fused LSTM layers, forward + backward + targets). Peak: torch.mm of "
+        f"{args.peak_n}² float32, "
         f"{fmt_rate(peak_gflops)} GFLOP/s (median of {len(peak_rates)}, before and after; best "
         f"{fmt_rate(max(peak_rates))}). GEMMs alone: every GEMM of one update replayed by itself on operands of "
         f"the same shapes and strides, warm (repeated, median of {args.gemm_repeats}) and cold ({args.flush_mb} MB "

@@ -3,6 +3,7 @@ machine is shared)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import subprocess
@@ -12,6 +13,8 @@ from typing import Any
 
 import pytest
 import torch
+
+from protocol.config import MemoryFields
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,6 +89,41 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
             assert r["transitions_per_update"] == 4 * r["chunk_len"]
         else:
             assert r["transitions_per_update"] == r["batch_size"] == 32
+    # the memory modules' LSTMs are counted (a fused kernel torch's own counter sees as 0 FLOPs): forward and backward
+    # of a window × 128-unit layer over every agent's row, at least 3 · 2 · rows · window · H · 4H beyond their base
+    flops = {r["algo"]: r["flops_per_update"] for r in data["results"]}
+    window, units = MemoryFields().memory_window, MemoryFields().memory_hidden
+    lstm_min = 3 * 2 * (32 * data["settings"]["n_agents"]) * window * units * 4 * units
+    for base in ("ma-mesn", "ma-bon"):
+        assert flops[f"{base}-mm"] - flops[base] >= lstm_min, (base, flops)
+
+
+@pytest.mark.filterwarnings("ignore:TF32 acceleration on top of oneDNN")  # mkldnn.flags() on a build without XPU
+def test_fused_lstm_flops_equal_the_same_layers_run_step_by_step() -> None:
+    """``benchmarks/flops.py``'s formulas for the fused RNN kernels count what torch counts for the unfused path."""
+    spec = importlib.util.spec_from_file_location("bench_flops", ROOT / "benchmarks" / "flops.py")
+    assert spec is not None and spec.loader is not None
+    bench_flops = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_flops)
+    torch.manual_seed(0)
+    lstm = torch.nn.LSTM(27, 64, num_layers=2, batch_first=True)
+    x = torch.randn(5, 8, 27, requires_grad=True)
+    h0, c0 = torch.zeros(2, 5, 64, requires_grad=True), torch.zeros(2, 5, 64, requires_grad=True)
+
+    def forward() -> None:
+        lstm(x, (h0, c0))[0].sum()
+
+    def train_step() -> None:
+        lstm(x, (h0, c0))[0].sum().backward()
+
+    counted = {}
+    for fused in (True, False):
+        with torch.backends.mkldnn.flags(enabled=fused):
+            counted[fused] = (bench_flops.count_flops(forward)[0], bench_flops.count_flops(train_step)[0])
+    per_layer = 2 * 5 * 8 * 4 * 64  # 2 · rows · 4H
+    assert counted[False][0] == per_layer * (27 + 64) + per_layer * (64 + 64)
+    assert counted[True] == counted[False]
+    assert counted[False][1] == 3 * counted[False][0]
 
 
 def test_decentralized_quick_run_reports_every_method_and_the_channel_table(tmp_path: Path) -> None:
