@@ -67,10 +67,6 @@ class GroupMLP(nn.Module):
         h = fused_mlp(x.reshape(-1, n, x.shape[-1]).transpose(0, 1), [(la.weight, la.bias) for la in self.layers])
         return h.transpose(0, 1).reshape(*x.shape[:-1], h.shape[-1])
 
-    def flops_per_row(self) -> int:
-        """Multiply-adds × 2 of one agent's forward pass (for the throughput benchmark)."""
-        return sum(2 * layer.in_features * layer.out_features for layer in self.layers)
-
 
 def with_agent_id(x: Tensor, shared: bool) -> Tensor:
     """Append a one-hot agent id when parameters are shared, so one network can still tell agents apart."""

@@ -143,9 +143,6 @@ class ProcessGroup:
         slots = list(self.actors.values()) + ([self.learner] if self.learner else [])
         return {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
 
-    def alive_actors(self) -> int:
-        return sum(1 for s in self.actors.values() if s.proc.is_alive())
-
     def _crash(self, role: str, slot: Slot, code: int | None) -> Event | None:
         now = time.monotonic()
         window = self.crashes[role]
