@@ -28,19 +28,19 @@ def _rnn_forward(rows_shape: Sequence[int], weights: Sequence[Sequence[int]]) ->
     return 2 * rows * sum(math.prod(w) for w in weights if len(w) == 2)
 
 
-def mkldnn_rnn_flops(input: Any, w_ih: Any, w_hh: Any, *args: Any, out_shape: Any = None, **kwargs: Any) -> int:
+def mkldnn_rnn_flops(input: Any, w_ih: Any, w_hh: Any, *args: Any, **kwargs: Any) -> int:
     return _rnn_forward(input, [w_ih, w_hh])
 
 
-def mkldnn_rnn_backward_flops(input: Any, w_ih: Any, w_hh: Any, *args: Any, out_shape: Any = None, **kw: Any) -> int:
+def mkldnn_rnn_backward_flops(input: Any, w_ih: Any, w_hh: Any, *args: Any, **kwargs: Any) -> int:
     return 2 * _rnn_forward(input, [w_ih, w_hh])
 
 
-def cudnn_rnn_flops(input: Any, weights: Any, *args: Any, out_shape: Any = None, **kwargs: Any) -> int:
+def cudnn_rnn_flops(input: Any, weights: Any, *args: Any, **kwargs: Any) -> int:
     return _rnn_forward(input, weights)
 
 
-def cudnn_rnn_backward_flops(input: Any, weights: Any, *args: Any, out_shape: Any = None, **kwargs: Any) -> int:
+def cudnn_rnn_backward_flops(input: Any, weights: Any, *args: Any, **kwargs: Any) -> int:
     return 2 * _rnn_forward(input, weights)
 
 
