@@ -26,10 +26,14 @@ shared weights) and batch size 64 (``--batch-size``, several values allowed):
   and dtypes, recorded by a ``TorchDispatchMode``) is replayed alone on fresh operands
   of the same layout — *warm* (the same call repeated, operands in cache: the speed the kernels have on these
   shapes) and *cold* (``--flush-mb`` of memory streamed before each call, as inside an update, whose activations
-  do not fit the caches). Their sum is the update's GEMM time without anything else; the rest of ``ms/update``
-  is the other operators, autograd and Python. Also the aten operator calls per update, and the minor page faults
-  per timed update (``getrusage``), which count the fresh activation buffers the allocator had to map.
-  (``torch.profiler`` is not used for this: on this torch it inflated the matmuls' self time ~4×.)
+  do not fit the caches) — and the same GEMMs *inside* real updates: each call timed by itself (between device
+  synchronisations) while ``update()`` runs, summed per update, median of ``--gemm-repeats`` updates. That sum is
+  the update's GEMM time as the update runs it; the rest of ``ms/update`` is the other operators, autograd and
+  Python. Where the GEMMs inside the update alone take longer than an update at the target may (its FLOPs ÷ the
+  target fraction of the peak), the verdict says so: no change to the other operators reaches the target there,
+  only faster GEMMs. Also the aten operator calls per update, and the minor page faults per timed update
+  (``getrusage``), which count the fresh activation buffers the allocator had to map. (``torch.profiler`` is not
+  used for this: on this torch it inflated the matmuls' self time ~4×.)
 * the other side of the roofline: the speed of a streaming read of ``--flush-mb`` MB (``sum``), which is what the
   passes over activations too big for the caches run at.
 
@@ -58,6 +62,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
@@ -214,6 +219,7 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
     case.ready()
     case.flops, case.flops_by_op = count_flops(algo.update)
     case.gemms = replay_gemms(record_gemms(case), args.flush_mb, args.gemm_repeats, args.device)
+    case.gemms["in_update_s"] = gemms_in_update(case, args.gemm_repeats)
     return case
 
 
@@ -232,7 +238,6 @@ Recorded = tuple[Any, list[Any]]  # (aten overload, its positional args with eve
 def record_gemms(case: Case) -> tuple[list[Recorded], int]:
     """Every GEMM of one update — ``GEMM_OPS``, and the fused recurrent layers whose kernels are GEMMs plus gates
     (``flops.RNN_FLOPS``: a CPU ``nn.LSTM`` layer is one oneDNN call) — and the aten op calls."""
-    from torch.utils._python_dispatch import TorchDispatchMode
 
     def layout(a: Any) -> Any:
         return Layout(tuple(a.shape), tuple(a.stride()), a.dtype) if isinstance(a, torch.Tensor) else a
@@ -245,8 +250,7 @@ def record_gemms(case: Case) -> tuple[list[Recorded], int]:
 
         def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
             self.calls += 1
-            packet = func.overloadpacket
-            if (packet.__name__ in GEMM_OPS or packet in RNN_FLOPS) and not kwargs:
+            if is_gemm(func) and not kwargs:
                 self.gemms.append((func, tree_map(layout, list(args))))
             return func(*args, **(kwargs or {}))
 
@@ -254,6 +258,46 @@ def record_gemms(case: Case) -> tuple[list[Recorded], int]:
     with Recorder() as rec:
         case.algo.update()
     return rec.gemms, rec.calls
+
+
+def is_gemm(func: Any) -> bool:
+    """A matmul (``GEMM_OPS``) or a fused recurrent layer, whose kernel is GEMMs plus gates (``flops.RNN_FLOPS``)."""
+    packet = func.overloadpacket
+    return packet.__name__ in GEMM_OPS or packet in RNN_FLOPS
+
+
+class GemmClock(TorchDispatchMode):
+    """Times every GEMM call by itself (``is_gemm``, between device synchronisations) while it is active; the
+    other operators run untimed. The dispatch costs Python time between operators, never inside a timed call."""
+
+    def __init__(self, device: torch.device) -> None:
+        super().__init__()
+        self.device = device
+        self.seconds = 0.0
+        self.calls = 0
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+        if not is_gemm(func):
+            return func(*args, **(kwargs or {}))
+        synchronize(self.device)
+        t0 = time.perf_counter()
+        out = func(*args, **(kwargs or {}))
+        synchronize(self.device)
+        self.seconds += time.perf_counter() - t0
+        self.calls += 1
+        return out
+
+
+def gemms_in_update(case: Case, updates: int) -> float:
+    """Median seconds per update spent inside its GEMMs, timed call by call during ``updates`` real updates: the
+    GEMMs with the caches as the update leaves them, which neither replay reproduces exactly."""
+    per_update = []
+    for _ in range(updates):
+        case.ready()
+        with GemmClock(case.algo.device) as clock:
+            case.algo.update()
+        per_update.append(clock.seconds)
+    return statistics.median(per_update)
 
 
 def gemm_flops(func: Any, args: list[Any]) -> int:
@@ -366,9 +410,10 @@ def report_table(cases: list[Case], peak: float) -> str:
         "aten ops/update",
         "GEMMs alone, warm: ms (of peak)",
         "GEMMs alone, cold: ms (of peak)",
+        "GEMMs inside the update: ms (of peak)",
         "page faults/update",
     ]
-    right = [False, *([True] * 12)]
+    right = [False, *([True] * 13)]
     rows = []
     for c in cases:
         g = c.gemms
@@ -386,6 +431,7 @@ def report_table(cases: list[Case], peak: float) -> str:
                 f"{g['op_calls']:,}",
                 gemm_cell(g["warm_s"], g["flops"], peak),
                 gemm_cell(g["cold_s"], g["flops"], peak),
+                gemm_cell(g["in_update_s"], g["flops"], peak),
                 f"{statistics.median(c.faults_per_update):,.0f}",
             ]
         )
@@ -397,12 +443,26 @@ def verdict(cases: list[Case], peak: float) -> str:
         return "No algorithm could be measured."
     hit = [c.algo_name + f" (batch {c.batch_size})" for c in cases if c.gflops / peak >= TARGET_FRACTION]
     best = max(cases, key=lambda c: c.gflops)
-    return (
+    text = (
         f"Target ≥ {TARGET_FRACTION:g} of the matmul peak ({fmt_rate(peak)} GFLOP/s): "
         + (f"**MET** by {', '.join(hit)}." if hit else "**NOT MET** by any algorithm.")
         + f" Best: {best.algo_name} at batch {best.batch_size}, {fmt_rate(best.gflops)} GFLOP/s "
         f"({best.gflops / peak:.2f} of peak)."
     )
+    bound = [f"{c.algo_name} (batch {c.batch_size})" for c in cases if gemm_bound(c, peak)]
+    if bound:
+        text += (
+            f" GEMM-bound: for {', '.join(bound)} the GEMMs inside the update alone already take longer than an"
+            f" update at {TARGET_FRACTION:g} of the peak may take, so only faster GEMMs (other kernels, another"
+            " device) could reach the target there."
+        )
+    return text
+
+
+def gemm_bound(case: Case, peak: float) -> bool:
+    """Whether the update's GEMMs, as timed inside it, exceed the whole time an update at the target may take (its
+    FLOPs ÷ the target fraction of the peak): then no change to the other operators can reach the target."""
+    return case.gemms.get("in_update_s", 0.0) > case.flops / (TARGET_FRACTION * peak * 1e9)
 
 
 # ------------------------------------------------------------------------------------------------------ main
@@ -498,7 +558,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{fmt_rate(peak_gflops)} GFLOP/s (median of {len(peak_rates)}, before and after; best "
         f"{fmt_rate(max(peak_rates))}). GEMMs alone: every GEMM of one update replayed by itself on operands of "
         f"the same shapes and strides, warm (repeated, median of {args.gemm_repeats}) and cold ({args.flush_mb} MB "
-        f"streamed before each call), summed, with their fraction of the peak; memory: a streaming read of "
+        f"streamed before each call), summed, with their fraction of the peak, and the same GEMMs timed call by call "
+        f"inside {args.gemm_repeats} real updates (median); memory: a streaming read of "
         f"{args.flush_mb} MB runs at {read_gbs:.1f} GB/s; page faults: minor faults per timed "
         f"update (getrusage). DIAL (on-policy) learns from one chunk of B sequences × unroll steps per update instead "
         f"of a replay sample."

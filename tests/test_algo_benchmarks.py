@@ -84,7 +84,7 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
         assert sum(r["flops_by_op"].values()) == r["flops_per_update"]
         g = r["gemms_alone"]  # the FLOPs replayed are the FLOPs torch counted in the update
         assert g["count"] > 0 and g["flops"] == r["flops_per_update"]
-        assert positive(g["warm_s"]) and positive(g["cold_s"])
+        assert positive(g["warm_s"]) and positive(g["cold_s"]) and positive(g["in_update_s"])
         if r["chunk_len"] > 1:  # DIAL: one update = one chunk of --dial-envs sequences
             assert r["transitions_per_update"] == 4 * r["chunk_len"]
         else:
@@ -98,13 +98,38 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
         assert flops[f"{base}-mm"] - flops[base] >= lstm_min, (base, flops)
 
 
+def load_benchmark(name: str) -> Any:
+    """A benchmark script as a module (they are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_gemm_clock_times_the_gemms_inside_a_step_and_judges_the_budget() -> None:
+    """The in-update GEMM timer counts the matmuls a step runs and nothing else; ``gemm_bound`` compares their time
+    with what an update at the target fraction may take."""
+    lt = load_benchmark("learner_throughput")
+    torch.manual_seed(0)
+    x, w1, w2 = torch.randn(8, 5), torch.randn(5, 16), torch.randn(16, 3)
+    with lt.GemmClock(torch.device("cpu")) as clock:
+        h = torch.relu(x @ w1)
+        torch.addmm(torch.zeros(3), h, w2).exp()  # relu, zeros, exp: not GEMMs, not timed
+    assert clock.calls == 2 and clock.seconds > 0
+    assert lt.is_gemm(torch.ops.aten.bmm.default) and not lt.is_gemm(torch.ops.aten.relu.default)
+
+    case = type("C", (), {"flops": 10**9, "gemms": {"in_update_s": 0.021}})()
+    assert lt.gemm_bound(case, peak=100.0)  # 1 GFLOP at 0.5 of 100 GFLOP/s may take 20 ms
+    case.gemms = {"in_update_s": 0.019}
+    assert not lt.gemm_bound(case, peak=100.0)
+
+
 @pytest.mark.filterwarnings("ignore:TF32 acceleration on top of oneDNN")  # mkldnn.flags() on a build without XPU
 def test_fused_lstm_flops_equal_the_same_layers_run_step_by_step() -> None:
     """``benchmarks/flops.py``'s formulas for the fused RNN kernels count what torch counts for the unfused path."""
-    spec = importlib.util.spec_from_file_location("bench_flops", ROOT / "benchmarks" / "flops.py")
-    assert spec is not None and spec.loader is not None
-    bench_flops = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_flops)
+    bench_flops = load_benchmark("flops")
     torch.manual_seed(0)
     lstm = torch.nn.LSTM(27, 64, num_layers=2, batch_first=True)
     x = torch.randn(5, 8, 27, requires_grad=True)
