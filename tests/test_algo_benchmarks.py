@@ -84,7 +84,7 @@ def test_learner_throughput_quick_run_reports_rates_flops_and_peak(tmp_path: Pat
         assert sum(r["flops_by_op"].values()) == r["flops_per_update"]
         g = r["gemms_alone"]  # the FLOPs replayed are the FLOPs torch counted in the update
         assert g["count"] > 0 and g["flops"] == r["flops_per_update"]
-        assert positive(g["warm_s"]) and positive(g["cold_s"]) and positive(g["in_update_s"])
+        assert positive(g["warm_s"]) and positive(g["cold_s"]) and positive(r["gemms_in_update_s"])
         if r["chunk_len"] > 1:  # DIAL: one update = one chunk of --dial-envs sequences
             assert r["transitions_per_update"] == 4 * r["chunk_len"]
         else:
@@ -120,9 +120,9 @@ def test_gemm_clock_times_the_gemms_inside_a_step_and_judges_the_budget() -> Non
     assert clock.calls == 2 and clock.seconds > 0
     assert lt.is_gemm(torch.ops.aten.bmm.default) and not lt.is_gemm(torch.ops.aten.relu.default)
 
-    case = type("C", (), {"flops": 10**9, "gemms": {"in_update_s": 0.021}})()
+    case = type("C", (), {"flops": 10**9, "gemms_in_update_s": 0.021})()
     assert lt.gemm_bound(case, peak=100.0)  # 1 GFLOP at 0.5 of 100 GFLOP/s may take 20 ms
-    case.gemms = {"in_update_s": 0.019}
+    case.gemms_in_update_s = 0.019
     assert not lt.gemm_bound(case, peak=100.0)
 
 
