@@ -24,6 +24,7 @@ _INV_2_53 = 1.0 / (1 << 53)
 STREAM_ADVERSARY = 1
 STREAM_SPAWN = 2
 STREAM_TARGET = 3
+STREAM_ENTER = 4
 
 
 def splitmix64(x: np.ndarray) -> np.ndarray:

@@ -82,7 +82,9 @@ def id_width(n_agents: int, shared: bool) -> int:
     return n_agents if shared and n_agents > 1 else 0
 
 
-def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise: float = 1.0) -> Tensor:
+def message_bits(
+    logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise: float = 1.0, bound: float | None = None
+) -> Tensor:
     """Discrete binary messages from logits ``[..., bits·2]`` → ``[..., bits]`` in {0, 1}.
 
     Training uses the straight-through Gumbel-softmax: the forward value is the hard one-hot of
@@ -90,14 +92,21 @@ def message_bits(logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise
     is the standard estimator (a message is *sampled*, so the listener trains on the speaker's uncertainty);
     ``noise = 0`` is the deterministic straight-through estimator. Execution takes the argmax, so what travels is
     exactly ``bits`` bits.
+
+    ``bound`` keeps each bit's logit difference in (−bound, bound) with ``bound · tanh(d / bound)``. Unbounded, the TD
+    gradient drives the differences to |10–22|: every bit then takes one value on every observation and the
+    straight-through gradient, ~e^−|d|, can never reopen the channel. Bounded, a bit stays a little noisy in training
+    (the Gumbel pair's difference is logistic noise) and its gradient never vanishes.
     """
     pairs = logits.reshape(*logits.shape[:-1], bits, 2)
-    if not train:
-        return (pairs[..., 1] > pairs[..., 0]).to(logits.dtype)
-    if noise > 0:
-        u = torch.rand_like(pairs).clamp_(1e-10, 1.0 - 1e-7)
-        pairs = pairs - noise * torch.log(-torch.log(u))
     diff = pairs[..., 1] - pairs[..., 0]
+    if not train:
+        return (diff > 0).to(logits.dtype)
+    if bound is not None:
+        diff = bound * torch.tanh(diff / bound)
+    if noise > 0:  # the difference of two Gumbel draws is logistic: one draw per bit
+        u = torch.rand_like(diff).clamp_(1e-7, 1.0 - 1e-7)
+        diff = diff + noise * (torch.log(u) - torch.log1p(-u))
     soft = torch.sigmoid(diff / tau)  # = softmax(pairs / tau)[..., 1]; softmax over a last dim of 2 is ~10× slower
     hard = (diff > 0).to(logits.dtype)
     return hard + (soft - soft.detach())  # exactly 0/1 forward (x − x = 0), the soft gradient backward

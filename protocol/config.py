@@ -88,6 +88,13 @@ class GumbelConfig(MessageConfig):
         description="Gumbel noise scale in training: 1 = sampled messages, 0 = deterministic straight-through; "
         "None = env default (0 on speaker-listener, where the paper used a plain softmax; else 1).",
     )
+    message_logit_bound: float | None = Field(
+        3.0,
+        gt=0,
+        le=100,
+        description="Bound each bit's logit difference to (−b, b) with b·tanh(d/b) so messages cannot saturate "
+        "(a saturated bit is constant and its gradient ~e^−|d| never reopens it); None = unbounded (the paper).",
+    )
 
 
 class IDQNConfig(AlgoConfig):

@@ -17,6 +17,7 @@ from envs import ENVS, ConfigError, make_batched
 from envs.config import allowed_range, build_config
 from envs.registry import env_entry
 from envs.rollout import RolloutResult, random_policy, rollout
+from envs.treadmill.references import REFERENCES
 from learner.errors import CheckpointError
 from services.args import env_params
 from services.procs import JobFailed
@@ -57,13 +58,13 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
         raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
     is_treadmill = env_entry(args.env) is ENVS["treadmill"]  # also rejects unknown names first
     params = env_params(args)
-    if args.policy == "scripted" and not is_treadmill:
-        raise ConfigError("--policy", "the scripted policy drives the treadmill only; use --policy random")
+    if args.policy != "random" and not is_treadmill:
+        raise ConfigError("--policy", f"the {args.policy} policy drives the treadmill only; use --policy random")
     if args.gif and not is_treadmill:
         raise ConfigError("--gif", "only the treadmill renders GIFs so far; drop --gif")
     render = None
     if is_treadmill:
-        from envs.treadmill import TreadmillConfig, TreadmillEngine, render_frame, scripted_actions
+        from envs.treadmill import TreadmillConfig, TreadmillEngine, reference_policy, render_frame
 
         cfg = build_config(TreadmillConfig, **params)
         env = TreadmillEngine(cfg, args.episodes, autoreset=False)  # keeps each episode's last frame for the GIF
@@ -71,10 +72,7 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
             render = lambda: render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)  # noqa: E731
     else:
         env = make_batched(args.env, args.episodes, **params)
-    if args.policy == "scripted":
-        policy = lambda obs: scripted_actions(obs, cfg)  # noqa: E731
-    else:
-        policy = random_policy(env.spec, args.seed)
+    policy = reference_policy(args.policy, env, args.seed) if is_treadmill else random_policy(env.spec, args.seed)
     result = rollout(env, policy, seed=args.seed, render=render)
     _print_rollout(args, env.spec.agent_ids, result)
     if args.gif:
@@ -178,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ro = env_sub.add_parser(
         "rollout",
-        help="play episodes with a random or scripted policy and summarise them",
+        help="play episodes with a reference policy (random, constant, scripted, full-information) and summarise",
         description="Play EPISODES episodes (all in one batch) and print a per-episode table with the mean "
         "return and its 95 % confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON "
         "summary and a PNG of the returns.",
@@ -198,9 +196,12 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--episodes", type=int, default=5, help="episodes to play (default: %(default)s)")
     ro.add_argument(
         "--policy",
-        choices=["scripted", "random"],
+        choices=REFERENCES,
         default="scripted",
-        help="who drives the agents; scripted is treadmill-only (default: %(default)s)",
+        metavar="POLICY",
+        help="who drives the agents: random; constant-0 … constant-8 (one action throughout); scripted (private "
+        "observations); full-information (knows every car and which are adversaries); all but random are "
+        "treadmill-only (default: %(default)s)",
     )
     ro.add_argument(
         "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"

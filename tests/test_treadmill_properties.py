@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from envs.batched import env_seeds
-from envs.treadmill import TreadmillConfig, TreadmillEngine, torus_delta, torus_distance
+from envs.treadmill import TreadmillConfig, TreadmillEngine, distance
+from envs.treadmill.config import FULL_FEATURES, OWN_FEATURES
 from envs.treadmill.engine import DX, DY
 
 KEEP = 4  # steer 0, accelerate 0
@@ -20,23 +21,46 @@ def place(engine: TreadmillEngine, x, y, heading, speed) -> None:
 
 
 def two_cars(length: int = 40, width: int = 20, max_speed: int = 3) -> TreadmillEngine:
-    e = TreadmillEngine(TreadmillConfig(n_agents=2, n_adversaries=0, length=length, width=width, max_speed=max_speed))
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=0, length=length, width=width, max_speed=max_speed)
+    e = TreadmillEngine(cfg, autoreset=False)  # a finished episode keeps its last state to look at
     e.reset(0)
     return e
 
 
-@given(st.integers(8, 1000), st.integers(-5000, 5000), st.integers(-5000, 5000))
-def test_torus_delta_bounded_and_distance_symmetric(length: int, a: int, b: int) -> None:
-    d = torus_delta(np.array(a), np.array(b), length)
-    assert abs(int(d)) <= length / 2
-    assert (a + int(d) - b) % length == 0  # it is an offset that really leads from a to b
-    assert torus_distance(a, 0, b, 3, length) == torus_distance(b, 3, a, 0, length)
-    assert torus_distance(a, 0, b, 0, length) <= length / 2
+@FAST
+@given(st.integers(0, 39), st.integers(2, 17), st.integers(0, 3), st.booleans())
+def test_agents_leaving_the_window_crash(x: int, y: int, speed: int, forward: bool) -> None:
+    e = two_cars()
+    other = 35 if x < 20 else 5
+    place(e, [x, other], [y, 2 if y > 10 else 18], [0 if forward else 4, 0], [speed, 1])
+    r = e.step(np.array([[KEEP, KEEP]]))
+    moved = x + (speed if forward else -speed) - e.cfg.treadmill_speed
+    leaves = not 0 <= moved < e.cfg.length
+    assert e.x[0, 0] == moved
+    assert bool(r.info["crashed"][0, 0]) == leaves == bool(r.terminated[0])
+    if leaves:
+        assert r.reward[0, 0] == -e.cfg.crash_penalty
+
+
+def test_adversaries_leaving_the_window_enter_again_at_an_edge() -> None:
+    cfg = TreadmillConfig(n_agents=1, n_adversaries=2, length=40, width=20, aggression=0.0)
+    e = TreadmillEngine(cfg, 64)
+    e.reset(0)
+    e.x[:, 0], e.y[:, 0], e.speed[:, 0] = 20, 10, 1
+    e.x[:, 1], e.y[:, 1], e.heading[:, 1], e.speed[:, 1] = 0, 3, 4, 2  # out the back this step
+    e.x[:, 2], e.y[:, 2], e.heading[:, 2], e.speed[:, 2] = 39, 17, 0, 3  # out the front this step
+    r = e.step(np.full((64, 1), KEEP))
+    adv = np.s_[:, 1:]
+    assert not r.terminated.any()
+    assert np.isin(e.x[adv], [0, cfg.length - 1]).all() and (e.heading[adv] == 0).all()
+    back = e.x[adv] == 0
+    assert (e.speed[adv][back] == cfg.max_speed).all() and (e.speed[adv][~back] == 0).all()
+    assert 0.2 < back.mean() < 0.8 and len(np.unique(e.y[adv])) > 5  # both edges, many lanes
 
 
 @FAST
 @given(
-    st.integers(0, 39),
+    st.integers(5, 33),
     st.sampled_from([1, 2, 3, 5, 6, 7]),  # headings with a lateral component
     st.integers(1, 3),
     st.booleans(),
@@ -48,7 +72,7 @@ def test_leaving_the_road_sideways_crashes(x: int, heading: int, speed: int, nea
     slack = 0 if near_edge else speed - 1
     y = width - speed + slack if DY[heading] > 0 else speed - 1 - slack
     leaves = not 0 <= y + DY[heading] * speed < width
-    place(e, [x, (x + 20) % 40], [y, width // 2], [heading, 0], [speed, 1])
+    place(e, [x, 35 if x < 20 else 5], [y, width // 2], [heading, 0], [speed, 1])
     r = e.step(np.array([[KEEP, KEEP]]))
     assert bool(r.info["crashed"][0, 0]) == leaves
     assert bool(r.terminated[0]) == leaves
@@ -58,7 +82,7 @@ def test_leaving_the_road_sideways_crashes(x: int, heading: int, speed: int, nea
 
 @FAST
 @given(
-    st.integers(0, 39),
+    st.integers(6, 33),
     st.integers(4, 15),
     st.integers(0, 7),
     st.integers(0, 7),
@@ -68,35 +92,35 @@ def test_leaving_the_road_sideways_crashes(x: int, heading: int, speed: int, nea
 def test_cars_driving_into_the_same_cell_collide(qx, qy, h1, h2, v1, v2) -> None:
     e = two_cars()
     starts = [(qx - v * DX[h], qy - v * DY[h]) for h, v in ((h1, v1), (h2, v2))]
-    if (starts[0][0] - starts[1][0]) % 40 == 0 and starts[0][1] == starts[1][1]:
+    if starts[0] == starts[1]:
         return  # both would start on one cell: not a situation the env can be in
-    place(e, [s[0] % 40 for s in starts], [s[1] for s in starts], [h1, h2], [v1, v2])
+    place(e, [s[0] for s in starts], [s[1] for s in starts], [h1, h2], [v1, v2])
     r = e.step(np.array([[KEEP, KEEP]]))
     assert r.info["crashed"][0].all() and r.terminated[0]
     assert (r.reward[0] == -e.cfg.crash_penalty).all()
 
 
 @FAST
-@given(st.integers(0, 39), st.integers(2, 17), st.integers(0, 7))
+@given(st.integers(5, 33), st.integers(2, 17), st.integers(0, 7))
 def test_swapping_cells_is_a_collision(x: int, y: int, heading: int) -> None:
     e = two_cars()
-    place(e, [x, (x + DX[heading]) % 40], [y, y + DY[heading]], [heading, (heading + 4) % 8], [1, 1])
+    place(e, [x, x + DX[heading]], [y, y + DY[heading]], [heading, (heading + 4) % 8], [1, 1])
     r = e.step(np.array([[KEEP, KEEP]]))
     assert r.info["crashed"][0].all()
 
 
 @FAST
-@given(st.integers(0, 39), st.integers(2, 17), st.sampled_from([1, 3, 5, 7]))
+@given(st.integers(5, 33), st.integers(2, 17), st.sampled_from([1, 3, 5, 7]))
 def test_diagonal_paths_crossing_collide(x: int, y: int, heading: int) -> None:
     e = two_cars()
     mirrored = {1: 3, 3: 1, 5: 7, 7: 5}[heading]  # same lateral direction, opposite longitudinal one
-    place(e, [x, (x + DX[heading]) % 40], [y, y], [heading, mirrored], [1, 1])
+    place(e, [x, x + DX[heading]], [y, y], [heading, mirrored], [1, 1])
     r = e.step(np.array([[KEEP, KEEP]]))
     assert r.info["crashed"][0].all()  # they end on different cells but crossed on the way
 
 
 @FAST
-@given(st.integers(0, 39), st.integers(2, 10), st.integers(0, 7), st.integers(1, 3), st.integers(2, 8))
+@given(st.integers(5, 33), st.integers(2, 10), st.integers(0, 7), st.integers(1, 3), st.integers(2, 8))
 def test_parallel_cars_never_collide(x: int, y: int, heading: int, speed: int, gap: int) -> None:
     e = two_cars(max_speed=3)
     place(e, [x, x], [y, y + gap], [heading, heading], [speed, speed])
@@ -192,36 +216,70 @@ def test_same_seed_same_episode_and_different_seed_differs() -> None:
     assert not np.array_equal(a.x, c.x)
 
 
-def test_spawned_cars_are_apart_and_facing_forward() -> None:
+def test_spawned_agents_are_apart_in_the_middle_and_adversaries_enter_at_an_edge() -> None:
     cfg = TreadmillConfig(n_agents=8, n_adversaries=3)
     e = TreadmillEngine(cfg, 256)
     e.reset(3)
-    dx = np.abs(torus_delta(e.x[:, :, None], e.x[:, None, :], cfg.length))
-    dy = np.abs(e.y[:, :, None] - e.y[:, None, :])
-    cheb = np.maximum(dx, dy) + np.eye(cfg.n_cars, dtype=np.int64) * 10**6
+    n = cfg.n_agents
+    dx = np.abs(e.x[:, :n, None] - e.x[:, None, :n])
+    dy = np.abs(e.y[:, :n, None] - e.y[:, None, :n])
+    cheb = np.maximum(dx, dy) + np.eye(n, dtype=np.int64) * 10**6
     assert cheb.min() >= cfg.spawn_gap
-    assert (e.heading == 0).all() and (e.speed == cfg.initial_speed).all()
+    assert (e.x[:, :n] >= cfg.length // 4).all() and (e.x[:, :n] < 3 * cfg.length // 4).all()
+    assert np.isin(e.x[:, n:], [0, cfg.length - 1]).all()
+    assert (e.heading == 0).all() and (e.speed[:, :n] == cfg.initial_speed).all()
 
 
-def test_observation_encodes_the_closest_car() -> None:
+def test_observation_encodes_the_closest_car_in_sight() -> None:
     e = two_cars(length=100, width=100)
-    place(e, [98, 3], [50, 52], [0, 2], [1, 3])  # the other car is 5 cells ahead across the wrap, 2 to the left
+    place(e, [60, 65], [50, 52], [0, 2], [1, 3])  # the other car is 5 cells ahead, 2 to the left
     obs, closest = e._observe(np.array([0]))
-    own, near = obs[0, 0, :12], obs[0, 0, 12:]
+    own, near = obs[0, 0, :OWN_FEATURES], obs[0, 0, OWN_FEATURES:]
+    r = e.cfg.sensor_range
     assert own[1] == 1.0 and own[9] == pytest.approx(1 / 3)  # heading 0, speed 1 of 3
-    assert near[0] == pytest.approx(5 / 50) and near[1] == pytest.approx(2 / 99)
-    assert near[2 + 2] == 1.0 and near[10] == pytest.approx(1.0)  # heading 2, full speed
+    assert own[OWN_FEATURES - 1] == pytest.approx(2 * 60 / 99 - 1)  # longitudinal position on the window
+    assert near[0] == 1.0 and near[1] == pytest.approx(5 / r) and near[2] == pytest.approx(2 / r)
+    assert near[3 + 2] == 1.0 and near[11] == pytest.approx(1.0)  # heading 2, full speed
     assert closest[0, 0] == pytest.approx(np.hypot(5, 2))
+
+
+@pytest.mark.parametrize(
+    ("other", "fov", "seen"), [((55, 50), 240, False), ((55, 50), 360, True), ((61, 71), 360, False)]
+)
+def test_sensor_sees_within_its_range_and_field_of_view(other, fov, seen) -> None:
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=0, sensor_range=20, sensor_fov=fov)
+    e = TreadmillEngine(cfg, 1)
+    e.reset(0)
+    place(e, [60, other[0]], [50, other[1]], [0, 0], [1, 1])  # 5 behind: in the blind spot; 21 away: out of range
+    obs, closest = e._observe(np.array([0]))
+    near = obs[0, 0, OWN_FEATURES:]
+    assert bool(near[0]) == seen
+    if not seen:
+        assert (near == 0).all()
+    assert closest[0, 0] == pytest.approx(np.hypot(other[0] - 60, other[1] - 50))  # the reward still counts it
+
+
+def test_full_information_tells_every_position_and_who_is_an_adversary() -> None:
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=2, full_information=True)
+    e = TreadmillEngine(cfg, 1)
+    e.reset(0)
+    place(e, [50, 40, 10, 90], [50, 60, 20, 80], [0, 0, 0, 0], [1, 1, 0, 3])
+    obs, _ = e._observe(np.array([0]))
+    assert obs.shape[-1] == cfg.obs_dim
+    full = obs[0, 0, -3 * FULL_FEATURES :].reshape(3, FULL_FEATURES)  # agent 0's view of cars 1, 2, 3
+    assert full[:, 0] == pytest.approx(np.array([-10, -40, 40]) / 99)
+    assert full[:, 1] == pytest.approx(np.array([10, -30, 30]) / 99)
+    assert full[:, 2] == pytest.approx([1 / 3, 0, 1]) and full[:, 3].tolist() == [0, 1, 1]
 
 
 def test_aggressive_adversary_closes_in() -> None:
     cfg = TreadmillConfig(n_agents=1, n_adversaries=1, aggression=1.0)
     e = TreadmillEngine(cfg, 64)
     e.reset(0)
-    start = torus_distance(e.x[:, 0], e.y[:, 0], e.x[:, 1], e.y[:, 1], cfg.length)
+    start = distance(e.x[:, 0], e.y[:, 0], e.x[:, 1], e.y[:, 1])
     for _ in range(5):
         e.step(np.full((64, 1), KEEP))
-    end = torus_distance(e.x[:, 0], e.y[:, 0], e.x[:, 1], e.y[:, 1], cfg.length)
+    end = distance(e.x[:, 0], e.y[:, 0], e.x[:, 1], e.y[:, 1])
     assert (end < start).mean() > 0.9
 
 

@@ -1,9 +1,10 @@
 """Every rule of the treadmill highway as a named, documented, validated parameter.
 
-The paper (section 5.1) fixes only the outline: a [100, 100] treadmill that always runs, ≥ 2
-cooperative cars and ≥ 1 adversary, the closest car as observation, 8 headings × 3 speed changes,
-a distance reward and a crash penalty. Everything else is decided here; see
-``docs/treadmill.md`` for the reasoning behind each default.
+The paper (section 5.1) fixes only the outline: a [100, 100] treadmill that always runs, cars that enter and exit
+at its front and back, ≥ 2 cooperative cars and ≥ 1 aggressive adversary, the closest car as observation (no
+ally/adversary flag), 3 steering × 3 acceleration actions, a distance reward and a large crash penalty. Everything
+else is decided here so that (a) no open-loop policy is competitive, (b) what other cars see is worth reward to an
+agent and (c) one crash costs everyone; ``docs/treadmill.md`` has the measurements behind each default.
 """
 
 from __future__ import annotations
@@ -14,13 +15,15 @@ from envs.config import ConfigError
 
 
 class TreadmillConfig(BaseModel):
-    """Parameters of the treadmill highway. Defaults reproduce the paper's setting."""
+    """Parameters of the treadmill highway."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     n_agents: int = Field(3, ge=1, le=1024, description="Cooperative autonomous cars controlled by the learners.")
     n_adversaries: int = Field(1, ge=0, le=1024, description="Aggressive scripted cars that chase the closest agent.")
-    length: int = Field(100, ge=8, le=100_000, description="Cells along the road; the road wraps (a torus).")
+    length: int = Field(
+        100, ge=8, le=100_000, description="Cells along the road: the treadmill's window; agents that leave it crash."
+    )
     width: int = Field(100, ge=3, le=100_000, description="Cells across the road; leaving it sideways is a crash.")
     max_speed: int = Field(3, ge=1, le=16, description="Top speed in cells per step; speeds are 0..max_speed.")
     treadmill_speed: int = Field(
@@ -30,14 +33,28 @@ class TreadmillConfig(BaseModel):
     aggression: float = Field(
         0.7, ge=0.0, le=1.0, description="Probability an adversary chases the closest agent; else it acts at random."
     )
-    observe_k: int = Field(1, ge=1, le=64, description="Nearest other cars in an agent's observation.")
+    sensor_range: float = Field(
+        20.0,
+        gt=0.0,
+        le=1e6,
+        description="Cells an agent's sensor reaches; cars farther away are not observed (their slots are zeros).",
+    )
+    sensor_fov: float = Field(
+        240.0, gt=0.0, le=360.0, description="Field of view of an agent's sensor in degrees, centred on its heading."
+    )
+    observe_k: int = Field(1, ge=1, le=64, description="Nearest other cars (within sensor_range) an agent observes.")
+    full_information: bool = Field(
+        False,
+        description="Reference only: append every other car's position, speed and an adversary flag to each agent's "
+        "observation (what messages could carry).",
+    )
     reward_distance_cap: float = Field(
         10.0, gt=0.0, le=1e6, description="d_max: the per-step reward is min(d, d_max) / d_max for the closest car."
     )
     crash_penalty: float = Field(10.0, ge=0.0, le=1e6, description="Reward −crash_penalty to a car that crashes.")
     max_steps: int = Field(200, ge=1, le=1_000_000, description="Truncation horizon of an episode, in steps.")
     spawn_gap: int = Field(
-        4, ge=1, le=1000, description="Cars spawn on a lattice of this pitch, so no two start closer than this."
+        4, ge=1, le=1000, description="Agents spawn on a lattice of this pitch, so no two start closer than this."
     )
 
     @property
@@ -45,13 +62,22 @@ class TreadmillConfig(BaseModel):
         return self.n_agents + self.n_adversaries
 
     @property
+    def spawn_blocks(self) -> tuple[int, int, int]:
+        """(first block along the road, blocks along, blocks across) of the spawn lattice: the middle half."""
+        along = self.length // self.spawn_gap
+        first = along // 4
+        return first, max(1, along - 2 * first), self.width // self.spawn_gap
+
+    @property
     def spawn_slots(self) -> int:
-        """Cells cars can spawn on: one per ``spawn_gap × spawn_gap`` block."""
-        return (self.length // self.spawn_gap) * (self.width // self.spawn_gap)
+        """Cells agents can spawn on: one per ``spawn_gap × spawn_gap`` block of the window's middle half."""
+        _, along, across = self.spawn_blocks
+        return along * across
 
     @property
     def obs_dim(self) -> int:
-        return OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES
+        full = (self.n_cars - 1) * FULL_FEATURES if self.full_information else 0
+        return OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES + full
 
     @model_validator(mode="after")
     def _consistent(self) -> TreadmillConfig:
@@ -61,12 +87,12 @@ class TreadmillConfig(BaseModel):
                 "the reward is the distance to the closest other car, so at least 2 cars are needed: "
                 "set n_agents + n_adversaries ≥ 2",
             )
-        if self.n_cars > self.spawn_slots:
+        if self.n_agents > self.spawn_slots:
             raise ConfigError(
                 "n_agents",
-                f"{self.n_cars} cars do not fit the {self.spawn_slots} spawn cells of a {self.length} × {self.width} "
-                f"road with spawn_gap {self.spawn_gap}: allowed range 2 ≤ n_agents + n_adversaries ≤ "
-                f"{self.spawn_slots}; use fewer cars, a bigger road or a smaller spawn_gap",
+                f"{self.n_agents} agents do not fit the {self.spawn_slots} spawn cells in the middle half of a "
+                f"{self.length} × {self.width} road with spawn_gap {self.spawn_gap}: allowed range 1 ≤ n_agents ≤ "
+                f"{self.spawn_slots}; use fewer agents, a bigger road or a smaller spawn_gap",
             )
         for name in ("treadmill_speed", "initial_speed"):
             if getattr(self, name) > self.max_speed:
@@ -84,5 +110,8 @@ class TreadmillConfig(BaseModel):
 
 N_HEADINGS = 8
 N_ACTIONS = 9  # (steer −45°, 0, +45°) × (decelerate, keep, accelerate)
-OWN_FEATURES = 1 + N_HEADINGS + 1 + 2  # lateral position, heading one-hot, speed, distance to both edges
-NEIGHBOUR_FEATURES = 2 + N_HEADINGS + 1  # relative position (torus-aware), heading one-hot, speed
+# lateral position, heading one-hot, speed, distance to both side edges, longitudinal position on the treadmill
+OWN_FEATURES = 1 + N_HEADINGS + 1 + 2 + 1
+LONGITUDINAL = OWN_FEATURES - 1
+NEIGHBOUR_FEATURES = 1 + 2 + N_HEADINGS + 1  # seen flag, relative position / sensor_range, heading one-hot, speed
+FULL_FEATURES = 4  # per other car: relative position / road size, speed, adversary flag

@@ -1,37 +1,42 @@
 """The one treadmill physics: B highways × C cars stepped together with numpy.
 
-Geometry. A ``length × width`` grid of cells; x runs along the road and wraps (a torus), y runs
-across it and is bounded (0 … width−1). Each car has a cell (x, y), a heading h ∈ 0…7 (h = 0
-drives forward along +x, each step of h turns 45° to the left, towards +y) and a speed
-v ∈ 0…max_speed cells per step. The treadmill carries every car ``treadmill_speed`` cells back
-per step, so a car driving forward at that speed holds its place on the picture.
+Geometry. The treadmill is a ``length × width`` window of cells moving with the traffic: x runs along the road
+(0 = the back, length−1 = the front), y across it (0 … width−1). Each car has a cell (x, y), a heading h ∈ 0…7
+(h = 0 drives forward along +x, each step of h turns 45° to the left, towards +y) and a speed v ∈ 0…max_speed
+cells per step. The treadmill carries every car ``treadmill_speed`` cells back per step, so a car driving forward
+at that speed holds its place on the window; a faster car moves up, a slower one falls back.
 
-Actions. 9 per car: (steer −45°, 0, +45°) × (decelerate, keep, accelerate), index
-``3 * steer_index + accel_index``. Cars 0…N−1 are the agents; N…N+M−1 are adversaries that
-each step, with probability ``aggression``, take the action whose one-step outcome lands
-closest to the nearest agent, else a uniformly random action.
+Entering and leaving. Cars enter and exit at the front and back (the paper's "infinite highway"). An agent that
+leaves the window — out the front, out the back or off a side — has left the road: it crashes. An adversary that
+leaves at the front or back re-enters at once at a random lateral position, from the back at top speed or from
+the front at speed 0 (so it falls back into the traffic); at a side it bounces (y clamped, heading mirrored).
 
-Motion and collisions. A step is split into ``max_speed`` micro-steps; a car with speed v moves
-one cell along its heading in each of the first v micro-steps. After every micro-step two cars
-collide if they share a cell, or if their moves crossed (a swap, or two diagonals through the same
-point: equal move midpoints). A crashed car stops where it is (a wreck others can hit). An agent
-that leaves the road sideways crashes; adversaries bounce off the road edge (their y is clamped
-and their heading mirrored), and collisions between two adversaries are ignored.
+Actions. 9 per car: (steer −45°, 0, +45°) × (decelerate, keep, accelerate), index ``3 * steer_index +
+accel_index``. Cars 0…N−1 are the agents; N…N+M−1 are adversaries that each step, with probability
+``aggression``, take the action whose one-step outcome lands closest to the nearest agent, else a uniformly
+random action.
 
-Rewards and episodes. Per agent and step, ``min(d, d_max) / d_max`` ∈ [0, 1] where d is the
-Euclidean (torus-aware) distance in cells to the closest other car; a crashed agent gets
-``−crash_penalty`` instead. Any agent crash terminates the episode for all; otherwise it is
-truncated after ``max_steps``. Finished envs reset themselves (see ``envs.batched``).
+Motion and collisions. A step is split into ``max_speed`` micro-steps; a car with speed v moves one cell along its
+heading in each of the first v micro-steps. After every micro-step two cars collide if they share a cell, or if
+their moves crossed (a swap, or two diagonals through the same point: equal move midpoints). A crashed car stops
+where it is. Collisions between two adversaries are ignored.
 
-Observation per agent (all features clipped to [−1, 1]): lateral position, heading one-hot,
-speed / max_speed, distance to each road edge / (width−1); then for each of the ``observe_k``
-closest cars (agents and adversaries alike, as in the paper): relative position (torus-aware,
-/ (length/2) and / (width−1)), heading one-hot and speed. Cars spawn forward-facing at
-``initial_speed`` on random distinct cells of a lattice of pitch ``spawn_gap``.
+Rewards and episodes. Per agent and step, ``min(d, d_max) / d_max`` ∈ [0, 1] where d is the Euclidean distance in
+cells to the closest other car (seen or not); a crashed agent gets ``−crash_penalty`` instead. Any agent crash
+terminates the episode for all (cooperation: one car's mistake costs everyone); otherwise it is truncated after
+``max_steps``. Finished envs reset themselves (see ``envs.batched``).
 
-Randomness comes from ``envs.rng``: draws depend only on the env's own seed and step
-counter, so a batch equals its envs stepped one by one, bit for bit (seed env b alone with
-``envs.batched.env_seeds(s, B)[b]`` to replay env b of a batch seeded s).
+Observation per agent (features clipped to [−1, 1]): own lateral position, heading one-hot, speed / max_speed,
+distance to each side edge / (width−1), longitudinal position on the window; then for each of the ``observe_k``
+closest cars within ``sensor_range`` (agents and adversaries alike, as in the paper): a seen flag, relative
+position / sensor_range, heading one-hot and speed; a slot with no car in range is all zeros. With
+``full_information`` (a reference, not the task) every other car follows: relative position / road size, speed
+and an adversary flag. Agents spawn forward-facing at ``initial_speed`` on random distinct cells of a lattice of
+pitch ``spawn_gap`` in the middle half of the window; adversaries enter at the front or back.
+
+Randomness comes from ``envs.rng``: draws depend only on the env's own seed and step counter, so a batch equals
+its envs stepped one by one, bit for bit (seed env b alone with ``envs.batched.env_seeds(s, B)[b]`` to replay env
+b of a batch seeded s).
 """
 
 from __future__ import annotations
@@ -50,14 +55,9 @@ ACTION_ACCEL = np.arange(N_ACTIONS, dtype=np.int64) % 3 - 1  # −1 brake, 0 kee
 _ONE_HOT = np.eye(N_HEADINGS, dtype=np.float32)
 
 
-def torus_delta(a: np.ndarray, b: np.ndarray, length: int) -> np.ndarray:
-    """Signed offset from a to b along a wrapping axis, in [−length/2, length/2)."""
-    return (b - a + length // 2) % length - length // 2
-
-
-def torus_distance(xa, ya, xb, yb, length: int) -> np.ndarray:
-    """Euclidean distance in cells on the road, wrapping along its length."""
-    dx = torus_delta(np.asarray(xa), np.asarray(xb), length)
+def distance(xa, ya, xb, yb) -> np.ndarray:
+    """Euclidean distance in cells on the window."""
+    dx = np.asarray(xb) - np.asarray(xa)
     dy = np.asarray(yb) - np.asarray(ya)
     return np.sqrt((dx * dx + dy * dy).astype(np.float64))
 
@@ -84,6 +84,8 @@ class TreadmillEngine:
         pair = self._is_agent[:, None] | self._is_agent[None, :]
         self._counted_pair = pair & ~np.eye(c, dtype=bool)  # pairs whose collision matters
         self._self_mask = np.where(np.eye(n, c, dtype=bool), np.inf, 0.0)  # excludes an agent's own car
+        # every other car of each agent, agents first then adversaries (the full-information layout)
+        self._others = np.array([[j for j in range(c) if j != i] for i in range(n)], dtype=np.int64).reshape(n, c - 1)
         shape = (num_envs, c)
         self.x = np.zeros(shape, np.int64)
         self.y = np.zeros(shape, np.int64)
@@ -107,17 +109,23 @@ class TreadmillEngine:
         return self._observe(everyone)[0]
 
     def _spawn(self, envs: np.ndarray) -> None:
-        """Place every car of ``envs`` on distinct lattice cells, facing forward."""
+        """Place the agents of ``envs`` on distinct lattice cells of the middle half of the window, facing forward;
+        the adversaries enter at the front or back as they do during the episode."""
         cfg = self.cfg
-        blocks_x, blocks_y = cfg.length // cfg.spawn_gap, cfg.width // cfg.spawn_gap
-        cells = _distinct_choice(self._streams, envs, blocks_x * blocks_y, cfg.n_cars)
+        n = cfg.n_agents
+        first, blocks_x, blocks_y = cfg.spawn_blocks
+        cells = _distinct_choice(self._streams, envs, blocks_x * blocks_y, n)
         half = cfg.spawn_gap // 2
-        self.x[envs] = (cells // blocks_y) * cfg.spawn_gap + half
-        self.y[envs] = (cells % blocks_y) * cfg.spawn_gap + half
+        self.x[envs, :n] = (first + cells // blocks_y) * cfg.spawn_gap + half
+        self.y[envs, :n] = (cells % blocks_y) * cfg.spawn_gap + half
         self.heading[envs] = 0
         self.speed[envs] = cfg.initial_speed
         self.t[envs] = 0
         self._ep_return[envs] = 0.0
+        if cfg.n_adversaries:
+            everyone = np.zeros((self.num_envs, cfg.n_adversaries), bool)
+            everyone[envs] = True
+            self._reenter(everyone)
 
     def close(self) -> None:
         """Nothing to release: the engine is plain arrays."""
@@ -134,7 +142,11 @@ class TreadmillEngine:
         self.speed = np.clip(self.speed + ACTION_ACCEL[acts], 0, cfg.max_speed)
         crashed, bounced = self._move()
         self.heading[:, n:] = np.where(bounced, (N_HEADINGS - self.heading[:, n:]) % N_HEADINGS, self.heading[:, n:])
-        self.x = (self.x - cfg.treadmill_speed) % cfg.length
+        self.x = self.x - cfg.treadmill_speed
+        outside = (self.x < 0) | (self.x >= cfg.length)
+        crashed[:, :n] |= outside[:, :n]
+        if cfg.n_adversaries:
+            self._reenter(outside[:, n:])
         self.t += 1
         self._streams.advance()
 
@@ -163,23 +175,39 @@ class TreadmillEngine:
         n = cfg.n_agents
         ax, ay, ah, av = self.x[:, n:], self.y[:, n:], self.heading[:, n:], self.speed[:, n:]
         gx, gy = self.x[:, None, :n], self.y[:, None, :n]
-        target = np.argmin(torus_distance(ax[..., None], ay[..., None], gx, gy, cfg.length), axis=-1)  # [B, M]
+        target = np.argmin(distance(ax[..., None], ay[..., None], gx, gy), axis=-1)  # [B, M]
         tx = np.take_along_axis(self.x[:, :n], target, axis=1)[..., None]
         ty = np.take_along_axis(self.y[:, :n], target, axis=1)[..., None]
         h = (ah[..., None] + ACTION_STEER) % N_HEADINGS  # [B, M, 9] outcome of each action
         v = np.clip(av[..., None] + ACTION_ACCEL, 0, cfg.max_speed)
-        cx = ax[..., None] + v * DX[h]
+        cx = ax[..., None] + v * DX[h] - cfg.treadmill_speed
         cy = np.clip(ay[..., None] + v * DY[h], 0, cfg.width - 1)
-        greedy = np.argmin(torus_distance(cx, cy, tx, ty, cfg.length), axis=-1)
+        greedy = np.argmin(distance(cx, cy, tx, ty), axis=-1)
         u = self._streams.uniform(rng.STREAM_ADVERSARY, 2 * cfg.n_adversaries)
         coin, pick = u[:, : cfg.n_adversaries], u[:, cfg.n_adversaries :]
         random_action = (pick * N_ACTIONS).astype(np.int64)
         return np.where(coin < cfg.aggression, greedy, random_action)
 
+    def _reenter(self, out: np.ndarray) -> None:
+        """Adversaries ``out [B, M]`` that left at the front or back come back in: from the back at top speed or
+        from the front at speed 0, at a random lateral position, facing forward."""
+        if not out.any():
+            return
+        cfg = self.cfg
+        m = cfg.n_adversaries
+        u = self._streams.uniform(rng.STREAM_ENTER, 2 * m)
+        from_back = u[:, :m] < 0.5
+        lane = np.minimum((u[:, m:] * cfg.width).astype(np.int64), cfg.width - 1)
+        adv = np.s_[:, cfg.n_agents :]
+        self.x[adv] = np.where(out, np.where(from_back, 0, cfg.length - 1), self.x[adv])
+        self.y[adv] = np.where(out, lane, self.y[adv])
+        self.heading[adv] = np.where(out, 0, self.heading[adv])
+        self.speed[adv] = np.where(out, np.where(from_back, cfg.max_speed, 0), self.speed[adv])
+
     def _move(self) -> tuple[np.ndarray, np.ndarray]:
         """Move every car by its speed in micro-steps; returns (crashed [B, C], adversary bounced [B, M])."""
         cfg = self.cfg
-        n, length, width = cfg.n_agents, cfg.length, cfg.width
+        n, width = cfg.n_agents, cfg.width
         dx, dy = DX[self.heading], DY[self.heading]
         x, y = self.x, self.y
         crashed = np.zeros(x.shape, bool)
@@ -189,7 +217,7 @@ class TreadmillEngine:
             if not moving.any():
                 break
             mx, my = dx * moving, dy * moving
-            nx, ny = (x + mx) % length, y + my
+            nx, ny = x + mx, y + my
             off = (ny < 0) | (ny >= width)
             bounced |= off[:, n:]
             ny[:, n:] = np.clip(ny[:, n:], 0, width - 1)
@@ -198,7 +226,7 @@ class TreadmillEngine:
             # Cells are keyed on a (width + 2)-wide grid so that off-road y = −1 or width stay distinct;
             # midpoints of moves are compared on the doubled grid: equal midpoints = swap or crossing.
             cell = nx * (width + 2) + (ny + 1)
-            mid = ((2 * x + mx) % (2 * length)) * (2 * width + 4) + (2 * y + my + 2)
+            mid = (2 * x + mx) * (2 * width + 4) + (2 * y + my + 2)
             hit = (cell[:, :, None] == cell[:, None, :]) | (mid[:, :, None] == mid[:, None, :])
             crashed |= (hit & self._counted_pair).any(axis=2)
             x, y = nx, ny
@@ -206,18 +234,31 @@ class TreadmillEngine:
         return crashed, bounced
 
     # ------------------------------------------------------------ observation
+    def visible(self, rel_x: np.ndarray, rel_y: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """Which cars at offsets ``[..., N, C]`` an agent with ``heading [..., N]`` senses: within ``sensor_range``
+        and inside its field of view (``sensor_fov`` degrees, centred on the heading)."""
+        cfg = self.cfg
+        ok = rel_x * rel_x + rel_y * rel_y <= cfg.sensor_range**2
+        if cfg.sensor_fov < 360:
+            along = rel_x * DX[heading][..., None] + rel_y * DY[heading][..., None]
+            norm = np.sqrt((rel_x * rel_x + rel_y * rel_y) * (DX[heading] ** 2 + DY[heading] ** 2)[..., None])
+            ok &= along >= np.cos(np.radians(cfg.sensor_fov / 2)) * norm - 1e-9
+        return ok
+
     def _observe(self, envs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Observations ``[len(envs), N, D]`` and each agent's distance to its closest car."""
         cfg = self.cfg
         n, k = cfg.n_agents, cfg.observe_k
         x, y, h, v = self.x[envs], self.y[envs], self.heading[envs], self.speed[envs]
-        rel_x = torus_delta(x[:, :n, None], x[:, None, :], cfg.length)  # [E, N, C]
+        rel_x = x[:, None, :] - x[:, :n, None]  # [E, N, C]
         rel_y = y[:, None, :] - y[:, :n, None]
         dist = np.sqrt((rel_x * rel_x + rel_y * rel_y).astype(np.float64)) + self._self_mask
+        closest = dist.min(axis=2)
+        dist = np.where(self.visible(rel_x, rel_y, h[:, :n]), dist, np.inf)
         near = np.argmin(dist, axis=2)[..., None] if k == 1 else np.argsort(dist, axis=2, kind="stable")[..., :k]
-        closest = np.take_along_axis(dist, near[..., :1], axis=2)[..., 0]
+        near_dist = np.take_along_axis(dist, near, axis=2)
 
-        w1 = float(cfg.width - 1)
+        w1, l1 = float(cfg.width - 1), float(cfg.length - 1)
         own_y = y[:, :n].astype(np.float32)
         own = [
             (2.0 * own_y / w1 - 1.0)[..., None],
@@ -225,19 +266,37 @@ class TreadmillEngine:
             (v[:, :n] / cfg.max_speed).astype(np.float32)[..., None],
             (own_y / w1)[..., None],
             ((w1 - own_y) / w1)[..., None],
+            (2.0 * x[:, :n] / l1 - 1.0).astype(np.float32)[..., None],
         ]
+        seen = np.isfinite(near_dist).astype(np.float32)[..., None]  # [E, N, k, 1]
         nh = np.take_along_axis(h[:, None, :].repeat(n, axis=1), near, axis=2)
         nv = np.take_along_axis(v[:, None, :].repeat(n, axis=1), near, axis=2)
-        neighbour = np.concatenate(
+        r = np.float32(cfg.sensor_range)
+        neighbour = seen * np.concatenate(
             [
-                (np.take_along_axis(rel_x, near, axis=2) / (cfg.length / 2)).astype(np.float32)[..., None],
-                (np.take_along_axis(rel_y, near, axis=2) / w1).astype(np.float32)[..., None],
+                np.ones_like(seen),
+                (np.take_along_axis(rel_x, near, axis=2) / r).astype(np.float32)[..., None],
+                (np.take_along_axis(rel_y, near, axis=2) / r).astype(np.float32)[..., None],
                 _ONE_HOT[nh],
                 (nv / cfg.max_speed).astype(np.float32)[..., None],
             ],
             axis=3,
-        ).reshape(len(envs), n, -1)
-        obs = np.concatenate([*own, neighbour], axis=2)
+        )
+        parts = [*own, neighbour.reshape(len(envs), n, -1)]
+        if cfg.full_information:
+            o = self._others
+            adversary = (o >= n).astype(np.float32)[None, :, :, None].repeat(len(envs), axis=0)
+            full = np.concatenate(
+                [
+                    (np.take_along_axis(rel_x, o[None].repeat(len(envs), 0), axis=2) / l1)[..., None],
+                    (np.take_along_axis(rel_y, o[None].repeat(len(envs), 0), axis=2) / w1)[..., None],
+                    (v[:, o] / cfg.max_speed)[..., None],
+                    adversary,
+                ],
+                axis=3,
+            ).astype(np.float32)
+            parts.append(full.reshape(len(envs), n, -1))
+        obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)
         return obs, closest
 

@@ -1,7 +1,8 @@
 """Top-down pictures of one treadmill env, drawn with numpy (no window, no extra dependency).
 
-The road runs left → right (x, wrapping), across is y (the +y edge at the top). Agents are coloured
-squares, adversaries red squares with a dark border; a white pixel block marks each car's nose.
+The road runs left → right (x: the back of the treadmill's window to its front), across is y (the +y edge at
+the top). Agents are coloured squares, adversaries red squares with a dark border; a white pixel block marks
+each car's nose.
 """
 
 from __future__ import annotations
@@ -43,11 +44,10 @@ def render_frame(
 
 
 def _box(img: np.ndarray, cx: int, cy: int, half: int, colour: np.ndarray) -> None:
-    """Fill a square, wrapping horizontally (the road is a torus) and clipped vertically."""
+    """Fill a square, clipped to the picture."""
     h, w = img.shape[:2]
     ys = slice(max(0, cy - half), min(h, cy + half + 1))
-    cols = np.arange(cx - half, cx + half + 1) % w
-    img[ys, cols] = colour
+    img[ys, max(0, cx - half) : min(w, cx + half + 1)] = colour
 
 
 def write_gif(frames: list[np.ndarray], path: str, fps: int = 15) -> None:

@@ -1,16 +1,23 @@
-"""A hand-written driving policy: the baseline learners must beat and the demo's driver.
+"""Hand-written drivers: the baseline learners must beat, and the full-information reference.
 
-It reads only what an agent observes (its own lateral position, heading, speed and the closest
-car's relative position), so it is a legitimate decentralised policy. Rule: when the closest car
-is within ``danger`` cells, flee from it at full speed, never towards a nearby road edge;
-otherwise cruise forward at treadmill speed and drift back towards the middle of the road.
+Both share one controller: keep away from a threat, the road's sides and the window's front and back, otherwise
+hold a place in the middle of the treadmill. They differ only in what they know of the threat.
+
+* ``scripted_actions`` reads an agent's own observation: the threat is the closest car its sensor sees, ally or
+  adversary (it cannot tell them apart), so it is a legitimate decentralised policy.
+* ``full_information_actions`` reads the engine's state: the threat is the closest *adversary* at any range, or an ally
+  the agent sees. With ``team_only`` it knows only the adversaries some agent sees: what an agent could do if
+  messages told it everything its teammates see.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from envs.treadmill.config import N_HEADINGS, TreadmillConfig
+from envs.treadmill.config import LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
+from envs.treadmill.engine import DY
+
+DANGER = 12.0  # cells: flee a threat closer than this
 
 
 def heading_towards(ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
@@ -28,26 +35,83 @@ def steer_action(
     return 3 * (steer + 1) + (accel + 1)
 
 
-def scripted_actions(obs: np.ndarray, cfg: TreadmillConfig, danger: float = 8.0) -> np.ndarray:
-    """Actions ``[B, N]`` for observations ``[B, N, D]`` of the treadmill."""
-    w1 = cfg.width - 1
-    lateral = (obs[..., 0] + 1.0) / 2.0 * w1  # cells from the right edge
+def drive(
+    cfg: TreadmillConfig,
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    speed: np.ndarray,
+    threat_dx: np.ndarray,
+    threat_dy: np.ndarray,
+    threat: np.ndarray,
+) -> np.ndarray:
+    """Actions for cars at window cells (x, y) that flee a threat at offset (dx, dy) where ``threat`` is set.
+
+    The wanted velocity is chosen on the window (away from the threat, away from any edge closer than a margin,
+    else back to the middle) and turned into a heading and speed on the road, which the treadmill shifts by
+    ``treadmill_speed``.
+    """
+    margin = 4.0 * cfg.max_speed + 2.0
+    mid_x, mid_y = (cfg.length - 1) / 2.0, (cfg.width - 1) / 2.0
+    dist = np.maximum(np.hypot(threat_dx, threat_dy), 1e-6)
+    flee_x, flee_y = -threat_dx / dist, -threat_dy / dist
+    home_x = np.clip((mid_x - x) / (cfg.length / 4.0), -1.0, 1.0)
+    home_y = np.clip((mid_y - y) / (cfg.width / 4.0), -1.0, 1.0)
+    wall_x = np.clip((margin - x) / margin, 0.0, 1.0) - np.clip((x - (cfg.length - 1 - margin)) / margin, 0.0, 1.0)
+    wall_y = np.clip((margin - y) / margin, 0.0, 1.0) - np.clip((y - (cfg.width - 1 - margin)) / margin, 0.0, 1.0)
+    want_x = np.where(threat, 2.0 * flee_x, 0.5 * home_x) + 3.0 * wall_x
+    want_y = np.where(threat, 2.0 * flee_y, 0.5 * home_y) + 3.0 * wall_y
+    pace = np.where(threat, float(cfg.max_speed), 1.0)
+    norm = np.maximum(np.hypot(want_x, want_y), 1e-6)
+    road_x = pace * want_x / norm + cfg.treadmill_speed  # velocity on the road = on the window + the belt
+    road_y = pace * want_y / norm
+    want_speed = np.clip(np.rint(np.hypot(road_x, road_y)), 0, cfg.max_speed).astype(np.int64)
+    want_heading = np.where(want_speed > 0, heading_towards(road_x, road_y), heading)
+    # a car still heading at a side it is close to slows down while it turns (3 steps to turn 135°)
+    dy_now = DY[heading]
+    side_gap = np.where(dy_now > 0, cfg.width - 1 - y, np.where(dy_now < 0, y, np.inf))
+    want_speed = np.where(side_gap < 3 * want_speed + 2, np.minimum(want_speed, 1), want_speed)
+    return steer_action(heading, speed, want_heading, want_speed)
+
+
+def own_state(obs: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(x, y, heading, speed) of each agent, read back from its observation ``[..., D]``."""
+    y = (obs[..., 0] + 1.0) / 2.0 * (cfg.width - 1)
+    x = (obs[..., LONGITUDINAL] + 1.0) / 2.0 * (cfg.length - 1)
     heading = np.argmax(obs[..., 1 : 1 + N_HEADINGS], axis=-1)
     speed = np.rint(obs[..., 1 + N_HEADINGS] * cfg.max_speed).astype(np.int64)
-    near = 12  # first neighbour's features start after the 12 own features
-    dx = obs[..., near] * (cfg.length / 2)
-    dy = obs[..., near + 1] * w1
-    dist = np.hypot(dx, dy)
+    return x, y, heading, speed
 
-    margin = 2 * cfg.max_speed + 1
-    away_x, away_y = -dx, -dy
-    away_y = np.where((away_y > 0) & (lateral > w1 - margin), 0.0, away_y)
-    away_y = np.where((away_y < 0) & (lateral < margin), 0.0, away_y)
-    away_x = np.where((away_x == 0) & (away_y == 0), 1.0, away_x)
-    centre_y = np.clip((w1 / 2 - lateral) / w1, -0.4, 0.4)  # gentle pull to the middle while cruising
-    cruise_y = np.where(np.abs(lateral - w1 / 2) > w1 / 4, centre_y, 0.0)
 
-    flee = dist < danger
-    want_heading = np.where(flee, heading_towards(away_x, away_y), heading_towards(np.ones_like(dx), cruise_y))
-    want_speed = np.where(flee, cfg.max_speed, cfg.treadmill_speed)
-    return steer_action(heading, speed, want_heading, want_speed)
+def scripted_actions(obs: np.ndarray, cfg: TreadmillConfig, danger: float = DANGER) -> np.ndarray:
+    """Actions ``[B, N]`` from private observations ``[B, N, D]``: flee the closest car the sensor sees."""
+    x, y, heading, speed = own_state(obs, cfg)
+    seen = obs[..., OWN_FEATURES] > 0.5
+    dx = obs[..., OWN_FEATURES + 1] * cfg.sensor_range
+    dy = obs[..., OWN_FEATURES + 2] * cfg.sensor_range
+    threat = seen & (np.hypot(dx, dy) < danger)
+    return drive(cfg, x, y, heading, speed, dx, dy, threat)
+
+
+def full_information_actions(engine, danger: float = DANGER, team_only: bool = False) -> np.ndarray:
+    """Actions ``[B, N]`` from the engine's state: flee the closest adversary, or an ally within sight and ``danger``.
+
+    ``engine`` is a ``TreadmillEngine``. The full-information driver knows every adversary at any range; with
+    ``team_only`` it knows only the adversaries that some agent's sensor sees (what perfect messages could tell).
+    Either way it knows who is an adversary, which no observation says.
+    """
+    cfg = engine.cfg
+    n = cfg.n_agents
+    x, y = engine.x.astype(np.float64), engine.y.astype(np.float64)
+    rel_x = x[:, None, :] - x[:, :n, None]
+    rel_y = y[:, None, :] - y[:, :n, None]
+    dist = np.hypot(rel_x, rel_y)
+    own_sight = engine.visible(rel_x, rel_y, engine.heading[:, :n]) & ~np.eye(n, cfg.n_cars, dtype=bool)
+    is_adv = np.arange(cfg.n_cars) >= n
+    known_adv = own_sight.any(axis=1, keepdims=True) if team_only else np.ones_like(own_sight)
+    weight = np.where((is_adv & known_adv) | (~is_adv & own_sight), dist, np.inf)
+    near = np.argmin(weight, axis=2)[..., None]
+    near_w = np.take_along_axis(weight, near, axis=2)[..., 0]
+    dx = np.take_along_axis(rel_x, near, axis=2)[..., 0]
+    dy = np.take_along_axis(rel_y, near, axis=2)[..., 0]
+    return drive(cfg, x[:, :n], y[:, :n], engine.heading[:, :n], engine.speed[:, :n], dx, dy, near_w < danger)

@@ -43,9 +43,11 @@ def mean_of_others(sent: Tensor) -> Tensor:
 class CommStep(nn.Module):
     """One CommNet communication round for all agents at once; a module of its own so it can be hooked/counted."""
 
-    def __init__(self, groups: int, width: int, bits: int, discrete: bool, tau: float, noise: float = 1.0) -> None:
+    def __init__(
+        self, groups: int, width: int, bits: int, discrete: bool, tau: float, noise: float, bound: float | None
+    ) -> None:
         super().__init__()
-        self.bits, self.discrete, self.tau, self.noise = bits, discrete, tau, noise
+        self.bits, self.discrete, self.tau, self.noise, self.bound = bits, discrete, tau, noise, bound
         self.speak = GroupLinear(groups, width, 2 * bits if discrete else bits)  # h^p → message (logits)
         self.recur = GroupLinear(groups, width, width)  # W_h
         self.listen = GroupLinear(groups, bits, width)  # W_c
@@ -53,7 +55,7 @@ class CommStep(nn.Module):
     def emit(self, h: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its hidden state."""
         out = self.speak(h)
-        return message_bits(out, self.bits, train, self.tau, self.noise) if self.discrete else out
+        return message_bits(out, self.bits, train, self.tau, self.noise, self.bound) if self.discrete else out
 
     def forward(self, h: Tensor, h0: Tensor, train: bool, received: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Next hidden state and the messages sent this round; ``received`` replaces the averaged message."""
@@ -81,7 +83,13 @@ class IMS(Algorithm):
         return {
             "encoder": GroupMLP(groups, obs_in, hidden[:-1], width),  # h⁰ (ReLU applied in forward)
             "comm": CommStep(
-                groups, width, self.bits, bool(self.cfg.discrete), self.cfg.gumbel_tau, self.cfg.gumbel_noise
+                groups,
+                width,
+                self.bits,
+                bool(self.cfg.discrete),
+                self.cfg.gumbel_tau,
+                self.cfg.gumbel_noise,
+                self.cfg.message_logit_bound,
             ),
             "head": GroupLinear(groups, width, self.n_act),
         }

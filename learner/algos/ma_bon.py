@@ -60,7 +60,9 @@ class MABoN(HearsMessages, Algorithm):
         """The broadcast message ``[..., 1, bits]`` of each env from all its agents' encodings."""
         e = F.relu(nets["encoder"](x))  # [..., N, enc]
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
-        return message_bits(nets["message"](joint), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
+        c = self.cfg
+        logits = nets["message"](joint)
+        return message_bits(logits, self.bits, train, c.gumbel_tau, c.gumbel_noise, c.message_logit_bound)
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""

@@ -42,7 +42,8 @@ class MAMeSN(HearsMessages, Algorithm):
 
     def messages(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
-        return message_bits(nets["message"](x), self.bits, train, self.cfg.gumbel_tau, self.cfg.gumbel_noise)
+        c = self.cfg
+        return message_bits(nets["message"](x), self.bits, train, c.gumbel_tau, c.gumbel_noise, c.message_logit_bound)
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""

@@ -1,0 +1,59 @@
+"""The reference policies every treadmill learner is judged against, by name.
+
+* ``random`` — uniform actions;
+* ``constant-K`` — action K (0…8) at every step: an open-loop policy that ignores everything;
+* ``scripted`` — the hand-written driver on private observations (``envs.treadmill.scripted``);
+* ``team-information`` — the same driver told where every adversary that some agent's sensor sees is: the most
+  that messages between agents can carry;
+* ``full-information`` — the same driver told every car's position and which cars are adversaries.
+
+``full-information ÷ scripted`` is the value of information; ``team-information ÷ scripted`` the part of it
+that communication can reach.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from envs.rollout import RolloutResult, random_policy, rollout
+from envs.treadmill.config import N_ACTIONS, TreadmillConfig
+from envs.treadmill.engine import TreadmillEngine
+from envs.treadmill.scripted import full_information_actions, scripted_actions
+
+Policy = Callable[[np.ndarray], np.ndarray]
+CONSTANTS: tuple[str, ...] = tuple(f"constant-{a}" for a in range(N_ACTIONS))
+REFERENCES: tuple[str, ...] = ("random", *CONSTANTS, "scripted", "team-information", "full-information")
+
+
+def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None) -> Policy:
+    """The policy ``name`` driving ``engine``'s agents (the full-information one reads the engine's state)."""
+    if name == "random":
+        return random_policy(engine.spec, seed)
+    if name == "scripted":
+        return lambda obs: scripted_actions(obs, engine.cfg)
+    if name == "full-information":
+        return lambda obs: full_information_actions(engine)
+    if name == "team-information":
+        return lambda obs: full_information_actions(engine, team_only=True)
+    if name in CONSTANTS:
+        action = int(name.rsplit("-", 1)[1])
+        return lambda obs: np.full(obs.shape[:2], action, np.int64)
+    raise ValueError(f"unknown reference policy {name!r}; choose one of: {', '.join(REFERENCES)}")
+
+
+def evaluate_references(
+    cfg: TreadmillConfig, episodes: int = 500, seed: int = 0, names: tuple[str, ...] = REFERENCES
+) -> dict[str, RolloutResult]:
+    """One ``episodes``-episode rollout per reference policy, every policy on the same env seeds."""
+    out: dict[str, RolloutResult] = {}
+    for name in names:
+        engine = TreadmillEngine(cfg, episodes, autoreset=False)
+        out[name] = rollout(engine, reference_policy(name, engine, seed), seed=seed)
+    return out
+
+
+def best_constant(results: dict[str, RolloutResult]) -> str:
+    """The name of the constant action with the highest mean return."""
+    return max((n for n in results if n in CONSTANTS), key=lambda n: results[n].ci95()[0])
