@@ -89,7 +89,7 @@ class GumbelConfig(MessageConfig):
         "None = env default (0 on speaker-listener, where the paper used a plain softmax; else 1).",
     )
     message_logit_bound: float | None = Field(
-        3.0,
+        None,
         gt=0,
         le=100,
         description="Bound each bit's logit difference to (−b, b) with b·tanh(d/b) so messages cannot saturate "

@@ -11,12 +11,14 @@ EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
 
 
 def parse_value(text: str) -> Any:
-    """``KEY=VALUE`` values: int, float, true/false, comma lists (``64,64``), else the string itself."""
+    """``KEY=VALUE`` values: int, float, true/false, none (None), comma lists (``64,64``), else the string itself."""
     if "," in text:
         return [parse_value(t.strip()) for t in text.split(",") if t.strip()]
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
+    if low in ("none", "null"):
+        return None
     for cast in (int, float):
         try:
             return cast(text)

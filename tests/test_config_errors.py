@@ -13,7 +13,7 @@ from envs.treadmill import TreadmillParallelEnv
         ({"n_agents": 0}, "n_agents", "1 ≤ n_agents ≤ 1024"),
         ({"length": -5}, "length", "8 ≤ length"),
         ({"width": -1}, "width", "3 ≤ width"),
-        ({"n_agents": 700, "n_adversaries": 0}, "n_agents", "n_agents + n_adversaries ≤ 625"),
+        ({"n_agents": 700, "n_adversaries": 0}, "n_agents", "1 ≤ n_agents ≤ 325"),
         ({"n_agents": 1, "n_adversaries": 0}, "n_adversaries", "at least 2 cars"),
         ({"observe_k": 4}, "observe_k", "1 ≤ observe_k ≤ n_agents + n_adversaries − 1"),
         ({"treadmill_speed": 5}, "treadmill_speed", "≤ max_speed"),
