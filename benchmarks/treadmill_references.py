@@ -41,12 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = build_config(TreadmillConfig, **parse_pairs(args.set, "--set"))
     results = evaluate_references(cfg, args.episodes, args.seed)
     figures = {
-        name: {
-            "mean": r.ci95()[0],
-            "ci95": r.ci95()[1],
-            "crashed": float(r.terminated.mean()),
-            "length": float(r.lengths.mean()),
-        }
+        name: dict(zip(("mean", "ci95"), r.ci95(), strict=True))
+        | {"crashed": float(r.terminated.mean()), "length": float(r.lengths.mean())}
         for name, r in results.items()
     }
     console = Console()

@@ -10,11 +10,15 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 
 from learner.fused_mlp import fused_mlp
+
+if TYPE_CHECKING:
+    from protocol.config import GumbelConfig
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -110,6 +114,11 @@ def message_bits(
     soft = torch.sigmoid(diff / tau)  # = softmax(pairs / tau)[..., 1]; softmax over a last dim of 2 is ~10× slower
     hard = (diff > 0).to(logits.dtype)
     return hard + (soft - soft.detach())  # exactly 0/1 forward (x − x = 0), the soft gradient backward
+
+
+def gumbel_bits(logits: Tensor, bits: int, train: bool, cfg: GumbelConfig) -> Tensor:
+    """``message_bits`` with the temperature, noise and logit bound of an algorithm's (resolved) config."""
+    return message_bits(logits, bits, train, cfg.gumbel_tau, cfg.gumbel_noise, cfg.message_logit_bound)
 
 
 def others_index(n_agents: int) -> Tensor:

@@ -234,6 +234,12 @@ class TreadmillEngine:
         return crashed, bounced
 
     # ------------------------------------------------------------ observation
+    def offsets(self, envs: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Offsets in cells ``[E, N, C]`` from each agent to every car (its own car included, at 0)."""
+        n = self.cfg.n_agents
+        x, y = self.x[envs], self.y[envs]
+        return x[:, None, :] - x[:, :n, None], y[:, None, :] - y[:, :n, None]
+
     def visible(self, rel_x: np.ndarray, rel_y: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """Which cars at offsets ``[..., N, C]`` an agent with ``heading [..., N]`` senses: within ``sensor_range``
         and inside its field of view (``sensor_fov`` degrees, centred on the heading)."""
@@ -250,8 +256,7 @@ class TreadmillEngine:
         cfg = self.cfg
         n, k = cfg.n_agents, cfg.observe_k
         x, y, h, v = self.x[envs], self.y[envs], self.heading[envs], self.speed[envs]
-        rel_x = x[:, None, :] - x[:, :n, None]  # [E, N, C]
-        rel_y = y[:, None, :] - y[:, :n, None]
+        rel_x, rel_y = self.offsets(envs)
         dist = np.sqrt((rel_x * rel_x + rel_y * rel_y).astype(np.float64)) + self._self_mask
         closest = dist.min(axis=2)
         dist = np.where(self.visible(rel_x, rel_y, h[:, :n]), dist, np.inf)
@@ -284,17 +289,10 @@ class TreadmillEngine:
         )
         parts = [*own, neighbour.reshape(len(envs), n, -1)]
         if cfg.full_information:
-            o = self._others
-            adversary = (o >= n).astype(np.float32)[None, :, :, None].repeat(len(envs), axis=0)
-            full = np.concatenate(
-                [
-                    (np.take_along_axis(rel_x, o[None].repeat(len(envs), 0), axis=2) / l1)[..., None],
-                    (np.take_along_axis(rel_y, o[None].repeat(len(envs), 0), axis=2) / w1)[..., None],
-                    (v[:, o] / cfg.max_speed)[..., None],
-                    adversary,
-                ],
-                axis=3,
-            ).astype(np.float32)
+            me, o = np.arange(n)[:, None], self._others  # [N, 1], [N, C−1]
+            speed = v[:, o] / cfg.max_speed  # [E, N, C−1]
+            adversary = np.broadcast_to(o >= n, speed.shape)
+            full = np.stack([rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed, adversary], axis=3, dtype=np.float32)
             parts.append(full.reshape(len(envs), n, -1))
         obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)

@@ -102,9 +102,7 @@ def full_information_actions(engine, danger: float = DANGER, team_only: bool = F
     """
     cfg = engine.cfg
     n = cfg.n_agents
-    x, y = engine.x.astype(np.float64), engine.y.astype(np.float64)
-    rel_x = x[:, None, :] - x[:, :n, None]
-    rel_y = y[:, None, :] - y[:, :n, None]
+    rel_x, rel_y = engine.offsets()
     dist = np.hypot(rel_x, rel_y)
     own_sight = engine.visible(rel_x, rel_y, engine.heading[:, :n]) & ~np.eye(n, cfg.n_cars, dtype=bool)
     is_adv = np.arange(cfg.n_cars) >= n
@@ -114,4 +112,5 @@ def full_information_actions(engine, danger: float = DANGER, team_only: bool = F
     near_w = np.take_along_axis(weight, near, axis=2)[..., 0]
     dx = np.take_along_axis(rel_x, near, axis=2)[..., 0]
     dy = np.take_along_axis(rel_y, near, axis=2)[..., 0]
-    return drive(cfg, x[:, :n], y[:, :n], engine.heading[:, :n], engine.speed[:, :n], dx, dy, near_w < danger)
+    own = np.s_[:, :n]
+    return drive(cfg, engine.x[own], engine.y[own], engine.heading[own], engine.speed[own], dx, dy, near_w < danger)

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
-from learner.nets import GroupLinear, GroupMLP, id_width, message_bits, with_agent_id
+from learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, with_agent_id
 from protocol.config import IMSConfig
 
 
@@ -43,19 +43,17 @@ def mean_of_others(sent: Tensor) -> Tensor:
 class CommStep(nn.Module):
     """One CommNet communication round for all agents at once; a module of its own so it can be hooked/counted."""
 
-    def __init__(
-        self, groups: int, width: int, bits: int, discrete: bool, tau: float, noise: float, bound: float | None
-    ) -> None:
+    def __init__(self, groups: int, width: int, bits: int, cfg: IMSConfig) -> None:
         super().__init__()
-        self.bits, self.discrete, self.tau, self.noise, self.bound = bits, discrete, tau, noise, bound
-        self.speak = GroupLinear(groups, width, 2 * bits if discrete else bits)  # h^p → message (logits)
+        self.bits, self.discrete, self.cfg = bits, bool(cfg.discrete), cfg
+        self.speak = GroupLinear(groups, width, 2 * bits if self.discrete else bits)  # h^p → message (logits)
         self.recur = GroupLinear(groups, width, width)  # W_h
         self.listen = GroupLinear(groups, bits, width)  # W_c
 
     def emit(self, h: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its hidden state."""
         out = self.speak(h)
-        return message_bits(out, self.bits, train, self.tau, self.noise, self.bound) if self.discrete else out
+        return gumbel_bits(out, self.bits, train, self.cfg) if self.discrete else out
 
     def forward(self, h: Tensor, h0: Tensor, train: bool, received: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Next hidden state and the messages sent this round; ``received`` replaces the averaged message."""
@@ -82,15 +80,7 @@ class IMS(Algorithm):
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         return {
             "encoder": GroupMLP(groups, obs_in, hidden[:-1], width),  # h⁰ (ReLU applied in forward)
-            "comm": CommStep(
-                groups,
-                width,
-                self.bits,
-                bool(self.cfg.discrete),
-                self.cfg.gumbel_tau,
-                self.cfg.gumbel_noise,
-                self.cfg.message_logit_bound,
-            ),
+            "comm": CommStep(groups, width, self.bits, self.cfg),
             "head": GroupLinear(groups, width, self.n_act),
         }
 

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
 from learner.listening import HearsMessages
-from learner.nets import GroupMLP, id_width, message_bits, with_agent_id
+from learner.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
 from protocol.config import BoNConfig
 
 
@@ -60,9 +60,7 @@ class MABoN(HearsMessages, Algorithm):
         """The broadcast message ``[..., 1, bits]`` of each env from all its agents' encodings."""
         e = F.relu(nets["encoder"](x))  # [..., N, enc]
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
-        c = self.cfg
-        logits = nets["message"](joint)
-        return message_bits(logits, self.bits, train, c.gumbel_tau, c.gumbel_noise, c.message_logit_bound)
+        return gumbel_bits(nets["message"](joint), self.bits, train, self.cfg)
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
 from learner.listening import HearsMessages
-from learner.nets import GroupMLP, gather_others, id_width, message_bits, others_index, with_agent_id
+from learner.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
 from protocol.config import MeSNConfig
 
 
@@ -42,8 +42,7 @@ class MAMeSN(HearsMessages, Algorithm):
 
     def messages(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
-        c = self.cfg
-        return message_bits(nets["message"](x), self.bits, train, c.gumbel_tau, c.gumbel_noise, c.message_logit_bound)
+        return gumbel_bits(nets["message"](x), self.bits, train, self.cfg)
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
