@@ -31,7 +31,18 @@ class JobSubmit(BaseModel):
     steps: int = Field(100_000, ge=1, le=1_000_000_000, description="Total env steps.")
     num_envs: int = Field(16, ge=1, le=4096, description="Envs stepped together per actor.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of envs, exploration and network init.")
-    eval_episodes: int = Field(20, ge=0, le=10_000, description="Greedy episodes evaluated at the end.")
+    eval_episodes: int = Field(
+        JobConfig.model_fields["eval_episodes"].default,
+        ge=0,
+        le=10_000,
+        description=JobConfig.model_fields["eval_episodes"].description,
+    )
+    eval_every: int = Field(
+        JobConfig.model_fields["eval_every"].default,
+        ge=0,
+        le=1_000_000_000,
+        description=JobConfig.model_fields["eval_every"].description,
+    )
     log_every: int = Field(2_000, ge=1, le=1_000_000_000, description="Env steps between metric rows.")
     checkpoint_every: int = Field(50_000, ge=1, le=1_000_000_000, description="Env steps between checkpoints.")
     name: str | None = Field(

@@ -22,10 +22,19 @@ class EnvEntry:
     parallel: Callable[..., ParallelEnv]  # (**params)
     summary: str
     config: Callable[[], type[BaseModel]]  # the pydantic model of its parameters (lazy: particle envs import mpe2)
+    # (params, episodes, seed) → {policy name: (mean return, 95 % CI)}: the hand-made policies a learner is judged
+    # against beside random (the treadmill: its best constant action and the scripted driver)
+    references: Callable[[dict[str, Any], int, int], dict[str, tuple[float, float]]] | None = None
 
 
 def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
     return TreadmillEngine(build_config(TreadmillConfig, **params), num_envs)
+
+
+def _treadmill_references(params: dict[str, Any], episodes: int, seed: int) -> dict[str, tuple[float, float]]:
+    from envs.treadmill.references import summary_references
+
+    return summary_references(build_config(TreadmillConfig, **params), episodes, seed)
 
 
 def _particle(name: str, summary: str, config: str) -> EnvEntry:
@@ -47,7 +56,11 @@ def _particle(name: str, summary: str, config: str) -> EnvEntry:
 
 ENVS: dict[str, EnvEntry] = {
     "treadmill": EnvEntry(
-        _treadmill_batch, TreadmillParallelEnv, "the paper's highway: N agents, M adversaries", lambda: TreadmillConfig
+        _treadmill_batch,
+        TreadmillParallelEnv,
+        "the paper's highway: N agents, M adversaries",
+        lambda: TreadmillConfig,
+        _treadmill_references,
     ),
     "predator-prey": _particle(
         "predator-prey", "2 predators chase a scripted prey (mpe2 simple_tag)", "PredatorPreyConfig"

@@ -23,7 +23,8 @@ from learner.errors import CheckpointError
 from protocol.config import JobConfig, job_config
 
 FORMAT = 1
-__all__ = ["CheckpointError", "load_checkpoint", "read_checkpoint", "save_checkpoint"]
+BEST_CHECKPOINT = "best.pt"  # beside checkpoint.pt: the policy of the best point of the greedy learning curve
+__all__ = ["BEST_CHECKPOINT", "CheckpointError", "load_checkpoint", "read_checkpoint", "save_checkpoint"]
 
 
 def save_checkpoint(path: str | Path, algo: Algorithm, job: JobConfig, counters: dict[str, Any]) -> Path:

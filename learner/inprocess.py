@@ -19,8 +19,8 @@ import torch
 
 from envs.batched import BatchedEnv
 from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import save_checkpoint
-from learner.runlog import RunLog, final_eval, write_artefacts
+from learner.checkpoint import BEST_CHECKPOINT, save_checkpoint
+from learner.runlog import Evaluator, RunLog, write_artefacts
 from learner.stepping import EnvStepper
 from protocol.config import JobConfig
 
@@ -35,10 +35,13 @@ class TrainResult:
     wall_s: float
     env_steps_per_s: float
     updates_per_s: float
-    final_return: float  # mean training return of the last 10 % of episodes
-    eval_return: float
+    final_return: float  # mean ε-greedy training return of the last 10 % of episodes
+    eval_return: float  # greedy, on the fixed evaluation seeds
     eval_ci95: float
     random_return: float
+    references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
+    best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
+    best_eval_step: int = -1
     out_dir: str | None = None
     rows: list[dict[str, float]] = field(default_factory=list)
 
@@ -97,11 +100,13 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.show_progress = progress
         self.cfg = job.algo_config()
+        self._counters: dict[str, int] = {}
 
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
         torch.manual_seed(job.seed)
         log = RunLog(job.steps, job.log_every, self.out_dir, self.show_progress)
+        evaluator = Evaluator(job, self.make_eval_env, self._save_best if self.out_dir else None)
         stepper = EnvStepper(env, algo, job.seed)
         finished: list[float] = []
         env_steps = 0
@@ -124,7 +129,13 @@ class Trainer:
                     while owed >= 1.0 and algo.can_update():
                         log.update(algo.update())
                         owed -= 1.0
-                extra = self.on_row(env_steps) if self.on_row and log.row_due(env_steps) else {}
+                extra: dict[str, float] = {}
+                if log.row_due(env_steps):
+                    self._counters = {"env_steps": env_steps, "episodes": len(finished), "updates": algo.updates}
+                    if evaluator.due(env_steps, job.steps):
+                        extra.update(evaluator.point(algo, env_steps))
+                    if self.on_row:
+                        extra.update(self.on_row(env_steps))
                 log.maybe_row(env_steps, len(finished), algo.updates, eps, **extra)
                 if self.out_dir and env_steps >= next_ckpt:
                     self._checkpoint(env_steps, len(finished))
@@ -133,7 +144,10 @@ class Trainer:
             log.close()
         wall = time.perf_counter() - t0
         tail = finished[-max(1, len(finished) // 10) :] if finished else [float("nan")]
-        eval_ret, eval_ci, rand_ret = final_eval(algo, job.eval_episodes, job.seed, self.make_eval_env)
+        try:
+            final = evaluator.final(algo)
+        finally:
+            evaluator.close()
         result = TrainResult(
             env_steps=env_steps,
             updates=algo.updates,
@@ -142,9 +156,7 @@ class Trainer:
             env_steps_per_s=env_steps / wall,
             updates_per_s=algo.updates / wall,
             final_return=float(np.mean(tail)),
-            eval_return=eval_ret,
-            eval_ci95=eval_ci,
-            random_return=rand_ret,
+            **final,
             out_dir=str(self.out_dir) if self.out_dir else None,
             rows=log.rows,
         )
@@ -157,3 +169,8 @@ class Trainer:
         assert self.out_dir is not None
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": self.algo.updates}
         save_checkpoint(self.out_dir / "checkpoint.pt", self.algo, self.job, counters)
+
+    def _save_best(self) -> None:
+        """The policy of the best greedy-curve point so far, as ``best.pt`` (same format as ``checkpoint.pt``)."""
+        assert self.out_dir is not None
+        save_checkpoint(self.out_dir / BEST_CHECKPOINT, self.algo, self.job, self._counters)

@@ -23,10 +23,11 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from envs.channel import MessageChannel
 from envs.config import ConfigError
+from learner.nets import bit_logits, channel_information
 from protocol.config import MessageSource
 
 Source = MessageSource
@@ -97,6 +98,19 @@ class HearsMessages:
         if self.listening is not None:
             self.listening.reset(done)
         return super().reset_state(state, done)  # type: ignore[misc]
+
+    def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        """Every sender's message logits ``[..., senders, 2·bits]`` from the raw observations ``[..., N, D]``."""
+        raise NotImplementedError
+
+    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+        """The positive-signalling term, −coef × I(observation; message) on this batch (``signalling_coef``)."""
+        coef = float(getattr(self.cfg, "signalling_coef", 0.0))  # type: ignore[attr-defined]
+        if not coef:
+            return None, {}
+        logits = self.message_logits(self.online, batch["obs"])  # type: ignore[attr-defined]
+        info = channel_information(bit_logits(logits, self.bits, self.cfg.message_logit_bound))  # type: ignore[attr-defined]
+        return -coef * info, {"message_info": float(info.detach())}
 
     def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:
         if self.listening is None:

@@ -154,4 +154,6 @@ class MemoryModule:
             "memory_bit_acc": float(right.float().mean()),
             "memory_msg_acc": float(msg_right.float().mean()),
         }
-        return self.cfg.memory_coef * bce, stats
+        base, base_stats = super().aux_loss(batch)  # type: ignore[misc]
+        loss = self.cfg.memory_coef * bce
+        return (loss if base is None else loss + base), {**base_stats, **stats}

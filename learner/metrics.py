@@ -8,6 +8,8 @@ import math
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
 
 class MetricsWriter:
     """Appends one row per call to ``metrics.jsonl`` and ``metrics.csv`` in ``out_dir`` (flushed each row).
@@ -68,8 +70,12 @@ def read_rows(out_dir: str | Path) -> list[dict[str, Any]]:
     return rows
 
 
-def plot_curves(rows: list[dict[str, float]], path: str | Path, title: str, baseline: float | None = None) -> Path:
-    """Return and speed against env steps; the random policy's return as a dashed line when given."""
+def plot_curves(
+    rows: list[dict[str, float]], path: str | Path, title: str, references: dict[str, list[float]] | None = None
+) -> Path:
+    """The learning curve: the greedy evaluation with its 95 % CI band (the figure to read), the ε-greedy training
+    return (episodes that ended in each row; short crashed episodes weigh in it) and the reference policies as
+    dashed lines; speed beside it."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -78,12 +84,21 @@ def plot_curves(rows: list[dict[str, float]], path: str | Path, title: str, base
     path = Path(path)
     steps = [r["env_steps"] for r in rows]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.6))
-    ax1.plot(steps, [r["return"] for r in rows], label="training return (ε-greedy)")
-    if baseline is not None and not math.isnan(baseline):
-        ax1.axhline(baseline, ls="--", color="grey", label="random policy")
+    ax1.plot(steps, [r["return"] for r in rows], color="tab:blue", alpha=0.35, lw=1, label="training return (ε-greedy)")
+    points = [r for r in rows if not math.isnan(r.get("eval_return", math.nan))]
+    if points:
+        x = np.array([r["env_steps"] for r in points])
+        y = np.array([r["eval_return"] for r in points])
+        ci = np.array([r.get("eval_ci95", 0.0) for r in points])
+        ax1.plot(x, y, color="tab:blue", lw=2, marker="o", ms=3, label="greedy evaluation (95 % CI)")
+        ax1.fill_between(x, y - ci, y + ci, color="tab:blue", alpha=0.2)
+    colours = iter(["grey", "tab:orange", "tab:green", "tab:red", "tab:purple"])
+    for name, (mean, _) in (references or {}).items():
+        if not math.isnan(mean):
+            ax1.axhline(mean, ls="--", lw=1, color=next(colours, "black"), label=name)
     ax1.set_xlabel("env steps")
     ax1.set_ylabel("episode return (mean over agents)")
-    ax1.legend(loc="best", fontsize=8)
+    ax1.legend(loc="best", fontsize=7)
     ax1.set_title(title)
     ax2.plot(steps, [r["env_steps_per_s"] for r in rows], label="env steps/s")
     ax2.plot(steps, [r["updates_per_s"] for r in rows], label="updates/s")

@@ -13,6 +13,7 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from learner.fused_mlp import fused_mlp
@@ -102,18 +103,38 @@ def message_bits(
     straight-through gradient, ~e^−|d|, can never reopen the channel. Bounded, a bit stays a little noisy in training
     (the Gumbel pair's difference is logistic noise) and its gradient never vanishes.
     """
-    pairs = logits.reshape(*logits.shape[:-1], bits, 2)
-    diff = pairs[..., 1] - pairs[..., 0]
     if not train:
-        return (diff > 0).to(logits.dtype)
-    if bound is not None:
-        diff = bound * torch.tanh(diff / bound)
+        return (bit_logits(logits, bits) > 0).to(logits.dtype)
+    diff = bit_logits(logits, bits, bound)
     if noise > 0:  # the difference of two Gumbel draws is logistic: one draw per bit
         u = torch.rand_like(diff).clamp_(1e-7, 1.0 - 1e-7)
         diff = diff + noise * (torch.log(u) - torch.log1p(-u))
     soft = torch.sigmoid(diff / tau)  # = softmax(pairs / tau)[..., 1]; softmax over a last dim of 2 is ~10× slower
     hard = (diff > 0).to(logits.dtype)
     return hard + (soft - soft.detach())  # exactly 0/1 forward (x − x = 0), the soft gradient backward
+
+
+def bit_logits(logits: Tensor, bits: int, bound: float | None = None) -> Tensor:
+    """Each bit's logit difference ``[..., bits]`` (P(bit = 1) = sigmoid of it), bounded by ``bound·tanh(d/bound)``."""
+    pairs = logits.reshape(*logits.shape[:-1], bits, 2)
+    diff = pairs[..., 1] - pairs[..., 0]
+    return diff if bound is None else bound * torch.tanh(diff / bound)
+
+
+def channel_information(diff: Tensor) -> Tensor:
+    """A batch estimate of I(observation; message) in nats per sender: Σ_bits H(mean p) − mean H(p).
+
+    ``diff [..., S, bits]`` are the senders' bit logits over a batch of observations (all leading dims). The first
+    term is high when a bit differs between observations, the second low when each observation fixes it: the
+    positive-signalling objective of Eccles et al. (2019), which keeps a message informative while the TD gradient
+    alone would let it collapse onto one codeword.
+    """
+    d = diff.reshape(-1, *diff.shape[-2:])
+    p = torch.sigmoid(d)
+    cond = F.binary_cross_entropy_with_logits(d, p, reduction="none").mean(dim=0)  # mean H(p) per sender and bit
+    pbar = p.mean(dim=0).clamp(1e-6, 1 - 1e-6)
+    marginal = -(pbar * pbar.log() + (1 - pbar) * (1 - pbar).log())
+    return (marginal - cond).sum(dim=-1).mean()
 
 
 def gumbel_bits(logits: Tensor, bits: int, train: bool, cfg: GumbelConfig) -> Tensor:

@@ -99,21 +99,94 @@ class RunLog:
             self.writer.close()
 
 
-def final_eval(
-    algo: Any, episodes: int, seed: int, make_eval_env: Callable[[int], BatchedEnv] | None
-) -> tuple[float, float, float]:
-    """Greedy return ± 95 % CI and the random policy's return on fresh eval envs (seed offset from training)."""
-    from learner.inprocess import evaluate
+EVAL_SEED_OFFSET = 10_000  # evaluation envs are seeded apart from the training envs (same seeds at every point)
 
-    if episodes == 0 or make_eval_env is None:
-        return math.nan, math.nan, math.nan
-    env = make_eval_env(min(episodes, 256))
-    try:
-        greedy = evaluate(env, algo, episodes, seed=seed + 10_000)
-        rand = evaluate(env, algo, episodes, seed=seed + 10_000, epsilon=1.0)
-    finally:
-        env.close()
-    return float(greedy.mean()), ci95_half(greedy), float(rand.mean())
+
+class Evaluator:
+    """Greedy evaluation on fixed seeds: the learning curve (every ``eval_every`` env steps), the best policy seen
+    (``save_best`` is called whenever a point beats it) and the final figures beside the env's reference policies.
+
+    Every point plays the same ``eval_episodes`` episodes (seeds ``seed + EVAL_SEED_OFFSET + round``), so points
+    differ by the policy only; the algorithm's exploration RNG is restored afterwards, so evaluating does not change
+    the training run it measures.
+    """
+
+    def __init__(
+        self,
+        job: Any,
+        make_env: Callable[[int], BatchedEnv] | None,
+        save_best: Callable[[], None] | None = None,
+        best: float = -math.inf,
+        first_step: int = 0,
+    ) -> None:
+        self.episodes, self.every = int(job.eval_episodes), int(job.eval_every)
+        self.seed = int(job.seed) + EVAL_SEED_OFFSET
+        self.env_name, self.env_params = str(job.env), dict(job.env_params)
+        self.make_env, self.save_best = make_env, save_best
+        self.best, self.best_step = best, -1
+        self.next = (first_step // self.every + 1) * self.every if self.every else 0
+        self._env: BatchedEnv | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.episodes > 0 and self.make_env is not None
+
+    def due(self, env_steps: int, total: int) -> bool:
+        """Whether a curve point is owed at this step (every ``eval_every`` steps and at the end of the run)."""
+        return self.enabled and self.every > 0 and (env_steps >= self.next or env_steps >= total)
+
+    def returns(self, algo: Any, epsilon: float = 0.0) -> np.ndarray:
+        """Per-episode returns of ``eval_episodes`` episodes on the fixed evaluation seeds."""
+        from learner.inprocess import evaluate
+
+        if self._env is None:
+            assert self.make_env is not None
+            self._env = self.make_env(min(self.episodes, 256))
+        rng_state = algo.rng.bit_generator.state
+        try:
+            return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)
+        finally:
+            algo.rng.bit_generator.state = rng_state
+
+    def point(self, algo: Any, env_steps: int) -> dict[str, float]:
+        """One point of the curve (``eval_return``, ``eval_ci95``); keeps the policy if it is the best so far."""
+        r = self.returns(algo)
+        mean = float(r.mean())
+        while self.next <= env_steps:
+            self.next += self.every
+        if mean > self.best:
+            self.best, self.best_step = mean, env_steps
+            if self.save_best is not None:
+                self.save_best()
+        return {"eval_return": mean, "eval_ci95": ci95_half(r, single=0.0)}
+
+    def final(self, algo: Any) -> dict[str, Any]:
+        """The trained policy's greedy return and CI, the best point of the curve and the reference policies'
+        returns on the same number of episodes (random for every env; the treadmill adds its best constant action
+        and the scripted driver)."""
+        if not self.enabled:
+            nan = math.nan
+            return {"eval_return": nan, "eval_ci95": nan, "random_return": nan, "references": {}}
+        greedy, rand = self.returns(algo), self.returns(algo, epsilon=1.0)
+        refs: dict[str, tuple[float, float]] = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
+        from envs.registry import env_entry
+
+        table = env_entry(self.env_name).references
+        if table is not None:
+            refs = table(self.env_params, self.episodes, self.seed)
+        out: dict[str, Any] = {
+            "eval_return": float(greedy.mean()),
+            "eval_ci95": ci95_half(greedy, single=0.0),
+            "random_return": float(rand.mean()),
+            "references": {k: [float(m), float(c)] for k, (m, c) in refs.items()},
+        }
+        if self.best > -math.inf:
+            out["best_eval_return"], out["best_eval_step"] = self.best, self.best_step
+        return out
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
 
 
 def write_artefacts(out_dir: str | Path, summary: dict[str, Any], rows: list[dict[str, Any]], title: str) -> None:
@@ -122,7 +195,8 @@ def write_artefacts(out_dir: str | Path, summary: dict[str, Any], rows: list[dic
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     if rows:
-        plot_curves(rows, out / "curve.png", title=title, baseline=summary.get("random_return"))
+        refs = summary.get("references") or {"random": [summary.get("random_return", math.nan), 0.0]}
+        plot_curves(rows, out / "curve.png", title=title, references=refs)
 
 
 class ProgressDisplay:

@@ -29,8 +29,8 @@ import torch
 from envs import make_batched
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
-from learner.runlog import RunLog, final_eval, write_artefacts
+from learner.checkpoint import BEST_CHECKPOINT, CheckpointError, read_checkpoint, save_checkpoint
+from learner.runlog import Evaluator, RunLog, write_artefacts
 from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
 from protocol import keys, wire
@@ -146,6 +146,14 @@ class Learner:
             first_step=env_steps,
             first_updates=algo.updates,
         )
+        evaluator = Evaluator(
+            job,
+            lambda n: make_batched(job.env, n, **job.env_params),
+            save_best=lambda: self._checkpoint(algo, env_steps, episodes, BEST_CHECKPOINT),
+            best=float(counters.get("best_eval_return", float("-inf"))),
+            first_step=env_steps,
+        )
+        self.evaluator = evaluator
         owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
         next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
         t_weights = t_budget = t_chunk = 0.0
@@ -200,6 +208,8 @@ class Learner:
                 while owed >= 1.0 and algo.can_update():
                     log.update(algo.update())
                     owed -= 1.0
+                due = log.row_due(env_steps) and evaluator.due(env_steps, job.steps)
+                curve = evaluator.point(algo, env_steps) if due else {}
                 row = log.maybe_row(
                     env_steps,
                     episodes,
@@ -208,6 +218,7 @@ class Learner:
                     policy_lag=float(np.mean(lags)) if lags else 0.0,
                     dropped=float(inbox.drops + self.dropped_schema),
                     chunks=float(ingested_chunks),
+                    **curve,
                 )
                 if row is not None:
                     self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
@@ -223,9 +234,10 @@ class Learner:
             log.close()
         self._checkpoint(algo, env_steps, episodes)
         wall = time.perf_counter() - t0
-        eval_ret, eval_ci, rand_ret = final_eval(
-            algo, job.eval_episodes, job.seed, lambda n: make_batched(job.env, n, **job.env_params)
-        )
+        try:
+            final = evaluator.final(algo)
+        finally:
+            evaluator.close()
         rows = log.rows
         summary = {
             "env_steps": env_steps,
@@ -235,20 +247,21 @@ class Learner:
             "final_return": float(np.nanmean([r["return"] for r in rows[-max(1, len(rows) // 10) :]]))
             if rows
             else float("nan"),
-            "eval_return": eval_ret,
-            "eval_ci95": eval_ci,
-            "random_return": rand_ret,
+            **final,
             "dropped": inbox.drops + self.dropped_schema,
             "dropped_by_reason": {**inbox.dropped, "schema": self.dropped_schema},
         }
         write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")
-        done = {"done": 1.0, "eval_return": eval_ret, "env_steps": env_steps, "updates": algo.updates}
+        done = {"done": 1.0, "eval_return": final["eval_return"], "env_steps": env_steps, "updates": algo.updates}
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
         return 0
 
-    def _checkpoint(self, algo: Algorithm, env_steps: int, episodes: int) -> None:
+    def _checkpoint(self, algo: Algorithm, env_steps: int, episodes: int, name: str = "checkpoint.pt") -> None:
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": algo.updates}
-        save_checkpoint(self.out_dir / "checkpoint.pt", algo, self.job, counters)
+        evaluator = getattr(self, "evaluator", None)
+        if evaluator is not None and evaluator.best > float("-inf"):
+            counters["best_eval_return"] = evaluator.best  # a restarted learner keeps best.pt unless it beats it
+        save_checkpoint(self.out_dir / name, algo, self.job, counters)
 
 
 def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:

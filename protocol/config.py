@@ -95,6 +95,14 @@ class GumbelConfig(MessageConfig):
         description="Bound each bit's logit difference to (−b, b) with b·tanh(d/b) so messages cannot saturate "
         "(a saturated bit is constant and its gradient ~e^−|d| never reopens it); None = unbounded (the paper).",
     )
+    signalling_coef: float = Field(
+        0.0,
+        ge=0,
+        le=100,
+        description="Weight of the positive-signalling term: the loss subtracts coef × I(observation; message), "
+        "estimated per batch, so messages stay informative instead of collapsing onto one codeword; 0 = off (the "
+        "paper).",
+    )
 
 
 class IDQNConfig(AlgoConfig):
@@ -336,7 +344,17 @@ class JobConfig(BaseModel):
     steps: int = Field(200_000, ge=1, description="Total env steps (summed over parallel envs).")
     num_envs: int = Field(16, ge=1, le=65536, description="Envs stepped together per actor.")
     seed: int = Field(0, ge=0, description="Seed of envs, exploration and network init.")
-    eval_episodes: int = Field(20, ge=0, description="Greedy episodes evaluated at the end.")
+    eval_episodes: int = Field(
+        100,
+        ge=0,
+        le=10_000,
+        description="Greedy episodes per evaluation (fixed seeds): each learning-curve point and the final one.",
+    )
+    eval_every: int = Field(
+        10_000,
+        ge=0,
+        description="Env steps between greedy evaluations, the learning curve (at metric rows); 0 = the final only.",
+    )
     log_every: int = Field(2_000, ge=1, description="Env steps between metric rows.")
     checkpoint_every: int = Field(50_000, ge=1, description="Env steps between checkpoints.")
     device: Device = Field("auto", description="Torch device; auto = CUDA when present.")

@@ -161,7 +161,8 @@ def summary_line(job: dict[str, Any], elapsed: float | None = None) -> str:
 def submit_body(args: argparse.Namespace) -> dict[str, Any]:
     """The ``POST /jobs`` body from the flags; flags not given are left to the service's defaults."""
     body: dict[str, Any] = {}
-    for name in ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "log_every", "name"):
+    names = ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "eval_every", "log_every", "name")
+    for name in names:
         value = getattr(args, name)
         if value is not None:
             body[name] = value

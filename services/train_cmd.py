@@ -38,7 +38,7 @@ def read_config_file(path: str) -> dict[str, Any]:
 def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
-    for name in ("algo", "env", "steps", "num_envs", "seed", "eval_episodes", "log_every", "device"):
+    for name in ("algo", "env", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every", "device"):
         v = getattr(args, name)
         if v is not None:
             values[name] = v
@@ -83,13 +83,18 @@ def cmd_train(args: argparse.Namespace) -> int:
     table.add_row("wall time", f"{s['wall_s']:.1f} s")
     table.add_row("env steps/s", f"{s['env_steps'] / max(s['wall_s'], 1e-9):,.0f}")
     table.add_row("updates/s", f"{s['updates'] / max(s['wall_s'], 1e-9):,.1f}")
-    table.add_row("training return (last 10 %)", f"{s['final_return']:.3f}")
-    table.add_row(f"greedy eval return ({job.eval_episodes} eps)", f"{s['eval_return']:.3f} ± {s['eval_ci95']:.3f}")
-    table.add_row("random policy return", f"{s['random_return']:.3f}")
+    table.add_row("ε-greedy training return (last 10 % of episodes)", f"{s['final_return']:.3f}")
+    greedy = f"{s['eval_return']:.3f} ± {s['eval_ci95']:.3f}"
+    table.add_row(f"[bold]greedy return[/] ({job.eval_episodes} episodes, 95 % CI)", greedy)
+    if s.get("best_eval_step", -1) >= 0:
+        table.add_row(f"best greedy point (step {s['best_eval_step']:,}, best.pt)", f"{s['best_eval_return']:.3f}")
+    for name, (mean, ci) in (s.get("references") or {"random": [s["random_return"], float("nan")]}).items():
+        table.add_row(f"reference: {name}", f"{mean:.3f} ± {ci:.3f}")
     if "dropped" in s:
         table.add_row("messages dropped (corrupt / foreign)", f"{s['dropped']:,}")
     console.print(table)
-    console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt, summary.json")
+    best = ", best.pt" if (out / "best.pt").is_file() else ""
+    console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt{best}, summary.json")
     return 0
 
 
@@ -154,6 +159,14 @@ def add_job_flags(tr: argparse.ArgumentParser) -> None:
     tr.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")
     tr.add_argument("--hierarchical", action="store_true", help="hierarchical DQN (appendix A.2), treadmill only")
     tr.add_argument(
-        "--eval-episodes", type=int, help=f"greedy episodes at the end (default {d['eval_episodes'].default})"
+        "--eval-episodes",
+        type=int,
+        help=f"greedy episodes per evaluation, fixed seeds (default {d['eval_episodes'].default})",
+    )
+    tr.add_argument(
+        "--eval-every",
+        type=int,
+        help=f"env steps between greedy evaluations, the learning curve; 0 = only at the end "
+        f"(default {d['eval_every'].default:,})",
     )
     tr.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default})")

@@ -26,14 +26,18 @@ def test_train_writes_metrics_curve_checkpoint_and_summary(tmp_path, capsys) -> 
     out = tmp_path / "run"
     assert main(["train", "--algo", "ma-mesn", *TINY, "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "greedy eval return" in text and "random policy return" in text
+    assert "greedy return" in text and "reference: random" in text and "best greedy point" in text
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) >= 5 and rows[-1]["env_steps"] >= 3000
+    curve = [r for r in rows if r.get("eval_return") is not None]  # --eval-every defaults to 10,000: the end only
+    assert [r["env_steps"] for r in curve] == [rows[-1]["env_steps"]] and curve[0]["eval_ci95"] >= 0
     assert {"env_steps", "return", "loss", "epsilon", "env_steps_per_s", "updates_per_s"} <= set(rows[0])
     assert (out / "metrics.csv").read_text().startswith("env_steps,")
     assert Image.open(out / "curve.png").size[0] > 400
     summary = json.loads((out / "summary.json").read_text())
     assert summary["env_steps"] >= 3000 and summary["updates"] > 0
+    assert set(summary["references"]) == {"random"} and summary["best_eval_step"] == rows[-1]["env_steps"]
+    assert load_checkpoint(out / "best.pt", device="cpu")[2]["env_steps"] == summary["best_eval_step"]
     algo, job, counters = load_checkpoint(out / "checkpoint.pt", device="cpu")
     assert job.algo == "ma-mesn" and job.env == "referential" and counters["env_steps"] == summary["env_steps"]
     assert algo.updates == summary["updates"]

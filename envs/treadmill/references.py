@@ -57,3 +57,11 @@ def evaluate_references(
 def best_constant(results: dict[str, RolloutResult]) -> str:
     """The name of the constant action with the highest mean return."""
     return max((n for n in results if n in CONSTANTS), key=lambda n: results[n].ci95()[0])
+
+
+def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[str, tuple[float, float]]:
+    """What a trained policy's summary shows beside it: random, the best constant action (named) and the scripted
+    driver, each as (mean, 95 % CI half-width) over ``episodes`` episodes."""
+    results = evaluate_references(cfg, episodes, seed, names=("random", *CONSTANTS, "scripted"))
+    best = best_constant(results)
+    return {name: results[name].ci95() for name in ("random", best, "scripted")}

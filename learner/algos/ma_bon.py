@@ -56,16 +56,17 @@ class MABoN(HearsMessages, Algorithm):
             "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.hidden, self.n_act),  # g′
         }
 
-    def broadcast(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
-        """The broadcast message ``[..., 1, bits]`` of each env from all its agents' encodings."""
-        e = F.relu(nets["encoder"](x))  # [..., N, enc]
+    def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        """f′: the broadcast's logits ``[..., 1, 2·bits]`` of each env from all its agents' encodings."""
+        e = F.relu(nets["encoder"](with_agent_id(obs, self.use_id)))  # [..., N, enc]
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
-        return gumbel_bits(nets["message"](joint), self.bits, train, self.cfg)
+        return nets["message"](joint)
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""
         x = with_agent_id(obs, self.use_id)
-        sent = self.broadcast(nets, x, train).expand(*x.shape[:-1], self.bits)
+        bm = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg)
+        sent = bm.expand(*x.shape[:-1], self.bits)
         return x, sent, sent
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:

@@ -40,15 +40,14 @@ class MAMeSN(HearsMessages, Algorithm):
             "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.hidden, self.n_act),  # f″
         }
 
-    def messages(self, nets: nn.ModuleDict, x: Tensor, train: bool) -> Tensor:
-        """Every agent's message ``[..., N, bits]`` from its own (id-augmented) observation."""
-        return gumbel_bits(nets["message"](x), self.bits, train, self.cfg)
+    def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        """f′: every agent's message logits ``[..., N, 2·bits]`` from its own observation."""
+        return nets["message"](with_agent_id(obs, self.shared))
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
-        x = with_agent_id(obs, self.shared)
-        sent = self.messages(nets, x, train)
-        return x, sent, gather_others(sent, self.peers)
+        sent = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg)
+        return with_agent_id(obs, self.shared), sent, gather_others(sent, self.peers)
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
         """f″: Q-values ``[..., N, A]`` from each agent's own input and the messages it heard."""
