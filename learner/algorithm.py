@@ -231,8 +231,13 @@ class Algorithm(ABC):
         return None, {}
 
     def after_update(self) -> None:
-        """Sync the targets every ``target_update`` updates (DIAL syncs by episodes instead)."""
-        if self.updates % self.cfg.target_update == 0:
+        """Sync the targets every ``target_update`` updates, or move them a step ``target_tau`` towards the online
+        weights after every update (DIAL syncs by episodes instead)."""
+        if self.cfg.target_tau < 1.0:
+            target, online = list(self.target.parameters()), list(self.online.parameters())
+            with torch.no_grad():
+                torch._foreach_lerp_(target, online, self.cfg.target_tau)
+        elif self.updates % self.cfg.target_update == 0:
             self.sync_target()
 
     def sync_target(self) -> None:
@@ -274,7 +279,14 @@ class Algorithm(ABC):
             q_next_t = q_fn(self.target, batch["next_obs"], False)
             q_next_o = q_fn(self.online, batch["next_obs"], False) if self.cfg.double_q else None
             y = self.target_for(q_next_t, q_next_o, batch)
+            if self.cfg.advantage_learning:
+                y = y - self.cfg.advantage_learning * self.action_gap(q_fn(self.target, batch["obs"], False), batch)
         return q, y
+
+    def action_gap(self, q_target: Tensor, batch: dict[str, Tensor]) -> Tensor:
+        """``max_b Q̄(s, b) − Q̄(s, a)`` of the taken actions ``[M, N]``: what advantage learning subtracts."""
+        best = q_target.masked_fill(~self.action_mask, NEG).max(dim=-1).values
+        return best - q_target.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
 
     def target_for(self, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]) -> Tensor:
         """TD target for this batch, honouring the ``double_q`` switch and a per-sample ``discount`` if stored."""

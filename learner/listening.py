@@ -27,7 +27,7 @@ from torch import Tensor, nn
 
 from envs.channel import MessageChannel
 from envs.config import ConfigError
-from learner.nets import bit_logits, channel_information
+from learner.nets import signalling_loss
 from protocol.config import MessageSource
 
 Source = MessageSource
@@ -105,12 +105,10 @@ class HearsMessages:
 
     def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
         """The positive-signalling term, −coef × I(observation; message) on this batch (``signalling_coef``)."""
-        coef = float(getattr(self.cfg, "signalling_coef", 0.0))  # type: ignore[attr-defined]
-        if not coef:
+        if not self.cfg.signalling_coef:  # type: ignore[attr-defined]
             return None, {}
         logits = self.message_logits(self.online, batch["obs"])  # type: ignore[attr-defined]
-        info = channel_information(bit_logits(logits, self.bits, self.cfg.message_logit_bound))  # type: ignore[attr-defined]
-        return -coef * info, {"message_info": float(info.detach())}
+        return signalling_loss(logits, self.bits, self.cfg)  # type: ignore[attr-defined]
 
     def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:
         if self.listening is None:

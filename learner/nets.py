@@ -137,6 +137,14 @@ def channel_information(diff: Tensor) -> Tensor:
     return (marginal - cond).sum(dim=-1).mean()
 
 
+def signalling_loss(logits: Tensor, bits: int, cfg: GumbelConfig) -> tuple[Tensor | None, dict[str, float]]:
+    """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off)."""
+    if not cfg.signalling_coef:
+        return None, {}
+    info = channel_information(bit_logits(logits, bits, cfg.message_logit_bound))
+    return -cfg.signalling_coef * info, {"message_info": float(info.detach())}
+
+
 def gumbel_bits(logits: Tensor, bits: int, train: bool, cfg: GumbelConfig) -> Tensor:
     """``message_bits`` with the temperature, noise and logit bound of an algorithm's (resolved) config."""
     return message_bits(logits, bits, train, cfg.gumbel_tau, cfg.gumbel_noise, cfg.message_logit_bound)

@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from envs import ENVS, ConfigError
-from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, job_config
+from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, env_default_note, job_config
 from services.args import env_params, parse_pairs
 
 console = Console()
@@ -103,7 +103,7 @@ def _algo_epilog() -> str:
     lines += [f"  {name:9} {ALGO_SUMMARIES[name]}" for name in ALGO_CONFIGS]
     lines.append("\nhyper-parameters (--hp KEY=VALUE; the algorithms that have a field in parentheses):")
     for name, info in AlgoConfig.model_fields.items():
-        lines.append(f"  {name} (default {info.default!r}): {info.description}")
+        lines.append(f"  {name} (default {info.default!r}{env_default_note(name)}): {info.description}")
     extras: dict[str, list[str]] = {}
     for algo, model in ALGO_CONFIGS.items():
         for name in model.model_fields:
@@ -111,7 +111,8 @@ def _algo_epilog() -> str:
                 extras.setdefault(name, []).append(algo)
     for name, algos in extras.items():
         info = ALGO_CONFIGS[algos[0]].model_fields[name]
-        lines.append(f"  {name} ({', '.join(algos)}; default {info.default!r}): {info.description}")
+        note = env_default_note(name)
+        lines.append(f"  {name} ({', '.join(algos)}; default {info.default!r}{note}): {info.description}")
     lines.append("\nenv parameters (--set KEY=VALUE): convoy env list --params")
     return "\n".join(lines)
 

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from learner.algorithm import Algorithm
-from learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, with_agent_id
+from learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from protocol.config import IMSConfig
 
 
@@ -101,3 +101,10 @@ class IMS(Algorithm):
 
     def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)
+
+    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+        """The positive-signalling term (``signalling_coef``) on the first round's discrete messages."""
+        if not (self.cfg.discrete and self.cfg.signalling_coef):
+            return None, {}
+        h0 = F.relu(self.online["encoder"](with_agent_id(batch["obs"], self.shared)))
+        return signalling_loss(self.online["comm"].speak(h0), self.bits, self.cfg)

@@ -1,0 +1,157 @@
+"""Every learner on the default treadmill at one budget, over seeds, beside the reference policies.
+
+The paper's Fig. 3 question — do communicating learners drive better than independent ones? — asked on Convoy's
+treadmill. Each (algorithm, seed) is a ``convoy train --inprocess`` run of ``--steps`` env steps with the
+treadmill's default hyper-parameters (``protocol/config.py`` ``ENV_DEFAULTS``), written to ``--out/ALGO-sSEED/``;
+``--jobs`` runs go side by side (one core each). For every run the table reports
+
+* **final**: the greedy return of the last policy (the trainer's final evaluation, ``eval_episodes`` episodes);
+* **best.pt, held out**: the policy of the best point of the greedy curve, re-evaluated on ``--episodes`` episodes
+  of *other* seeds than the ones it was chosen on (choosing and scoring on the same episodes would flatter it).
+
+Each cell is the mean over seeds with its 95 % CI over seeds (t-distribution). Beside them: random, the best
+constant action, the scripted driver, and the team-/full-information drivers (``benchmarks/treadmill_references.py``,
+same ``--episodes``). For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy
+analyze``'s figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with
+white noise in place of the messages.
+
+Run: ``python benchmarks/treadmill_learning.py --seeds 0 1 2 3 4 --steps 400000`` (see docs/benchmarks.md for
+the wall time per run); ``--json`` saves every figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+from scipy import stats  # noqa: E402
+
+from envs.treadmill.config import TreadmillConfig  # noqa: E402
+from envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
+
+HELD_OUT_SEED = 50_000  # best.pt is chosen on seed + 10,000 (learner.runlog.EVAL_SEED_OFFSET); scored here
+
+
+def ci_over_seeds(values: list[float]) -> tuple[float, float]:
+    """Mean and the half-width of its 95 % t-interval over seeds (0 for one seed)."""
+    x = np.asarray(values, dtype=np.float64)
+    if len(x) < 2:
+        return float(x.mean()), 0.0
+    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
+
+
+def train(algo: str, seed: int, args: argparse.Namespace) -> dict:
+    """One ``convoy train --inprocess`` run in its own process (one torch thread); its summary."""
+    out = Path(args.out) / f"{algo}-s{seed}"
+    cmd = [sys.executable, "-m", "services.cli", "train", "--inprocess", "--algo", algo, "--steps", str(args.steps),
+           "--seed", str(seed), "--out", str(out), "--no-progress", "--eval-every", str(args.eval_every)]  # fmt: skip
+    for hp in args.hp or []:
+        cmd += ["--hp", hp]
+    t0 = time.perf_counter()
+    log = out.with_suffix(".log")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("w") as fh:
+        subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, check=True)
+    summary = json.loads((out / "summary.json").read_text())
+    return {"algo": algo, "seed": seed, "out": str(out), "wall_s": time.perf_counter() - t0, **summary}
+
+
+def held_out(run: dict, episodes: int, analyze: bool) -> dict:
+    """best.pt's greedy return on held-out seeds; for communicating algorithms also the analysis figures."""
+    from learner.analysis import analyze as analyze_policy
+    from learner.checkpoint import load_checkpoint
+    from learner.evaluation import evaluate_policy
+    from services.training import make_env
+
+    algo, job, _ = load_checkpoint(Path(run["out"]) / "best.pt", device="cpu")
+    env = make_env(job, min(episodes, 256))
+    try:
+        res = evaluate_policy(algo, env, episodes, seed=HELD_OUT_SEED)
+        out = {"best_held_out": res.mean, "best_held_out_ci95": res.ci95}
+        if analyze:
+            figures = analyze_policy(algo, env, job.env, steps=200, episodes=episodes, seed=HELD_OUT_SEED).figures
+            out["analysis"] = {f.key: {"value": f.value, "shuffled": f.shuffled} for f in figures}
+    finally:
+        env.close()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument(
+        "--algos", nargs="+", default=["ma-mesn", "idqn", "ma-bon", "ims", "dial"], help="(default %(default)s)"
+    )
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
+    p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")
+    p.add_argument(
+        "--eval-every", type=int, default=20_000, help="env steps between curve points (default %(default)s)"
+    )
+    p.add_argument("--episodes", type=int, default=500, help="held-out and reference episodes (default %(default)s)")
+    p.add_argument("--hp", action="append", metavar="KEY=VALUE", help="hyper-parameter for every run, repeatable")
+    p.add_argument("--jobs", type=int, default=2, help="runs side by side (default %(default)s)")
+    p.add_argument("--analyze", nargs="*", default=["ma-mesn", "ma-bon"], help="algorithms to analyse")
+    p.add_argument("--out", default="runs/bench/treadmill", help="run directories (default %(default)s)")
+    p.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
+    args = p.parse_args(argv)
+    console = Console()
+
+    grid = [(a, s) for a in args.algos for s in args.seeds]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        runs = list(pool.map(lambda job: train(*job, args), grid))
+    for run in runs:
+        run.update(held_out(run, args.episodes, run["algo"] in args.analyze))
+        console.print(
+            f"{run['algo']} seed {run['seed']}: final {run['eval_return']:.1f}, best.pt held out "
+            f"{run['best_held_out']:.1f} ({run['wall_s'] / 60:.1f} min)"
+        )
+    refs = evaluate_references(TreadmillConfig(), args.episodes, seed=HELD_OUT_SEED)
+    const = best_constant(refs)
+
+    table = Table(
+        title=f"treadmill (default), {args.steps:,} env steps per run, {len(args.seeds)} seeds, greedy return"
+    )
+    for col in ("policy", "final (95 % CI over seeds)", "best.pt held out (95 % CI)", "min/run"):
+        table.add_column(col, justify="right")
+    summary: dict[str, dict] = {}
+    for algo in args.algos:
+        mine = [r for r in runs if r["algo"] == algo]
+        final = ci_over_seeds([r["eval_return"] for r in mine])
+        best = ci_over_seeds([r["best_held_out"] for r in mine])
+        minutes = float(np.mean([r["wall_s"] for r in mine]) / 60)
+        summary[algo] = {"final": final, "best_held_out": best, "minutes": minutes}
+        table.add_row(algo, f"{final[0]:.1f} ± {final[1]:.1f}", f"{best[0]:.1f} ± {best[1]:.1f}", f"{minutes:.1f}")
+    for name in ("random", const, "scripted", "team-information", "full-information"):
+        mean, ci = refs[name].ci95()
+        summary[name] = {"reference": (mean, ci)}
+        table.add_row(f"reference: {name}", f"{mean:.1f} ± {ci:.1f} (episodes)", "", "")
+    console.print(table)
+    for algo in args.analyze:
+        mine = [r for r in runs if r["algo"] == algo and "analysis" in r]
+        if not mine:
+            continue
+        fig = {k: [r["analysis"][k]["value"] for r in mine] for k in mine[0]["analysis"]}
+        shuf = [r["analysis"]["instantaneous_coordination"]["shuffled"] or 0.0 for r in mine]
+        console.print(
+            f"{algo} best.pt analysis (mean over seeds): message entropy {np.mean(fig['message_entropy']):.2f} nats; "
+            f"IC {np.mean(fig['instantaneous_coordination']):.4f} vs shuffled {np.mean(shuf):.4f}; return with true "
+            f"messages {np.mean(fig['return_sent']):.1f} vs white noise {np.mean(fig['return_noise']):.1f}"
+        )
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"runs": runs, "summary": summary}, indent=2, default=float) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
