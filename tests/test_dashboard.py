@@ -44,6 +44,7 @@ def test_dashboard_shows_a_growing_curve_and_scales_a_job(tmp_path: Path) -> Non
             page.wait_for_function("window.convoy.points.return >= 2", timeout=30_000)
             first = page.evaluate("window.convoy.points.return")
             page.wait_for_function(f"window.convoy.points.return > {first}", timeout=30_000)  # the curve grows
+            page.wait_for_function("window.convoy.points.eval_return >= 1", timeout=60_000)  # the greedy curve
 
             page.fill("#token", TOKEN)
             page.fill("#actors-input", "2")

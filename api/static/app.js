@@ -1,7 +1,7 @@
 // Convoy job service dashboard: plain ES2020, no dependencies, no build step.
 "use strict";
 
-const METRICS = ["return", "env_steps_per_s", "loss", "policy_lag"];
+const METRICS = ["eval_return", "return", "env_steps_per_s", "loss", "policy_lag"];
 const ACTIVE = new Set(["queued", "starting", "running"]);
 const TERMINAL = new Set(["stopped", "completed", "failed"]);
 const TOKEN_KEY = "convoy-token";
@@ -114,7 +114,7 @@ function setOffline(offline, err) {
 
 // ---------------------------------------------------------------- charts
 
-const COLORS = { return: "#2f6fdf", env_steps_per_s: "#2e9d5b", loss: "#d9822b", policy_lag: "#8b5cf6" };
+const COLORS = { eval_return: "#1d3f8f", return: "#8fb0ef", env_steps_per_s: "#2e9d5b", loss: "#d9822b", policy_lag: "#8b5cf6" };
 
 function niceTicks(lo, hi, count) {
   if (!(hi > lo)) { const d = Math.abs(lo) * 0.1 || 1; lo -= d; hi += d; }
