@@ -265,6 +265,7 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
         "eps_decay_fraction": 1.0,
         "eps_decay_max_steps": 10_000_000,
         "signalling_coef": 0.05,
+        "advantage_learning": 0.9,
     },
     "predator-prey": {
         "hidden": (256,),

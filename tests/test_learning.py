@@ -64,6 +64,7 @@ TREADMILL_HP = {
     "target_update": 100,
     "gamma": 0.95,
     "lr": 1e-3,
+    "advantage_learning": 0.0,  # at lr 1e-3 and C = 100 it slows these tiny runs (idqn 2.1 instead of 9.3)
 }
 
 
