@@ -102,6 +102,12 @@ class RunLog:
 EVAL_SEED_OFFSET = 10_000  # evaluation envs are seeded apart from the training envs (same seeds at every point)
 
 
+def exploration_rngs(algo: Any) -> list[np.random.Generator]:
+    """Every exploration RNG of an agent: its own, or its parts' (a hierarchical agent's meta and controller)."""
+    parts = [algo, *(getattr(algo, k) for k in ("meta", "controller") if hasattr(algo, k))]
+    return [p.rng for p in parts if isinstance(getattr(p, "rng", None), np.random.Generator)]
+
+
 class Evaluator:
     """Greedy evaluation on fixed seeds: the learning curve (every ``eval_every`` env steps), the best policy seen
     (``save_best`` is called whenever a point beats it) and the final figures beside the env's reference policies.
@@ -142,11 +148,13 @@ class Evaluator:
         if self._env is None:
             assert self.make_env is not None
             self._env = self.make_env(min(self.episodes, 256))
-        rng_state = algo.rng.bit_generator.state
+        rngs = exploration_rngs(algo)
+        states = [g.bit_generator.state for g in rngs]
         try:
             return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)
         finally:
-            algo.rng.bit_generator.state = rng_state
+            for g, state in zip(rngs, states, strict=True):
+                g.bit_generator.state = state
 
     def point(self, algo: Any, env_steps: int) -> dict[str, float]:
         """One point of the curve (``eval_return``, ``eval_ci95``); keeps the policy if it is the best so far."""
