@@ -119,7 +119,9 @@ def test_ser_fingerprint_is_stored_and_fed_to_the_network() -> None:
 
 
 def test_epsilon_decays_over_the_shorter_of_20_percent_and_100k_steps() -> None:
-    cfg = resolve_algo("idqn", "treadmill")
+    cfg = resolve_algo("idqn", "referential")  # the paper's schedule; the treadmill decays over the whole run
+    tm = resolve_algo("idqn", "treadmill")
+    assert epsilon_at(tm, 500_000, 1_000_000) == pytest.approx((1.0 + 0.01) / 2)
     assert epsilon_at(cfg, 0, 1_000) == pytest.approx(1.0)
     assert epsilon_at(cfg, 100, 1_000) == pytest.approx((1.0 + 0.05) / 2)
     assert epsilon_at(cfg, 200, 1_000) == pytest.approx(0.05)
@@ -218,7 +220,9 @@ def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None
 
 
 def test_env_defaults_fill_only_what_the_user_left_open() -> None:
-    assert resolve_algo("ma-mesn", "treadmill").hidden == (4096, 12)
+    assert resolve_algo("ma-mesn", "treadmill").hidden == (256, 256)
+    assert resolve_algo("ma-mesn", "treadmill").lr == 1e-4 and resolve_algo("ma-mesn", "referential").lr == 5e-4
+    assert resolve_algo("ma-mesn", "treadmill", {"lr": 3e-4}).lr == 3e-4  # a value the user sets always wins
     assert resolve_algo("ma-mesn", "treadmill").message_bits == 16
     assert resolve_algo("ma-mesn", "predator-prey").message_bits == 8
     assert resolve_algo("ma-mesn", "speaker-listener").message_bits == 2
@@ -227,7 +231,7 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
     assert resolve_algo("ims", "treadmill").comm_iterations == 5
     assert resolve_algo("ims", "predator-prey").comm_iterations == 3
     assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
-    assert resolve_algo("dial", "treadmill").hidden == (6144, 12)  # the paper's wider DIAL
+    assert resolve_algo("dial", "treadmill").hidden == (384, 256)  # 1.5× the first layer, as the paper's 6144
     assert resolve_algo("dial", "treadmill", {"hidden": 64}).hidden == (64,)
 
 
