@@ -59,7 +59,7 @@ from envs.registry import make_batched  # noqa: E402
 from learner.algorithm import Algorithm  # noqa: E402
 from learner.nets import pick_device  # noqa: E402
 from learner.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
-from protocol.config import DEVICES, ENV_DEFAULTS, resolve_algo  # noqa: E402
+from protocol.config import DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
 
 ENV = "treadmill"
 AGENT_COUNTS = (2, 4, 8, 16, 32, 64)
@@ -389,10 +389,9 @@ def main(argv: list[str] | None = None) -> int:
     began = time.perf_counter()
     notes: list[str] = []
     names = importable_algorithms(args.algos, notes)
-    params: dict[str, Any] = {} if args.hidden is None else {"hidden": tuple(args.hidden)}
-
     cases: list[Case] = []
     for name in names:
+        params: dict[str, Any] = {"hidden": tuple(args.hidden) if args.hidden else paper_treadmill_hidden(name)}
         try:
             for n in args.agents:
                 print(f"build {name} N={n} …", file=sys.stderr, flush=True)
@@ -410,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[round {r + 1}/{args.repeats}] {c.algo_name} N={c.n_agents}: {1e3 * t:.3f} ms", file=sys.stderr)
 
     fits = summarise(cases, names, args.agents)
-    hidden = tuple(args.hidden) if args.hidden else ENV_DEFAULTS[ENV]["hidden"]
+    hidden = tuple(args.hidden) if args.hidden else PAPER_TREADMILL_HIDDEN
     pinned = f"pinned to CPU {cores}" if cores is not None else "not pinned"
     heading = (
         f"Inference time per env step (one `act` call for B = {args.batch} env, all N agents) on the treadmill "

@@ -86,7 +86,7 @@ from learner.algorithm import Algorithm, Progress
 from learner.registry import ALGORITHMS
 from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
-from protocol.config import ENV_DEFAULTS
+from protocol.config import PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden
 
 try:
     import resource
@@ -195,8 +195,7 @@ def make_case(name: str, batch_size: int, args: argparse.Namespace) -> Case:
         "learning_starts": 0,
         "replay_capacity": max(args.capacity, batch_size),
     }
-    if args.hidden:
-        params["hidden"] = tuple(args.hidden)
+    params["hidden"] = tuple(args.hidden) if args.hidden else paper_treadmill_hidden(name)
     probe_env, algo = build_algorithm(name, args.agents, 1, params, args.seed, args.device)
     probe_env.close()
     sequential = algo.chunk_len > 1  # DIAL: one update per observed [chunk_len, B] chunk
@@ -545,7 +544,7 @@ def main(argv: list[str] | None = None) -> int:
     peak_gflops = statistics.median(peak_rates)
     read_gbs = read_bandwidth(args.flush_mb, 9, args.device)
 
-    hidden = tuple(args.hidden) if args.hidden else ENV_DEFAULTS[ENV]["hidden"]
+    hidden = tuple(args.hidden) if args.hidden else PAPER_TREADMILL_HIDDEN
     machine = machine_info(cores, args.threads, args.device)
     pinned = f"pinned to CPU {cores}" if cores is not None else "not pinned"
     heading = (

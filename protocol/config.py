@@ -295,6 +295,16 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
 ALGO_ENV_DEFAULTS: dict[tuple[str, str], dict[str, Any]] = {("dial", "treadmill"): {"hidden": (384, 256)}}
 
 
+# The paper's treadmill networks (section 6.1), kept for the benchmarks that measure cost at the paper's sizes.
+PAPER_TREADMILL_HIDDEN: tuple[int, ...] = (4096, 12)
+PAPER_DIAL_TREADMILL_HIDDEN: tuple[int, ...] = (6144, 12)
+
+
+def paper_treadmill_hidden(algo: str) -> tuple[int, ...]:
+    """The hidden widths the paper gives ``algo`` on the treadmill."""
+    return PAPER_DIAL_TREADMILL_HIDDEN if algo_name(algo) == "dial" else PAPER_TREADMILL_HIDDEN
+
+
 def algo_name(name: str) -> str:
     """Canonical algorithm name (case and ``_`` forgiven), or a ConfigError listing the known ones."""
     key = name.strip().lower().replace("_", "-")
