@@ -61,7 +61,7 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
         assert steps[-1] >= at_stop + 20_000
 
         listing = svc.client.get(f"/jobs/{job}/checkpoints").json()["checkpoints"]
-        assert [c["name"] for c in listing] == ["checkpoint.pt"]
+        assert [c["name"] for c in listing] == ["best.pt", "checkpoint.pt"]  # the last and the best greedy point
         blob = svc.client.get(f"/jobs/{job}/checkpoints/checkpoint.pt")
         assert blob.status_code == 200 and zipfile.is_zipfile(io.BytesIO(blob.content))  # a torch.save archive
 
