@@ -169,10 +169,13 @@ class Algorithm(ABC):
 
     def epsilon_greedy(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
-        agent's own action count."""
+        agent's own action count. At ε = 0 no random number is drawn: greedy acting (an evaluation in the middle of
+        training) leaves the exploration stream, and so the training run, as it was."""
         greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
         b = q.shape[0]
         eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
+        if not eps.any():
+            return greedy, greedy, eps
         explore = self.rng.random((b, self.n_agents)) < eps
         random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
         return np.where(explore, random_a, greedy), greedy, eps

@@ -7,6 +7,7 @@ both and the distributed runtime can be compared with its baseline column for co
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -102,19 +103,13 @@ class RunLog:
 EVAL_SEED_OFFSET = 10_000  # evaluation envs are seeded apart from the training envs (same seeds at every point)
 
 
-def exploration_rngs(algo: Any) -> list[np.random.Generator]:
-    """Every exploration RNG of an agent: its own, or its parts' (a hierarchical agent's meta and controller)."""
-    parts = [algo, *(getattr(algo, k) for k in ("meta", "controller") if hasattr(algo, k))]
-    return [p.rng for p in parts if isinstance(getattr(p, "rng", None), np.random.Generator)]
-
-
 class Evaluator:
     """Greedy evaluation on fixed seeds: the learning curve (every ``eval_every`` env steps), the best policy seen
     (``save_best`` is called whenever a point beats it) and the final figures beside the env's reference policies.
 
     Every point plays the same ``eval_episodes`` episodes (seeds ``seed + EVAL_SEED_OFFSET + round``), so points
-    differ by the policy only; the algorithm's exploration RNG is restored afterwards, so evaluating does not change
-    the training run it measures.
+    differ by the policy only. Points are played as evaluation (``Progress.training`` off: CoDBC's teacher does not
+    drive) and greedily, which draws no random number, so evaluating does not change the training run it measures.
     """
 
     def __init__(
@@ -148,13 +143,12 @@ class Evaluator:
         if self._env is None:
             assert self.make_env is not None
             self._env = self.make_env(min(self.episodes, 256))
-        rngs = exploration_rngs(algo)
-        states = [g.bit_generator.state for g in rngs]
+        training = algo.progress
+        algo.progress = dataclasses.replace(training, training=False)
         try:
             return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)
         finally:
-            for g, state in zip(rngs, states, strict=True):
-                g.bit_generator.state = state
+            algo.progress = training
 
     def point(self, algo: Any, env_steps: int) -> dict[str, float]:
         """One point of the curve (``eval_return``, ``eval_ci95``); keeps the policy if it is the best so far."""

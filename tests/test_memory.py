@@ -641,3 +641,20 @@ def test_shared_fused_lstm_matches_the_grouped_cell() -> None:
     seq = torch.randn(4, 6, 2, 5)  # [M, L, N, in]
     torch.testing.assert_close(fused(seq), stepped(seq))
     assert fused.lstm.bias_ih_l0[7:14].eq(1.0).all()  # forget gate opened at init
+
+
+def test_curve_points_measure_the_student_alone(tmp_path: Path) -> None:
+    """Mid-run, a learning-curve evaluation plays the student only: the teacher (here a file that does not exist,
+    so driving it would fail) never takes a curve episode, though training still hands it 60 % of the envs."""
+    from types import SimpleNamespace
+
+    from learner.runlog import Evaluator
+
+    student, _ = make_student(tmp_path / "never-loaded.pt", teacher_fraction=0.6)
+    job = SimpleNamespace(eval_episodes=8, eval_every=1_000, seed=0, env="treadmill", env_params=SMALL_TREADMILL)
+    evaluator = Evaluator(job, lambda n: make_batched("treadmill", n, **SMALL_TREADMILL))
+    try:
+        point = evaluator.point(student, 1_000)
+    finally:
+        evaluator.close()
+    assert point["eval_ci95"] >= 0 and student.progress.training and student.teacher_share() > 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from PIL import Image
@@ -107,3 +108,24 @@ def test_the_same_seed_trains_the_same_run(tmp_path, capsys) -> None:
     for key, value in w_a.items():
         assert torch.equal(value, w_b[key]), key
     assert curve_a != curve_c and any(not torch.equal(v, w_c[k]) for k, v in w_a.items())
+
+
+def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
+    """Greedy curve points every 500 steps leave training exactly as a run without them: same losses, same weights."""
+    from learner.agent import make_agent
+    from learner.inprocess import Trainer
+    from protocol.config import job_config
+    from services.training import make_env
+
+    def train(eval_every: int) -> tuple[list[float], dict[str, torch.Tensor]]:
+        hp = {"hidden": 32, "learning_starts": 64}
+        job = job_config(algo="ma-mesn", env="referential", steps=3_000, num_envs=32, log_every=500,
+                         eval_episodes=20, eval_every=eval_every, algo_params=hp)  # fmt: skip
+        env = make_env(job)
+        agent = make_agent(job, env.spec)
+        result = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), progress=False).run()
+        return [r["loss"] for r in result.rows], agent.policy_state()
+
+    with_curve, plain = train(500), train(0)
+    assert np.array_equal(with_curve[0], plain[0], equal_nan=True)
+    assert all(torch.equal(with_curve[1][k], plain[1][k]) for k in plain[1])
