@@ -100,16 +100,19 @@ class Trainer:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.show_progress = progress
         self.cfg = job.algo_config()
-        self._counters: dict[str, int] = {}
 
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
         torch.manual_seed(job.seed)
         log = RunLog(job.steps, job.log_every, self.out_dir, self.show_progress)
-        evaluator = Evaluator(job, self.make_eval_env, self._save_best if self.out_dir else None)
-        stepper = EnvStepper(env, algo, job.seed)
         finished: list[float] = []
         env_steps = 0
+
+        def save_best() -> None:  # best.pt, stamped with the step of the curve point that beat the best
+            self._checkpoint(env_steps, len(finished), BEST_CHECKPOINT)
+
+        evaluator = Evaluator(job, self.make_eval_env, save_best if self.out_dir else None)
+        stepper = EnvStepper(env, algo, job.seed)
         owed = 0.0
         next_ckpt = job.checkpoint_every
         t0 = time.perf_counter()
@@ -131,7 +134,6 @@ class Trainer:
                         owed -= 1.0
                 extra: dict[str, float] = {}
                 if log.row_due(env_steps):
-                    self._counters = {"env_steps": env_steps, "episodes": len(finished), "updates": algo.updates}
                     if evaluator.due(env_steps, job.steps):
                         extra.update(evaluator.point(algo, env_steps))
                     if self.on_row:
@@ -165,12 +167,8 @@ class Trainer:
             write_artefacts(self.out_dir, result.as_dict(), log.rows, title=f"{job.algo} on {job.env}")
         return result
 
-    def _checkpoint(self, env_steps: int, episodes: int) -> None:
+    def _checkpoint(self, env_steps: int, episodes: int, name: str = "checkpoint.pt") -> None:
+        """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point."""
         assert self.out_dir is not None
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": self.algo.updates}
-        save_checkpoint(self.out_dir / "checkpoint.pt", self.algo, self.job, counters)
-
-    def _save_best(self) -> None:
-        """The policy of the best greedy-curve point so far, as ``best.pt`` (same format as ``checkpoint.pt``)."""
-        assert self.out_dir is not None
-        save_checkpoint(self.out_dir / BEST_CHECKPOINT, self.algo, self.job, self._counters)
+        save_checkpoint(self.out_dir / name, self.algo, self.job, counters)

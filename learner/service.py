@@ -61,6 +61,7 @@ class Learner:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.stopping = False
         self.dropped_schema = 0
+        self.evaluator: Evaluator | None = None  # the greedy curve; its best point goes into every checkpoint
 
     def stop(self, *_: Any) -> None:
         self.stopping = True
@@ -146,14 +147,13 @@ class Learner:
             first_step=env_steps,
             first_updates=algo.updates,
         )
-        evaluator = Evaluator(
+        self.evaluator = evaluator = Evaluator(
             job,
             lambda n: make_batched(job.env, n, **job.env_params),
             save_best=lambda: self._checkpoint(algo, env_steps, episodes, BEST_CHECKPOINT),
             best=float(counters.get("best_eval_return", float("-inf"))),
             first_step=env_steps,
         )
-        self.evaluator = evaluator
         owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
         next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
         t_weights = t_budget = t_chunk = 0.0
@@ -258,9 +258,8 @@ class Learner:
 
     def _checkpoint(self, algo: Algorithm, env_steps: int, episodes: int, name: str = "checkpoint.pt") -> None:
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": algo.updates}
-        evaluator = getattr(self, "evaluator", None)
-        if evaluator is not None and evaluator.best > float("-inf"):
-            counters["best_eval_return"] = evaluator.best  # a restarted learner keeps best.pt unless it beats it
+        if self.evaluator is not None and self.evaluator.best > float("-inf"):
+            counters["best_eval_return"] = self.evaluator.best  # a restarted learner keeps best.pt unless it beats it
         save_checkpoint(self.out_dir / name, algo, self.job, counters)
 
 

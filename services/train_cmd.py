@@ -93,7 +93,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if "dropped" in s:
         table.add_row("messages dropped (corrupt / foreign)", f"{s['dropped']:,}")
     console.print(table)
-    best = ", best.pt" if (out / "best.pt").is_file() else ""
+    best = ", best.pt" if s.get("best_eval_step", -1) >= 0 else ""
     console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt{best}, summary.json")
     return 0
 
