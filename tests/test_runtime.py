@@ -92,8 +92,12 @@ class Background:
 
 
 def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) -> None:
-    """Equivalence: 1 actor + the learner over Zenoh reach the success the in-process trainer reaches."""
-    job = job_config(algo="ma-mesn", steps=12_000, seed=0, runtime={"actors": 1}, **REFERENTIAL)
+    """Equivalence: 1 actor + the learner over Zenoh reach the success the in-process trainer reaches.
+
+    30 k steps: every seed 0-7 reaches 1.0 both ways; at 12 k most seeds stop at 0.72-0.8 in either runtime, so a
+    shorter run tests the seed and the CPU's rounding, not the runtime.
+    """
+    job = job_config(algo="ma-mesn", steps=30_000, seed=0, runtime={"actors": 1}, **REFERENTIAL)
     inproc = run_inprocess(job, tmp_path / "inproc", progress=False).as_dict()
     dist = JobRunner("equiv", job, tmp_path / "dist", progress=False).run()
     assert inproc["eval_return"] >= 0.9, inproc
