@@ -249,3 +249,18 @@ def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
     samples = torch.stack([message_bits(logits, 3, train=True).detach() for _ in range(400)])
     assert set(samples.unique().tolist()) <= {0.0, 1.0}
     assert 0.2 < samples[:, 0, 0].mean() < 0.8  # an unsure bit is sampled both ways (Gumbel noise)
+
+
+def test_channel_information_counts_codewords_not_bits() -> None:
+    """The positive-signalling estimate scores a message by its codewords: 16 copies of one split carry ln 2 nats,
+    16 independent splits far more, and a message that ignores the observation none."""
+    from learner.nets import channel_information
+
+    gen = torch.Generator().manual_seed(0)
+    split = torch.where(torch.rand(512, 1, 1, generator=gen) < 0.5, -20.0, 20.0)
+    copies = channel_information(split.expand(512, 1, 16))
+    independent = channel_information(torch.where(torch.rand(512, 1, 16, generator=gen) < 0.5, -20.0, 20.0))
+    constant = channel_information(torch.full((512, 1, 16), 20.0))
+    assert copies.item() == pytest.approx(np.log(2), abs=0.02)
+    assert independent.item() > 5.5  # ≈ ln 512, the most a batch of 512 can show
+    assert constant.item() == pytest.approx(0.0, abs=1e-6)
