@@ -11,7 +11,10 @@ treadmill's default hyper-parameters (``protocol/config.py`` ``ENV_DEFAULTS``), 
 
 Each cell is the mean over seeds with its 95 % CI over seeds (t-distribution). Beside them: random, the best
 constant action, the scripted driver, and the team-/full-information drivers (``benchmarks/treadmill_references.py``,
-same ``--episodes``). For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy
+same ``--episodes``). An algorithm name may carry variants after ``+``: ``idqn+full-information`` trains on the
+treadmill's ``full_information`` observations (every car's offset and who is an adversary: the *learner* that
+perfect messages could at most make, beside the scripted drivers), ``idqn+hierarchical`` is hierarchical DQN
+(``--hierarchical``). For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy
 analyze``'s figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with
 white noise in place of the messages.
 
@@ -51,11 +54,25 @@ def ci_over_seeds(values: list[float]) -> tuple[float, float]:
     return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
 
 
-def train(algo: str, seed: int, args: argparse.Namespace) -> dict:
+VARIANTS = {"full-information": ["--set", "full_information=true"], "hierarchical": ["--hierarchical"]}
+
+
+def variant_flags(name: str) -> tuple[str, list[str]]:
+    """``ALGO+VARIANT+…`` → (ALGO, the ``convoy train`` flags of its variants)."""
+    algo, *variants = name.split("+")
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"--algos: unknown variant {unknown[0]!r} of {algo}; choose from {', '.join(VARIANTS)}")
+    return algo, [flag for v in variants for flag in VARIANTS[v]]
+
+
+def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     """One ``convoy train --inprocess`` run in its own process (one torch thread); its summary."""
-    out = Path(args.out) / f"{algo}-s{seed}"
+    algo, flags = variant_flags(name)
+    out = Path(args.out) / f"{name}-s{seed}"
     cmd = [sys.executable, "-m", "services.cli", "train", "--inprocess", "--algo", algo, "--steps", str(args.steps),
            "--seed", str(seed), "--out", str(out), "--no-progress", "--eval-every", str(args.eval_every)]  # fmt: skip
+    cmd += flags
     for hp in args.hp or []:
         cmd += ["--hp", hp]
     t0 = time.perf_counter()
@@ -64,7 +81,7 @@ def train(algo: str, seed: int, args: argparse.Namespace) -> dict:
     with log.open("w") as fh:
         subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, check=True)
     summary = json.loads((out / "summary.json").read_text())
-    return {"algo": algo, "seed": seed, "out": str(out), "wall_s": time.perf_counter() - t0, **summary}
+    return {**summary, "algo": name, "seed": seed, "out": str(out), "wall_s": time.perf_counter() - t0}
 
 
 def held_out(run: dict, episodes: int, analyze: bool) -> dict:
@@ -90,7 +107,10 @@ def held_out(run: dict, episodes: int, analyze: bool) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument(
-        "--algos", nargs="+", default=["ma-mesn", "idqn", "ma-bon", "ims", "dial"], help="(default %(default)s)"
+        "--algos",
+        nargs="+",
+        default=["ma-mesn", "idqn", "ma-bon", "ims", "dial", "idqn+hierarchical", "idqn+full-information"],
+        help="algorithms, each optionally ALGO+VARIANT (full-information, hierarchical) (default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")
@@ -106,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     console = Console()
 
+    for name in args.algos:
+        variant_flags(name)  # fail on a bad name before any run starts
     grid = [(a, s) for a in args.algos for s in args.seeds]
     with ThreadPoolExecutor(args.jobs) as pool:
         runs = list(pool.map(lambda job: train(*job, args), grid))
@@ -140,12 +162,15 @@ def main(argv: list[str] | None = None) -> int:
         mine = [r for r in runs if r["algo"] == algo and "analysis" in r]
         if not mine:
             continue
-        fig = {k: [r["analysis"][k]["value"] for r in mine] for k in mine[0]["analysis"]}
-        shuf = [r["analysis"]["instantaneous_coordination"]["shuffled"] or 0.0 for r in mine]
+        fig = {k: ci_over_seeds([r["analysis"][k]["value"] for r in mine]) for k in mine[0]["analysis"]}
+        shuf = ci_over_seeds([r["analysis"]["instantaneous_coordination"]["shuffled"] or 0.0 for r in mine])
+        summary[algo]["analysis"] = {**fig, "instantaneous_coordination_shuffled": shuf}
         console.print(
-            f"{algo} best.pt analysis (mean over seeds): message entropy {np.mean(fig['message_entropy']):.2f} nats; "
-            f"IC {np.mean(fig['instantaneous_coordination']):.4f} vs shuffled {np.mean(shuf):.4f}; return with true "
-            f"messages {np.mean(fig['return_sent']):.1f} vs white noise {np.mean(fig['return_noise']):.1f}"
+            f"{algo} best.pt analysis ({len(mine)} seeds, 95 % CI over seeds): message entropy "
+            f"{fig['message_entropy'][0]:.2f} ± {fig['message_entropy'][1]:.2f} nats; IC "
+            f"{fig['instantaneous_coordination'][0]:.4f} ± {fig['instantaneous_coordination'][1]:.4f} vs shuffled "
+            f"{shuf[0]:.4f} ± {shuf[1]:.4f}; return with true messages {fig['return_sent'][0]:.1f} ± "
+            f"{fig['return_sent'][1]:.1f} vs white noise {fig['return_noise'][0]:.1f} ± {fig['return_noise'][1]:.1f}"
         )
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

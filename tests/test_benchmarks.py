@@ -32,3 +32,26 @@ def test_speaker_listener_quick_run_reports_both_algorithms_and_bounds(tmp_path)
     assert "target MA-MeSN better than" in proc.stdout
     data = json.loads(out.read_text())
     assert set(data["summary"]) == {"ma-mesn", "idqn"} and png.stat().st_size > 10_000
+
+
+def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tmp_path) -> None:
+    """A full-information learner is a variant of a run (its job trains on full_information observations)."""
+    out = tmp_path / "tl.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn",
+         "idqn+full-information", "--seeds", "0", "--steps", "1500", "--eval-every", "1000", "--episodes", "8",
+         "--analyze", "ma-mesn", "--out", str(tmp_path / "runs"), "--json", str(out)],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out.read_text())
+    assert {"ma-mesn", "idqn+full-information", "random", "scripted"} <= set(data["summary"])
+    assert "message_entropy" in data["summary"]["ma-mesn"]["analysis"]
+    full = next(r for r in data["runs"] if r["algo"] == "idqn+full-information")
+    header = Path(full["out"]).with_suffix(".log").read_text().splitlines()[0]
+    assert header.startswith("idqn on treadmill {'full_information': True}") and "best_held_out" in full
+    bad = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "idqn+oracle"],
+        capture_output=True, text=True, timeout=60, cwd=ROOT,
+    )  # fmt: skip
+    assert bad.returncode != 0 and "unknown variant 'oracle'" in bad.stderr
