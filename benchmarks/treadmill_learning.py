@@ -75,8 +75,12 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     cmd += flags
     for hp in args.hp or []:
         cmd += ["--hp", hp]
-    t0 = time.perf_counter()
     log = out.with_suffix(".log")
+    if args.reuse and (out / "summary.json").exists() and (out / "best.pt").exists():
+        summary = json.loads((out / "summary.json").read_text())
+        if summary.get("env_steps", 0) >= args.steps:
+            return {**summary, "algo": name, "seed": seed, "out": str(out), "wall_s": summary["wall_s"]}
+    t0 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     with log.open("w") as fh:
         subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT, check=True)
@@ -123,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--analyze", nargs="*", default=["ma-mesn", "ma-bon"], help="algorithms to analyse")
     p.add_argument("--out", default="runs/bench/treadmill", help="run directories (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
+    p.add_argument(
+        "--reuse", action="store_true", help="keep finished runs of ≥ --steps already in --out instead of re-training"
+    )
     args = p.parse_args(argv)
     console = Console()
 

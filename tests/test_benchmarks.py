@@ -50,6 +50,17 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
     full = next(r for r in data["runs"] if r["algo"] == "idqn+full-information")
     header = Path(full["out"]).with_suffix(".log").read_text().splitlines()[0]
     assert header.startswith("idqn on treadmill {'full_information': True}") and "best_held_out" in full
+    log = tmp_path / "runs" / "ma-mesn-s0.log"
+    trained_at = log.stat().st_mtime_ns
+    again = subprocess.run(  # --reuse keeps the finished runs: nothing trains, the figures are the same
+        [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn", "--seeds", "0",
+         "--steps", "1500", "--episodes", "8", "--analyze", "--out", str(tmp_path / "runs"), "--reuse"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    assert log.stat().st_mtime_ns == trained_at
+    mesn = next(r for r in data["runs"] if r["algo"] == "ma-mesn")
+    assert f"final {mesn['eval_return']:.1f}" in again.stdout
     bad = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "idqn+oracle"],
         capture_output=True, text=True, timeout=60, cwd=ROOT,
