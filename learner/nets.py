@@ -141,13 +141,11 @@ def channel_information(diff: Tensor) -> Tensor:
 
 
 def signalling_loss(logits: Tensor, bits: int, cfg: GumbelConfig) -> tuple[Tensor | None, dict[str, float]]:
-    """−signalling_coef × min(I(observation; message), signalling_nats) from a batch's message logits (None when the
-    term is off)."""
+    """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off)."""
     if not cfg.signalling_coef:
         return None, {}
     info = channel_information(bit_logits(logits, bits, cfg.message_logit_bound))
-    pushed = info if cfg.signalling_nats is None else info.clamp(max=cfg.signalling_nats)
-    return -cfg.signalling_coef * pushed, {"message_info": float(info.detach())}
+    return -cfg.signalling_coef * info, {"message_info": float(info.detach())}
 
 
 def gumbel_bits(logits: Tensor, bits: int, train: bool, cfg: GumbelConfig) -> Tensor:

@@ -118,14 +118,6 @@ class GumbelConfig(MessageConfig):
         "coef × I(observation; message), estimated per batch, so messages stay informative instead of collapsing "
         "onto one codeword; 0 = off (the paper).",
     )
-    signalling_nats: float | None = Field(
-        None,
-        gt=0,
-        le=64,
-        description="Cap of the positive-signalling term: no push beyond this many nats of I(observation; message) "
-        "per sender, so messages stay alive without becoming a hash of the observation that listeners must first "
-        "decode; None = no cap.",
-    )
 
 
 class IDQNConfig(AlgoConfig):
