@@ -54,7 +54,11 @@ def ci_over_seeds(values: list[float]) -> tuple[float, float]:
     return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
 
 
-VARIANTS = {"full-information": ["--set", "full_information=true"], "hierarchical": ["--hierarchical"]}
+VARIANTS = {
+    "full-information": ["--set", "full_information=true"],
+    "team-observations": ["--set", "team_observations=true"],
+    "hierarchical": ["--hierarchical"],
+}
 
 
 def variant_flags(name: str) -> tuple[str, list[str]]:
@@ -114,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         "--algos",
         nargs="+",
         default=["ma-mesn", "idqn", "ma-bon", "ims", "dial", "idqn+hierarchical", "idqn+full-information"],
-        help="algorithms, each optionally ALGO+VARIANT (full-information, hierarchical) (default %(default)s)",
+        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, hierarchical) (default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")

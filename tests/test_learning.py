@@ -108,7 +108,7 @@ def _message_entropy_after_training(signalling_coef: float) -> float:
         algo="ma-mesn",
         env="treadmill",
         env_params=SMALL_TREADMILL,
-        algo_params={**TREADMILL_HP, "signalling_coef": signalling_coef},
+        algo_params={**TREADMILL_HP, "replay_ratio": 4.0, "signalling_coef": signalling_coef},
         steps=10_000,
         num_envs=16,
         seed=0,

@@ -272,6 +272,18 @@ def test_full_information_tells_every_position_and_who_is_an_adversary() -> None
     assert full[:, 2] == pytest.approx([1 / 3, 0, 1]) and full[:, 3].tolist() == [0, 1, 1]
 
 
+def test_team_observations_append_each_teammates_own_observation() -> None:
+    private, team = TreadmillEngine(TreadmillConfig(n_agents=3), 4), TreadmillEngine(
+        TreadmillConfig(n_agents=3, team_observations=True), 4
+    )
+    mine, with_team = private.reset(7), team.reset(7)
+    d = mine.shape[-1]
+    assert with_team.shape[-1] == team.cfg.obs_dim == 3 * d
+    assert np.array_equal(with_team[..., :d], mine)
+    for i, peers in enumerate([(1, 2), (0, 2), (0, 1)]):  # teammates in index order, never the agent itself
+        assert np.array_equal(with_team[:, i, d:].reshape(4, 2, d), mine[:, list(peers)])
+
+
 def test_aggressive_adversary_closes_in() -> None:
     cfg = TreadmillConfig(n_agents=1, n_adversaries=1, aggression=1.0)
     e = TreadmillEngine(cfg, 64)

@@ -48,6 +48,11 @@ class TreadmillConfig(BaseModel):
         description="Reference only: append every other car's position, speed and an adversary flag to each agent's "
         "observation (what messages could carry).",
     )
+    team_observations: bool = Field(
+        False,
+        description="Reference only: append every teammate's own observation to each agent's (what lossless, "
+        "unlearned messages could carry: the learner that bounds what MA-MeSN's messages can add).",
+    )
     reward_distance_cap: float = Field(
         10.0, gt=0.0, le=1e6, description="d_max: the per-step reward is min(d, d_max) / d_max for the closest car."
     )
@@ -76,8 +81,10 @@ class TreadmillConfig(BaseModel):
 
     @property
     def obs_dim(self) -> int:
+        private = OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES
+        team = (self.n_agents - 1) * private if self.team_observations else 0
         full = (self.n_cars - 1) * FULL_FEATURES if self.full_information else 0
-        return OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES + full
+        return private + team + full
 
     @model_validator(mode="after")
     def _consistent(self) -> TreadmillConfig:

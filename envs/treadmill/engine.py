@@ -288,6 +288,9 @@ class TreadmillEngine:
             axis=3,
         )
         parts = [*own, neighbour.reshape(len(envs), n, -1)]
+        if cfg.team_observations:  # each teammate's private observation, teammates in index order
+            private = np.concatenate(parts, axis=2)
+            parts.append(private[:, self._others[:, : n - 1]].reshape(len(envs), n, -1))
         if cfg.full_information:
             me, o = np.arange(n)[:, None], self._others  # [N, 1], [N, C−1]
             speed = v[:, o] / cfg.max_speed  # [E, N, C−1]
