@@ -13,10 +13,12 @@ Each cell is the mean over seeds with its 95 % CI over seeds (t-distribution). B
 constant action, the scripted driver, and the team-/full-information drivers (``benchmarks/treadmill_references.py``,
 same ``--episodes``). An algorithm name may carry variants after ``+``: ``idqn+full-information`` trains on the
 treadmill's ``full_information`` observations (every car's offset and who is an adversary: the *learner* that
-perfect messages could at most make, beside the scripted drivers), ``idqn+hierarchical`` is hierarchical DQN
-(``--hierarchical``). For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy
-analyze``'s figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with
-white noise in place of the messages.
+perfect messages could at most make, beside the scripted drivers), ``idqn+team-observations`` trains on each
+agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
+what MA-MeSN's messages can add to independent DQN), ``idqn+hierarchical`` is hierarchical DQN
+(``--hierarchical``). ``--set NAME=VALUE`` changes a treadmill rule for every run and the references. For MA-MeSN
+(and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s figures: message entropy,
+instantaneous coordination beside its shuffled baseline, and the return with white noise in place of the messages.
 
 Run: ``python benchmarks/treadmill_learning.py --seeds 0 1 2 3 4 --steps 400000`` (see docs/benchmarks.md for
 the wall time per run); ``--json`` saves every figure.
@@ -79,6 +81,8 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     cmd += flags
     for hp in args.hp or []:
         cmd += ["--hp", hp]
+    for rule in args.set or []:
+        cmd += ["--set", rule]
     log = out.with_suffix(".log")
     if args.reuse and (out / "summary.json").exists() and (out / "best.pt").exists():
         summary = json.loads((out / "summary.json").read_text())
@@ -117,8 +121,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--algos",
         nargs="+",
-        default=["ma-mesn", "idqn", "ma-bon", "ims", "dial", "idqn+hierarchical", "idqn+full-information"],
-        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, hierarchical) (default %(default)s)",
+        default=[
+            "ma-mesn",
+            "idqn",
+            "ma-bon",
+            "ims",
+            "dial",
+            "idqn+hierarchical",
+            "idqn+team-observations",
+            "idqn+full-information",
+        ],
+        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, hierarchical) "
+        "(default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")
@@ -127,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--episodes", type=int, default=500, help="held-out and reference episodes (default %(default)s)")
     p.add_argument("--hp", action="append", metavar="KEY=VALUE", help="hyper-parameter for every run, repeatable")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="treadmill rule for every run, repeatable")
     p.add_argument("--jobs", type=int, default=2, help="runs side by side (default %(default)s)")
     p.add_argument("--analyze", nargs="*", default=["ma-mesn", "ma-bon"], help="algorithms to analyse")
     p.add_argument("--out", default="runs/bench/treadmill", help="run directories (default %(default)s)")
@@ -148,11 +163,13 @@ def main(argv: list[str] | None = None) -> int:
             f"{run['algo']} seed {run['seed']}: final {run['eval_return']:.1f}, best.pt held out "
             f"{run['best_held_out']:.1f} ({run['wall_s'] / 60:.1f} min)"
         )
-    refs = evaluate_references(TreadmillConfig(), args.episodes, seed=HELD_OUT_SEED)
+    rules = dict(rule.split("=", 1) for rule in args.set or [])
+    refs = evaluate_references(TreadmillConfig(**rules), args.episodes, seed=HELD_OUT_SEED)
     const = best_constant(refs)
 
     table = Table(
-        title=f"treadmill (default), {args.steps:,} env steps per run, {len(args.seeds)} seeds, greedy return"
+        title=f"treadmill ({' '.join(args.set or []) or 'default'}), {args.steps:,} env steps per run, "
+        f"{len(args.seeds)} seeds, greedy return"
     )
     for col in ("policy", "final (95 % CI over seeds)", "best.pt held out (95 % CI)", "min/run"):
         table.add_column(col, justify="right")

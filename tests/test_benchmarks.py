@@ -35,12 +35,13 @@ def test_speaker_listener_quick_run_reports_both_algorithms_and_bounds(tmp_path)
 
 
 def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tmp_path) -> None:
-    """A full-information learner is a variant of a run (its job trains on full_information observations)."""
+    """A full-information learner is a variant of a run (its job trains on full_information observations); --set
+    changes a treadmill rule for every run."""
     out = tmp_path / "tl.json"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn",
          "idqn+full-information", "--seeds", "0", "--steps", "1500", "--eval-every", "1000", "--episodes", "8",
-         "--analyze", "ma-mesn", "--out", str(tmp_path / "runs"), "--json", str(out)],
+         "--analyze", "ma-mesn", "--set", "observe_k=2", "--out", str(tmp_path / "runs"), "--json", str(out)],
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -49,7 +50,8 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
     assert "message_entropy" in data["summary"]["ma-mesn"]["analysis"]
     full = next(r for r in data["runs"] if r["algo"] == "idqn+full-information")
     header = Path(full["out"]).with_suffix(".log").read_text().splitlines()[0]
-    assert header.startswith("idqn on treadmill {'full_information': True}") and "best_held_out" in full
+    assert header.startswith("idqn on treadmill {") and "best_held_out" in full
+    assert "'full_information': True" in header and "'observe_k': 2" in header  # the variant and --set both reach it
     log = tmp_path / "runs" / "ma-mesn-s0.log"
     trained_at = log.stat().st_mtime_ns
     again = subprocess.run(  # --reuse keeps the finished runs: nothing trains, the figures are the same

@@ -273,8 +273,9 @@ def test_full_information_tells_every_position_and_who_is_an_adversary() -> None
 
 
 def test_team_observations_append_each_teammates_own_observation() -> None:
-    private, team = TreadmillEngine(TreadmillConfig(n_agents=3), 4), TreadmillEngine(
-        TreadmillConfig(n_agents=3, team_observations=True), 4
+    private, team = (
+        TreadmillEngine(TreadmillConfig(n_agents=3), 4),
+        TreadmillEngine(TreadmillConfig(n_agents=3, team_observations=True), 4),
     )
     mine, with_team = private.reset(7), team.reset(7)
     d = mine.shape[-1]
