@@ -15,7 +15,8 @@ same ``--episodes``). An algorithm name may carry variants after ``+``: ``idqn+f
 treadmill's ``full_information`` observations (every car's offset and who is an adversary: the *learner* that
 perfect messages could at most make, beside the scripted drivers), ``idqn+team-observations`` trains on each
 agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
-what MA-MeSN's messages can add to independent DQN), ``idqn+hierarchical`` is hierarchical DQN
+what MA-MeSN's messages can add to independent DQN), ``idqn+team-sightings`` is told, in its own frame and with
+an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is hierarchical DQN
 (``--hierarchical``). ``--set NAME=VALUE`` changes a treadmill rule for every run and the references. For MA-MeSN
 (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s figures: message entropy,
 instantaneous coordination beside its shuffled baseline, and the return with white noise in place of the messages.
@@ -59,6 +60,7 @@ def ci_over_seeds(values: list[float]) -> tuple[float, float]:
 VARIANTS = {
     "full-information": ["--set", "full_information=true"],
     "team-observations": ["--set", "team_observations=true"],
+    "team-sightings": ["--set", "team_sightings=true"],
     "hierarchical": ["--hierarchical"],
 }
 
@@ -131,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
             "idqn+team-observations",
             "idqn+full-information",
         ],
-        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, hierarchical) "
+        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, team-sightings, hierarchical) "
         "(default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from envs.batched import env_seeds
 from envs.treadmill import TreadmillConfig, TreadmillEngine, distance
-from envs.treadmill.config import FULL_FEATURES, OWN_FEATURES
+from envs.treadmill.config import FULL_FEATURES, OWN_FEATURES, SIGHTING_FEATURES
 from envs.treadmill.engine import DX, DY
 
 KEEP = 4  # steer 0, accelerate 0
@@ -283,6 +283,20 @@ def test_team_observations_append_each_teammates_own_observation() -> None:
     assert np.array_equal(with_team[..., :d], mine)
     for i, peers in enumerate([(1, 2), (0, 2), (0, 1)]):  # teammates in index order, never the agent itself
         assert np.array_equal(with_team[:, i, d:].reshape(4, 2, d), mine[:, list(peers)])
+
+
+def test_team_sightings_tell_what_a_teammate_observes_in_the_agents_own_frame() -> None:
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=2, team_sightings=True)
+    e = TreadmillEngine(cfg, 1)
+    e.reset(0)
+    # agent 1 sees adversary 2, which sits in agent 0's rear blind spot; adversary 3 is out of every sensor
+    place(e, [50, 30, 40, 90], [50, 50, 52, 90], [0, 0, 0, 0], [1, 1, 1, 1])
+    obs, _ = e._observe(np.array([0]))
+    assert obs.shape[-1] == cfg.obs_dim and obs[0, 0, OWN_FEATURES] == 0  # agent 0 itself sees nothing
+    told = obs[0, 0, -3 * SIGHTING_FEATURES :].reshape(3, SIGHTING_FEATURES)  # agent 0: cars 1, 2, 3
+    assert told[0].tolist() == pytest.approx([1, -20 / 99, 0, 1 / 3, 0])  # a teammate: it can say where it is
+    assert told[1].tolist() == pytest.approx([1, -10 / 99, 2 / 99, 1 / 3, 1])  # seen by agent 1: an adversary
+    assert (told[2] == 0).all()  # nobody observes it
 
 
 def test_aggressive_adversary_closes_in() -> None:

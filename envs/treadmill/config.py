@@ -53,6 +53,11 @@ class TreadmillConfig(BaseModel):
         description="Reference only: append every teammate's own observation to each agent's (what lossless, "
         "unlearned messages could carry: the learner that bounds what MA-MeSN's messages can add).",
     )
+    team_sightings: bool = Field(
+        False,
+        description="Reference only: append, in the agent's own frame, every teammate and every car some agent "
+        "observes, with an adversary flag (what perfectly decoded messages could tell).",
+    )
     reward_distance_cap: float = Field(
         10.0, gt=0.0, le=1e6, description="d_max: the per-step reward is min(d, d_max) / d_max for the closest car."
     )
@@ -84,7 +89,8 @@ class TreadmillConfig(BaseModel):
         private = OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES
         team = (self.n_agents - 1) * private if self.team_observations else 0
         full = (self.n_cars - 1) * FULL_FEATURES if self.full_information else 0
-        return private + team + full
+        sightings = (self.n_cars - 1) * SIGHTING_FEATURES if self.team_sightings else 0
+        return private + team + full + sightings
 
     @model_validator(mode="after")
     def _consistent(self) -> TreadmillConfig:
@@ -122,3 +128,4 @@ OWN_FEATURES = 1 + N_HEADINGS + 1 + 2 + 1
 LONGITUDINAL = OWN_FEATURES - 1
 NEIGHBOUR_FEATURES = 1 + 2 + N_HEADINGS + 1  # seen flag, relative position / sensor_range, heading one-hot, speed
 FULL_FEATURES = 4  # per other car: relative position / road size, speed, adversary flag
+SIGHTING_FEATURES = 5  # per other car: known flag, then FULL_FEATURES' features (zeros where unknown)

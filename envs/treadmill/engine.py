@@ -297,9 +297,26 @@ class TreadmillEngine:
             adversary = np.broadcast_to(o >= n, speed.shape)
             full = np.stack([rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed, adversary], axis=3, dtype=np.float32)
             parts.append(full.reshape(len(envs), n, -1))
+        if cfg.team_sightings:
+            parts.append(self._team_sightings(near, np.isfinite(near_dist), rel_x, rel_y, v))
         obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)
         return obs, closest
+
+
+    def _team_sightings(self, near, seen, rel_x, rel_y, speed) -> np.ndarray:
+        """``[E, N, (C−1)·5]``: each other car that a teammate is (its position it can say) or that some agent
+        observes, in the agent's own frame — known flag, offset / road size, speed, adversary flag; zeros if unknown."""
+        cfg = self.cfg
+        n, o = cfg.n_agents, self._others
+        observed = ((near[..., None] == np.arange(cfg.n_cars)) & seen[..., None]).any(axis=(1, 2))  # [E, C]
+        known = observed[:, o] | (o < n)  # [E, N, C−1]
+        me = np.arange(n)[:, None]
+        l1, w1 = float(cfg.length - 1), float(cfg.width - 1)
+        adversary = np.broadcast_to(o >= n, known.shape)
+        feats = [known, rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed[:, o] / cfg.max_speed, adversary]
+        out = np.stack(feats, axis=3, dtype=np.float32) * known[..., None]
+        return out.reshape(len(near), n, -1)
 
 
 def _distinct_choice(streams: rng.EnvStreams, envs: np.ndarray, n_items: int, k: int) -> np.ndarray:
