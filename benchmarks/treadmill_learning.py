@@ -16,10 +16,11 @@ treadmill's ``full_information`` observations (every car's offset and who is an 
 perfect messages could at most make, beside the scripted drivers), ``idqn+team-observations`` trains on each
 agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
 what MA-MeSN's messages can add to independent DQN), ``idqn+team-sightings`` is told, in its own frame and with
-an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is hierarchical DQN
-(``--hierarchical``). ``--set NAME=VALUE`` changes a treadmill rule for every run and the references. For MA-MeSN
-(and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s figures: message entropy,
-instantaneous coordination beside its shuffled baseline, and the return with white noise in place of the messages.
+an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is
+hierarchical DQN (``--hierarchical``). ``--set NAME=VALUE`` changes a treadmill rule for every run and the
+references. For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s
+figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with white noise
+in place of the messages.
 
 Run: ``python benchmarks/treadmill_learning.py --seeds 0 1 2 3 4 --steps 400000`` (see docs/benchmarks.md for
 the wall time per run); ``--json`` saves every figure.
@@ -133,8 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             "idqn+team-observations",
             "idqn+full-information",
         ],
-        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, team-sightings, hierarchical) "
-        "(default %(default)s)",
+        help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, team-sightings, "
+        "hierarchical) (default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")

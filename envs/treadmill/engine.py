@@ -303,7 +303,6 @@ class TreadmillEngine:
         np.clip(obs, -1.0, 1.0, out=obs)
         return obs, closest
 
-
     def _team_sightings(self, near, seen, rel_x, rel_y, speed) -> np.ndarray:
         """``[E, N, (C−1)·5]``: each other car that a teammate is (its position it can say) or that some agent
         observes, in the agent's own frame — known flag, offset / road size, speed, adversary flag; zeros if unknown."""
