@@ -2,9 +2,9 @@
 
 Plays ``--episodes`` episodes (default 500, the same env seeds for every policy) of random, each of the 9 constant
 actions, the scripted driver on private observations, the team-information driver (also told where every adversary
-that some agent sees is: the most messages can carry) and the full-information driver (every car's position and
-who is an adversary), and prints each with its 95 % CI. Then the two properties the
-treadmill is built for (``docs/treadmill.md``):
+is that some agent observes: what perfectly decoded messages could carry) and the full-information driver (every
+car's position and who is an adversary), and prints each with its 95 % CI. Then the two properties the treadmill is
+built for (``docs/treadmill.md``):
 
 * open loop does not pay: best constant action ÷ scripted driver (goal ≤ 0.5);
 * information pays: full-information ÷ scripted, the value of information (goal ≥ 1.3, CIs apart).

@@ -54,7 +54,7 @@ def test_independent_dqn_cannot_beat_chance_on_the_referential_game() -> None:
     assert abs(result.eval_return - 1 / K) < 0.1, f"idqn success {result.eval_return:.3f} should stay near 1/K"
 
 
-# 2 agents on a 40 × 40 window, 50 steps: scripted 24.7, team-information 32.6, random 2.8
+# 2 agents on a 40 × 40 window, 50 steps: scripted 24.7, team-information 29.7, random 2.8
 # (python benchmarks/treadmill_references.py --set n_agents=2 --set length=40 --set width=40 --set max_steps=50)
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 40, "width": 40, "max_steps": 50}
 TREADMILL_HP = {

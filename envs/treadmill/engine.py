@@ -251,17 +251,29 @@ class TreadmillEngine:
             ok &= along >= np.cos(np.radians(cfg.sensor_fov / 2)) * norm - 1e-9
         return ok
 
-    def _observe(self, envs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Observations ``[len(envs), N, D]`` and each agent's distance to its closest car."""
+    def nearest(self, envs: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the ``observe_k`` cars each agent observes ``[E, N, k]``, their distances — inf for an empty slot —, and
+        each agent's distance to its closest car, seen or not ``[E, N]``)."""
         cfg = self.cfg
         n, k = cfg.n_agents, cfg.observe_k
-        x, y, h, v = self.x[envs], self.y[envs], self.heading[envs], self.speed[envs]
         rel_x, rel_y = self.offsets(envs)
         dist = np.sqrt((rel_x * rel_x + rel_y * rel_y).astype(np.float64)) + self._self_mask
         closest = dist.min(axis=2)
-        dist = np.where(self.visible(rel_x, rel_y, h[:, :n]), dist, np.inf)
+        dist = np.where(self.visible(rel_x, rel_y, self.heading[envs][:, :n]), dist, np.inf)
         near = np.argmin(dist, axis=2)[..., None] if k == 1 else np.argsort(dist, axis=2, kind="stable")[..., :k]
-        near_dist = np.take_along_axis(dist, near, axis=2)
+        return near, np.take_along_axis(dist, near, axis=2), closest
+
+    def team_observed(self, near: np.ndarray, near_dist: np.ndarray) -> np.ndarray:
+        """``[E, C]``: which cars some agent observes (what the team as a whole could tell each other)."""
+        return ((near[..., None] == np.arange(self.cfg.n_cars)) & np.isfinite(near_dist)[..., None]).any(axis=(1, 2))
+
+    def _observe(self, envs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Observations ``[len(envs), N, D]`` and each agent's distance to its closest car."""
+        cfg = self.cfg
+        n = cfg.n_agents
+        x, y, h, v = self.x[envs], self.y[envs], self.heading[envs], self.speed[envs]
+        rel_x, rel_y = self.offsets(envs)
+        near, near_dist, closest = self.nearest(envs)
 
         w1, l1 = float(cfg.width - 1), float(cfg.length - 1)
         own_y = y[:, :n].astype(np.float32)
@@ -298,24 +310,23 @@ class TreadmillEngine:
             full = np.stack([rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed, adversary], axis=3, dtype=np.float32)
             parts.append(full.reshape(len(envs), n, -1))
         if cfg.team_sightings:
-            parts.append(self._team_sightings(near, np.isfinite(near_dist), rel_x, rel_y, v))
+            parts.append(self._team_sightings(self.team_observed(near, near_dist), rel_x, rel_y, v))
         obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)
         return obs, closest
 
-    def _team_sightings(self, near, seen, rel_x, rel_y, speed) -> np.ndarray:
+    def _team_sightings(self, observed, rel_x, rel_y, speed) -> np.ndarray:
         """``[E, N, (C−1)·5]``: each other car that a teammate is (its position it can say) or that some agent
         observes, in the agent's own frame — known flag, offset / road size, speed, adversary flag; zeros if unknown."""
         cfg = self.cfg
         n, o = cfg.n_agents, self._others
-        observed = ((near[..., None] == np.arange(cfg.n_cars)) & seen[..., None]).any(axis=(1, 2))  # [E, C]
         known = observed[:, o] | (o < n)  # [E, N, C−1]
         me = np.arange(n)[:, None]
         l1, w1 = float(cfg.length - 1), float(cfg.width - 1)
         adversary = np.broadcast_to(o >= n, known.shape)
         feats = [known, rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed[:, o] / cfg.max_speed, adversary]
         out = np.stack(feats, axis=3, dtype=np.float32) * known[..., None]
-        return out.reshape(len(near), n, -1)
+        return out.reshape(len(observed), n, -1)
 
 
 def _distinct_choice(streams: rng.EnvStreams, envs: np.ndarray, n_items: int, k: int) -> np.ndarray:

@@ -3,8 +3,8 @@
 * ``random`` — uniform actions;
 * ``constant-K`` — action K (0…8) at every step: an open-loop policy that ignores everything;
 * ``scripted`` — the hand-written driver on private observations (``envs.treadmill.scripted``);
-* ``team-information`` — the same driver told where every adversary that some agent's sensor sees is: the most
-  that messages between agents can carry;
+* ``team-information`` — the same driver told where every adversary is that some agent observes (in its
+  ``observe_k`` slots), and that it is one: what perfectly decoded messages between agents could carry;
 * ``full-information`` — the same driver told every car's position and which cars are adversaries.
 
 ``full-information ÷ scripted`` is the value of information; ``team-information ÷ scripted`` the part of it

@@ -6,8 +6,8 @@ hold a place in the middle of the treadmill. They differ only in what they know 
 * ``scripted_actions`` reads an agent's own observation: the threat is the closest car its sensor sees, ally or
   adversary (it cannot tell them apart), so it is a legitimate decentralised policy.
 * ``full_information_actions`` reads the engine's state: the threat is the closest *adversary* at any range, or an ally
-  the agent sees. With ``team_only`` it knows only the adversaries some agent sees: what an agent could do if
-  messages told it everything its teammates see.
+  the agent sees. With ``team_only`` it knows only the adversaries some agent observes: what an agent could do if
+  messages told it, decoded, everything its teammates observe.
 """
 
 from __future__ import annotations
@@ -97,7 +97,8 @@ def full_information_actions(engine, danger: float = DANGER, team_only: bool = F
     """Actions ``[B, N]`` from the engine's state: flee the closest adversary, or an ally within sight and ``danger``.
 
     ``engine`` is a ``TreadmillEngine``. The full-information driver knows every adversary at any range; with
-    ``team_only`` it knows only the adversaries that some agent's sensor sees (what perfect messages could tell).
+    ``team_only`` it knows only the adversaries that some agent observes (in its ``observe_k`` slots: what perfectly
+    decoded messages could tell — the ``team_sightings`` observation).
     Either way it knows who is an adversary, which no observation says.
     """
     cfg = engine.cfg
@@ -106,7 +107,7 @@ def full_information_actions(engine, danger: float = DANGER, team_only: bool = F
     dist = np.hypot(rel_x, rel_y)
     own_sight = engine.visible(rel_x, rel_y, engine.heading[:, :n]) & ~np.eye(n, cfg.n_cars, dtype=bool)
     is_adv = np.arange(cfg.n_cars) >= n
-    known_adv = own_sight.any(axis=1, keepdims=True) if team_only else np.ones_like(own_sight)
+    known_adv = engine.team_observed(*engine.nearest()[:2])[:, None, :] if team_only else np.ones_like(own_sight)
     weight = np.where((is_adv & known_adv) | (~is_adv & own_sight), dist, np.inf)
     near = np.argmin(weight, axis=2)[..., None]
     near_w = np.take_along_axis(weight, near, axis=2)[..., 0]
