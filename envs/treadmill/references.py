@@ -20,7 +20,7 @@ import numpy as np
 from envs.rollout import RolloutResult, random_policy, rollout
 from envs.treadmill.config import N_ACTIONS, TreadmillConfig
 from envs.treadmill.engine import TreadmillEngine
-from envs.treadmill.scripted import full_information_actions, scripted_actions
+from envs.treadmill.scripted import DANGER, full_information_actions, scripted_actions
 
 Policy = Callable[[np.ndarray], np.ndarray]
 CONSTANTS: tuple[str, ...] = tuple(f"constant-{a}" for a in range(N_ACTIONS))
@@ -65,3 +65,25 @@ def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[s
     results = evaluate_references(cfg, episodes, seed, names=("random", *CONSTANTS, "scripted"))
     best = best_constant(results)
     return {name: results[name].ci95() for name in ("random", best, "scripted")}
+
+
+def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256, seed: int = 0) -> dict[str, float]:
+    """Where the information messages would need sits: over the agent-steps of the scripted driver on which an
+    adversary is within the scripted driver's danger distance of an agent, the fraction on which the agent observes
+    some adversary itself, only a teammate does, or nobody does. Messages can help only with "only a teammate"."""
+    engine = TreadmillEngine(cfg, envs)
+    obs = engine.reset(seed)
+    n = cfg.n_agents
+    own = team = nobody = 0
+    for _ in range(steps):
+        rel_x, rel_y = engine.offsets()
+        danger = np.hypot(rel_x[:, :, n:], rel_y[:, :, n:]).min(axis=2) < DANGER  # [E, N]
+        near, near_dist, _ = engine.nearest()
+        sees = ((near >= n) & np.isfinite(near_dist)).any(axis=2)  # [E, N]: the agent observes an adversary
+        anyone = sees.sum(axis=1, keepdims=True)
+        own += int((danger & sees).sum())
+        team += int((danger & ~sees & (anyone > 0)).sum())
+        nobody += int((danger & (anyone == 0)).sum())
+        obs = engine.step(scripted_actions(obs, cfg)).obs
+    total = max(own + team + nobody, 1)
+    return {"own": own / total, "only_teammate": team / total, "nobody": nobody / total}
