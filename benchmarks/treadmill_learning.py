@@ -12,8 +12,8 @@ treadmill's default hyper-parameters (``protocol/config.py`` ``ENV_DEFAULTS``), 
 Each cell is the mean over seeds with its 95 % CI over seeds (t-distribution). Beside them: random, the best
 constant action, the scripted driver, and the team-/full-information drivers (``benchmarks/treadmill_references.py``,
 same ``--episodes``). An algorithm name may carry variants after ``+``: ``idqn+full-information`` trains on the
-treadmill's ``full_information`` observations (every car's offset and who is an adversary: the *learner* that
-perfect messages could at most make, beside the scripted drivers), ``idqn+team-observations`` trains on each
+treadmill's ``full_information`` observations (every car's offset and who is an adversary: more than any
+message can tell, since it includes cars nobody observes), ``idqn+team-observations`` trains on each
 agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
 what MA-MeSN's messages can add to independent DQN), ``idqn+team-sightings`` is told, in its own frame and with
 an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is

@@ -46,7 +46,7 @@ class TreadmillConfig(BaseModel):
     full_information: bool = Field(
         False,
         description="Reference only: append every other car's position, speed and an adversary flag to each agent's "
-        "observation (what messages could carry).",
+        "observation (more than messages could carry: also the cars no agent observes).",
     )
     team_observations: bool = Field(
         False,
