@@ -26,6 +26,9 @@ from learner.nets import pick_device
 from learner.replay import JointReplay
 from protocol.config import AlgoConfig
 
+# Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
+# many means the weights or the data are broken and going on would only hide it.
+MAX_NONFINITE_IN_A_ROW = 100
 NEG = -1e9  # Q-value given to actions an agent does not have (heterogeneous action spaces)
 
 
@@ -108,6 +111,8 @@ class Algorithm(ABC):
         self.action_mask = mask.to(self.device)  # [N, A]
         self.progress = Progress()
         self.updates = 0
+        self.skipped_updates = 0  # updates whose loss or gradient was not finite: no step taken
+        self._nonfinite_in_a_row = 0
         self.replay = JointReplay(cfg.replay_capacity)
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
@@ -223,10 +228,27 @@ class Algorithm(ABC):
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        loss_value, norm = float(loss.detach()), float(grad_norm)
+        if not (np.isfinite(loss_value) and np.isfinite(norm)):
+            return self._skip_update(loss_value, norm)
+        self._nonfinite_in_a_row = 0
         self.optimizer.step()
         self.updates += 1
         self.after_update()
-        return {"loss": float(loss.detach()), "grad_norm": float(grad_norm), **stats}
+        return {"loss": loss_value, "grad_norm": norm, **stats}
+
+    def _skip_update(self, loss_value: float, norm: float) -> dict[str, float]:
+        """A non-finite loss or gradient never reaches the weights; many in a row end the run with the cause."""
+        self.optimizer.zero_grad(set_to_none=True)
+        self.skipped_updates += 1
+        self._nonfinite_in_a_row += 1
+        if self._nonfinite_in_a_row >= MAX_NONFINITE_IN_A_ROW:
+            raise FloatingPointError(
+                f"{self.name}: {self._nonfinite_in_a_row} updates in a row had a non-finite loss ({loss_value}) or "
+                f"gradient norm ({norm}); the weights were kept as they were. Check the env's rewards and "
+                "observations for NaN/inf, or lower lr"
+            )
+        return {"loss": float("nan"), "grad_norm": float("nan")}
 
     def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
         """A loss trained alongside the TD losses on the same batch (the memory modules' supervised message

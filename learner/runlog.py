@@ -41,6 +41,7 @@ class RunLog:
         self.rows: list[dict[str, Any]] = list(self.writer.rows) if self.writer else []
         self.window: list[float] = []
         self.losses: list[float] = []
+        self.skipped_updates = 0  # since the run (or this resume) began
         self.extra: dict[str, list[float]] = {}  # an algorithm's own update figures (memory accuracy, …)
         self.next_row = (first_step // log_every + 1) * log_every
         self.t0 = self.t_row = time.perf_counter()
@@ -56,6 +57,9 @@ class RunLog:
 
     def update(self, stats: dict[str, float]) -> None:
         """One update's figures: the TD loss, and whatever else the algorithm reports (averaged per row)."""
+        if not math.isfinite(stats["loss"]):  # a skipped update (non-finite loss): counted, kept out of the mean
+            self.skipped_updates += 1
+            return
         self.losses.append(stats["loss"])
         for key, value in stats.items():
             if key not in ("loss", "grad_norm"):
@@ -82,6 +86,7 @@ class RunLog:
             "updates_per_s": (updates - self.updates_at_row) / dt,
             "wall_s": self.wall_before + now - self.t0,
             **{k: float(np.mean(v)) for k, v in self.extra.items()},
+            **({"skipped_updates": float(self.skipped_updates)} if self.skipped_updates else {}),
             **extra,
         }
         self.rows.append(row)

@@ -2,8 +2,8 @@
 
 * Chunks arrive on Zenoh's thread and go through an :class:`~protocol.inbox.Inbox` (decoded and validated there,
   bounded, never blocking the network); this loop drains it, checks each chunk against the job's transition schema
-  (field names, dtypes and per-step shapes of a probe step — anything else is dropped and counted) and inserts it
-  into the algorithm's replay.
+  (field names, dtypes and per-step shapes of a probe step) and its values (actions in range, finite floats) —
+  anything else is dropped and counted per reason — and inserts it into the algorithm's replay.
 * Updates follow the data (``replay_ratio``: sampled per inserted transition), exactly as in-process. When the
   learner falls behind, the ``budget`` it publishes stops growing and actors wait: the samples-per-insert ratio
   holds and nothing grows without bound (replay capacity is fixed, the inbox is bounded). The budget goes out as
@@ -56,11 +56,45 @@ def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, t
     return {k: (v.dtype.str, v.shape[2:]) for k, v in chunk.items()}
 
 
+# Finite floats beyond this are hostile or broken on every env here (rewards and observations are O(1)–O(crash
+# penalty ≤ 1e6)); squared in a loss they would overflow float32.
+MAX_ABS_VALUE = 1e6
+# Fields that hold probabilities or relaxed bits: DIAL's behaviour probability and the messages it heard.
+UNIT_INTERVAL_FIELDS = ("mu", "msg_in")
+
+
+def chunk_problem(
+    arrays: dict[str, np.ndarray], schema: dict[str, tuple[str, tuple[int, ...]]], n_actions: tuple[int, ...]
+) -> str | None:
+    """Why a decoded chunk must not reach replay (a drop-counter reason), or None when it may.
+
+    The wire layer checked that it is a chunk of arrays; this checks it is *this job's* chunk (field names, dtypes,
+    per-step shapes of a probe step) and that its values are possible: actions within each agent's action count,
+    finite floats of sane magnitude, probabilities in [0, 1]. One out-of-range action would index past a Q-row,
+    one NaN reward would turn every later loss and weight into NaN.
+    """
+    if set(arrays) != set(schema):
+        return "schema"
+    if not all(a.dtype.str == schema[k][0] and a.shape[2:] == schema[k][1] for k, a in arrays.items()):
+        return "schema"
+    action = arrays["action"]
+    if action.size and ((action < 0).any() or (action >= np.asarray(n_actions)).any()):
+        return "action-range"
+    for name, a in arrays.items():
+        if a.dtype.kind != "f" or not a.size:
+            continue
+        if not np.isfinite(a).all() or np.abs(a).max() > MAX_ABS_VALUE:
+            return "non-finite"
+        if name in UNIT_INTERVAL_FIELDS and (a.min() < 0.0 or a.max() > 1.0):
+            return "out-of-range"
+    return None
+
+
 class Learner:
     def __init__(self, job_id: str, job: JobConfig, out_dir: str | Path, settings: ZenohSettings) -> None:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.stopping = False
-        self.dropped_schema = 0
+        self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
         self.evaluator: Evaluator | None = None  # the greedy curve; its best point goes into every checkpoint
 
     def stop(self, *_: Any) -> None:
@@ -96,6 +130,7 @@ class Learner:
         probe = make_batched(job.env, 1, **job.env_params)
         spec = probe.spec
         probe.close()
+        self.n_actions = spec.n_actions
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
         counters = self._restore(algo)
@@ -127,11 +162,6 @@ class Learner:
     def _publish_budget(self, allowed: int, ingested: int, version: int) -> None:
         body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
         self.pub_budget.put(wire.encode("budget", body, "learner"))
-
-    def _valid(self, arrays: dict[str, np.ndarray], schema: dict[str, tuple[str, tuple[int, ...]]]) -> bool:
-        if set(arrays) != set(schema):
-            return False
-        return all(a.dtype.str == schema[k][0] and a.shape[2:] == schema[k][1] for k, a in arrays.items())
 
     def _loop(self, algo: Algorithm, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
         job, rt, cfg = self.job, self.job.runtime, self.job.algo_config()
@@ -187,8 +217,9 @@ class Learner:
                 if msg is None:
                     continue
                 arrays = msg.body["arrays"]
-                if not self._valid(arrays, schema):
-                    self.dropped_schema += 1
+                problem = chunk_problem(arrays, schema, self.n_actions)
+                if problem is not None:
+                    self.rejected[problem] = self.rejected.get(problem, 0) + 1
                     continue
                 arrays = dict(arrays)
                 arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
@@ -216,7 +247,7 @@ class Learner:
                     algo.updates,
                     epsilon_at(cfg, env_steps, job.steps),
                     policy_lag=float(np.mean(lags)) if lags else 0.0,
-                    dropped=float(inbox.drops + self.dropped_schema),
+                    dropped=float(inbox.drops + sum(self.rejected.values())),
                     chunks=float(ingested_chunks),
                     **curve,
                 )
@@ -248,8 +279,8 @@ class Learner:
             if rows
             else float("nan"),
             **final,
-            "dropped": inbox.drops + self.dropped_schema,
-            "dropped_by_reason": {**inbox.dropped, "schema": self.dropped_schema},
+            "dropped": inbox.drops + sum(self.rejected.values()),
+            "dropped_by_reason": {**inbox.dropped, **self.rejected},
         }
         write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")
         done = {"done": 1.0, "eval_return": final["eval_return"], "env_steps": env_steps, "updates": algo.updates}

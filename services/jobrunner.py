@@ -78,6 +78,7 @@ class JobRunner:
         self.actor_metrics: dict[str, dict[str, float]] = {}
         self.events: list[Event] = []
         self.resumes: list[dict[str, float]] = []
+        self.bad_metrics = 0  # well-formed metrics messages that were not usable (missing fields, unknown sender)
         self.started = threading.Event()
         self._stop = threading.Event()
 
@@ -130,22 +131,36 @@ class JobRunner:
         return json.loads(path.read_text()) if finished and path.is_file() else {}
 
     def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
-        values, role = msg.body["values"], msg.body["role"]
+        """Take in one metrics message. Any well-formed one is survivable: a row lacking what it is used for, or an
+        actor id that is not alive, is counted in ``bad_metrics`` and ignored."""
+        values, role, ident = msg.body["values"], msg.body["role"], msg.body["id"]
+        live = self.alive.ids("actor") if self.alive else set()
         if role == "actor":
-            self.actor_metrics[msg.body["id"]] = values
+            if ident in live or ident in self.actor_metrics:
+                self.actor_metrics[ident] = values
+            else:  # not one of this job's live actors: keeping it would let a peer grow this dict without bound
+                self.bad_metrics += 1
             return
-        if role == "learner" and "resumed_updates" in values:
+        if role != "learner":
+            self.bad_metrics += 1
+            return
+        if "resumed_updates" in values:
+            if "resumed_env_steps" not in values:
+                self.bad_metrics += 1
+                return
             self.resumes.append(values)
             print(
                 f"[resumed] learner from its checkpoint: {values['resumed_env_steps']:,.0f} env steps, "
                 f"{values['resumed_updates']:,.0f} updates",
                 flush=True,
             )
-        if role != "learner" or "return" not in values:
+        if "return" not in values:
+            return
+        if not math.isfinite(values.get("env_steps", math.nan)) or values["env_steps"] < 0:
+            self.bad_metrics += 1
             return
         row = dict(values)
         row["actors_alive"] = float(self.alive.count("actor")) if self.alive else math.nan
-        live = self.alive.ids("actor") if self.alive else set()
         row["actor_env_steps_per_s"] = sum(
             m.get("env_steps_per_s", 0.0) for i, m in self.actor_metrics.items() if i in live
         )

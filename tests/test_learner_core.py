@@ -264,3 +264,46 @@ def test_channel_information_counts_codewords_not_bits() -> None:
     assert copies.item() == pytest.approx(np.log(2), abs=0.02)
     assert independent.item() > 5.5  # ≈ ln 512, the most a batch of 512 can show
     assert constant.item() == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
+def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
+    from learner.algorithm import MAX_NONFINITE_IN_A_ROW
+
+    algo = build(name)
+    b = random_batch(SPEC, 256)
+    b["reward"][:] = float("nan")
+    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+    before = {k: v.clone() for k, v in algo.online.state_dict().items()}
+    stats = algo.update()
+    assert np.isnan(stats["loss"]) and algo.skipped_updates == 1 and algo.updates == 0
+    assert all(torch.equal(before[k], v) for k, v in algo.online.state_dict().items())
+    for _ in range(MAX_NONFINITE_IN_A_ROW - 2):
+        algo.update()
+    with pytest.raises(FloatingPointError, match="non-finite loss"):
+        algo.update()
+
+
+def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
+    from learner.service import chunk_problem
+
+    schema = {"obs": ("<f4", (3, 5)), "action": ("<i8", (3,)), "reward": ("<f4", (3,)), "mu": ("<f4", (3,))}
+
+    def chunk(**change: float) -> dict[str, np.ndarray]:
+        arrays = {k: np.zeros((2, 4, *shape), dtype=np.dtype(dtype)) for k, (dtype, shape) in schema.items()}
+        for name, value in change.items():
+            arrays[name][1, 2] = value
+        return arrays
+
+    n_actions = (4, 4, 2)  # heterogeneous: agent 2 has two actions
+    assert chunk_problem(chunk(), schema, n_actions) is None
+    assert chunk_problem(chunk(action=3), schema, n_actions) == "action-range"  # agent 2 has no action 3
+    assert chunk_problem(chunk(action=-1), schema, n_actions) == "action-range"
+    assert chunk_problem(chunk(action=99), schema, n_actions) == "action-range"
+    assert chunk_problem(chunk(reward=float("nan")), schema, n_actions) == "non-finite"
+    assert chunk_problem(chunk(obs=float("inf")), schema, n_actions) == "non-finite"
+    assert chunk_problem(chunk(obs=1e30), schema, n_actions) == "non-finite"
+    assert chunk_problem(chunk(mu=2.0), schema, n_actions) == "out-of-range"
+    bad_dtype = {**chunk(), "reward": np.zeros((2, 4, 3), dtype=np.float64)}
+    assert chunk_problem(bad_dtype, schema, n_actions) == "schema"
+    assert chunk_problem({k: v for k, v in chunk().items() if k != "mu"}, schema, n_actions) == "schema"

@@ -20,9 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+from learner.checkpoint import read_checkpoint
 from protocol import keys
-from protocol.config import job_config
+from protocol.config import JobConfig, job_config
 from protocol.session import ZenohSettings, free_port, loopback, open_session
 from services.jobrunner import JobRunner
 from services.training import run_inprocess
@@ -218,6 +220,13 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
                     payload = b"\x93\x01\x02\x03"  # a msgpack list
                 pubs[kind].put(payload)
                 sent[kind] += 1
+            hostile = _hostile_chunks(job)  # well-formed chunks of this job's schema with impossible values
+            for body in hostile.values():
+                pubs[0].put(wire.encode("chunk", body, "intruder"))
+            # a well-formed metrics message without the fields a learner row carries: the supervisor ignores it
+            metrics_pub = session.declare_publisher(keys.metrics("garbage", "learner", "0"))
+            wait_for(lambda: metrics_pub.matching_status.matching, 10, "the supervisor's metrics subscriber")
+            metrics_pub.put(wire.encode("metrics", wire.metrics_body("learner", "0", {"return": 1.0}), "intruder"))
             time.sleep(1.5)  # the actor reports drops in its next metrics message
         finally:
             session.close()
@@ -227,6 +236,43 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
     assert summary["env_steps"] >= job.steps
     assert summary["dropped"] >= sent[0]  # every garbage chunk was counted, none inserted
     assert actor_drops >= sent[1] + sent[2] - 5  # weights + budget garbage (the actor's drops, within a second)
+    for reason in hostile:  # each well-formed hostile chunk was refused for its reason, none reached the weights
+        assert summary["dropped_by_reason"].get(reason, 0) >= 1, (reason, summary["dropped_by_reason"])
+    assert runner.bad_metrics >= 1
+    state = read_checkpoint(tmp_path / "checkpoint.pt")["state"]
+    tensors = [t for t in _tensors(state) if t.is_floating_point()]
+    assert tensors and all(bool(torch.isfinite(t).all()) for t in tensors)
+
+
+def _tensors(x: object) -> list[torch.Tensor]:
+    """Every tensor inside a nested checkpoint state."""
+    if isinstance(x, torch.Tensor):
+        return [x]
+    if isinstance(x, dict):
+        return [t for v in x.values() for t in _tensors(v)]
+    if isinstance(x, list | tuple):
+        return [t for v in x for t in _tensors(v)]
+    return []
+
+
+def _hostile_chunks(job: JobConfig) -> dict[str, dict]:
+    """Drop reason → a chunk body that has this job's fields, dtypes and shapes but values no env can produce."""
+    from envs import make_batched
+    from learner.agent import make_agent
+    from learner.service import transition_schema
+    from protocol import wire
+
+    env = make_batched(job.env, 1, **job.env_params)
+    schema = transition_schema(job, make_agent(job, env.spec))
+    env.close()
+
+    def chunk(**change: float) -> dict:
+        arrays = {k: np.zeros((1, 2, *shape), dtype=np.dtype(dtype)) for k, (dtype, shape) in schema.items()}
+        for name, value in change.items():
+            arrays[name][...] = value
+        return wire.chunk_body(arrays, "intruder", policy_version=0, env_steps=2, returns=[])
+
+    return {"action-range": chunk(action=99), "non-finite": chunk(reward=float("nan"))}
 
 
 def test_router_topology_as_local_processes(tmp_path: Path) -> None:
