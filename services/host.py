@@ -64,13 +64,13 @@ class HostAgent:
                         group.scale_actors(max(0, args["actors"]))
                     elif op == "stop":
                         self.stopping = True
-                for ev in group.poll():
-                    print(f"[{self.name}] {ev.kind} {ev.ident} {ev.detail}".rstrip(), flush=True)
-                    if ev.kind == "failed":
-                        raise JobFailed(ev.detail)
                 last = budget.latest()
                 if last is not None:
                     ingested = last.body["ingested_steps"]
+                for ev in group.poll(learner_has_data=ingested >= self.job.steps):
+                    print(f"[{self.name}] {ev.kind} {ev.ident} {ev.detail}".rstrip(), flush=True)
+                    if ev.kind == "failed":
+                        raise JobFailed(ev.detail)
                 if self._done(group, ingested):
                     break
                 time.sleep(0.05)

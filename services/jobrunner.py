@@ -112,13 +112,13 @@ class JobRunner:
                     wanted, self._wanted = self._wanted, None
                 if wanted is not None:
                     group.scale_actors(wanted)
-                for ev in group.poll():
+                for msg in metrics.drain():  # first: the learner's last row tells poll whether actors may leave
+                    self._metric(msg, display)
+                for ev in group.poll(learner_has_data=self.last_row.get("env_steps", 0) >= self.job.steps):
                     self.events.append(ev)
                     self.on_event(ev)
                     if ev.kind == "failed":
                         raise JobFailed(ev.detail)
-                for msg in metrics.drain():
-                    self._metric(msg, display)
                 time.sleep(0.05)
             stop_pub.put(wire.encode("command", {"op": "stop", "args": {}}, "runner"))
             finished = "learner" in group.finished

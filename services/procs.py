@@ -157,8 +157,14 @@ class ProcessGroup:
             return Event("failed", role, slot.ident, self.failed)
         return None
 
-    def poll(self) -> list[Event]:
-        """Notice exits; respawn crashed actors, restart a crashed learner; returns what happened."""
+    def poll(self, learner_has_data: bool = False) -> list[Event]:
+        """Notice exits; respawn crashed actors, restart a crashed learner; returns what happened.
+
+        An actor that exits 0 while this group's learner runs and has not reported the job's steps
+        (``learner_has_data``) left early — a stop or budget it was sent, forged or not — and is respawned like a
+        crashed one: a job never waits on actors that are gone. Without a local learner (an actor-only host) exit 0
+        is taken at its word.
+        """
         events: list[Event] = []
         if self.failed:
             return events
@@ -167,15 +173,19 @@ class ProcessGroup:
             if code is None:
                 continue
             slot.proc.join(0)
-            if code == 0:
+            left_early = code == 0 and self.learner is not None and not learner_has_data
+            if code == 0 and not left_early:
                 events.append(Event("exited", "actor", slot.ident))
                 del self.actors[index]
                 self.finished.add("actor")
                 continue
-            events.append(Event("crashed", "actor", slot.ident, f"exit code {code}"))
-            fail = self._crash("actor", slot, code)
-            if fail:
-                return [*events, fail]
+            if left_early:  # not a crash loop: not counted against max_restarts
+                events.append(Event("crashed", "actor", slot.ident, "exited before the learner had the job's steps"))
+            else:
+                events.append(Event("crashed", "actor", slot.ident, f"exit code {code}"))
+                fail = self._crash("actor", slot, code)
+                if fail:
+                    return [*events, fail]
             self.actors[index] = self._spawn_actor(index, slot.generation + 1)
             events.append(Event("respawned", "actor", self.actors[index].ident))
         if self.learner is not None and self.learner.proc.exitcode is not None:

@@ -244,6 +244,39 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
     assert tensors and all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
+def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_path: Path) -> None:
+    """Forged stop commands and a forged final budget make actors exit 0; the supervisor takes that as leaving
+    early (its learner has not reported the job's steps), respawns them and the job completes."""
+    import zenoh
+
+    from protocol import wire
+
+    job = job_config(algo="idqn", steps=30_000, seed=5, runtime={"actors": 2}, **TREADMILL)
+    runner = JobRunner("forged", job, tmp_path, progress=False)
+    with Background(runner) as bg:
+        wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "the actors")
+        wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
+        session = open_session(runner.group.settings)
+        try:
+            block = zenoh.CongestionControl.BLOCK
+            stop = session.declare_publisher(keys.ctl("forged", "stop"), congestion_control=block)
+            budget = session.declare_publisher(keys.ctl("forged", "budget"), congestion_control=block)
+            wait_for(lambda: stop.matching_status.matching and budget.matching_status.matching, 10, "the actors")
+            for _ in range(3):
+                stop.put(wire.encode("command", {"op": "stop", "args": {}}, "intruder"))
+            forged = {"allowed_steps": job.steps, "ingested_steps": job.steps, "version": 0}
+            wait_for(lambda: runner.alive.count("actor") == 2, 30, "the actors to be back after the stops")
+            for _ in range(3):
+                budget.put(wire.encode("budget", forged, "intruder"))
+        finally:
+            session.close()
+        summary = bg.join(180)
+    left = [e for e in runner.events if e.kind == "crashed" and "before the learner" in e.detail]
+    assert len(left) >= 2, runner.events  # both actors left on the forged stops and came back
+    assert not [e for e in runner.events if e.kind == "failed"], runner.events
+    assert summary["env_steps"] >= job.steps
+
+
 def _tensors(x: object) -> list[torch.Tensor]:
     """Every tensor inside a nested checkpoint state."""
     if isinstance(x, torch.Tensor):
