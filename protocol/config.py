@@ -23,6 +23,12 @@ MessageSource = Literal["sent", "predicted", "noise"]
 MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (learner.listening)
 
 
+# Network sizes a job may ask for: ~5× the paper's widest layer (DIAL's 6144) and ~1 GB of fp32 weights + Adam state
+# between hidden layers. Larger asks are typos that would crash-loop allocating (``hidden: [1e9]`` wants ~100 GB).
+MAX_LAYER_WIDTH = 32_768
+MAX_HIDDEN_WEIGHTS = 64_000_000
+
+
 class AlgoConfig(BaseModel):
     """Hyper-parameters shared by every algorithm (section 6.1 of the paper unless noted)."""
 
@@ -81,6 +87,16 @@ class AlgoConfig(BaseModel):
             )
         if self.hidden is not None and (not self.hidden or min(self.hidden) < 1):
             raise ConfigError("hidden", f"needs at least one layer of ≥ 1 unit (got {self.hidden!r})")
+        if self.hidden is not None:
+            weights = sum(a * b for a, b in zip(self.hidden, self.hidden[1:], strict=False))
+            if max(self.hidden) > MAX_LAYER_WIDTH or weights > MAX_HIDDEN_WEIGHTS:
+                raise ConfigError(
+                    "hidden",
+                    f"{list(self.hidden)} is too large to train (at most {MAX_LAYER_WIDTH:,} units per layer and "
+                    f"{MAX_HIDDEN_WEIGHTS / 1e6:.0f} M weights between hidden layers; this has "
+                    f"{max(self.hidden):,} units and {weights / 1e6:,.1f} M); the paper's treadmill size is "
+                    "[4096, 12], the defaults are smaller",
+                )
         return self
 
 
@@ -393,7 +409,12 @@ class JobConfig(BaseModel):
     env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
     algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
     hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
-    steps: int = Field(200_000, ge=1, description="Total env steps (summed over parallel envs).")
+    steps: int = Field(
+        200_000,
+        ge=1,
+        description="Total env steps (summed over parallel envs); a run ends at the first chunk boundary at or "
+        "past it, so it may exceed it by less than one chunk per actor (num_envs × runtime.publish_steps).",
+    )
     num_envs: int = Field(16, ge=1, le=65536, description="Envs stepped together per actor.")
     seed: int = Field(0, ge=0, description="Seed of envs, exploration and network init.")
     eval_episodes: int = Field(
@@ -424,6 +445,12 @@ class JobConfig(BaseModel):
         model = ALGO_CONFIGS[self.algo]
         given = build_config(model, **self.algo_params)  # validates; then store a JSON-stable normal form
         object.__setattr__(self, "algo_params", given.model_dump(mode="json", exclude_unset=True))
+        if self.steps < self.num_envs:
+            raise ConfigError(
+                "steps",
+                f"{self.steps:,} is less than one step of the {self.num_envs:,} envs stepped together "
+                f"({self.num_envs:,} env steps); raise steps or lower num_envs",
+            )
         if self.hierarchical and self.env != "treadmill":
             raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")
         return self

@@ -206,6 +206,9 @@ def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:
         ({"algo_params": {"batch_size": 128, "replay_capacity": 64}}, "batch_size"),
         ({"algo_params": {"learning_rate": 0.1}}, "learning_rate"),
         ({"algo_params": {"hidden": [64, 0]}}, "hidden"),
+        ({"algo_params": {"hidden": [1_000_000_000]}}, "hidden"),  # ~100 GB: refused, not crash-looped
+        ({"algo_params": {"hidden": [16_000, 16_000]}}, "hidden"),  # 256 M weights between the layers
+        ({"steps": 10, "num_envs": 4096}, "steps"),  # less than one batched step
         ({"env": "highway"}, "env"),
         ({"env_params": {"n_agents": 0}}, "n_agents"),
         ({"steps": 0}, "steps"),
