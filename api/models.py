@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from protocol.config import JobConfig, MessageSource, job_config
+from protocol.config import ConfigError, JobConfig, MessageSource, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 
@@ -48,11 +48,20 @@ class JobSubmit(BaseModel):
     name: str | None = Field(
         None, pattern=r"^[A-Za-z0-9_.-]{1,32}$", description="Prefix of the job id (letters, digits, _ . -)."
     )
+    runtime: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Distributed runtime settings (RuntimeConfig's fields but actors, given above, and zenoh, which "
+        'the service sets), e.g. {"actor_max_restarts": 500}.',
+    )
 
     def job_config(self) -> JobConfig:
         """The validated job (ConfigError naming the field otherwise)."""
-        values = self.model_dump(exclude={"actors", "name"})
-        return job_config(**values, runtime={"actors": self.actors})
+        for owned in ("actors", "zenoh"):
+            if owned in self.runtime:
+                fix = "give actors at the top level" if owned == "actors" else "the service chooses the transport"
+                raise ConfigError(f"runtime.{owned}", f"not settable here; {fix}")
+        values = self.model_dump(exclude={"actors", "name", "runtime"})
+        return job_config(**values, runtime={**self.runtime, "actors": self.actors})
 
 
 class JobPatch(BaseModel):

@@ -387,9 +387,23 @@ class RuntimeConfig(BaseModel):
     )
     inbox: int = Field(256, ge=1, description="Chunks the learner queues off the Zenoh thread (oldest dropped).")
     max_restarts: int = Field(
-        5, ge=0, description="Crashes of one role within restart_window_s before the job fails with the reason."
+        5, ge=0, description="Learner crashes within restart_window_s before the job fails with the reason."
     )
-    restart_window_s: float = Field(60.0, gt=0, description="Window for max_restarts.")
+    actor_max_restarts: int = Field(
+        100,
+        ge=0,
+        description="Actor deaths within restart_window_s before the job fails: generous, as actors come and go "
+        "(killed, out of memory, a host lost) while the learner is healthy; a crash loop is slowed by "
+        "restart_backoff_s instead (RLlib restarts env runners up to 1000 times).",
+    )
+    restart_window_s: float = Field(60.0, gt=0, le=86_400, description="Window for max_restarts.")
+    restart_backoff_s: float = Field(
+        0.5,
+        ge=0,
+        le=60,
+        description="Delay before respawning an actor that died within 10 s of its start; doubles with each such "
+        "death of the same actor in a row (at most 30 s). An actor that ran longer is respawned at once.",
+    )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 
     def slack(self, num_envs: int) -> int:

@@ -176,6 +176,9 @@ def submit_body(args: argparse.Namespace) -> dict[str, Any]:
     hp = parse_pairs(args.hp, "--hp")
     if hp:
         body["algo_params"] = hp
+    runtime = parse_pairs(args.runtime, "--runtime")
+    if runtime:
+        body["runtime"] = runtime
     return body
 
 

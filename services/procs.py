@@ -7,9 +7,11 @@ by side at start-up, and a crashed actor is back in a fraction of a second. Fork
 option (fork after a Zenoh session is open loses every message); where the platform has no forkserver the ``spawn``
 method is used. Processes get plain-data arguments (job config, Zenoh settings) and are tracked by PID. A crashed
 actor is respawned under a new id (its seed advanced, so it does not replay the same episodes); a crashed learner is
-restarted and resumes from its checkpoint; more than ``max_restarts`` crashes of one role within
-``restart_window_s`` fail the job with the reason. Exit code 0 means a process finished its part of the job and is
-not restarted.
+restarted and resumes from its checkpoint. Each role has its own budget within ``restart_window_s``: a few learner
+crashes (``max_restarts``: each costs a resume) and many actor deaths (``actor_max_restarts``: actors come and go),
+past which the job fails with the reason. An actor that keeps dying at start (a crash loop, not churn) is respawned
+after a doubling delay (``restart_backoff_s``). Exit code 0 means a process finished its part of the job and is not
+restarted.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ from protocol.session import ZenohSettings
 # torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's
 # first update while every actor waits for it.
 PRELOAD = ["actors.actor", "learner.agent", "learner.service", "torch._dynamo"]
+SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
+MAX_BACKOFF_S = 30.0
 
 
 def _context() -> Any:
@@ -73,7 +77,7 @@ class Slot:
 
 @dataclass
 class Event:
-    kind: str  # "exited" | "crashed" | "respawned" | "failed"
+    kind: str  # "exited" | "crashed" | "backoff" | "respawned" | "failed"
     role: str
     ident: str
     detail: str = ""
@@ -100,6 +104,8 @@ class ProcessGroup:
         self.job_id, self.job, self.out_dir, self.settings, self.roles = job_id, job, out_dir, settings, roles
         self.host = host
         self.actors: dict[int, Slot] = {}
+        self.respawn_at: dict[int, tuple[float, int, int]] = {}  # index → (when, generation, short lives in a row)
+        self.short_lives: dict[int, int] = {}  # index → deaths within SHORT_LIFE_S of start in a row
         self.learner: Slot | None = None
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
         self.finished: set[str] = set()  # roles whose processes exited 0
@@ -131,11 +137,13 @@ class ProcessGroup:
         if n < 0:
             raise ValueError(f"actors: must be ≥ 0 (got {n})")
         for index in range(n):
-            if index not in self.actors:
+            if index not in self.actors and index not in self.respawn_at:
                 self.actors[index] = self._spawn_actor(index, 0)
         for index in sorted(self.actors, reverse=True):
             if index >= n:
                 self._terminate(self.actors.pop(index))
+        for index in [i for i in self.respawn_at if i >= n]:
+            del self.respawn_at[index]
 
     # ------------------------------------------------------------------------------------------------ watching
     def pids(self) -> dict[str, int]:
@@ -144,18 +152,40 @@ class ProcessGroup:
         return {s.ident: s.proc.pid for s in slots if s.proc is not None and s.proc.pid}
 
     def _crash(self, role: str, slot: Slot, code: int | None) -> Event | None:
+        rt = self.job.runtime
         now = time.monotonic()
         window = self.crashes[role]
         window.append(now)
-        while window and now - window[0] > self.job.runtime.restart_window_s:
+        while window and now - window[0] > rt.restart_window_s:
             window.popleft()
-        if len(window) > self.job.runtime.max_restarts:
+        field_name = "max_restarts" if role == "learner" else "actor_max_restarts"
+        if len(window) > getattr(rt, field_name):
             self.failed = (
-                f"{role} crashed {len(window)} times within {self.job.runtime.restart_window_s:g} s "
-                f"(last: {slot.ident} exit code {code}); raise runtime.max_restarts or fix the cause"
+                f"{role} crashed {len(window)} times within {rt.restart_window_s:g} s "
+                f"(last: {slot.ident} exit code {code}); see the job's log for the cause, or raise "
+                f'runtime.{field_name} (convoy train --runtime {field_name}=N; REST: "runtime": '
+                f'{{"{field_name}": N}}) or fix the cause'
             )
             return Event("failed", role, slot.ident, self.failed)
         return None
+
+    def _schedule_respawn(self, index: int, slot: Slot) -> float:
+        """Respawn actor ``index`` at once after churn, after a doubling delay when it keeps dying at start."""
+        now = time.monotonic()
+        short = self.short_lives.get(index, 0) + 1 if now - slot.started < SHORT_LIFE_S else 0
+        self.short_lives[index] = short
+        delay = 0.0 if short == 0 else min(MAX_BACKOFF_S, self.job.runtime.restart_backoff_s * 2 ** (short - 1))
+        self.respawn_at[index] = (now + delay, slot.generation + 1, short)
+        return delay
+
+    def _respawn_due(self) -> list[Event]:
+        now, events = time.monotonic(), []
+        for index, (when, generation, _) in sorted(self.respawn_at.items()):
+            if when <= now:
+                del self.respawn_at[index]
+                self.actors[index] = self._spawn_actor(index, generation)
+                events.append(Event("respawned", "actor", self.actors[index].ident))
+        return events
 
     def poll(self, learner_has_data: bool = False) -> list[Event]:
         """Notice exits; respawn crashed actors, restart a crashed learner; returns what happened.
@@ -179,15 +209,20 @@ class ProcessGroup:
                 del self.actors[index]
                 self.finished.add("actor")
                 continue
-            if left_early:  # not a crash loop: not counted against max_restarts
+            del self.actors[index]
+            if left_early:  # not a crash loop: not counted against actor_max_restarts
                 events.append(Event("crashed", "actor", slot.ident, "exited before the learner had the job's steps"))
             else:
                 events.append(Event("crashed", "actor", slot.ident, f"exit code {code}"))
                 fail = self._crash("actor", slot, code)
                 if fail:
                     return [*events, fail]
-            self.actors[index] = self._spawn_actor(index, slot.generation + 1)
-            events.append(Event("respawned", "actor", self.actors[index].ident))
+            delay = self._schedule_respawn(index, slot)
+            if delay:
+                short = self.short_lives[index]
+                detail = f"died within {SHORT_LIFE_S:g} s of its start {short}× in a row; respawn in {delay:g} s"
+                events.append(Event("backoff", "actor", slot.ident, detail))
+        events += self._respawn_due()
         if self.learner is not None and self.learner.proc.exitcode is not None:
             slot, code = self.learner, self.learner.proc.exitcode
             slot.proc.join(0)
@@ -222,4 +257,5 @@ class ProcessGroup:
                 os.kill(slot.proc.pid, signal.SIGKILL)
                 slot.proc.join(2.0)
         self.actors.clear()
+        self.respawn_at.clear()
         self.learner = None

@@ -46,8 +46,9 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
         values["torch_threads"] = args.threads
     if args.hierarchical:
         values["hierarchical"] = True
+    values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
     if args.actors is not None:
-        values["runtime"] = {**values.get("runtime", {}), "actors": args.actors}
+        values["runtime"]["actors"] = args.actors
     values["env_params"] = env_params(args, values.get("env_params"))
     values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
     return job_config(**values)
@@ -155,6 +156,12 @@ def add_job_flags(tr: argparse.ArgumentParser) -> None:
     tr.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries)")
     tr.add_argument("--set", action="append", metavar="KEY=VALUE", help="env parameter, repeatable")
     tr.add_argument("--hp", action="append", metavar="KEY=VALUE", help="algorithm hyper-parameter, repeatable")
+    tr.add_argument(
+        "--runtime",
+        action="append",
+        metavar="KEY=VALUE",
+        help="distributed runtime setting, repeatable (e.g. actor_max_restarts=500; see RuntimeConfig in docs/api.md)",
+    )
     tr.add_argument("--steps", type=int, help=f"total env steps (default {d['steps'].default:,})")
     tr.add_argument("--num-envs", type=int, help=f"envs stepped together (default {d['num_envs'].default})")
     tr.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")

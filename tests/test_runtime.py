@@ -362,7 +362,11 @@ def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: P
     job = job_config(algo="idqn", steps=10_000, device="cuda", runtime={"actors": 1, "max_restarts": 1}, **TREADMILL)
     runner = JobRunner("crashloop", job, tmp_path, progress=False)
     t0 = time.monotonic()
-    with pytest.raises(JobFailed, match=r"learner crashed 2 times .* raise runtime.max_restarts or fix the cause"):
+    with pytest.raises(
+        JobFailed,
+        match=r"learner crashed 2 times .* raise runtime.max_restarts \(convoy train --runtime max_restarts=N"
+        r".*or fix the cause",
+    ):
         runner.run()
     assert time.monotonic() - t0 < 60
     assert runner.group is not None and not runner.group.pids()  # every process stopped

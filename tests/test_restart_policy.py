@@ -1,0 +1,102 @@
+"""The supervisor's restart policy per role, on fake processes: churn is respawned at once and never fails a job,
+a crash loop backs off, and the budgets a failure names can be set from the CLI and REST."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from protocol.config import job_config
+from protocol.session import ZenohSettings
+from services.procs import SHORT_LIFE_S, ProcessGroup, Slot
+
+
+class FakeProc:
+    """What ProcessGroup reads of a multiprocessing.Process."""
+
+    pid = None
+
+    def __init__(self) -> None:
+        self.exitcode: int | None = None
+
+    def join(self, timeout: float | None = None) -> None:
+        pass
+
+    def is_alive(self) -> bool:
+        return self.exitcode is None
+
+    def terminate(self) -> None:
+        self.exitcode = -15
+
+
+def actor_group(monkeypatch: pytest.MonkeyPatch, **runtime: object) -> ProcessGroup:
+    job = job_config(algo="idqn", env="referential", steps=1000, runtime={"actors": 2, **runtime})
+    group = ProcessGroup("policy", job, "unused", ZenohSettings(), roles=("actor",))
+    monkeypatch.setattr(group, "_spawn_actor", lambda index, generation: Slot("actor", index, generation, FakeProc()))
+    group.scale_actors(2)
+    return group
+
+
+def kill(group: ProcessGroup, index: int, lived_s: float) -> None:
+    slot = group.actors[index]
+    slot.started = time.monotonic() - lived_s
+    slot.proc.exitcode = -9
+
+
+def test_churn_is_respawned_at_once_and_never_fails_the_job(monkeypatch: pytest.MonkeyPatch) -> None:
+    group = actor_group(monkeypatch)
+    for death in range(40):  # 40 deaths in well under a minute, each actor having run a while
+        kill(group, death % 2, lived_s=SHORT_LIFE_S + 5)
+        events = group.poll()
+        assert [e.kind for e in events] == ["crashed", "respawned"], events
+    assert group.failed is None and len(group.actors) == 2
+
+
+def test_a_crash_loop_backs_off_doubling(monkeypatch: pytest.MonkeyPatch) -> None:
+    group = actor_group(monkeypatch, restart_backoff_s=0.05)
+    delays = []
+    for _ in range(3):
+        kill(group, 0, lived_s=0.1)
+        events = group.poll()
+        assert [e.kind for e in events] == ["crashed", "backoff"], events
+        assert 0 not in group.actors  # not yet respawned
+        delays.append(group.respawn_at[0][0] - time.monotonic())
+        time.sleep(delays[-1] + 0.01)
+        assert [e.kind for e in group.poll()] == ["respawned"]
+    assert delays[0] < delays[1] < delays[2] and delays[2] == pytest.approx(0.2, abs=0.02)
+    kill(group, 0, lived_s=SHORT_LIFE_S + 1)  # it ran long enough: the streak is over, back at once
+    assert [e.kind for e in group.poll()] == ["crashed", "respawned"]
+
+
+def test_the_actor_budget_names_the_field_and_how_to_set_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    group = actor_group(monkeypatch, actor_max_restarts=3)
+    for death in range(3):
+        kill(group, death % 2, lived_s=SHORT_LIFE_S + 5)
+        assert group.poll()[-1].kind == "respawned"
+    kill(group, 1, lived_s=SHORT_LIFE_S + 5)
+    failed = group.poll()[-1]
+    assert failed.kind == "failed" and "actor crashed 4 times" in failed.detail
+    assert "runtime.actor_max_restarts" in failed.detail and "--runtime actor_max_restarts=N" in failed.detail
+
+
+def test_runtime_settings_come_from_the_cli_and_the_rest_body() -> None:
+    from api.models import JobSubmit
+    from protocol.config import ConfigError
+    from services.cli import build_parser
+    from services.jobs_cmd import submit_body
+    from services.train_cmd import job_from_args
+
+    args = build_parser().parse_args(["train", "--runtime", "actor_max_restarts=500", "--runtime", "max_restarts=9"])
+    job = job_from_args(args)
+    assert (job.runtime.actor_max_restarts, job.runtime.max_restarts) == (500, 9)
+    args = build_parser().parse_args(["jobs", "submit", "--runtime", "actor_max_restarts=500"])
+    body = submit_body(args)
+    assert body["runtime"] == {"actor_max_restarts": 500}
+    assert JobSubmit(**body).job_config().runtime.actor_max_restarts == 500
+    with pytest.raises(ConfigError) as info:
+        JobSubmit(runtime={"zenoh": {"mode": "router"}}).job_config()
+    assert info.value.field == "runtime.zenoh"
+    with pytest.raises(ConfigError) as info:
+        JobSubmit(runtime={"max_restarts": -1}).job_config()
+    assert info.value.field == "runtime.max_restarts"
