@@ -17,6 +17,7 @@ while the ``max_processes`` budget allows, the others wait with a visible queue 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
@@ -132,10 +133,15 @@ class JobService:
             rec = self.store.get(job_id)
             if rec.state == JobState.queued:
                 return self.store.transition(job_id, JobState.stopped, "stopped before it started")
+            starting = rec.state == JobState.starting
             rec = self.store.transition(job_id, JobState.stopping, "stop requested")
             if job_id in self.tracked:
-                self.tracked[job_id].stop_asked = time.monotonic()
+                tracked = self.tracked[job_id]
+                tracked.stop_asked = time.monotonic()
                 self._command(job_id, "stop", {})
+                if starting:  # its host may not hear commands yet: SIGTERM stops it the same way (checkpoint first)
+                    with contextlib.suppress(ProcessLookupError, PermissionError):
+                        os.killpg(tracked.pid, signal.SIGTERM)
             return rec
 
     def resume(self, job_id: str, actors: int | None, steps: int | None) -> JobRecord:

@@ -96,7 +96,7 @@ class Service:
                 time.sleep(1.0)
         self.client.close()
 
-    def wait(self, job_id: str, pred: Any, timeout: float = 90.0, what: str = "") -> dict[str, Any]:
+    def wait(self, job_id: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3) -> dict[str, Any]:
         """Poll GET /jobs/{id} until ``pred(view)``; the last view otherwise (with a clear assertion)."""
         t_end = time.monotonic() + timeout
         view: dict[str, Any] = {}
@@ -104,5 +104,5 @@ class Service:
             view = self.client.get(f"/jobs/{job_id}").json()
             if pred(view):
                 return view
-            time.sleep(0.3)
+            time.sleep(every)
         raise AssertionError(f"timed out waiting for {what or 'condition'}: {view}")

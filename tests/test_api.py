@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import time
 import zipfile
 from pathlib import Path
 
@@ -70,6 +71,22 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
 
         assert svc.client.get("/jobs", params={"state": "completed"}).json()["jobs"][0]["id"] == job
         assert 'convoy_jobs{state="completed"} 1.0' in svc.client.get("/metrics").text
+    finally:
+        svc.stop()
+
+
+def test_a_stop_while_the_job_is_starting_takes_effect_at_once(tmp_path: Path) -> None:
+    """The job's host may not be subscribed to its commands yet: the stop must not wait for the grace kill."""
+    from services.jobservice import STOP_GRACE_S
+
+    svc = Service(tmp_path / "svc").start()
+    try:
+        job = submit(svc, steps=2_000_000, actors=1)
+        svc.wait(job, lambda v: v["state"] == "starting", what="starting", every=0.01)
+        t0 = time.monotonic()
+        assert svc.client.post(f"/jobs/{job}/stop", headers=AUTH).json()["state"] == "stopping"
+        svc.wait(job, lambda v: v["state"] == "stopped", timeout=STOP_GRACE_S / 2, what="stopped")
+        print(f"stopped {time.monotonic() - t0:.2f} s after the stop, asked while starting")
     finally:
         svc.stop()
 
