@@ -25,11 +25,11 @@ ACTORS ?= 2
 QUICK  ?= --hp lr=0.0003 --hp batch_size=64 --hp signalling_coef=0 --eval-every 5000
 
 run: $(STAMP)
-	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 $(QUICK) --out $(OUT)
+	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 $(QUICK) --out $(OUT) --overwrite
 
 run-distributed: $(STAMP)
 	$(BIN)/convoy train --algo ma-mesn --env treadmill --actors $(ACTORS) --steps $(STEPS) --seed 0 $(QUICK) \
-		--out $(OUT)-distributed
+		--out $(OUT)-distributed --overwrite
 
 serve: $(STAMP)
 	$(BIN)/convoy serve --port $(or $(PORT),8000) --data runs/service

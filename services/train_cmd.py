@@ -15,6 +15,7 @@ from rich.table import Table
 from envs import ENVS, ConfigError
 from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, env_default_note, job_config
 from services.args import env_params, parse_pairs
+from services.rundir import claim, free_default
 
 console = Console()
 
@@ -55,11 +56,19 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    job = job_from_args(args)
+    out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
+    run_dir = claim(out, overwrite=args.overwrite)
+    try:
+        return _train(args, job, out)
+    finally:
+        run_dir.release()
+
+
+def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
     from services.procs import JobFailed
     from services.training import run_distributed, run_inprocess
 
-    job = job_from_args(args)
-    out = Path(args.out) if args.out else Path("runs") / f"{job.algo}-{job.env}"
     cfg = job.algo_config()
     where = "in this process" if args.inprocess else f"{job.runtime.actors} actor processes + a learner (Zenoh)"
     console.print(
@@ -133,7 +142,12 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     tr.add_argument("--job-id", help="Zenoh job id (default: the --out directory's name + a random suffix)")
     add_job_arguments(tr)
-    tr.add_argument("--out", metavar="DIR", help="output directory (default runs/ALGO-ENV)")
+    tr.add_argument(
+        "--out",
+        metavar="DIR",
+        help="output directory, one run each (default runs/ALGO-ENV, or runs/ALGO-ENV-2, -3, … when that holds a run)",
+    )
+    tr.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     tr.set_defaults(func=cmd_train)
 

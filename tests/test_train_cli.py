@@ -129,3 +129,32 @@ def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
     with_curve, plain = train(500), train(0)
     assert np.array_equal(with_curve[0], plain[0], equal_nan=True)
     assert all(torch.equal(with_curve[1][k], plain[1][k]) for k in plain[1])
+
+
+def test_runs_never_share_a_directory_by_accident(tmp_path, capsys, monkeypatch) -> None:
+    from services.rundir import claim
+
+    out = tmp_path / "run"
+    assert main(["train", "--algo", "idqn", *TINY, "--out", str(out)]) == 0
+    first = (out / "metrics.jsonl").read_text()
+    capsys.readouterr()
+    assert main(["train", "--algo", "idqn", *TINY, "--out", str(out)]) == 2  # refused: it holds a run
+    err = capsys.readouterr().err
+    assert "--out" in err and "holds an earlier run" in err and "--overwrite" in err
+    assert (out / "metrics.jsonl").read_text() == first  # nothing lost
+    assert main(["train", "--algo", "idqn", *TINY, "--seed", "1", "--out", str(out), "--overwrite"]) == 0
+    assert (out / "metrics.jsonl").read_text() != first  # replaced, not interleaved
+    capsys.readouterr()
+
+    held = claim(tmp_path / "busy")  # a run in progress holds its directory
+    try:
+        assert main(["train", "--algo", "idqn", *TINY, "--out", str(tmp_path / "busy"), "--overwrite"]) == 2
+        assert "being written by another run" in capsys.readouterr().err
+    finally:
+        held.release()
+
+    monkeypatch.chdir(tmp_path)  # without --out: the default directory, then a numbered one beside it
+    for _ in range(2):
+        assert main(["train", "--algo", "idqn", *TINY]) == 0
+    assert (tmp_path / "runs/idqn-referential/summary.json").exists()
+    assert (tmp_path / "runs/idqn-referential-2/summary.json").exists()
