@@ -80,7 +80,8 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     algo, flags = variant_flags(name)
     out = Path(args.out) / f"{name}-s{seed}"
     cmd = [sys.executable, "-m", "services.cli", "train", "--inprocess", "--algo", algo, "--steps", str(args.steps),
-           "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress", "--eval-every", str(args.eval_every)]  # fmt: skip
+           "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress",
+           "--eval-every", str(args.eval_every)]  # fmt: skip
     cmd += flags
     for hp in args.hp or []:
         cmd += ["--hp", hp]
