@@ -14,17 +14,30 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from envs.batched import EnvSpec
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress
 from learner.errors import CheckpointError
+from learner.replay import JointReplay
 from protocol.config import JobConfig, job_config
 
 FORMAT = 1
 BEST_CHECKPOINT = "best.pt"  # beside checkpoint.pt: the policy of the best point of the greedy learning curve
-__all__ = ["BEST_CHECKPOINT", "CheckpointError", "load_checkpoint", "read_checkpoint", "save_checkpoint"]
+REPLAY_FILE = "replay.npz"  # beside checkpoint.pt: the replay buffers at its env step, when small enough to keep
+__all__ = [
+    "BEST_CHECKPOINT",
+    "REPLAY_FILE",
+    "CheckpointError",
+    "load_checkpoint",
+    "load_replay",
+    "read_checkpoint",
+    "replay_buffers",
+    "save_checkpoint",
+    "save_replay",
+]
 
 
 def save_checkpoint(path: str | Path, algo: Algorithm, job: JobConfig, counters: dict[str, Any]) -> Path:
@@ -92,3 +105,74 @@ def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Algorithm, 
     except Exception as exc:
         raise CheckpointError(f"checkpoint {path}: does not match this Convoy's networks ({exc}); retrain") from None
     return algo, job, payload.get("counters", {})
+
+
+# ------------------------------------------------------------------------------------------------------ replay
+def replay_buffers(algo: Any) -> dict[str, JointReplay]:
+    """Every replay buffer of an algorithm by name (a hierarchical agent has one per level)."""
+    if hasattr(algo, "controller") and hasattr(algo, "meta"):
+        return {
+            f"{level}.{k}": v
+            for level in ("controller", "meta")
+            for k, v in replay_buffers(getattr(algo, level)).items()
+        }
+    replay = getattr(algo, "replay", None)
+    return {"replay": replay} if isinstance(replay, JointReplay) else {}
+
+
+def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> int:
+    """Write ``algo``'s replay (filled rows only) atomically to ``path`` when it holds at most ``max_bytes``; the
+    bytes written, or 0 when it is larger (the file is then removed: a stale one must not be loaded later).
+
+    Why: a restarted learner with an empty buffer trains its high replay ratio on a few thousand fresh rows and its
+    return collapses (~40 → ~5) until the buffer refills; with the buffer back it carries on."""
+    path = Path(path)
+    buffers = replay_buffers(algo)
+    size = sum(len(b) * (b.nbytes // max(b.capacity, 1)) for b in buffers.values())
+    if not buffers or size > max_bytes:
+        path.unlink(missing_ok=True)
+        return 0
+    arrays: dict[str, np.ndarray] = {"env_steps": np.asarray(env_steps)}
+    for name, buf in buffers.items():
+        state = buf.state_dict()
+        arrays[f"{name}/next"] = np.asarray(state["next"])
+        arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return size
+
+
+def load_replay(path: str | Path, algo: Any, env_steps: int) -> int:
+    """Fill ``algo``'s replay from ``path`` if it was saved at ``env_steps`` (the checkpoint's step); rows loaded.
+    A missing, unreadable or mismatched file loads nothing: the learner then refills its buffer from actors."""
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    try:
+        with np.load(path) as data:
+            if int(data["env_steps"]) != env_steps:
+                return 0
+            buffers = replay_buffers(algo)
+            states = {
+                name: {
+                    "next": int(data[f"{name}/next"]),
+                    "data": {k.split("/", 2)[2]: data[k] for k in data.files if k.startswith(f"{name}/data/")},
+                }
+                for name in buffers
+            }
+        for name, buf in buffers.items():
+            buf.load_state_dict(states[name])
+    except (OSError, KeyError, ValueError) as exc:
+        print(f"learner: replay {path} unusable ({type(exc).__name__}: {exc}); refilling from actors", flush=True)
+        for buf in replay_buffers(algo).values():
+            buf.load_state_dict({"data": {}, "next": 0})
+        return 0
+    return sum(len(b) for b in replay_buffers(algo).values())

@@ -29,7 +29,15 @@ import torch
 from envs import make_batched
 from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import BEST_CHECKPOINT, CheckpointError, read_checkpoint, save_checkpoint
+from learner.checkpoint import (
+    BEST_CHECKPOINT,
+    REPLAY_FILE,
+    CheckpointError,
+    load_replay,
+    read_checkpoint,
+    save_checkpoint,
+    save_replay,
+)
 from learner.runlog import Evaluator, RunLog, write_artefacts
 from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
@@ -121,7 +129,9 @@ class Learner:
             print(f"learner: checkpoint {path} does not match the job's networks ({exc}); starting from scratch")
             path.rename(path.with_suffix(".unreadable"))
             return {}
-        return dict(payload.get("counters", {}))
+        counters = dict(payload.get("counters", {}))
+        counters["replay_rows"] = load_replay(self.out_dir / REPLAY_FILE, algo, int(counters.get("env_steps", 0)))
+        return counters
 
     def run(self) -> int:
         job, rt = self.job, self.job.runtime
@@ -147,7 +157,11 @@ class Learner:
         self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
         self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
         if counters:  # say so: the supervisor reports it, tests check how far back the restart went
-            values = {"resumed_updates": algo.updates, "resumed_env_steps": counters.get("env_steps", 0)}
+            values = {
+                "resumed_updates": algo.updates,
+                "resumed_env_steps": counters.get("env_steps", 0),
+                "resumed_replay_rows": counters["replay_rows"],
+            }
             self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
         try:
             return self._loop(algo, schema, inbox, counters)
@@ -291,6 +305,8 @@ class Learner:
         counters = {"env_steps": env_steps, "episodes": episodes, "updates": algo.updates}
         if self.evaluator is not None and self.evaluator.best > float("-inf"):
             counters["best_eval_return"] = self.evaluator.best  # a restarted learner keeps best.pt unless it beats it
+        if name == "checkpoint.pt":  # the replay first: a crash between the two leaves a pair that does not match
+            save_replay(self.out_dir / REPLAY_FILE, algo, env_steps, self.job.runtime.replay_checkpoint_mb << 20)
         save_checkpoint(self.out_dir / name, algo, self.job, counters)
 
 

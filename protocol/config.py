@@ -404,6 +404,13 @@ class RuntimeConfig(BaseModel):
         description="Delay before respawning an actor that died within 10 s of its start; doubles with each such "
         "death of the same actor in a row (at most 30 s). An actor that ran longer is respawned at once.",
     )
+    replay_checkpoint_mb: int = Field(
+        2048,
+        ge=0,
+        description="The learner saves its replay buffer (replay.npz beside checkpoint.pt) with each checkpoint "
+        "while it holds at most this many MB, so a restarted learner resumes with its data instead of an empty "
+        "buffer; 0 = never. The treadmill's rows are ~0.7 KB: 2048 MB keeps ~3 M of them.",
+    )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 
     def slack(self, num_envs: int) -> int:

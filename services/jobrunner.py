@@ -151,7 +151,7 @@ class JobRunner:
             self.resumes.append(values)
             print(
                 f"[resumed] learner from its checkpoint: {values['resumed_env_steps']:,.0f} env steps, "
-                f"{values['resumed_updates']:,.0f} updates",
+                f"{values['resumed_updates']:,.0f} updates, {values.get('resumed_replay_rows', 0):,.0f} replay rows",
                 flush=True,
             )
         if "return" not in values:

@@ -20,7 +20,7 @@ from envs import ConfigError
 LOCK = ".convoy.lock"
 RUN_FILES = ("checkpoint.pt", "metrics.jsonl", "summary.json")  # what makes a directory hold a run
 # What a run writes, and all that --overwrite removes (never anything else a user keeps beside it).
-ARTEFACTS = (*RUN_FILES, "best.pt", "metrics.csv", "curve.png", "checkpoint.unreadable")
+ARTEFACTS = (*RUN_FILES, "best.pt", "replay.npz", "metrics.csv", "curve.png", "checkpoint.unreadable")
 
 
 def holds_run(path: Path) -> bool:

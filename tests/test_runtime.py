@@ -156,6 +156,9 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path: Path) -> None:
     resumed = runner.resumes[0]["resumed_updates"]
     print(f"updates before kill -9: {before:.0f}; the restarted learner resumed at {resumed:.0f}")
     assert before - per_interval - 1 <= resumed <= before + per_interval + 1  # back at most one checkpoint interval
+    # with its replay buffer as it was at that checkpoint, not empty (each env step is one joint row)
+    resumed_steps = runner.resumes[0]["resumed_env_steps"]
+    assert runner.resumes[0]["resumed_replay_rows"] == min(resumed_steps, cfg.replay_capacity) > 0
     assert summary["env_steps"] >= job.steps
     kinds = [(e.kind, e.role) for e in runner.events]
     assert ("crashed", "learner") in kinds and ("respawned", "learner") in kinds
