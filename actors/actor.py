@@ -161,7 +161,7 @@ class Actor:
                         "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
                         "throttled_s": self.stats.throttled_s,
                         "epsilon": eps,
-                        "dropped": weights_in.drops + budget_in.drops + stop_in.drops + self.bad_weights,
+                        **_drop_counts((weights_in, budget_in, stop_in), self.bad_weights),
                     }
                     metrics_pub.put(wire.encode("metrics", wire.metrics_body("actor", self.ident, values), self.ident))
                     self.stats.returns = []
@@ -169,6 +169,18 @@ class Actor:
         finally:
             env.close()
         return STOPPED  # a signal, not the end of the job: a supervisor that still wants this actor respawns it
+
+
+def _drop_counts(inboxes: tuple[Inbox, ...], bad_weights: int) -> dict[str, float]:
+    """What this actor dropped: garbage (undecodable, foreign, well-formed but not this job's weights) apart from
+    overflow (a full queue: load, not an attack); ``dropped`` is their sum."""
+    overflow = sum(inbox.dropped.get("overflow", 0) for inbox in inboxes)
+    garbage = sum(inbox.drops for inbox in inboxes) - overflow + bad_weights
+    return {
+        "dropped": float(garbage + overflow),
+        "dropped_garbage": float(garbage),
+        "dropped_overflow": float(overflow),
+    }
 
 
 def run_actor(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int | None) -> int:

@@ -128,7 +128,25 @@ class JobRunner:
             session.close()
         path = self.out_dir / "summary.json"
         # a job stopped early has no summary of its own (one left by an earlier run in out_dir is not this job's)
-        return json.loads(path.read_text()) if finished and path.is_file() else {}
+        if not (finished and path.is_file()):
+            return {}
+        summary = json.loads(path.read_text())
+        summary["dropped_elsewhere"] = self.drop_report(metrics)
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(summary, indent=2))
+        tmp.replace(path)
+        return summary
+
+    def drop_report(self, metrics: Inbox) -> dict[str, Any]:
+        """What the learner's ``dropped_by_reason`` does not see: the actors' drops (their last report each, garbage
+        apart from overflow) and the supervisor's own (payloads on ``metrics/**`` that were not usable)."""
+        actors = {
+            k: sum(m.get(k, 0.0) for m in self.actor_metrics.values()) for k in ("dropped_garbage", "dropped_overflow")
+        }
+        return {
+            "actors": {"garbage": int(actors["dropped_garbage"]), "overflow": int(actors["dropped_overflow"])},
+            "supervisor": {**dict(metrics.dropped), "unusable-metrics": self.bad_metrics},
+        }
 
     def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
         """Take in one metrics message. Any well-formed one is survivable: a row lacking what it is used for, or an

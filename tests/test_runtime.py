@@ -207,12 +207,13 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
         try:
             block = zenoh.CongestionControl.BLOCK
             targets = [keys.exp("garbage", "intruder"), keys.weights("garbage"), keys.ctl("garbage", "budget")]
+            targets.append(keys.metrics("garbage", "actor", "intruder"))
             pubs = [session.declare_publisher(k, congestion_control=block) for k in targets]
             wait_for(lambda: all(p.matching_status.matching for p in pubs), 10, "the job's subscribers to match")
-            sent = [0, 0, 0]
+            sent = [0, 0, 0, 0]
             for i in range(10_000):
-                kind = i % 3
-                choice = i % 4
+                kind = i % 4
+                choice = (i // 4) % 4
                 if choice == 0:
                     payload = rng.bytes(int(rng.integers(0, 300)))
                 elif choice == 1:
@@ -242,6 +243,9 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
     for reason in hostile:  # each well-formed hostile chunk was refused for its reason, none reached the weights
         assert summary["dropped_by_reason"].get(reason, 0) >= 1, (reason, summary["dropped_by_reason"])
     assert runner.bad_metrics >= 1
+    elsewhere = summary["dropped_elsewhere"]  # the job's summary also counts what actors and the supervisor dropped
+    assert elsewhere["actors"]["garbage"] >= sent[1] + sent[2] - 5
+    assert sum(elsewhere["supervisor"].values()) >= sent[3] + 1
     state = read_checkpoint(tmp_path / "checkpoint.pt")["state"]
     tensors = [t for t in _tensors(state) if t.is_floating_point()]
     assert tensors and all(bool(torch.isfinite(t).all()) for t in tensors)
