@@ -17,7 +17,8 @@ message can tell, since it includes cars nobody observes), ``idqn+team-observati
 agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
 what MA-MeSN's messages can add to independent DQN), ``idqn+team-sightings`` is told, in its own frame and with
 an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is
-hierarchical DQN (``--hierarchical``). ``--set NAME=VALUE`` changes a treadmill rule for every run and the
+hierarchical DQN (``--hierarchical``), ``ma-mesn+deterministic`` sends deterministic straight-through bits (Gumbel
+noise 0) without the positive-signalling term. ``--set NAME=VALUE`` changes a treadmill rule for every run and the
 references. For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s
 figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with white noise
 in place of the messages.
@@ -63,6 +64,8 @@ VARIANTS = {
     "team-observations": ["--set", "team_observations=true"],
     "team-sightings": ["--set", "team_sightings=true"],
     "hierarchical": ["--hierarchical"],
+    # MA-MeSN's messages as deterministic straight-through bits (no Gumbel noise) without the signalling term
+    "deterministic": ["--hp", "gumbel_noise=0", "--hp", "signalling_coef=0"],
 }
 
 
@@ -136,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
             "idqn+full-information",
         ],
         help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, team-sightings, "
-        "hierarchical) (default %(default)s)",
+        "hierarchical, deterministic) (default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")
