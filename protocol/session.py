@@ -53,10 +53,12 @@ class ZenohSettings(BaseModel):
 
     def child(self, listen_port: bool = True) -> ZenohSettings:
         """The settings a spawned process on this machine uses: connect to what this process listens on (peer
-        mode) and listen on its own free loopback port, so gossip can connect the children to each other."""
+        mode) and listen on its own free loopback port, so gossip can connect the children to each other; and to
+        what this process connects to (a router), since peers do not forward for each other."""
         if self.mode != "peer" or not self.listen:
             return self
-        return self.model_copy(update={"connect": self.listen, "listen": ("tcp/127.0.0.1:0",) if listen_port else ()})
+        connect = (*self.listen, *(c for c in self.connect if c not in self.listen))
+        return self.model_copy(update={"connect": connect, "listen": ("tcp/127.0.0.1:0",) if listen_port else ()})
 
     @classmethod
     def from_env(cls, base: ZenohSettings | None = None) -> ZenohSettings:

@@ -270,6 +270,13 @@ class JobService:
                 rows.append(row)
                 progress.update({k: row[k] for k in PROGRESS_KEYS if k in row})
         if rows:
+            last = self.store.last_step(job_id) or 0
+            every = int(self.store.get(job_id).config.get("log_every", 0)) or 1
+            if rows[0]["env_steps"] > last + every:  # rows went by unheard (service down, reconnecting): the file
+                self._backfill(job_id)
+                last = self.store.last_step(job_id) or 0
+            rows = [r for r in rows if r["env_steps"] > last]
+        if rows:
             self.store.append_metrics(job_id, rows)
             self.store.update(job_id, progress=progress)
 
@@ -314,8 +321,11 @@ class JobService:
         out.mkdir(parents=True, exist_ok=True)
         config = dict(rec.config)
         runtime = dict(config.get("runtime", {}))
+        # peer mode: the host roots its job's own network (actors and learner link to it and to each other), and
+        # also links to the service's router so the service sees the job. The job's traffic never passes through
+        # the service: when the API process dies the job keeps training, and its host reconnects when it returns.
         runtime.update(
-            actors=rec.actors, zenoh={**runtime.get("zenoh", {}), "mode": "client", "connect": [self.endpoint]}
+            actors=rec.actors, zenoh={**runtime.get("zenoh", {}), "mode": "peer", "connect": [self.endpoint]}
         )
         config["runtime"] = runtime
         (out / "job.json").write_text(json.dumps(config, indent=2))

@@ -100,6 +100,13 @@ def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path
         svc.wait(job, lambda v: v["progress"]["env_steps"] >= 8000, what="some progress")
         before = steps_of(svc, job)
         svc.kill()  # SIGKILL: no chance to clean up
+        # the job trains on without the API: its learner keeps writing rows to the job's metrics file
+        rows = data / "jobs" / job / "metrics.jsonl"
+        lines = len(rows.read_text().splitlines())
+        t_end = time.monotonic() + 60
+        while len(rows.read_text().splitlines()) < lines + 2:
+            assert time.monotonic() < t_end, "the job stopped training while the API was down"
+            time.sleep(0.2)
 
         again = Service(data, port=svc.port, zenoh_port=svc.zenoh_port).start()
         view = again.client.get(f"/jobs/{job}").json()
