@@ -23,6 +23,7 @@ from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.models import (
     ErrorBody,
@@ -134,12 +135,29 @@ def _handler(status: int, field: str, fix: str) -> Any:
     return handle
 
 
+# Every error any route can answer, documented with the body it really has (FastAPI would otherwise document its
+# own 422 shape, which this server never sends).
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    status: {"model": ErrorBody, "description": what}
+    for status, what in {
+        400: "The body is not valid JSON.",
+        401: "Missing or wrong bearer token (mutating routes).",
+        404: "No such job, file or route.",
+        405: "The route does not take this method.",
+        409: "The job's state does not allow this.",
+        413: "The body is too large.",
+        422: "A field is out of range or unknown; `field` names it and `fix` says what to give.",
+    }.items()
+}
+
+
 def create_app(control: JobControl, token: str) -> FastAPI:
     """The FastAPI app over ``control``; ``token`` guards every mutating route."""
     app = FastAPI(
         title="Convoy job service",
         description="Submit, scale, stop and resume multi-agent training jobs; poll or stream their metrics.",
         version="1",
+        responses=ERROR_RESPONSES,
     )
     store = control.store
 
@@ -160,6 +178,15 @@ def create_app(control: JobControl, token: str) -> FastAPI:
         bound = " and ".join(f"{words[k]} {v}" for k, v in ctx.items() if k in words)
         fix = f"give {field} {bound}" if bound else "see the schema at /docs"
         return error_response(422, field, str(err.get("msg", "invalid")), fix)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        """Starlette's own errors (no such route, wrong method, a malformed request) in the one shape."""
+        fixes = {404: ("path", "see the routes at /docs"), 405: ("method", "see the methods each route takes at /docs")}
+        field, fix = fixes.get(exc.status_code, ("request", "see the schema at /docs"))
+        headers = getattr(exc, "headers", None)
+        body = ErrorBody(field=field, problem=str(exc.detail), fix=fix).model_dump()
+        return JSONResponse(body, status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(ConfigError)
     async def _config(_: Request, exc: ConfigError) -> JSONResponse:

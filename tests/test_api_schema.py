@@ -349,3 +349,19 @@ def test_generated_case_count() -> None:
     assert len(CASES) == N_OPERATIONS, sorted(CASES)
     assert total >= MIN_CASES, dict(CASES)
     print(f"schemathesis: {total} cases over {len(CASES)} operations: {dict(sorted(CASES.items()))}")
+
+
+def test_router_errors_have_the_one_shape(service: Service) -> None:
+    assert_error(service.client.get("/no/such/route"), 404, "path")
+    assert_error(service.client.delete("/healthz", headers=AUTH), 405, "method")
+    assert_error(service.client.put("/jobs", json={}, headers=AUTH), 405, "method")
+
+
+def test_the_schema_documents_the_error_body_the_server_sends(service: Service) -> None:
+    schema = service.client.get("/openapi.json").json()
+    assert "HTTPValidationError" not in schema["components"]["schemas"]  # FastAPI's 422 shape, never sent here
+    submit_errors = schema["paths"]["/jobs"]["post"]["responses"]
+    for status in ("400", "401", "404", "409", "413", "422"):
+        assert submit_errors[status]["content"]["application/json"]["schema"] == {
+            "$ref": "#/components/schemas/ErrorBody"
+        }, status
