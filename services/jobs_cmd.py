@@ -285,6 +285,12 @@ def cmd_delete(api: Api, args: argparse.Namespace, out: Console) -> int:
     return 0
 
 
+def cmd_output(api: Api, args: argparse.Namespace, out: Console) -> int:
+    for line in api.call("GET", f"/jobs/{args.id}/output", params={"lines": args.lines})["lines"]:
+        out.print(line, highlight=False, markup=False, soft_wrap=True)
+    return 0
+
+
 def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
     params: dict[str, Any] = {}
     if args.since is not None:
@@ -392,6 +398,7 @@ COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
     "resume": cmd_resume,
     "delete": cmd_delete,
     "logs": cmd_logs,
+    "output": cmd_output,
     "watch": cmd_watch,
 }
 
@@ -537,6 +544,18 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--names", metavar="A,B", help="only these metrics (comma-separated), e.g. return,loss")
     p.add_argument("--limit", type=int, metavar="N", help="at most N rows")
     p.add_argument("--json", action="store_true", help="one JSON object per row, every metric")
+
+    p = add(
+        "output",
+        "print a job's process output (crashes, tracebacks)",
+        "Print the last lines of a job's process output (GET /jobs/ID/output): its host's log, where starts, "
+        "respawns, crashes and their tracebacks go. A failed job's error names its last exception; this shows "
+        "the whole story.",
+    )
+    p.add_argument("id", help="job id")
+    p.add_argument(
+        "--lines", type=int, default=200, metavar="N", help="how many of the last lines (default: %(default)s)"
+    )
 
     p = add(
         "watch",

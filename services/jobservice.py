@@ -17,9 +17,11 @@ while the ``max_processes`` budget allows, the others wait with a visible queue 
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -39,6 +41,7 @@ from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, loopback, open_session
 from services.jobrunner import AliveSet
 
+EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 STOP_GRACE_S = 20.0
 
@@ -389,13 +392,28 @@ class JobService:
                     return
                 time.sleep(0.1)
 
-    def _log_tail(self, job_id: str) -> str:
+    def output(self, job_id: str, lines: int) -> list[str]:
+        """The last ``lines`` lines of the job's process output (``host.log``: starts, crashes, tracebacks)."""
         path = self._out(job_id) / "host.log"
         try:
-            lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+            with path.open(errors="replace") as fh:
+                return [ln.rstrip("\n") for ln in collections.deque(fh, maxlen=lines)]
         except OSError:
-            return "no log"
-        return lines[-1][-300:] if lines else "empty log"
+            return []
+
+    def _log_tail(self, job_id: str) -> str:
+        return failure_summary(job_id, self.output(job_id, 400))
+
+
+def failure_summary(job_id: str, output: list[str]) -> str:
+    """Why a job failed, for its error field: the output's last line and, when a traceback precedes it, the
+    exception that ended the last one (the cause, where the last line is often only "crashed N times")."""
+    lines = [ln for ln in output if ln.strip()]
+    if not lines:
+        return "no output"
+    errors = [ln for ln in lines if EXCEPTION_LINE.match(ln)]
+    cause = f" (last exception: {errors[-1][-300:]})" if errors and errors[-1] != lines[-1] else ""
+    return f"{lines[-1][-300:]}{cause}; the whole output: GET /jobs/{job_id}/output or convoy jobs output {job_id}"
 
 
 def host_name(job_id: str) -> str:

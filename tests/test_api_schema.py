@@ -37,7 +37,7 @@ pytestmark = pytest.mark.timeout(240)
 
 MAX_EXAMPLES = 100
 MIN_CASES = 1000
-N_OPERATIONS = 14  # every route in /openapi.json (the dashboard and /static are not in the schema)
+N_OPERATIONS = 15  # every route in /openapi.json (the dashboard and /static are not in the schema)
 CASES: Counter[str] = Counter()
 
 
@@ -225,6 +225,7 @@ def test_wrong_token(service: Service, queued_job: str, header: str) -> None:
         ("GET", "/jobs/{id}/checkpoints", None),
         ("GET", "/jobs/{id}/checkpoints/checkpoint.pt", None),
         ("POST", "/jobs/{id}/evaluate", {"episodes": 2}),
+        ("GET", "/jobs/{id}/output", None),
     ],
 )
 def test_unknown_job(service: Service, method: str, path: str, body: Any) -> None:
@@ -365,3 +366,20 @@ def test_the_schema_documents_the_error_body_the_server_sends(service: Service) 
         assert submit_errors[status]["content"]["application/json"]["schema"] == {
             "$ref": "#/components/schemas/ErrorBody"
         }, status
+
+
+def test_a_failed_jobs_error_names_its_last_exception() -> None:
+    from services.jobservice import failure_summary
+
+    output = [
+        "[h-x] crashed learner-0 exit code 1",
+        "Traceback (most recent call last):",
+        '  File "learner/service.py", line 1, in run',
+        "torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 104.00 GiB",
+        "[h-x] failed learner-0.5 learner crashed 6 times within 60 s (last: learner-0.5 exit code 1)",
+    ]
+    text = failure_summary("x", output)
+    assert text.startswith("[h-x] failed learner-0.5 learner crashed 6 times")
+    assert "last exception: torch.OutOfMemoryError: CUDA out of memory" in text
+    assert "convoy jobs output x" in text
+    assert failure_summary("x", []) == "no output"
