@@ -116,7 +116,11 @@ class ProcessGroup:
         slot = Slot("actor", index, generation, None, prefix=f"{self.host}." if self.host else "")
         # distinct across hosts (the host name), indices and respawns: no two actors replay the same episodes
         seed = self.job.seed + 1000 * (index + 1) + 7919 * generation + (zlib.crc32(self.host.encode()) % 10**6) * 10**4
-        args = (self.job_id, self.job, index, slot.ident, self.settings, seed)
+        # no shared memory for actors: a process that received from an actor keeps the actor's segments mapped
+        # after it dies (~20 MiB each), so churn grew the learner without bound. Chunks are small and few (tens of
+        # KB, tens per second); TCP loopback carries them at a fraction of its capacity.
+        settings = self.settings.model_copy(update={"shared_memory": False})
+        args = (self.job_id, self.job, index, slot.ident, settings, seed)
         slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
         slot.proc.start()
         return slot

@@ -136,6 +136,32 @@ def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Pat
     assert ("crashed", "actor-0") in kinds and ("respawned", "actor-0.1") in kinds
 
 
+def _shm_mappings(pid: int) -> set[str]:
+    """The shared-memory files a process has mapped (Zenoh's segments live under /dev/shm)."""
+    with open(f"/proc/{pid}/maps") as fh:
+        return {line.split()[-1] for line in fh if "/dev/shm/" in line}
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs /proc (Linux)")
+def test_actor_churn_does_not_grow_the_learners_shared_memory(tmp_path: Path) -> None:
+    """Every dead actor's segments stayed mapped in the learner (~20 MiB each); churn must not grow its memory."""
+    job = job_config(algo="idqn", steps=10_000_000, seed=3, runtime={"actors": 1}, **TREADMILL)
+    runner = JobRunner("churn", job, tmp_path, progress=False)
+    with Background(runner):
+        wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
+        learner = runner.group.learner.proc.pid
+        before = _shm_mappings(learner)
+        for kill in range(4):
+            steps = runner.last_row.get("env_steps", 0)
+            os.kill(runner.group.actors[0].proc.pid, signal.SIGKILL)
+            back = lambda k=kill: 0 in runner.group.actors and runner.group.actors[0].generation == k + 1  # noqa: E731
+            wait_for(back, 30, "the respawn")
+            wait_for(lambda s=steps: runner.last_row.get("env_steps", 0) > s + 2000, 60, "the new actor's data")
+        after = _shm_mappings(learner)
+    print(f"learner's shared-memory mappings: {len(before)} before, {len(after)} after 4 actor deaths")
+    assert len(after) <= len(before), sorted(after - before)
+
+
 def test_killed_learner_resumes_from_its_checkpoint(tmp_path: Path) -> None:
     every = 4_000
     job = job_config(algo="idqn", steps=60_000, seed=2, checkpoint_every=every, runtime={"actors": 1}, **TREADMILL)
