@@ -43,7 +43,7 @@ from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
 from protocol import keys, wire
 from protocol.config import ConfigError, JobConfig, job_config
-from protocol.exitcodes import STOPPED, ParentWatch
+from protocol.exitcodes import NO_DATA, STOPPED, ParentWatch
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
@@ -201,6 +201,7 @@ class Learner:
         owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
         next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
         t_weights = t_budget = t_chunk = 0.0
+        t_start = time.perf_counter()
         last_weights_version = -1
         lags: list[float] = []
         ingested_chunks = 0
@@ -229,6 +230,15 @@ class Learner:
                     t_budget = now
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
+                    if now - max(t_chunk, t_start) > rt.data_timeout_s:
+                        self._checkpoint(algo, env_steps, episodes)
+                        print(
+                            f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {env_steps:,} of "
+                            f"{job.steps:,} env steps; are the job's actors running? (convoy jobs output ID, or "
+                            "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start",
+                            flush=True,
+                        )
+                        return NO_DATA
                     continue
                 arrays = msg.body["arrays"]
                 problem = chunk_problem(arrays, schema, self.n_actions)

@@ -404,6 +404,13 @@ class RuntimeConfig(BaseModel):
         description="Delay before respawning an actor that died within 10 s of its start; doubles with each such "
         "death of the same actor in a row (at most 30 s). An actor that ran longer is respawned at once.",
     )
+    data_timeout_s: float = Field(
+        600.0,
+        gt=0,
+        le=604_800,
+        description="The learner gives up (checkpoint, then exit with the reason) when no chunk has come for this "
+        "long: a job whose actors are all gone must not wait for ever.",
+    )
     replay_checkpoint_mb: int = Field(
         2048,
         ge=0,

@@ -449,3 +449,15 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)  # the whole session, by its leader's PID
         proc.wait(5)
+
+
+def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """No actor ever sends a chunk: the learner checkpoints and exits NO_DATA after runtime.data_timeout_s."""
+    from learner.service import Learner
+    from protocol.exitcodes import NO_DATA
+
+    job = job_config(algo="idqn", steps=10_000, runtime={"actors": 1, "data_timeout_s": 1.0}, **TREADMILL)
+    code = Learner("nodata", job, tmp_path, ZenohSettings()).run()
+    assert code == NO_DATA
+    assert (tmp_path / "checkpoint.pt").is_file()
+    assert "no chunk from any actor for 1 s" in capsys.readouterr().out
