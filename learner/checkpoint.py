@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import torch
@@ -53,17 +54,23 @@ def save_checkpoint(path: str | Path, algo: Algorithm, job: JobConfig, counters:
         "state": algo.state_dict(),
         "counters": dict(counters),
     }
+    _write_atomically(path, lambda fh: torch.save(payload, fh))
+    return path
+
+
+def _write_atomically(path: Path, write: Callable[[IO[bytes]], None]) -> None:
+    """``write`` into a temporary file beside ``path``, fsync, rename: a process killed mid-write leaves the
+    previous file intact."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            torch.save(payload, fh)
+            write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return path
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -137,16 +144,7 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
         state = buf.state_dict()
         arrays[f"{name}/next"] = np.asarray(state["next"])
         arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    _write_atomically(path, lambda fh: np.savez(fh, **arrays))
     return size
 
 

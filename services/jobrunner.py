@@ -133,7 +133,7 @@ class JobRunner:
         summary = json.loads(path.read_text())
         summary["dropped_elsewhere"] = self.drop_report(metrics)
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(summary, indent=2))
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")  # as the learner wrote it
         tmp.replace(path)
         return summary
 

@@ -104,7 +104,7 @@ class ProcessGroup:
         self.job_id, self.job, self.out_dir, self.settings, self.roles = job_id, job, out_dir, settings, roles
         self.host = host
         self.actors: dict[int, Slot] = {}
-        self.respawn_at: dict[int, tuple[float, int, int]] = {}  # index → (when, generation, short lives in a row)
+        self.respawn_at: dict[int, tuple[float, int]] = {}  # actor index → (when, generation) of a pending respawn
         self.short_lives: dict[int, int] = {}  # index → deaths within SHORT_LIFE_S of start in a row
         self.learner: Slot | None = None
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
@@ -179,12 +179,12 @@ class ProcessGroup:
         short = self.short_lives.get(index, 0) + 1 if now - slot.started < SHORT_LIFE_S else 0
         self.short_lives[index] = short
         delay = 0.0 if short == 0 else min(MAX_BACKOFF_S, self.job.runtime.restart_backoff_s * 2 ** (short - 1))
-        self.respawn_at[index] = (now + delay, slot.generation + 1, short)
+        self.respawn_at[index] = (now + delay, slot.generation + 1)
         return delay
 
     def _respawn_due(self) -> list[Event]:
         now, events = time.monotonic(), []
-        for index, (when, generation, _) in sorted(self.respawn_at.items()):
+        for index, (when, generation) in sorted(self.respawn_at.items()):
             if when <= now:
                 del self.respawn_at[index]
                 self.actors[index] = self._spawn_actor(index, generation)
