@@ -140,7 +140,6 @@ class Learner:
         probe = make_batched(job.env, 1, **job.env_params)
         spec = probe.spec
         probe.close()
-        self.n_actions = spec.n_actions
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
         counters = self._restore(algo)
@@ -241,7 +240,7 @@ class Learner:
                         return NO_DATA
                     continue
                 arrays = msg.body["arrays"]
-                problem = chunk_problem(arrays, schema, self.n_actions)
+                problem = chunk_problem(arrays, schema, algo.spec.n_actions)
                 if problem is not None:
                     self.rejected[problem] = self.rejected.get(problem, 0) + 1
                     continue
