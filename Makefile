@@ -22,7 +22,7 @@ ACTORS ?= 2
 # at this length the term cost greedy return (seeds 0-2: 28.4, 31.4, 35.0 with it; 49.8, 38.5, 50.4 without).
 # In one process: at this length the distributed run's policy lag (~290 updates behind, from its flow-control
 # slack) cost it the learning (greedy 22.5 vs 39.7 in-process, both with the signalling term).
-QUICK  ?= --hp lr=0.0003 --hp batch_size=64 --hp signalling_coef=0 --eval-every 5000
+QUICK  ?= --hp lr=0.0003 --hp batch_size=64 --eval-every 5000
 
 run: $(STAMP)
 	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 $(QUICK) --out $(OUT) --overwrite

@@ -103,23 +103,28 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     return {**summary, "algo": name, "seed": seed, "out": str(out), "wall_s": time.perf_counter() - t0}
 
 
-def held_out(run: dict, episodes: int, analyze: bool) -> dict:
-    """best.pt's greedy return on held-out seeds; for communicating algorithms also the analysis figures."""
+def held_out(run: dict, episodes: int, analyze: bool, samples: int) -> dict:
+    """best.pt's greedy return on held-out seeds; for communicating algorithms the analysis of best.pt and of the
+    last checkpoint (best.pt is picked on the greedy curve, which can favour a policy that ignores its messages)."""
     from learner.analysis import analyze as analyze_policy
     from learner.checkpoint import load_checkpoint
     from learner.evaluation import evaluate_policy
     from services.training import make_env
 
-    algo, job, _ = load_checkpoint(Path(run["out"]) / "best.pt", device="cpu")
-    env = make_env(job, min(episodes, 256))
-    try:
-        res = evaluate_policy(algo, env, episodes, seed=HELD_OUT_SEED)
-        out = {"best_held_out": res.mean, "best_held_out_ci95": res.ci95}
-        if analyze:
-            figures = analyze_policy(algo, env, job.env, steps=200, episodes=episodes, seed=HELD_OUT_SEED).figures
-            out["analysis"] = {f.key: {"value": f.value, "shuffled": f.shuffled} for f in figures}
-    finally:
-        env.close()
+    out: dict = {}
+    for name, key in (("best.pt", "analysis"), ("checkpoint.pt", "analysis_last")):
+        algo, job, _ = load_checkpoint(Path(run["out"]) / name, device="cpu")
+        env = make_env(job, min(episodes, 256))
+        try:
+            if name == "best.pt":
+                res = evaluate_policy(algo, env, episodes, seed=HELD_OUT_SEED)
+                out.update(best_held_out=res.mean, best_held_out_ci95=res.ci95)
+            if analyze:
+                steps = -(-samples // env.num_envs)
+                figures = analyze_policy(algo, env, job.env, steps, episodes, seed=HELD_OUT_SEED).figures
+                out[key] = {f.key: {"value": f.value, "shuffled": f.shuffled} for f in figures}
+        finally:
+            env.close()
     return out
 
 
@@ -151,6 +156,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="treadmill rule for every run, repeatable")
     p.add_argument("--jobs", type=int, default=2, help="runs side by side (default %(default)s)")
     p.add_argument("--analyze", nargs="*", default=["ma-mesn", "ma-bon"], help="algorithms to analyse")
+    p.add_argument(
+        "--analysis-samples",
+        type=int,
+        default=204_800,
+        help="agent-steps recorded for the MI figures, as `convoy analyze --samples` (default %(default)s)",
+    )
     p.add_argument("--out", default="runs/bench/treadmill", help="run directories (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="also write every figure as JSON")
     p.add_argument(
@@ -165,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     with ThreadPoolExecutor(args.jobs) as pool:
         runs = list(pool.map(lambda job: train(*job, args), grid))
     for run in runs:
-        run.update(held_out(run, args.episodes, run["algo"] in args.analyze))
+        run.update(held_out(run, args.episodes, run["algo"] in args.analyze, args.analysis_samples))
         console.print(
             f"{run['algo']} seed {run['seed']}: final {run['eval_return']:.1f}, best.pt held out "
             f"{run['best_held_out']:.1f} ({run['wall_s'] / 60:.1f} min)"
@@ -194,19 +205,28 @@ def main(argv: list[str] | None = None) -> int:
         table.add_row(f"reference: {name}", f"{mean:.1f} ± {ci:.1f} (episodes)", "", "")
     console.print(table)
     for algo in args.analyze:
-        mine = [r for r in runs if r["algo"] == algo and "analysis" in r]
-        if not mine:
-            continue
-        fig = {k: ci_over_seeds([r["analysis"][k]["value"] for r in mine]) for k in mine[0]["analysis"]}
-        shuf = ci_over_seeds([r["analysis"]["instantaneous_coordination"]["shuffled"] or 0.0 for r in mine])
-        summary[algo]["analysis"] = {**fig, "instantaneous_coordination_shuffled": shuf}
-        console.print(
-            f"{algo} best.pt analysis ({len(mine)} seeds, 95 % CI over seeds): message entropy "
-            f"{fig['message_entropy'][0]:.2f} ± {fig['message_entropy'][1]:.2f} nats; IC "
-            f"{fig['instantaneous_coordination'][0]:.4f} ± {fig['instantaneous_coordination'][1]:.4f} vs shuffled "
-            f"{shuf[0]:.4f} ± {shuf[1]:.4f}; return with true messages {fig['return_sent'][0]:.1f} ± "
-            f"{fig['return_sent'][1]:.1f} vs white noise {fig['return_noise'][0]:.1f} ± {fig['return_noise'][1]:.1f}"
-        )
+        for key, which in (("analysis", "best.pt"), ("analysis_last", "last checkpoint")):
+            mine = [r for r in runs if r["algo"] == algo and key in r]
+            if not mine:
+                continue
+            fig = {k: ci_over_seeds([r[key][k]["value"] for r in mine]) for k in mine[0][key]}
+            shuf = ci_over_seeds([r[key]["instantaneous_coordination"]["shuffled"] or 0.0 for r in mine])
+            summary[algo][key] = {**fig, "instantaneous_coordination_shuffled": shuf}
+            console.print(
+                f"{algo} {which} analysis ({len(mine)} seeds, 95 % CI over seeds): message entropy "
+                f"{fig['message_entropy'][0]:.2f} ± {fig['message_entropy'][1]:.2f} nats; IC "
+                f"{fig['instantaneous_coordination'][0]:.4f} ± {fig['instantaneous_coordination'][1]:.4f} vs "
+                f"shuffled {shuf[0]:.4f} ± {shuf[1]:.4f}; return with true messages {fig['return_sent'][0]:.1f} ± "
+                f"{fig['return_sent'][1]:.1f} vs white noise {fig['return_noise'][0]:.1f} ± "
+                f"{fig['return_noise'][1]:.1f}"
+            )
+            for r in mine:
+                a, ic = r[key], r[key]["instantaneous_coordination"]
+                console.print(
+                    f"  seed {r['seed']}: entropy {a['message_entropy']['value']:.2f}, IC "
+                    f"{ic['value']:.4f} vs {ic['shuffled']:.4f}"
+                    f", return {a['return_sent']['value']:.1f} vs white noise {a['return_noise']['value']:.1f}"
+                )
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"runs": runs, "summary": summary}, indent=2, default=float) + "\n")

@@ -96,8 +96,8 @@ def test_every_algorithm_beats_random_on_a_small_treadmill(algo: str) -> None:
     )
 
 
-def _message_entropy_after_training(signalling_coef: float) -> float:
-    """MA-MeSN's greedy message entropy (nats, per agent) after a short run on the small treadmill."""
+def _message_entropy_after_training(gumbel_noise: float | None) -> float:
+    """MA-MeSN's greedy message entropy (nats, per agent) after 40 k steps on the small treadmill."""
     from learner.agent import make_agent
     from learner.analysis import record
     from learner.comm_metrics import message_entropy
@@ -108,8 +108,8 @@ def _message_entropy_after_training(signalling_coef: float) -> float:
         algo="ma-mesn",
         env="treadmill",
         env_params=SMALL_TREADMILL,
-        algo_params={**TREADMILL_HP, "replay_ratio": 4.0, "signalling_coef": signalling_coef},
-        steps=10_000,
+        algo_params={**TREADMILL_HP, "replay_ratio": 4.0, "gumbel_noise": gumbel_noise},
+        steps=40_000,
         num_envs=16,
         seed=0,
         eval_episodes=0,
@@ -121,10 +121,13 @@ def _message_entropy_after_training(signalling_coef: float) -> float:
     return message_entropy(rec.messages.reshape(-1, *rec.messages.shape[2:])).value
 
 
-def test_positive_signalling_keeps_the_treadmill_channel_alive() -> None:
-    """With the treadmill's default signalling term the messages stay varied (≥ 1 nat); without it they collapse
-    towards one codeword, as the paper's MA-MeSN did here (0.000–0.003 nats after long runs)."""
-    default = resolve_algo("ma-mesn", "treadmill").signalling_coef
-    alive, plain = _message_entropy_after_training(default), _message_entropy_after_training(0.0)
-    assert alive >= 1.0, f"message entropy {alive:.3f} nats with signalling_coef={default}"
-    assert alive > plain + 0.3, f"the signalling term adds too little: {alive:.3f} vs {plain:.3f} nats without it"
+def test_the_treadmill_default_channel_reopens_where_gumbel_messages_stay_shut() -> None:
+    """Early on, messages that say nothing useful are noise to the listeners and both channels fall to one codeword
+    (0.0 nats at 20 k steps, seeds 0 and 1). Deterministic straight-through bits (the treadmill default) reopen
+    once there is something worth saying (2.9 / 2.0 nats at 40 k); Gumbel-noise bits have saturated their logits
+    to beat the noise, their gradient is ~e^−|d|, and they stay shut (0.0 / 0.0), as the paper's MA-MeSN did
+    here (0.000–0.003 nats after long runs)."""
+    default = resolve_algo("ma-mesn", "treadmill").gumbel_noise
+    alive, gumbel = _message_entropy_after_training(None), _message_entropy_after_training(1.0)
+    assert alive >= 1.0, f"message entropy {alive:.3f} nats with the treadmill default gumbel_noise={default}"
+    assert alive > gumbel + 1.0, f"deterministic {alive:.3f} nats vs Gumbel noise {gumbel:.3f} nats"
