@@ -17,11 +17,11 @@ message can tell, since it includes cars nobody observes), ``idqn+team-observati
 agent's observation with its teammates' observations appended (what lossless messages could carry: the bound on
 what MA-MeSN's messages can add to independent DQN), ``idqn+team-sightings`` is told, in its own frame and with
 an adversary flag, every car some agent observes (perfectly decoded messages), ``idqn+hierarchical`` is
-hierarchical DQN (``--hierarchical``), ``ma-mesn+deterministic`` sends deterministic straight-through bits (Gumbel
-noise 0) without the positive-signalling term. ``--set NAME=VALUE`` changes a treadmill rule for every run and the
-references. For MA-MeSN (and any ``--analyze`` algorithm) the best checkpoints also get ``convoy analyze``'s
-figures: message entropy, instantaneous coordination beside its shuffled baseline, and the return with white noise
-in place of the messages.
+hierarchical DQN (``--hierarchical``), ``ma-mesn+gumbel`` sends the paper's sampled Gumbel-softmax bits
+(``gumbel_noise=1``) instead of the treadmill's deterministic ones. ``--set NAME=VALUE`` changes a treadmill rule for
+every run and the references. For MA-MeSN and MA-BoN (any ``--analyze`` algorithm) the best and the last
+checkpoints also get ``convoy analyze``'s figures: message entropy, instantaneous coordination beside its shuffled
+baseline, and the return with white noise in place of the messages.
 
 Run: ``python benchmarks/treadmill_learning.py --seeds 0 1 2 3 4 --steps 400000`` (see docs/benchmarks.md for
 the wall time per run); ``--json`` saves every figure.
@@ -64,8 +64,8 @@ VARIANTS = {
     "team-observations": ["--set", "team_observations=true"],
     "team-sightings": ["--set", "team_sightings=true"],
     "hierarchical": ["--hierarchical"],
-    # MA-MeSN's messages as deterministic straight-through bits (no Gumbel noise) without the signalling term
-    "deterministic": ["--hp", "gumbel_noise=0", "--hp", "signalling_coef=0"],
+    # the paper's sampled Gumbel-softmax messages in place of the treadmill's deterministic straight-through bits
+    "gumbel": ["--hp", "gumbel_noise=1"],
 }
 
 
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             "idqn+full-information",
         ],
         help="algorithms, each optionally ALGO+VARIANT (full-information, team-observations, team-sightings, "
-        "hierarchical, deterministic) (default %(default)s)",
+        "hierarchical, gumbel) (default %(default)s)",
     )
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="(default %(default)s)")
     p.add_argument("--steps", type=int, default=400_000, help="env steps per run (default %(default)s)")
