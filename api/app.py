@@ -59,7 +59,7 @@ class JobControl(Protocol):
     def checkpoints(self, job_id: str) -> list[dict[str, Any]]: ...
     def checkpoint_file(self, job_id: str, name: str) -> Path: ...
     def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]: ...
-    def output(self, job_id: str, lines: int) -> list[str]: ...
+    def logs(self, job_id: str, lines: int) -> list[str]: ...
 
 
 class ApiError(Exception):
@@ -317,14 +317,14 @@ def create_app(control: JobControl, token: str) -> FastAPI:
 
         return StreamingResponse(stream(), media_type="text/event-stream")
 
-    @app.get("/jobs/{job_id}/output", tags=["jobs"])
-    def output(
+    @app.get("/jobs/{job_id}/logs", tags=["jobs"])
+    def logs(
         job_id: str = PathParam(..., pattern=JOB_ID),
         lines: int = Query(200, ge=1, le=10_000, description="How many of the last lines."),
     ) -> dict[str, Any]:
-        """The job's process output (its host's log): starts, respawns, crashes and their tracebacks."""
+        """The job's process logs (its host's log): starts, respawns, crashes and their tracebacks."""
         store.get(job_id)
-        return {"job": job_id, "lines": control.output(job_id, lines)}
+        return {"job": job_id, "lines": control.logs(job_id, lines)}
 
     @app.get("/jobs/{job_id}/checkpoints", tags=["checkpoints"])
     def checkpoints(job_id: str = PathParam(..., pattern=JOB_ID)) -> dict[str, Any]:

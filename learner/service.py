@@ -233,7 +233,7 @@ class Learner:
                         self._checkpoint(algo, env_steps, episodes)
                         print(
                             f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {env_steps:,} of "
-                            f"{job.steps:,} env steps; are the job's actors running? (convoy jobs output ID, or "
+                            f"{job.steps:,} env steps; are the job's actors running? (convoy jobs logs ID, or "
                             "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start",
                             flush=True,
                         )

@@ -285,13 +285,13 @@ def cmd_delete(api: Api, args: argparse.Namespace, out: Console) -> int:
     return 0
 
 
-def cmd_output(api: Api, args: argparse.Namespace, out: Console) -> int:
-    for line in api.call("GET", f"/jobs/{args.id}/output", params={"lines": args.lines})["lines"]:
+def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
+    for line in api.call("GET", f"/jobs/{args.id}/logs", params={"lines": args.lines})["lines"]:
         out.print(line, highlight=False, markup=False, soft_wrap=True)
     return 0
 
 
-def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
+def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
     params: dict[str, Any] = {}
     if args.since is not None:
         params["since"] = args.since
@@ -324,7 +324,7 @@ def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
     out.print(table)
     more = "" if args.names else " (--names a,b for other columns, --json for all)"
     out.print(
-        f"{len(rows)} rows; newer ones: convoy jobs logs {args.id} --since {page['last_step']}{more}",
+        f"{len(rows)} rows; newer ones: convoy jobs metrics {args.id} --since {page['last_step']}{more}",
         highlight=False,
         markup=False,
         soft_wrap=True,
@@ -397,8 +397,8 @@ COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
     "stop": cmd_stop,
     "resume": cmd_resume,
     "delete": cmd_delete,
+    "metrics": cmd_metrics,
     "logs": cmd_logs,
-    "output": cmd_output,
     "watch": cmd_watch,
 }
 
@@ -454,7 +454,7 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         "  convoy jobs submit --algo ma-mesn --steps 200000 --actors 2 --set n_agents=3 --hp lr=0.001\n"
         "  convoy jobs list --state running\n"
         "  convoy jobs watch ma-mesn-1a2b3c\n"
-        "  convoy jobs logs ma-mesn-1a2b3c --names return,loss --since 10000\n"
+        "  convoy jobs metrics ma-mesn-1a2b3c --names return,loss --since 10000\n"
         "  convoy jobs scale ma-mesn-1a2b3c 4\n"
         "  convoy jobs resume ma-mesn-1a2b3c --steps 400000",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -534,7 +534,7 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("id", help="job id")
 
     p = add(
-        "logs",
+        "metrics",
         "print a job's metric rows",
         "Print the metric rows of a job (GET /jobs/ID/metrics) as a table, one row per --log-every env steps. "
         f"Columns: {', '.join(LOG_COLUMNS)}, or those named by --names.",
@@ -546,9 +546,9 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="one JSON object per row, every metric")
 
     p = add(
-        "output",
-        "print a job's process output (crashes, tracebacks)",
-        "Print the last lines of a job's process output (GET /jobs/ID/output): its host's log, where starts, "
+        "logs",
+        "print a job's process logs (crashes, tracebacks)",
+        "Print the last lines of a job's process logs (GET /jobs/ID/logs): its host's log, where starts, "
         "respawns, crashes and their tracebacks go. A failed job's error names its last exception; this shows "
         "the whole story.",
     )

@@ -412,7 +412,7 @@ class JobService:
                     return
                 time.sleep(0.1)
 
-    def output(self, job_id: str, lines: int) -> list[str]:
+    def logs(self, job_id: str, lines: int) -> list[str]:
         """The last ``lines`` lines of the job's process output (``host.log``: starts, crashes, tracebacks)."""
         path = self._out(job_id) / "host.log"
         try:
@@ -422,7 +422,7 @@ class JobService:
             return []
 
     def _log_tail(self, job_id: str) -> str:
-        return failure_summary(job_id, self.output(job_id, 400))
+        return failure_summary(job_id, self.logs(job_id, 400))
 
 
 def failure_summary(job_id: str, output: list[str]) -> str:
@@ -433,7 +433,7 @@ def failure_summary(job_id: str, output: list[str]) -> str:
         return "no output"
     errors = [ln for ln in lines if EXCEPTION_LINE.match(ln)]
     cause = f" (last exception: {errors[-1][-300:]})" if errors and errors[-1] != lines[-1] else ""
-    return f"{lines[-1][-300:]}{cause}; the whole output: GET /jobs/{job_id}/output or convoy jobs output {job_id}"
+    return f"{lines[-1][-300:]}{cause}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
 
 
 def host_name(job_id: str) -> str:

@@ -70,7 +70,7 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
         assert ev.status_code == 200 and ev.json()["episodes"] == 8 and ev.json()["checkpoint_env_steps"] > at_stop
 
         assert svc.client.get("/jobs", params={"state": "completed"}).json()["jobs"][0]["id"] == job
-        output = svc.client.get(f"/jobs/{job}/output", params={"lines": 50}).json()["lines"]
+        output = svc.client.get(f"/jobs/{job}/logs", params={"lines": 50}).json()["lines"]
         assert any("exited learner" in line for line in output), output  # the host's log, its last lines
         assert 'convoy_jobs{state="completed"} 1.0' in svc.client.get("/metrics").text
     finally:

@@ -225,7 +225,7 @@ def test_wrong_token(service: Service, queued_job: str, header: str) -> None:
         ("GET", "/jobs/{id}/checkpoints", None),
         ("GET", "/jobs/{id}/checkpoints/checkpoint.pt", None),
         ("POST", "/jobs/{id}/evaluate", {"episodes": 2}),
-        ("GET", "/jobs/{id}/output", None),
+        ("GET", "/jobs/{id}/logs", None),
     ],
 )
 def test_unknown_job(service: Service, method: str, path: str, body: Any) -> None:
@@ -381,5 +381,5 @@ def test_a_failed_jobs_error_names_its_last_exception() -> None:
     text = failure_summary("x", output)
     assert text.startswith("[h-x] failed learner-0.5 learner crashed 6 times")
     assert "last exception: torch.OutOfMemoryError: CUDA out of memory" in text
-    assert "convoy jobs output x" in text
+    assert "convoy jobs logs x" in text
     assert failure_summary("x", []) == "no output"

@@ -21,7 +21,7 @@ SMALL = [
     "--set", "width=12", "--set", "max_steps=50", "--hp", "hidden=32", "--hp", "learning_starts=200",
     "--eval-episodes", "4", "--log-every", "1000",
 ]  # fmt: skip
-SUBCOMMANDS = ("submit", "list", "status", "scale", "stop", "resume", "delete", "logs", "watch")
+SUBCOMMANDS = ("submit", "list", "status", "scale", "stop", "resume", "delete", "metrics", "logs", "watch")
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_help_of_every_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
         text = capsys.readouterr().out
         assert "--url" in text and "--token" in text, argv
     with pytest.raises(SystemExit):
-        main(["jobs", "logs", "--help"])
+        main(["jobs", "metrics", "--help"])
     assert "--since" in capsys.readouterr().out
 
 
@@ -118,11 +118,12 @@ def test_watch_until_completed(capsys: pytest.CaptureFixture[str], service: Serv
 
 
 def test_logs(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
-    code, out, err = jobs(capsys, service.url, "logs", job_id)
+    code, out, err = jobs(capsys, service.url, "metrics", job_id)
     assert code == 0, err
     assert "env_steps" in out and "return" in out and "policy_lag" in out
     assert len(re.findall(r"│\s+\d+\s+│", out)) >= 10, out  # one table row per 1000 env steps
-    code, out, err = jobs(capsys, service.url, "logs", job_id, "--since", "10000", "--names", "return,loss", "--json")
+    argv = ("metrics", job_id, "--since", "10000", "--names", "return,loss", "--json")
+    code, out, err = jobs(capsys, service.url, *argv)
     assert code == 0, err
     rows = [json.loads(line) for line in out.splitlines()]
     assert rows and all(r["env_steps"] > 10_000 and set(r) <= {"env_steps", "return", "loss"} for r in rows)
@@ -155,7 +156,8 @@ def test_resume_and_watch_again(capsys: pytest.CaptureFixture[str], service: Ser
 
 
 def test_unknown_job(capsys: pytest.CaptureFixture[str], service: Service) -> None:
-    for argv in (["status", "no-such-job"], ["watch", "no-such-job"], ["logs", "no-such-job"], ["stop", "nope"]):
+    missing = (["status", "no-such-job"], ["watch", "no-such-job"], ["metrics", "no-such-job"], ["logs", "no-such-job"])
+    for argv in (*missing, ["stop", "nope"]):
         code, out, err = jobs(capsys, service.url, *argv)
         assert code == 2 and not out, argv
         one_line_error(err, "error: id:", "not found", "—")
