@@ -24,6 +24,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from api.models import (
     ErrorBody,
@@ -49,6 +50,7 @@ class JobControl(Protocol):
     """What the app needs from whoever runs jobs (``services.jobservice.JobService``)."""
 
     store: JobStore
+    max_processes: int  # a job takes actors + 2: the schema's bound on actors follows it
 
     def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord: ...
     def scale(self, job_id: str, actors: int) -> JobRecord: ...
@@ -181,13 +183,23 @@ def create_app(control: JobControl, token: str) -> FastAPI:
         return error_response(422, field, str(err.get("msg", "invalid")), fix)
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         """Starlette's own errors (no such route, wrong method, a malformed request) in the one shape."""
         fixes = {404: ("path", "see the routes at /docs"), 405: ("method", "see the methods each route takes at /docs")}
         field, fix = fixes.get(exc.status_code, ("request", "see the schema at /docs"))
         headers = getattr(exc, "headers", None)
+        if exc.status_code == 405:  # Starlette names the first matching route's methods; a path may have several
+            headers = {**(headers or {}), "Allow": ", ".join(_allowed_methods(request))}
         body = ErrorBody(field=field, problem=str(exc.detail), fix=fix).model_dump()
         return JSONResponse(body, status_code=exc.status_code, headers=headers)
+
+    def _allowed_methods(request: Request) -> list[str]:
+        methods: set[str] = set()
+        for route in app.router.routes:
+            match, _ = route.matches({**request.scope, "method": "GET"})
+            if match != Match.NONE:
+                methods |= set(getattr(route, "methods", None) or ())
+        return sorted(methods - {"HEAD"})
 
     @app.exception_handler(ConfigError)
     async def _config(_: Request, exc: ConfigError) -> JSONResponse:
@@ -362,4 +374,24 @@ def create_app(control: JobControl, token: str) -> FastAPI:
     if STATIC.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.state.control = control
+    _bound_actors_in_schema(app, control.max_processes - 2)
     return app
+
+
+def _bound_actors_in_schema(app: FastAPI, limit: int) -> None:
+    """Publish this server's actor limit (``--max-processes`` − 2) as the schema's maximum, so that every body the
+    schema calls valid is one the server takes; larger values still get the 422 that names the flag."""
+    default = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = default()
+            models = schema.get("components", {}).get("schemas", {})
+            for name in ("JobSubmit", "JobPatch", "JobResume"):  # requests only: a view reports what a job has
+                field = models.get(name, {}).get("properties", {}).get("actors")
+                for variant in [field, *(field or {}).get("anyOf", [])] if field else []:
+                    if variant.get("type") == "integer":
+                        variant["maximum"] = min(variant.get("maximum", limit), limit)
+        return app.openapi_schema or default()
+
+    app.openapi = openapi  # type: ignore[method-assign]

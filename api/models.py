@@ -2,25 +2,42 @@
 
 A submitted job is validated by the same ``protocol.config.job_config`` as ``convoy train`` and the processes, so
 a bad value gets the same message everywhere: the field, what was given and the allowed range. Bodies forbid
-unknown fields (a typo is an error, not a silently ignored setting) and bound every count, so one request cannot
+unknown fields (a typo is an error, not a silently ignored setting), take a count only as a JSON number (``true`` or
+``"5"`` is not a count; ``5.0`` is 5, as JSON Schema says) and bound every count, so one request cannot
 ask for a thousand processes.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, get_args
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from protocol.config import ConfigError, JobConfig, MessageSource, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 
 
-class JobSubmit(BaseModel):
-    """``POST /jobs``: what to train, on what, for how long, with how many actor processes."""
+class JsonBody(BaseModel):
+    """A request body: unknown fields refused, and a count only as a JSON number, a switch only as true/false
+    (pydantic would take true for 1 and "5" for 5; the schema says integer, and ``5.0`` is one)."""
 
     model_config = ConfigDict(extra="forbid")
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _json_types(cls, value: Any, info: ValidationInfo) -> Any:
+        annotation = cls.model_fields[str(info.field_name)].annotation
+        kinds = set(get_args(annotation)) or {annotation}
+        if bool in kinds and not isinstance(value, bool):
+            raise ValueError("must be true or false")
+        if int in kinds and isinstance(value, bool | str):
+            raise ValueError("must be a JSON number, not a boolean or a string")
+        return value
+
+
+class JobSubmit(JsonBody):
+    """``POST /jobs``: what to train, on what, for how long, with how many actor processes."""
 
     algo: str = Field("ma-mesn", max_length=32, description="Algorithm (see `convoy train --help`).")
     env: str = Field("treadmill", max_length=32, description="Environment (see `convoy env list`).")
@@ -64,28 +81,22 @@ class JobSubmit(BaseModel):
         return job_config(**values, runtime={**self.runtime, "actors": self.actors})
 
 
-class JobPatch(BaseModel):
+class JobPatch(JsonBody):
     """``PATCH /jobs/{id}``: scale the actor count of a job, live when it runs."""
-
-    model_config = ConfigDict(extra="forbid")
 
     actors: int = Field(..., ge=1, le=MAX_ACTORS, description="Actor processes wanted.")
 
 
-class JobResume(BaseModel):
+class JobResume(JsonBody):
     """``POST /jobs/{id}/resume``: continue from the last checkpoint, optionally with another actor count or a
     larger step budget."""
-
-    model_config = ConfigDict(extra="forbid")
 
     actors: int | None = Field(None, ge=1, le=MAX_ACTORS, description="Actor processes (default: as before).")
     steps: int | None = Field(None, ge=1, le=1_000_000_000, description="New total env-step budget.")
 
 
-class EvalRequest(BaseModel):
+class EvalRequest(JsonBody):
     """``POST /jobs/{id}/evaluate``: greedy episodes of the job's last checkpoint (``convoy eval``)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     episodes: int = Field(100, ge=1, le=5_000, description="Greedy episodes.")
     messages: MessageSource = Field("sent", description="What the agents hear.")

@@ -11,7 +11,8 @@ Case count: schemathesis runs each of the ``N_OPERATIONS`` operations through it
 phases; the fuzzing phase alone generates up to ``MAX_EXAMPLES`` cases per operation. Every case the test function
 sees is counted per operation, and the last test asserts that the sum is at least ``MIN_CASES`` (1000) and that
 every operation was exercised. Every case carries the bearer token, so mutating routes are tested past the auth
-check; only ``not_a_server_error`` is checked.
+check. Every schemathesis check runs (no 5xx, status codes, headers and bodies as documented, invalid data
+rejected, valid data accepted) except valid-data acceptance on ``POST /jobs`` (see the test).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import pytest
 import requests
 import schemathesis
 from hypothesis import HealthCheck, settings
-from schemathesis.checks import not_a_server_error
+from schemathesis.checks import positive_data_acceptance
 
 from tests.service_fixture import AUTH, SMALL_JOB, Service
 
@@ -129,7 +130,10 @@ def test_generated_requests_never_give_a_server_error(
         case.query.setdefault("timeout", 1)  # a stream: never leave it open for its default 300 s
     CASES[case.operation.label] += 1
     response = case.call(base_url=service.url, session=http, headers=AUTH, timeout=20)
-    case.validate_response(response, checks=[not_a_server_error])
+    # Every check but one: POST /jobs refuses with a 422 naming the field some bodies its schema allows — limits
+    # across fields (steps ≥ num_envs, network size) and the free-form env/algo params, which no schema states.
+    post_jobs = case.operation.method.upper() == "POST" and case.operation.path == "/jobs"
+    case.validate_response(response, excluded_checks=[positive_data_acceptance] if post_jobs else None)
 
 
 # --- hand-written cases -------------------------------------------------------------------------------------------
