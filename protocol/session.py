@@ -57,9 +57,11 @@ class ZenohSettings(BaseModel):
     )
 
     def secured(self, directory: str | Path, user: str) -> ZenohSettings:
-        """Peer mode with no credential of the user's: a fresh password for ``user`` in a 0600 dictionary under
-        ``directory``, used to authenticate and to admit, so only holders of it join this job's network."""
-        if self.mode != "peer" or self.user or self.credentials_file:
+        """A process that roots its own network (peer mode, connecting to no one) with no credential of the user's:
+        a fresh password for ``user`` in a 0600 dictionary under ``directory``, used to authenticate and to admit,
+        so only holders of it join this job's network. One that joins another's network keeps the user's
+        credentials (``--user``, ``CONVOY_ZENOH_PASSWORD``, TLS), as the other side expects them."""
+        if self.mode != "peer" or self.connect or self.user or self.credentials_file:
             return self
         path = Path(directory) / "zenoh-credentials"
         return self.model_copy(
