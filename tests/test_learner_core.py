@@ -230,7 +230,8 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
     assert resolve_algo("ma-mesn", "predator-prey").message_bits == 8
     assert resolve_algo("ma-mesn", "speaker-listener").message_bits == 2
     assert resolve_algo("ma-mesn", "speaker-listener").gumbel_noise == 0.0  # appendix B.2: a plain softmax
-    assert resolve_algo("ma-mesn", "treadmill").gumbel_noise == 1.0
+    assert resolve_algo("ma-mesn", "treadmill").gumbel_noise == 0.0  # deterministic bits (docs/algorithms.md)
+    assert resolve_algo("ma-mesn", "predator-prey").gumbel_noise == 1.0
     assert resolve_algo("ims", "treadmill").comm_iterations == 5
     assert resolve_algo("ims", "predator-prey").comm_iterations == 3
     assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
