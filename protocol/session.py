@@ -9,11 +9,6 @@ Many hosts: **client** mode towards one or more routers (``connect``), with a co
 does not matter (``-1`` waits for ever); TLS and user/password from the same settings (and so from the job file,
 the CLI or the environment). A Python session in **router** mode is a router (tests and ``convoy router``).
 
-A job's network is closed to processes without its credential: on one machine (peer mode, no user set) the
-process that roots a job writes a fresh user/password to a private usrpwd dictionary (``secured``) and every
-process of the job — and the job service's session for it — opens with that user, password and dictionary, so
-Zenoh refuses the transport of any peer that cannot present them (it can neither publish nor subscribe).
-
 Pitfalls handled here (``docs/architecture.md``): shared memory can be switched off (containers have a small
 ``/dev/shm``); the lease is short (2 s) so that a frozen process is noticed; Zenoh objects never cross a process
 boundary — children get these settings (plain data) and open their own session.
@@ -23,9 +18,7 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import socket
-from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr
@@ -50,23 +43,6 @@ class ZenohSettings(BaseModel):
     password: SecretStr | None = Field(
         None, description="password for usrpwd authentication (never written to job files or checkpoints)."
     )
-    credentials_file: str | None = Field(
-        None,
-        description="usrpwd dictionary (one user:password per line): only peers that authenticate with one of its "
-        "entries may connect to this process; None = any peer that reaches the port.",
-    )
-
-    def secured(self, directory: str | Path, user: str) -> ZenohSettings:
-        """A process that roots its own network (peer mode, connecting to no one) with no credential of the user's:
-        a fresh password for ``user`` in a 0600 dictionary under ``directory``, used to authenticate and to admit,
-        so only holders of it join this job's network. One that joins another's network keeps the user's
-        credentials (``--user``, ``CONVOY_ZENOH_PASSWORD``, TLS), as the other side expects them."""
-        if self.mode != "peer" or self.connect or self.user or self.credentials_file:
-            return self
-        path = Path(directory) / "zenoh-credentials"
-        return self.model_copy(
-            update={"user": user, "password": write_credentials(path, user), "credentials_file": str(path)}
-        )
 
     def rooted(self) -> ZenohSettings:
         """Settings for the process that starts others on this machine: in peer mode it must listen (on a free
@@ -87,8 +63,7 @@ class ZenohSettings(BaseModel):
     @classmethod
     def from_env(cls, base: ZenohSettings | None = None) -> ZenohSettings:
         """``CONVOY_ZENOH_MODE``, ``…_CONNECT`` / ``…_LISTEN`` (comma-separated), ``…_USER``, ``…_PASSWORD``,
-        ``…_CREDENTIALS_FILE``, ``…_SHM`` (0/1) and ``…_TLS_ROOT_CA`` override ``base`` — how compose hands
-        containers their endpoints."""
+        ``…_SHM`` (0/1) and ``…_TLS_ROOT_CA`` override ``base`` — how compose hands containers their endpoints."""
         values: dict[str, Any] = (base or cls()).model_dump()
         env = os.environ
         if "CONVOY_ZENOH_MODE" in env:
@@ -97,7 +72,7 @@ class ZenohSettings(BaseModel):
             raw = env.get(f"CONVOY_ZENOH_{name.upper()}")
             if raw is not None:
                 values[name] = tuple(e.strip() for e in raw.split(",") if e.strip())
-        for name in ("user", "password", "credentials_file", "tls_root_ca", "tls_cert", "tls_key"):
+        for name in ("user", "password", "tls_root_ca", "tls_cert", "tls_key"):
             raw = env.get(f"CONVOY_ZENOH_{name.upper()}")
             if raw:
                 values[name] = raw
@@ -137,8 +112,6 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     if settings.user and settings.password:
         put("transport/auth/usrpwd/user", settings.user)
         put("transport/auth/usrpwd/password", settings.password.get_secret_value())
-    if settings.credentials_file:
-        put("transport/auth/usrpwd/dictionary_file", settings.credentials_file)
     return conf
 
 
@@ -147,23 +120,6 @@ def open_session(settings: ZenohSettings) -> Any:
     import zenoh
 
     return zenoh.open(zenoh_config(settings))
-
-
-def write_credentials(path: str | Path, user: str) -> SecretStr:
-    """A fresh random password for ``user``, written as a one-entry usrpwd dictionary readable by its owner only."""
-    if not user or ":" in user or "\n" in user:
-        raise ValueError(f"usrpwd user must be non-empty without ':' or newlines, got {user!r}")
-    password = secrets.token_urlsafe(24)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(f"{user}:{password}\n")
-    return SecretStr(password)
-
-
-def read_credentials(path: str | Path) -> tuple[str, SecretStr]:
-    """(user, password) of a dictionary written by ``write_credentials``."""
-    user, _, password = Path(path).read_text().splitlines()[0].partition(":")
-    return user, SecretStr(password)
 
 
 def free_port(host: str = "127.0.0.1") -> int:
