@@ -388,10 +388,10 @@ def _bound_actors_in_schema(app: FastAPI, limit: int) -> None:
             schema = default()
             models = schema.get("components", {}).get("schemas", {})
             for name in ("JobSubmit", "JobPatch", "JobResume"):  # requests only: a view reports what a job has
-                field = models.get(name, {}).get("properties", {}).get("actors")
-                for variant in [field, *(field or {}).get("anyOf", [])] if field else []:
+                field = models[name]["properties"]["actors"]
+                for variant in (field, *field.get("anyOf", ())):  # JobResume's is integer | null
                     if variant.get("type") == "integer":
                         variant["maximum"] = min(variant.get("maximum", limit), limit)
-        return app.openapi_schema or default()
+        return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

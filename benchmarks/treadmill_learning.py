@@ -112,7 +112,8 @@ def held_out(run: dict, episodes: int, analyze: bool, samples: int) -> dict:
     from services.training import make_env
 
     out: dict = {}
-    for name, key in (("best.pt", "analysis"), ("checkpoint.pt", "analysis_last")):
+    checkpoints = (("best.pt", "analysis"), ("checkpoint.pt", "analysis_last"))
+    for name, key in checkpoints if analyze else checkpoints[:1]:  # the last checkpoint only to analyse it
         algo, job, _ = load_checkpoint(Path(run["out"]) / name, device="cpu")
         env = make_env(job, min(episodes, 256))
         try:
