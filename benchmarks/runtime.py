@@ -323,9 +323,11 @@ def _ingest_subscriber(
 
 def ingest_once(mode: str, payloads: list[bytes], n: int, window: int, schema: dict[str, Any], tag: str) -> dict:
     """One publisher → one subscriber transfer of ``n`` chunks; seconds from the first put to the last ingest."""
-    from protocol.session import ZenohSettings, free_port, loopback
+    from protocol.session import ZenohSettings, open_session
 
-    pub_settings = ZenohSettings(listen=(loopback(free_port()),))
+    root = ZenohSettings().rooted()  # this process is the router, as a job's runner is; both ends are its clients
+    router = open_session(root)
+    pub_settings = root.child()
     progress, ready, done, out_q = CTX.RawValue("q", 0), CTX.Event(), CTX.Event(), CTX.Queue()
     key, warm_key = f"bench/{tag}/data", f"bench/{tag}/warm"
     capacity = 100_000  # AlgoConfig.replay_capacity's default
@@ -336,7 +338,7 @@ def ingest_once(mode: str, payloads: list[bytes], n: int, window: int, schema: d
     )
     sub = CTX.Process(
         target=_ingest_subscriber,
-        args=(pub_settings.child(), key, warm_key, mode, n, window, schema, capacity, progress, ready, done, out_q),
+        args=(pub_settings, key, warm_key, mode, n, window, schema, capacity, progress, ready, done, out_q),
         daemon=True,
     )
     procs = [pub, sub]
@@ -363,6 +365,7 @@ def ingest_once(mode: str, payloads: list[bytes], n: int, window: int, schema: d
     finally:
         done.set()
         stop_procs(procs)
+        router.close()
 
 
 def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> float:
@@ -443,7 +446,8 @@ def part_ingest(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
         f"### 1. Ingest: chunks into the learner vs raw Zenoh\n\n"
         f"{n:,} chunks of {t_len} steps × {envs} envs = {per_chunk} joint transitions (treadmill, 3 agents; "
         f"{mean_bytes / 1e3:.1f} kB each, cycled from {len(payloads)} distinct real chunks), one publisher process → "
-        f"one subscriber process, peer mode on loopback, BLOCK, shared memory on, ≤ {window} chunks in flight; "
+        f"one subscriber process, both clients of a router in the benchmark process (as in a job), loopback, "
+        f"BLOCK, shared memory on, ≤ {window} chunks in flight; "
         f"median of {args.repeats} run(s), from the first put to the last chunk ingested. No gradient updates."
     )
     table = markdown_table(
@@ -605,7 +609,7 @@ def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     from learner.agent import make_agent
     from protocol import wire
     from protocol.config import job_config
-    from protocol.session import ZenohSettings, free_port, loopback, open_session
+    from protocol.session import ZenohSettings, open_session
 
     hidden = tuple(args.weights_hidden)
     env = make_batched(ENV, 1)
@@ -616,7 +620,7 @@ def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     nbytes = len(wire.encode("weights", wire.weights_body(0, algo.name, state), "learner"))
     n_params = sum(int(v.size) for v in state.values())
 
-    root = ZenohSettings(listen=(loopback(free_port()),))
+    root = ZenohSettings().rooted()  # this process publishes as a job's router; the subscribers are its clients
     kmax = max(args.subscribers)
     out_q = CTX.Queue()
     cmd_qs = [CTX.Queue() for _ in range(kmax)]
@@ -664,10 +668,10 @@ def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     heading = (
         f"### 2. Weights broadcast latency\n\n"
         f"MA-MeSN treadmill policy at hidden {hidden} ({n_params:,} parameters, {nbytes / 1e6:.2f} MB on the wire), "
-        f"published by this process to 1–{kmax} subscriber processes (peer mode on loopback, BLOCK, shared memory "
-        f"on); {args.broadcasts} timed broadcasts per row after {args.warmup} warm-up, 20 ms apart. Latency = the "
-        f"last subscriber having it − the put (raw) / the start of encoding (Convoy: policy_state + wire.encode + put "
-        f"+ Inbox decode + load_policy_state), time.time() on one machine."
+        f"published by this process to 1–{kmax} subscriber processes (clients of its router on loopback, BLOCK, "
+        f"shared memory on); {args.broadcasts} timed broadcasts per row after {args.warmup} warm-up, 20 ms apart. "
+        f"Latency = the last subscriber having it − the put (raw) / the start of encoding (Convoy: policy_state + "
+        f"wire.encode + put + Inbox decode + load_policy_state), time.time() on one machine."
     )
     table = markdown_table(
         ["subscribers", "raw p50 ms", "raw p90 ms", "Convoy p50 ms", "Convoy p90 ms", "of which encode ms",

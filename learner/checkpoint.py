@@ -144,20 +144,36 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
         state = buf.state_dict()
         arrays[f"{name}/next"] = np.asarray(state["next"])
         arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
+    if path.is_file():  # the checkpoint on disk still points at this one until the next checkpoint is written
+        path.replace(previous_replay(path))
     _write_atomically(path, lambda fh: np.savez(fh, **arrays))
     return size
+
+
+def previous_replay(path: Path) -> Path:
+    """Where the replay of the checkpoint before lies: a learner killed between writing the new replay and the new
+    checkpoint resumes from the old checkpoint, whose replay this is."""
+    return path.with_name(f"{path.stem}.previous{path.suffix}")
+
+
+def _replay_step(path: Path) -> int | None:
+    """The env step a replay file was saved at; None when there is none or it cannot be read."""
+    try:
+        with np.load(path) as data:
+            return int(data["env_steps"])
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def load_replay(path: str | Path, algo: Any, env_steps: int) -> int:
     """Fill ``algo``'s replay from ``path`` if it was saved at ``env_steps`` (the checkpoint's step); rows loaded.
     A missing, unreadable or mismatched file loads nothing: the learner then refills its buffer from actors."""
-    path = Path(path)
-    if not path.is_file():
+    matching = [p for p in (Path(path), previous_replay(Path(path))) if _replay_step(p) == env_steps]
+    if not matching:
         return 0
+    path = matching[0]
     try:
         with np.load(path) as data:
-            if int(data["env_steps"]) != env_steps:
-                return 0
             buffers = replay_buffers(algo)
             states = {
                 name: {

@@ -1,13 +1,19 @@
 """The one place a Zenoh session is configured and opened.
 
-Default (one laptop): **peer** mode on loopback, multicast scouting off, explicit endpoints — the supervisor
-listens on ``tcp/127.0.0.1:<port>``, every process it starts listens on its own loopback port and connects to the
-supervisor's, and gossip introduces the peers to each other so that transitions go actor → learner directly. No
-broker to install.
+Default (one laptop): nothing to install, multicast scouting off, explicit endpoints on loopback. The process that
+roots a job (``convoy train``'s runner, a ``convoy host``) opens its session as a Zenoh **router** listening on
+``tcp/127.0.0.1:<port>``; every process it starts is a **client** of it and listens on nothing. Every link is then
+opened once, by one side, which usrpwd authentication needs: with peers that listen and connect to each other
+(gossip), duplicate links fail authentication (eclipse-zenoh/zenoh#2577).
 
 Many hosts: **client** mode towards one or more routers (``connect``), with a connect timeout so that start order
 does not matter (``-1`` waits for ever); TLS and user/password from the same settings (and so from the job file,
 the CLI or the environment). A Python session in **router** mode is a router (tests and ``convoy router``).
+
+A job's network is closed to processes without its credential: on one machine (no user set) the process that
+roots a job writes a fresh user/password to a private usrpwd dictionary (``secured``) and every
+process of the job — and the job service's session for it — opens with that user, password and dictionary, so
+Zenoh refuses the transport of any peer that cannot present them (it can neither publish nor subscribe).
 
 Pitfalls handled here (``docs/architecture.md``): shared memory can be switched off (containers have a small
 ``/dev/shm``); the lease is short (2 s) so that a frozen process is noticed; Zenoh objects never cross a process
@@ -18,7 +24,9 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import socket
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr
@@ -43,27 +51,45 @@ class ZenohSettings(BaseModel):
     password: SecretStr | None = Field(
         None, description="password for usrpwd authentication (never written to job files or checkpoints)."
     )
+    credentials_file: str | None = Field(
+        None,
+        description="usrpwd dictionary (one user:password per line): only peers that authenticate with one of its "
+        "entries may connect to this process; None = any peer that reaches the port.",
+    )
+
+    def secured(self, directory: str | Path, user: str) -> ZenohSettings:
+        """A process that roots its own network (peer mode, connecting to no one) with no credential of the user's:
+        a fresh password for ``user`` in a 0600 dictionary under ``directory``, used to authenticate and to admit,
+        so only holders of it join this job's network. One that joins another's network keeps the user's
+        credentials (``--user``, ``CONVOY_ZENOH_PASSWORD``, TLS), as the other side expects them."""
+        if self.mode != "peer" or self.connect or self.user or self.credentials_file:
+            return self
+        path = Path(directory) / "zenoh-credentials"
+        return self.model_copy(
+            update={"user": user, "password": write_credentials(path, user), "credentials_file": str(path)}
+        )
 
     def rooted(self) -> ZenohSettings:
-        """Settings for the process that starts others on this machine: in peer mode it must listen (on a free
-        loopback port unless ``listen`` says otherwise) so that its children can connect to it."""
-        if self.mode == "peer" and not self.listen:
-            return self.model_copy(update={"listen": (loopback(free_port()),)})
-        return self
-
-    def child(self, listen_port: bool = True) -> ZenohSettings:
-        """The settings a spawned process on this machine uses: connect to what this process listens on (peer
-        mode) and listen on its own free loopback port, so gossip can connect the children to each other; and to
-        what this process connects to (a router), since peers do not forward for each other."""
-        if self.mode != "peer" or not self.listen:
+        """Settings for the process that starts others on this machine (peer mode): it becomes its children's
+        router, on a free loopback port unless ``listen`` says otherwise, still linked to what it connects to.
+        Call after ``secured``, which reads the mode the user asked for."""
+        if self.mode != "peer":
             return self
-        connect = (*self.listen, *(c for c in self.connect if c not in self.listen))
-        return self.model_copy(update={"connect": connect, "listen": ("tcp/127.0.0.1:0",) if listen_port else ()})
+        return self.model_copy(update={"mode": "router", "listen": self.listen or (loopback(free_port()),)})
+
+    def child(self) -> ZenohSettings:
+        """The settings a spawned process on this machine uses: under a router root, a client of it that listens
+        on nothing, so every link of the job is opened once, by one side (what usrpwd needs: zenoh#2577). Other
+        modes (clients of routers on many hosts) are passed on as they are."""
+        if self.mode != "router" or not self.listen:
+            return self
+        return self.model_copy(update={"mode": "client", "connect": self.listen, "listen": ()})
 
     @classmethod
     def from_env(cls, base: ZenohSettings | None = None) -> ZenohSettings:
         """``CONVOY_ZENOH_MODE``, ``…_CONNECT`` / ``…_LISTEN`` (comma-separated), ``…_USER``, ``…_PASSWORD``,
-        ``…_SHM`` (0/1) and ``…_TLS_ROOT_CA`` override ``base`` — how compose hands containers their endpoints."""
+        ``…_CREDENTIALS_FILE``, ``…_SHM`` (0/1) and ``…_TLS_ROOT_CA`` override ``base`` — how compose hands
+        containers their endpoints."""
         values: dict[str, Any] = (base or cls()).model_dump()
         env = os.environ
         if "CONVOY_ZENOH_MODE" in env:
@@ -72,7 +98,7 @@ class ZenohSettings(BaseModel):
             raw = env.get(f"CONVOY_ZENOH_{name.upper()}")
             if raw is not None:
                 values[name] = tuple(e.strip() for e in raw.split(",") if e.strip())
-        for name in ("user", "password", "tls_root_ca", "tls_cert", "tls_key"):
+        for name in ("user", "password", "credentials_file", "tls_root_ca", "tls_cert", "tls_key"):
             raw = env.get(f"CONVOY_ZENOH_{name.upper()}")
             if raw:
                 values[name] = raw
@@ -112,6 +138,8 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     if settings.user and settings.password:
         put("transport/auth/usrpwd/user", settings.user)
         put("transport/auth/usrpwd/password", settings.password.get_secret_value())
+    if settings.credentials_file:
+        put("transport/auth/usrpwd/dictionary_file", settings.credentials_file)
     return conf
 
 
@@ -120,6 +148,23 @@ def open_session(settings: ZenohSettings) -> Any:
     import zenoh
 
     return zenoh.open(zenoh_config(settings))
+
+
+def write_credentials(path: str | Path, user: str) -> SecretStr:
+    """A fresh random password for ``user``, written as a one-entry usrpwd dictionary readable by its owner only."""
+    if not user or ":" in user or "\n" in user:
+        raise ValueError(f"usrpwd user must be non-empty without ':' or newlines, got {user!r}")
+    password = secrets.token_urlsafe(24)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(f"{user}:{password}\n")
+    return SecretStr(password)
+
+
+def read_credentials(path: str | Path) -> tuple[str, SecretStr]:
+    """(user, password) of a dictionary written by ``write_credentials``."""
+    user, _, password = Path(path).read_text().splitlines()[0].partition(":")
+    return user, SecretStr(password)
 
 
 def free_port(host: str = "127.0.0.1") -> int:

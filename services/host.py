@@ -11,6 +11,7 @@ learner has finished the job, or — on an actor host — when the learner's bud
 from __future__ import annotations
 
 import signal
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,11 @@ class HostAgent:
         self.stopping = True
 
     def run(self) -> int:
-        settings = self.settings.rooted()  # peer mode on one machine: the agent is its children's root
+        with tempfile.TemporaryDirectory(prefix="convoy-zenoh-") as private:  # 0700: the job's credential
+            return self._run(self.settings.secured(private, self.job_id).rooted())
+
+    def _run(self, settings: ZenohSettings) -> int:
+        """Run the roles with ``settings`` (peer mode on one machine: the agent is its children's root)."""
         session = open_session(settings)
         cmds, budget = Inbox({"command"}, 64), Inbox({"budget"}, 4)
         keep = [

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -20,7 +21,7 @@ from learner.runlog import ProgressDisplay
 from protocol import keys, wire
 from protocol.config import JobConfig
 from protocol.inbox import Inbox
-from protocol.session import open_session
+from protocol.session import ZenohSettings, open_session
 from services.procs import Event, JobFailed, ProcessGroup
 
 
@@ -95,7 +96,10 @@ class JobRunner:
 
     def run(self) -> dict[str, Any]:
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        root = self.job.runtime.zenoh.rooted()
+        with tempfile.TemporaryDirectory(prefix="convoy-zenoh-") as private:  # 0700: the job's credential
+            return self._run(self.job.runtime.zenoh.secured(private, self.job_id).rooted())
+
+    def _run(self, root: ZenohSettings) -> dict[str, Any]:
         session = open_session(root)
         display = ProgressDisplay(self.job.steps, self.progress)
         group = self.group = ProcessGroup(self.job_id, self.job, str(self.out_dir), root.child())

@@ -1,15 +1,19 @@
 """What runs the job service's jobs: ``JobService`` starts, watches, scales, stops and resumes them, and keeps the
 store current — the ``JobControl`` that ``api.app`` drives.
 
-How a job runs. The service's own Zenoh session is a **router** on a fixed loopback port. Each job is one
-``convoy host`` process (the host agent of the distributed runtime, roles learner + actors) in client mode towards
-that router, started in its own session (``start_new_session``) with its PID recorded in the store. The service
-hears the job's metrics and liveliness tokens through the router and sends it ``scale``/``stop`` commands — the
-same wire messages a multi-host deployment uses. Because the host is not the service's child in any sense that a
-crash propagates to, killing the service leaves the job running; a restarted service on the same port is
-reconnected to by the job's clients (Zenoh clients reconnect by themselves), finds the PID alive and *reattaches*,
-back-filling the metric rows it missed from the job's ``metrics.jsonl``. A job whose processes died meanwhile is
-failed with the reason and queued again, so it resumes from its last checkpoint: no job is forgotten.
+How a job runs. Each job is one ``convoy host`` process (the host agent of the distributed runtime, roles learner
++ actors) that roots the job's own Zenoh network (peer mode on loopback), started in its own session
+(``start_new_session``) with its PID recorded in the store. The service opens one Zenoh session per job, listening
+on a loopback port recorded in the store, which the host links to: through it the service hears the job's metrics
+and liveliness tokens and sends it ``scale``/``stop`` commands — the same wire messages a multi-host deployment
+uses. Every session of a job, the service's included, authenticates with the job's own user/password and admits
+only holders of it (a usrpwd dictionary, 0600, in the job's directory; the password reaches the host through its
+environment, never a file it writes): a process without the credential cannot connect to the job, so it cannot
+publish a command or data that bypasses the API's token. The job's traffic never passes through the service:
+killing the service leaves the job running; a restarted service reopens the job's session on the same port, the
+host links to it again by itself, the service finds the PID alive and *reattaches*, back-filling the metric rows it
+missed from the job's ``metrics.jsonl``. A job whose processes died meanwhile is failed with the reason and queued
+again, so it resumes from its last checkpoint: no job is forgotten.
 
 Scheduling: a job needs ``actors + 2`` processes (learner, host agent, actors); jobs start in submission order
 while the ``max_processes`` budget allows, the others wait with a visible queue position.
@@ -38,12 +42,13 @@ from learner.metrics import read_rows
 from protocol import keys, wire
 from protocol.config import ConfigError, JobConfig, job_config
 from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, loopback, open_session
+from protocol.session import ZenohSettings, free_port, loopback, open_session, read_credentials, write_credentials
 from services.jobrunner import AliveSet
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 STOP_GRACE_S = 20.0
+CREDENTIALS_FILE = "zenoh-credentials"  # in the job's directory: its usrpwd dictionary (0600)
 
 
 def pid_alive(pid: int | None) -> bool:
@@ -65,7 +70,7 @@ class Tracked:
 
     def __init__(self, rec: JobRecord, session: Any, proc: subprocess.Popen | None) -> None:
         self.pid: int = int(proc.pid if proc is not None else rec.progress.get("host_pid", 0))
-        self.proc = proc
+        self.proc, self.session = proc, session
         self.alive = AliveSet(session, rec.id)
         self.inbox = Inbox({"metrics"}, maxlen=4096)
         self.sub = session.declare_subscriber(keys.metrics_all(rec.id), self.inbox)
@@ -81,20 +86,17 @@ class Tracked:
     def close(self) -> None:
         self.sub.undeclare()
         self.alive.close()
+        self.session.close()
 
 
 class JobService:
     """Runs the jobs of one store on this machine (``convoy serve``)."""
 
-    def __init__(
-        self, data_dir: str | Path, zenoh_port: int, max_processes: int = 8, python: str = sys.executable
-    ) -> None:
+    def __init__(self, data_dir: str | Path, max_processes: int = 8, python: str = sys.executable) -> None:
         self.data_dir = Path(data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.store = JobStore(self.data_dir / "jobs.sqlite")
         self.max_processes, self.python = max_processes, python
-        self.endpoint = loopback(zenoh_port)
-        self.session = open_session(ZenohSettings(mode="router", listen=(self.endpoint,)))
         self.tracked: dict[str, Tracked] = {}
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -227,7 +229,6 @@ class JobService:
             for tracked in self.tracked.values():
                 tracked.close()
             self.tracked.clear()
-        self.session.close()
         self.store.close()
 
     # --- the watch loop ------------------------------------------------------------------------------------------
@@ -324,12 +325,18 @@ class JobService:
         out.mkdir(parents=True, exist_ok=True)
         config = dict(rec.config)
         runtime = dict(config.get("runtime", {}))
-        # peer mode: the host roots its job's own network (actors and learner link to it and to each other), and
-        # also links to the service's router so the service sees the job. The job's traffic never passes through
-        # the service: when the API process dies the job keeps training, and its host reconnects when it returns.
-        runtime.update(
-            actors=rec.actors, zenoh={**runtime.get("zenoh", {}), "mode": "peer", "connect": [self.endpoint]}
-        )
+        # The host roots its job's own network: a Zenoh router admitting only holders of the job's credential,
+        # its learner and actors its clients. That router also links to the service's router for this job, which
+        # receives only what the service subscribes to (metrics, liveliness): the job's chunks never pass through
+        # the service, so when the API process dies the job keeps training, and the link returns with the API.
+        credentials = out / CREDENTIALS_FILE
+        password = write_credentials(credentials, rec.id)
+        endpoint = loopback(free_port())
+        session = self._job_session(rec.id, endpoint)
+        zenoh = {**runtime.get("zenoh", {}), "mode": "peer", "connect": [endpoint], "user": rec.id,
+                 "credentials_file": str(credentials)}  # fmt: skip
+        zenoh.pop("password", None)
+        runtime.update(actors=rec.actors, zenoh=zenoh)
         config["runtime"] = runtime
         (out / "job.json").write_text(json.dumps(config, indent=2))
         cmd = [
@@ -339,12 +346,25 @@ class JobService:
         ]  # fmt: skip
         log = open(out / "host.log", "ab")  # noqa: SIM115 (the child owns it; closed below, the fd is inherited)
         try:
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+            env = {**os.environ, "CONVOY_ZENOH_PASSWORD": password.get_secret_value()}
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
+        except BaseException:
+            session.close()
+            raise
         finally:
             log.close()
-        self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": time.time()})
+        self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": time.time(), "zenoh": endpoint})
         rec = self.store.transition(rec.id, JobState.starting, f"host pid {proc.pid}")
-        self.tracked[rec.id] = Tracked(rec, self.session, proc)
+        self.tracked[rec.id] = Tracked(rec, session, proc)
+
+    def _job_session(self, job_id: str, endpoint: str) -> Any:
+        """The service's session for one job: on ``endpoint``, authenticated as the job and admitting only it."""
+        credentials = self._out(job_id) / CREDENTIALS_FILE
+        user, password = read_credentials(credentials)
+        settings = ZenohSettings(
+            mode="router", listen=(endpoint,), user=user, password=password, credentials_file=str(credentials)
+        )
+        return open_session(settings)
 
     def _reconcile(self) -> None:
         """After a (re)start: reattach jobs whose host still runs, fail and requeue those whose host is gone."""
@@ -354,7 +374,7 @@ class JobService:
             pid = int(rec.progress.get("host_pid", 0))
             if pid_alive(pid):
                 self._backfill(rec.id)
-                self.tracked[rec.id] = Tracked(rec, self.session, None)
+                self.tracked[rec.id] = Tracked(rec, self._job_session(rec.id, rec.progress["zenoh"]), None)
                 if rec.state == JobState.stopping:
                     self.tracked[rec.id].stop_asked = time.monotonic()
             elif rec.state == JobState.stopping:
@@ -377,7 +397,8 @@ class JobService:
         return Path(rec.out_dir) if rec.out_dir else self.data_dir / "jobs" / job_id
 
     def _command(self, job_id: str, op: str, args: dict[str, Any]) -> None:
-        self.session.put(keys.host(host_name(job_id), "cmd"), wire.encode("command", {"op": op, "args": args}, "api"))
+        session = self.tracked[job_id].session
+        session.put(keys.host(host_name(job_id), "cmd"), wire.encode("command", {"op": op, "args": args}, "api"))
 
     def _kill(self, tracked: Tracked) -> None:
         """SIGTERM the host's process group (it stops its children and checkpoints), SIGKILL if it lingers."""

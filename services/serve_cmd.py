@@ -31,16 +31,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from api.app import create_app
     from services.jobservice import JobService
 
-    for flag in ("port", "zenoh_port"):
-        if not 1 <= getattr(args, flag) <= 65535:
-            raise ConfigError(f"--{flag.replace('_', '-')}", f"must be a TCP port 1–65535 (got {getattr(args, flag)})")
+    if not 1 <= args.port <= 65535:
+        raise ConfigError("--port", f"must be a TCP port 1–65535 (got {args.port})")
     if args.max_processes < 3:
         raise ConfigError("--max-processes", f"a job needs at least 3 processes (got {args.max_processes})")
     data = Path(args.data)
     token, origin = api_token(data)
-    service = JobService(data, args.zenoh_port, args.max_processes)
+    service = JobService(data, args.max_processes)
     app = create_app(service, token)
-    print(f"convoy serve: http://{args.host}:{args.port}/  (API docs /docs, data {data}, zenoh {service.endpoint})")
+    print(f"convoy serve: http://{args.host}:{args.port}/  (API docs /docs, data {data})")
     print(f"API token ({origin}): {token}", flush=True)
     try:
         uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
@@ -61,12 +60,6 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
     p.add_argument("--data", default="runs/service", help="jobs database and job outputs (default: %(default)s)")
-    p.add_argument(
-        "--zenoh-port",
-        type=int,
-        default=7448,
-        help="loopback port of the service's Zenoh router (default: %(default)s)",
-    )
     p.add_argument(
         "--max-processes",
         type=int,

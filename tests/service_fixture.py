@@ -35,12 +35,9 @@ SMALL_JOB: dict[str, Any] = {
 
 
 class Service:
-    def __init__(
-        self, data: Path, port: int | None = None, zenoh_port: int | None = None, max_processes: int = 8
-    ) -> None:
+    def __init__(self, data: Path, port: int | None = None, max_processes: int = 8) -> None:
         self.data, self.max_processes = data, max_processes
         self.port = port or free_port()
-        self.zenoh_port = zenoh_port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
         self.client = httpx.Client(base_url=self.url, timeout=30)
@@ -48,7 +45,7 @@ class Service:
     def start(self, timeout: float = 60.0) -> Service:
         env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
         cmd = [sys.executable, "-m", "services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
-        cmd += ["--zenoh-port", str(self.zenoh_port), "--max-processes", str(self.max_processes)]
+        cmd += ["--max-processes", str(self.max_processes)]
         log = open(self.data.parent / f"serve-{self.port}.log", "ab")  # noqa: SIM115
         self.data.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)

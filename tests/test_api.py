@@ -110,7 +110,7 @@ def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path
             assert time.monotonic() < t_end, "the job stopped training while the API was down"
             time.sleep(0.2)
 
-        again = Service(data, port=svc.port, zenoh_port=svc.zenoh_port).start()
+        again = Service(data, port=svc.port).start()
         view = again.client.get(f"/jobs/{job}").json()
         assert view["state"] in ("running", "completed"), view
         after = steps_of(again, job)
@@ -139,5 +139,47 @@ def test_jobs_beyond_the_process_budget_wait_in_a_queue(tmp_path: Path) -> None:
         svc.wait(first, lambda v: v["state"] == "completed", timeout=120, what="the first job completed")
         svc.wait(second, lambda v: v["state"] in ("running", "completed"), timeout=60, what="the second job started")
         svc.wait(second, lambda v: v["state"] == "completed", timeout=120, what="the second job completed")
+    finally:
+        svc.stop()
+
+
+def test_a_process_without_the_jobs_credential_cannot_command_it(tmp_path: Path) -> None:
+    """Zenoh refuses the transport of a peer that cannot authenticate as the job (no credential, or the job's user
+    with a wrong password): its forged "scale to 1" reaches nobody, where before it took a job from 2 actors to 1
+    without the API's token."""
+    import json
+
+    import zenoh
+
+    from protocol import keys, wire
+    from protocol.session import ZenohSettings, open_session
+    from services.jobservice import host_name
+
+    data = tmp_path / "svc"
+    svc = Service(data).start()
+    try:
+        job = submit(svc, steps=2_000_000, actors=2)
+        svc.wait(job, lambda v: v["state"] == "running" and v["actors_alive"] == 2, what="running with 2 actors")
+        config = json.loads((data / "jobs" / job / "job.json").read_text())
+        zenoh_cfg = config["runtime"]["zenoh"]
+        assert "password" not in zenoh_cfg  # the password reaches the host through its environment only
+        endpoint = zenoh_cfg["connect"][0]
+        forged = wire.encode("command", {"op": "scale", "args": {"actors": 1}}, "intruder")
+        outsiders = [ZenohSettings(connect=(endpoint,)), ZenohSettings(connect=(endpoint,), user=job, password="x")]
+        for settings in outsiders:
+            session = open_session(settings)
+            try:
+                pub = session.declare_publisher(
+                    keys.host(host_name(job), "cmd"), congestion_control=zenoh.CongestionControl.BLOCK
+                )
+                time.sleep(2.0)
+                assert not pub.matching_status.matching  # no subscriber of the job is reachable
+                for _ in range(3):
+                    pub.put(forged)
+            finally:
+                session.close()
+        time.sleep(3.0)
+        view = svc.client.get(f"/jobs/{job}").json()
+        assert view["actors"] == 2 and view["actors_alive"] == 2, view
     finally:
         svc.stop()

@@ -328,3 +328,18 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
     assert save_replay(path, algo, env_steps=300, max_bytes=1_000) == 0 and not path.exists()  # over the bound
     path.write_bytes(b"not a zip")
     assert load_replay(path, build("idqn"), env_steps=300) == 0  # unreadable: refilled from actors instead
+
+
+def test_a_learner_killed_between_its_replay_and_its_checkpoint_resumes_with_the_replay_before(tmp_path) -> None:
+    """The replay is written before the checkpoint: a kill in between leaves a checkpoint of the step before,
+    whose replay must still be there (it was lost, and the resume started from an empty buffer)."""
+    from learner.checkpoint import load_replay, save_replay
+
+    algo = build("idqn")
+    fill(algo, SPEC, rows=200)
+    path = tmp_path / "replay.npz"
+    save_replay(path, algo, env_steps=200, max_bytes=1 << 30)  # with the checkpoint at 200
+    fill(algo, SPEC, rows=100)
+    save_replay(path, algo, env_steps=300, max_bytes=1 << 30)  # then killed before the checkpoint at 300
+    assert load_replay(path, build("idqn"), env_steps=200) == 200
+    assert load_replay(path, build("idqn"), env_steps=300) == 300

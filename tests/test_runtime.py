@@ -312,6 +312,43 @@ def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_p
     assert summary["env_steps"] >= job.steps
 
 
+def test_a_peer_without_the_jobs_credential_cannot_reach_it(tmp_path: Path) -> None:
+    """A local run roots its network with a fresh per-job credential: a peer on the root's port without it (or with
+    the job's user and a wrong password) matches none of the job's subscribers, and its stop commands reach no
+    actor; the job's own processes hold the credential in a private 0600 file."""
+    import stat
+
+    import zenoh
+
+    from protocol import wire
+    from protocol.session import ZenohSettings
+
+    job = job_config(algo="idqn", steps=20_000, seed=6, runtime={"actors": 1}, **TREADMILL)
+    runner = JobRunner("locked", job, tmp_path, progress=False)
+    with Background(runner) as bg:
+        wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 1, 60, "the actor")
+        member = runner.group.settings
+        assert member.user == "locked" and member.password is not None
+        assert stat.S_IMODE(Path(member.credentials_file).stat().st_mode) == 0o600
+        root = member.connect[0]
+        for outsider in (ZenohSettings(connect=(root,)), ZenohSettings(connect=(root,), user="locked", password="x")):
+            session = open_session(outsider)
+            try:
+                stop = session.declare_publisher(
+                    keys.ctl("locked", "stop"), congestion_control=zenoh.CongestionControl.BLOCK
+                )
+                time.sleep(2.0)
+                assert not stop.matching_status.matching
+                for _ in range(3):
+                    stop.put(wire.encode("command", {"op": "stop", "args": {}}, "intruder"))
+            finally:
+                session.close()
+        summary = bg.join(180)
+    assert not [e for e in runner.events if e.kind in ("crashed", "failed")], runner.events  # no actor left
+    assert summary["env_steps"] >= job.steps
+    assert not Path(member.credentials_file).exists()  # removed with the run
+
+
 def _tensors(x: object) -> list[torch.Tensor]:
     """Every tensor inside a nested checkpoint state."""
     if isinstance(x, torch.Tensor):

@@ -869,3 +869,28 @@ def test_chunk_size_is_raw_bytes_plus_a_constant() -> None:
     obs = msg.body["arrays"]["obs"]
     assert not obs.flags.owndata and not obs.flags.writeable  # a view on the received bytes, not a copy
     assert np.array_equal(obs, body["arrays"]["obs"])
+
+
+def test_a_root_gets_a_private_job_credential_and_a_joining_peer_keeps_the_users(tmp_path) -> None:
+    import stat
+
+    from protocol.session import ZenohSettings, read_credentials, zenoh_config
+
+    root = ZenohSettings().secured(tmp_path, "job-1").rooted()
+    assert root.user == "job-1" and root.credentials_file == str(tmp_path / "zenoh-credentials")
+    assert stat.S_IMODE((tmp_path / "zenoh-credentials").stat().st_mode) == 0o600
+    user, password = read_credentials(root.credentials_file)
+    assert (user, password.get_secret_value()) == ("job-1", root.password.get_secret_value())
+    assert len(password.get_secret_value()) >= 32  # 24 random bytes
+    child = root.child()
+    assert (child.user, child.password, child.credentials_file) == (root.user, root.password, root.credentials_file)
+    # the root is its children's router and they are its clients: each link is opened once (zenoh#2577)
+    assert (root.mode, child.mode, child.connect, child.listen) == ("router", "client", root.listen, ())
+    config = str(zenoh_config(root))
+    assert "dictionary_file" in config and password.get_secret_value() not in repr(root)
+    joining = ZenohSettings(connect=("tcp/10.0.0.5:7447",))
+    assert joining.secured(tmp_path, "job-1") == joining  # another's network: the user's own credentials
+    given = ZenohSettings(user="alice", password="secret")
+    assert given.secured(tmp_path, "job-1") == given
+    with pytest.raises(ValueError, match="usrpwd user"):
+        ZenohSettings().secured(tmp_path, "a:b")
