@@ -198,7 +198,7 @@ def part_api_down(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, 
         time.sleep(args.api_down)
         s2 = job_steps()
         t0 = time.monotonic()
-        again = Service(data, port=svc.port, zenoh_port=svc.zenoh_port).start()
+        again = Service(data, port=svc.port).start()
         view = again.wait(job, lambda v: v["state"] == "running" and v["progress"]["env_steps"] >= s2, what="running")
         back_s = time.monotonic() - t0
     finally:
