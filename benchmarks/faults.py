@@ -50,7 +50,7 @@ from protocol.config import job_config  # noqa: E402
 from services.jobrunner import JobRunner  # noqa: E402
 from tests.multihost import Hosts, MultiHostJob, available  # noqa: E402
 from tests.service_fixture import AUTH, SMALL_JOB, Service  # noqa: E402
-from tests.test_runtime import TREADMILL, Background, wait_for  # noqa: E402
+from tests.test_runtime import TREADMILL, Background, shm_mappings, wait_for  # noqa: E402
 
 MIB = 1024 * 1024
 
@@ -60,11 +60,6 @@ def rss_mib(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024 / MIB
     raise RuntimeError(f"no VmRSS for PID {pid}")
-
-
-def shm_mappings(pid: int) -> int:
-    with open(f"/proc/{pid}/maps") as fh:
-        return len({line.split()[-1] for line in fh if "/dev/shm/" in line})
 
 
 def steps(runner: JobRunner) -> float:
@@ -81,7 +76,7 @@ def part_churn(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, Any
     with Background(runner):
         wait_for(lambda: steps(runner) > 1.5 * args.replay, 180, "the replay buffer to fill")
         learner = runner.group.learner.proc.pid
-        before = {"rss_mib": rss_mib(learner), "shm": shm_mappings(learner)}
+        before = {"rss_mib": rss_mib(learner), "shm": len(shm_mappings(learner))}
         for kill in range(args.kills):
             at = steps(runner)
             os.kill(runner.group.actors[0].proc.pid, signal.SIGKILL)
@@ -92,7 +87,7 @@ def part_churn(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, Any
             wait_for(lambda k=kill: f"actor-0.{k + 1}" in runner.alive.ids("actor"), 30, "the token", every=0.005)
             token.append(time.monotonic() - t0)
             wait_for(lambda s=at: steps(runner) > s + 2_000, 60, "the new actor's data")
-        after = {"rss_mib": rss_mib(learner), "shm": shm_mappings(learner)}
+        after = {"rss_mib": rss_mib(learner), "shm": len(shm_mappings(learner))}
     figures = {"kills": args.kills, "respawn_s": started, "token_s": token, "before": before, "after": after}
     q = statistics.quantiles
     rows = [

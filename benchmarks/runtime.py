@@ -327,18 +327,18 @@ def ingest_once(mode: str, payloads: list[bytes], n: int, window: int, schema: d
 
     root = ZenohSettings().rooted()  # this process is the router, as a job's runner is; both ends are its clients
     router = open_session(root)
-    pub_settings = root.child()
+    client = root.child()
     progress, ready, done, out_q = CTX.RawValue("q", 0), CTX.Event(), CTX.Event(), CTX.Queue()
     key, warm_key = f"bench/{tag}/data", f"bench/{tag}/warm"
     capacity = 100_000  # AlgoConfig.replay_capacity's default
     pub = CTX.Process(
         target=_ingest_publisher,
-        args=(pub_settings, key, warm_key, payloads, n, window, progress, ready, done, out_q),
+        args=(client, key, warm_key, payloads, n, window, progress, ready, done, out_q),
         daemon=True,
     )
     sub = CTX.Process(
         target=_ingest_subscriber,
-        args=(pub_settings, key, warm_key, mode, n, window, schema, capacity, progress, ready, done, out_q),
+        args=(client, key, warm_key, mode, n, window, schema, capacity, progress, ready, done, out_q),
         daemon=True,
     )
     procs = [pub, sub]

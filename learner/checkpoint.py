@@ -157,11 +157,15 @@ def previous_replay(path: Path) -> Path:
 
 
 def _replay_step(path: Path) -> int | None:
-    """The env step a replay file was saved at; None when there is none or it cannot be read."""
+    """The env step a replay file was saved at; None when there is none or it cannot be read (said, when it is
+    there)."""
+    if not path.is_file():
+        return None
     try:
         with np.load(path) as data:
             return int(data["env_steps"])
-    except (OSError, KeyError, ValueError):
+    except (OSError, KeyError, ValueError) as exc:
+        print(f"learner: replay {path} unusable ({type(exc).__name__}: {exc}); refilling from actors", flush=True)
         return None
 
 

@@ -46,7 +46,7 @@ class HostAgent:
             return self._run(self.settings.secured(private, self.job_id).rooted())
 
     def _run(self, settings: ZenohSettings) -> int:
-        """Run the roles with ``settings`` (peer mode on one machine: the agent is its children's root)."""
+        """Run the roles with ``settings`` (on one machine the agent's session is its children's router)."""
         session = open_session(settings)
         cmds, budget = Inbox({"command"}, 64), Inbox({"budget"}, 4)
         keep = [

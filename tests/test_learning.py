@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import pytest
 
-from protocol.config import job_config, resolve_algo
+from learner.algorithm import Algorithm
+from protocol.config import JobConfig, job_config, resolve_algo
 from services.training import run_inprocess
 
 K = 4
@@ -97,28 +98,40 @@ def test_every_algorithm_beats_random_on_a_small_treadmill(algo: str) -> None:
     )
 
 
-def _message_entropy_after_training(gumbel_noise: float | None) -> float:
-    """MA-MeSN's greedy message entropy (nats, per agent) after 40 k steps on the small treadmill."""
+def _small_treadmill_job(algo: str, env_params: dict, algo_params: dict, steps: int, seed: int) -> JobConfig:
+    return job_config(
+        algo=algo,
+        env="treadmill",
+        env_params=env_params,
+        algo_params=algo_params,
+        steps=steps,
+        num_envs=16,
+        seed=seed,
+        eval_episodes=0,
+    )
+
+
+def _train(job: JobConfig) -> Algorithm:
+    """The agent after ``job``'s training run (no evaluation, no files), for the tests to probe."""
     from learner.agent import make_agent
-    from learner.analysis import record
-    from learner.comm_metrics import message_entropy
     from learner.inprocess import Trainer
     from services.training import make_env
 
-    job = job_config(
-        algo="ma-mesn",
-        env="treadmill",
-        env_params=SMALL_TREADMILL,
-        algo_params={**TREADMILL_HP, "replay_ratio": 4.0, "gumbel_noise": gumbel_noise},
-        steps=40_000,
-        num_envs=16,
-        seed=0,
-        eval_episodes=0,
-    )
     env = make_env(job)
     agent = make_agent(job, env.spec)
     Trainer(job, env, agent, progress=False).run()
-    rec = record(agent, make_env(job, 32), steps=100, seed=1)
+    return agent
+
+
+def _message_entropy_after_training(gumbel_noise: float | None) -> float:
+    """MA-MeSN's greedy message entropy (nats, per agent) after 40 k steps on the small treadmill."""
+    from learner.analysis import record
+    from learner.comm_metrics import message_entropy
+    from services.training import make_env
+
+    hp = {**TREADMILL_HP, "replay_ratio": 4.0, "gumbel_noise": gumbel_noise}
+    job = _small_treadmill_job("ma-mesn", SMALL_TREADMILL, hp, steps=40_000, seed=0)
+    rec = record(_train(job), make_env(job, 32), steps=100, seed=1)
     return message_entropy(rec.messages.reshape(-1, *rec.messages.shape[2:])).value
 
 
@@ -144,25 +157,13 @@ BLIND_REAR_TREADMILL = {**SMALL_TREADMILL, "observe_k": 2, "sensor_fov": 180.0, 
 def _trained_returns(algo: str, seed: int) -> dict[str, list[float]]:
     """Greedy returns of 256 evaluation episodes after 200 k env steps on the blind-rear treadmill (and, for
     MA-MeSN, with white noise in place of the messages). Runs in a worker process of its own."""
-    from learner.agent import make_agent
     from learner.evaluation import evaluate_policy
-    from learner.inprocess import Trainer
     from learner.runtime import configure_learner
     from services.training import make_env
 
-    job = job_config(
-        algo=algo,
-        env="treadmill",
-        env_params=BLIND_REAR_TREADMILL,
-        algo_params=TREADMILL_HP,
-        steps=200_000,
-        num_envs=16,
-        seed=seed,
-        eval_episodes=0,
-    )
-    configure_learner(job.torch_threads)
-    agent = make_agent(job, make_env(job).spec)
-    Trainer(job, make_env(job), agent, progress=False).run()
+    job = _small_treadmill_job(algo, BLIND_REAR_TREADMILL, TREADMILL_HP, steps=200_000, seed=seed)
+    configure_learner(job.torch_threads)  # one thread, as run_inprocess: the figures in the docstring below
+    agent = _train(job)
     sources = ["sent", "noise"] if algo == "ma-mesn" else ["sent"]
     env = make_env(job, 64)
     return {src: evaluate_policy(agent, env, 256, seed=1, messages=src).returns.tolist() for src in sources}

@@ -136,7 +136,7 @@ def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Pat
     assert ("crashed", "actor-0") in kinds and ("respawned", "actor-0.1") in kinds
 
 
-def _shm_mappings(pid: int) -> set[str]:
+def shm_mappings(pid: int) -> set[str]:
     """The shared-memory files a process has mapped (Zenoh's segments live under /dev/shm)."""
     with open(f"/proc/{pid}/maps") as fh:
         return {line.split()[-1] for line in fh if "/dev/shm/" in line}
@@ -159,7 +159,7 @@ def test_actor_churn_does_not_grow_the_learners_shared_memory(tmp_path: Path) ->
             back = lambda k=kill: 0 in runner.group.actors and runner.group.actors[0].generation == k + 1  # noqa: E731
             wait_for(back, 30, "the respawn")
             wait_for(lambda s=steps: runner.last_row.get("env_steps", 0) > s + 2000, 60, "the new actor's data")
-            counts.append(_shm_mappings(learner))
+            counts.append(shm_mappings(learner))
     print(f"learner's shared-memory mappings after each of 5 actor deaths: {[len(c) for c in counts]}")
     assert len(counts[-1]) <= len(counts[0]), sorted(counts[-1] - counts[0])
 
