@@ -18,7 +18,7 @@ import pytest
 
 from tests.multihost import Hosts, MultiHostJob, available
 
-STEPS = 300_000
+STEPS = 1_000_000  # so the job outlasts the 10 s cut: the uncut host alone can do ~300 k in it on a quiet machine
 
 pytestmark = [
     pytest.mark.timeout(400),
