@@ -245,6 +245,7 @@ def create_app(control: JobControl, token: str) -> FastAPI:
                 env_steps=env_steps,
                 fraction=min(1.0, env_steps / steps),
                 **{k: finite(prog.get(k)) for k in PROGRESS_FIELDS},
+                dropped=prog.get("dropped") or {},
             ),
             created_at=rec.created_at,
             updated_at=rec.updated_at,

@@ -113,6 +113,11 @@ class Progress(BaseModel):
     env_steps_per_s: float | None = None
     updates_per_s: float | None = None
     policy_lag: float | None = None
+    dropped: dict[str, dict[str, int]] = Field(
+        default_factory=dict,
+        description="Messages the job refused so far, by role (learner, actors, service) and reason: garbage, "
+        "values no env can produce (action-range, non-finite, ...), overflow of a full queue (load, not an attack).",
+    )
 
     model_config = ConfigDict(populate_by_name=True)
 

@@ -1,7 +1,8 @@
 """``GET /metrics`` in the Prometheus text format, from the store (no training process is asked anything).
 
 A custom collector builds the gauges at scrape time from the job records, so nothing has to be kept in sync: jobs per
-state, and for every active job its env steps, env-steps/s, updates/s, return, policy lag and actors alive.
+state, and for every active job its env steps, env-steps/s, updates/s, return, policy lag, actors alive and the
+messages it dropped by role and reason.
 """
 
 from __future__ import annotations
@@ -36,17 +37,26 @@ class _Jobs:
         alive = GaugeMetricFamily("convoy_job_actors_alive", "Actor processes alive.", labels=["job"])
         wanted = GaugeMetricFamily("convoy_job_actors", "Actor processes requested.", labels=["job"])
         gauges = {k: GaugeMetricFamily(f"convoy_job_{k}", h, labels=["job"]) for k, h in PER_JOB.items()}
+        dropped = GaugeMetricFamily(
+            "convoy_job_dropped_messages",
+            "Messages the job refused, by role and reason.",
+            labels=("job", "role", "reason"),
+        )
         for rec in self.store.list():
             if rec.state not in ACTIVE_STATES:
                 continue
             alive.add_metric([rec.id], self.control.actors_alive(rec.id))
             wanted.add_metric([rec.id], rec.actors)
+            for role, reasons in (rec.progress.get("dropped") or {}).items():
+                for reason, n in reasons.items():
+                    dropped.add_metric([rec.id, role, reason], float(n))
             for key, gauge in gauges.items():
                 value = rec.progress.get(key)
                 if isinstance(value, (int, float)) and math.isfinite(value):
                     gauge.add_metric([rec.id], float(value))
         yield alive
         yield wanted
+        yield dropped
         yield from gauges.values()
 
 

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import collections
 import signal
 import time
 from pathlib import Path
@@ -107,6 +108,10 @@ class Learner:
 
     def stop(self, *_: Any) -> None:
         self.stopping = True
+
+    def dropped_by_reason(self, inbox: Inbox) -> dict[str, int]:
+        """Every chunk-key message this learner refused so far, by reason (the inbox's and its own value checks)."""
+        return dict(collections.Counter(inbox.dropped) + collections.Counter(self.rejected))
 
     def _restore(self, algo: Algorithm) -> dict[str, Any]:
         """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
@@ -272,6 +277,7 @@ class Learner:
                     policy_lag=float(np.mean(lags)) if lags else 0.0,
                     dropped=float(inbox.drops + sum(self.rejected.values())),
                     chunks=float(ingested_chunks),
+                    **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in self.dropped_by_reason(inbox).items()},
                     **curve,
                 )
                 if row is not None:
@@ -303,7 +309,7 @@ class Learner:
             else float("nan"),
             **final,
             "dropped": inbox.drops + sum(self.rejected.values()),
-            "dropped_by_reason": {**inbox.dropped, **self.rejected},
+            "dropped_by_reason": self.dropped_by_reason(inbox),
         }
         write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")
         done = {"done": 1.0, "eval_return": final["eval_return"], "env_steps": env_steps, "updates": algo.updates}

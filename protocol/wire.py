@@ -219,6 +219,18 @@ def weights_body(version: int, algo: str, state: dict[str, np.ndarray]) -> dict[
     return {"version": int(version), "algo": algo, "state": state}
 
 
+DROPPED_PREFIX = "dropped_"  # a metrics value ``dropped_<reason>``: messages that process refused so far, by reason
+
+
+def dropped_reasons(values: dict[str, float]) -> dict[str, int]:
+    """The ``dropped_<reason>`` counts of one metrics message's values, as {reason: count} (bad values skipped)."""
+    out: dict[str, int] = {}
+    for key, value in values.items():
+        if key.startswith(DROPPED_PREFIX) and isinstance(value, int | float) and 0 <= value < 2**53:
+            out[key[len(DROPPED_PREFIX) :]] = int(value)
+    return out
+
+
 def metrics_body(role: str, ident: str, values: dict[str, float]) -> dict[str, Any]:
     return {
         "role": role,

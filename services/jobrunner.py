@@ -9,11 +9,13 @@ crashes (respawn / restart / fail with the reason) and takes live scaling reques
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import tempfile
 import threading
 import time
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +25,22 @@ from protocol.config import JobConfig
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 from services.procs import Event, JobFailed, ProcessGroup
+
+
+def drop_report(
+    learner: dict[str, float], actors: Iterable[dict[str, float]], own_role: str, own: Mapping[str, int], unusable: int
+) -> dict[str, dict[str, int]]:
+    """Every message a job dropped, by role and reason: the learner's and the actors' from their last metrics
+    (``dropped_<reason>`` values: counts since each process started), this supervisor's own inbox and the metrics
+    messages it could not use."""
+    summed: collections.Counter[str] = collections.Counter()
+    for values in actors:
+        summed.update(wire.dropped_reasons(values))
+    return {
+        "learner": wire.dropped_reasons(learner),
+        "actors": {"garbage": summed["garbage"], "overflow": summed["overflow"]},
+        own_role: {**dict(own), "unusable-metrics": unusable},
+    }
 
 
 class AliveSet:
@@ -142,15 +160,10 @@ class JobRunner:
         return summary
 
     def drop_report(self, metrics: Inbox) -> dict[str, Any]:
-        """What the learner's ``dropped_by_reason`` does not see: the actors' drops (their last report each, garbage
-        apart from overflow) and the supervisor's own (payloads on ``metrics/**`` that were not usable)."""
-        actors = {
-            k: sum(m.get(k, 0.0) for m in self.actor_metrics.values()) for k in ("dropped_garbage", "dropped_overflow")
-        }
-        return {
-            "actors": {"garbage": int(actors["dropped_garbage"]), "overflow": int(actors["dropped_overflow"])},
-            "supervisor": {**dict(metrics.dropped), "unusable-metrics": self.bad_metrics},
-        }
+        """What the learner's ``dropped_by_reason`` does not see: the actors' drops and the supervisor's own."""
+        report = drop_report({}, self.actor_metrics.values(), "supervisor", metrics.dropped, self.bad_metrics)
+        report.pop("learner")
+        return report
 
     def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
         """Take in one metrics message. Any well-formed one is survivable: a row lacking what it is used for, or an

@@ -237,6 +237,7 @@ def cmd_status(api: Api, args: argparse.Namespace, out: Console) -> int:
         ("env steps/s", fmt(prog.get("env_steps_per_s"), 3)),
         ("updates/s", fmt(prog.get("updates_per_s"), 3)),
         ("policy lag", fmt(prog.get("policy_lag"), 3)),
+        ("dropped messages", dropped_text(prog.get("dropped") or {})),
         ("env params", json.dumps(cfg.get("env_params", {}))),
         ("algo params", json.dumps(cfg.get("algo_params", {}))),
         ("num envs / seed", f"{cfg.get('num_envs')} / {cfg.get('seed')}"),
@@ -250,6 +251,16 @@ def cmd_status(api: Api, args: argparse.Namespace, out: Console) -> int:
         table.add_row(name, Text(value))
     out.print(table)
     return 0
+
+
+def dropped_text(dropped: dict[str, dict[str, int]]) -> str:
+    """``learner: action-range 3, non-finite 6; actors: garbage 50`` (roles with nothing dropped left out)."""
+    parts = []
+    for role, reasons in dropped.items():
+        counts = ", ".join(f"{reason} {n:,}" for reason, n in reasons.items() if n)
+        if counts:
+            parts.append(f"{role}: {counts}")
+    return "; ".join(parts) or "none"
 
 
 def cmd_scale(api: Api, args: argparse.Namespace, out: Console) -> int:

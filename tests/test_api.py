@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import json
 import time
 import zipfile
 from pathlib import Path
@@ -93,6 +94,70 @@ def test_a_stop_while_the_job_is_starting_takes_effect_at_once(tmp_path: Path) -
         svc.stop()
 
 
+def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_path: Path) -> None:
+    """A process holding the job's credential (a buggy or compromised insider) sends garbage and well-formed
+    chunks with impossible values: the job runs on, and ``GET /jobs/{id}`` and ``/metrics`` count them by role
+    (learner, actors, service) and reason while it runs."""
+    import zenoh
+
+    from protocol import keys, wire
+    from protocol.config import job_config
+    from protocol.session import ZenohSettings, open_session, read_credentials
+    from services.jobservice import CREDENTIALS_FILE
+    from tests.test_runtime import hostile_chunks
+
+    data = tmp_path / "svc"
+    svc = Service(data).start()
+    try:
+        job = submit(svc, steps=2_000_000, actors=1)
+        view = svc.wait(job, lambda v: v["progress"]["env_steps"] > 1000, what="metrics flowing")
+        assert view["progress"]["dropped"]["learner"] == {}, view["progress"]
+        config = svc.client.get(f"/jobs/{job}").json()["config"]
+        user, password = read_credentials(data / "jobs" / job / CREDENTIALS_FILE)
+        endpoint = json.loads((data / "jobs" / job / "job.json").read_text())["runtime"]["zenoh"]["connect"][0]
+        session = open_session(ZenohSettings(mode="client", connect=(endpoint,), user=user, password=password))
+        try:
+            block = zenoh.CongestionControl.BLOCK
+            chunks = session.declare_publisher(keys.exp(job, "insider"), congestion_control=block)
+            weights = session.declare_publisher(keys.weights(job), congestion_control=block)
+            metrics = session.declare_publisher(keys.metrics(job, "learner", "0"), congestion_control=block)
+            for pub in (chunks, weights, metrics):
+                assert _matches(pub), "the insider reaches the job"
+            for _reason, body in hostile_chunks(job_config(**config)) * 3:
+                chunks.put(wire.encode("chunk", body, "insider"))
+            for i in range(50):
+                weights.put(bytes([i]) * 7)
+                metrics.put(b"\x93\x01\x02\x03")
+        finally:
+            session.close()
+
+        def counted(v: dict) -> bool:
+            dropped = v["progress"]["dropped"]
+            return (
+                dropped["learner"].get("action-range", 0) >= 3
+                and dropped["learner"].get("non-finite", 0) >= 6
+                and dropped["actors"]["garbage"] >= 50
+                and sum(dropped["service"].values()) >= 50
+            )
+
+        view = svc.wait(job, counted, timeout=60, what="the drops in the job's status")
+        assert view["state"] == "running" and view["actors_alive"] == 1, view
+        text = svc.client.get("/metrics").text
+        assert f'convoy_job_dropped_messages{{job="{job}",reason="action-range",role="learner"}}' in text, text
+        assert f'convoy_job_dropped_messages{{job="{job}",reason="garbage",role="actors"}}' in text
+    finally:
+        svc.stop()
+
+
+def _matches(pub: object, timeout: float = 10.0) -> bool:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pub.matching_status.matching:  # type: ignore[attr-defined]
+            return True
+        time.sleep(0.1)
+    return False
+
+
 def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path: Path) -> None:
     data = tmp_path / "svc"
     svc = Service(data).start()
@@ -147,7 +212,6 @@ def test_a_process_without_the_jobs_credential_cannot_command_it(tmp_path: Path)
     """Zenoh refuses the transport of a peer that cannot authenticate as the job (no credential, or the job's user
     with a wrong password): its forged "scale to 1" reaches nobody, where before it took a job from 2 actors to 1
     without the API's token."""
-    import json
 
     import zenoh
 

@@ -117,7 +117,11 @@ def test_watch_until_completed(capsys: pytest.CaptureFixture[str], service: Serv
     assert re.search(rf"job {job_id} completed: 20,\d{{3}}/20,000 env steps", out), out
 
 
-def test_logs(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
+def test_metrics_and_logs(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
+    service.wait(job_id, lambda v: v["state"] == "completed", timeout=240, what="the job to complete")
+    code, out, err = jobs(capsys, service.url, "logs", job_id, "--lines", "400")
+    assert code == 0, err
+    assert f"[h-{job_id}] exited learner-0" in out, out  # the job host's own log, through GET /jobs/{id}/logs
     code, out, err = jobs(capsys, service.url, "metrics", job_id)
     assert code == 0, err
     assert "env_steps" in out and "return" in out and "policy_lag" in out
@@ -130,12 +134,22 @@ def test_logs(capsys: pytest.CaptureFixture[str], service: Service, job_id: str)
 
 
 def test_status_shows_completed(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
+    service.wait(job_id, lambda v: v["state"] == "completed", timeout=240, what="the job to complete")
     code, out, err = jobs(capsys, service.url, "status", job_id)
     assert code == 0, err
-    assert "completed" in out and "20,000" in out and '"n_agents": 2' in out
+    assert "completed" in out and "20,000" in out and '"n_agents": 2' in out and "dropped messages" in out
+
+
+def test_dropped_messages_read_by_role_and_reason() -> None:
+    from services.jobs_cmd import dropped_text
+
+    dropped = {"learner": {"action-range": 3, "non-finite": 6}, "actors": {"garbage": 1200, "overflow": 0}}
+    assert dropped_text(dropped) == "learner: action-range 3, non-finite 6; actors: garbage 1,200"
+    assert dropped_text({"learner": {}, "service": {"unusable-metrics": 0}}) == "none"
 
 
 def test_scale_of_a_completed_job(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
+    service.wait(job_id, lambda v: v["state"] == "completed", timeout=240, what="the job to complete")
     code, out, err = jobs(capsys, service.url, "scale", job_id, "2")
     assert code == 2 and not out
     one_line_error(err, "completed", "resume", "—")
