@@ -44,7 +44,7 @@ from learner.runtime import configure_learner
 from learner.stepping import EnvStepper
 from protocol import keys, wire
 from protocol.config import ConfigError, JobConfig, job_config
-from protocol.exitcodes import NO_DATA, STOPPED, ParentWatch
+from protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, open_session
 
@@ -330,4 +330,8 @@ def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettin
     learner = Learner(job_id, job, out_dir, settings)
     signal.signal(signal.SIGTERM, learner.stop)
     signal.signal(signal.SIGINT, learner.stop)
-    return learner.run()
+    try:
+        return learner.run()
+    except FloatingPointError as exc:  # Algorithm.update gave up after many non-finite losses in a row
+        print(f"learner: training diverged: {exc}", flush=True)
+        return DIVERGED

@@ -7,6 +7,7 @@ supervisor that still wants the process starts it again, like after any other cr
 
 DONE = 0
 NO_DATA = 3  # the learner heard no chunk for runtime.data_timeout_s: a crash the supervisor handles and counts
+DIVERGED = 4  # non-finite losses in a row: a restart from the checkpoint would diverge again; the job fails
 STOPPED = 143
 
 

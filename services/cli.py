@@ -237,6 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     except JobFailed as exc:
         err_console.print(f"[bold red]job failed:[/] {exc}", highlight=False, soft_wrap=True)
         return 1
+    except FloatingPointError as exc:  # the in-process trainer's Algorithm.update gave up on non-finite losses
+        err_console.print(f"[bold red]job failed:[/] training diverged: {exc}", highlight=False, soft_wrap=True)
+        return 1
     except KeyboardInterrupt:
         err_console.print("interrupted")
         return 130

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from protocol.config import JobConfig
+from protocol.exitcodes import DIVERGED
 from protocol.session import ZenohSettings
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
@@ -234,6 +235,13 @@ class ProcessGroup:
                 events.append(Event("exited", "learner", slot.ident))
                 self.finished.add("learner")
                 self.learner = None
+            elif code == DIVERGED:  # deterministic: the restarted learner would diverge the same way
+                detail = (
+                    f"{slot.ident} stopped: training diverged (non-finite losses in a row, exit code {code}); the "
+                    "weights were kept finite. Lower lr (algo_params.lr) or check the env's rewards and observations"
+                )
+                self.learner = None
+                return [*events, Event("failed", "learner", slot.ident, detail)]
             else:
                 events.append(Event("crashed", "learner", slot.ident, f"exit code {code}"))
                 fail = self._crash("learner", slot, code)

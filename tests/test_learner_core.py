@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -343,3 +346,37 @@ def test_a_learner_killed_between_its_replay_and_its_checkpoint_resumes_with_the
     save_replay(path, algo, env_steps=300, max_bytes=1 << 30)  # then killed before the checkpoint at 300
     assert load_replay(path, build("idqn"), env_steps=200) == 200
     assert load_replay(path, build("idqn"), env_steps=300) == 300
+
+
+def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The trainer's path, not the algorithm alone: a loss that is sometimes non-finite is skipped and counted in
+    ``metrics.jsonl``; one that always is ends the run with the cause instead of training on."""
+    import json
+
+    from learner.algorithm import Algorithm
+    from protocol.config import job_config
+    from services.training import run_inprocess
+
+    real = Algorithm.agent_losses
+    calls = {"n": 0, "every": 3}
+
+    def sometimes_nan(self: Algorithm, batch: dict) -> torch.Tensor:
+        calls["n"] += 1
+        losses = real(self, batch)
+        return losses * float("nan") if calls["n"] % calls["every"] == 0 else losses
+
+    monkeypatch.setattr(Algorithm, "agent_losses", sometimes_nan)
+    params = {"hidden": [32], "learning_starts": 64, "batch_size": 32}
+    job = job_config(algo="idqn", env="referential", steps=3000, num_envs=8, log_every=500, eval_episodes=8,
+                     algo_params=params)  # fmt: skip
+    result = run_inprocess(job, out_dir=tmp_path / "some", progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "some" / "metrics.jsonl").read_text().splitlines()]
+    skipped = max(r.get("skipped_updates", 0) for r in rows)
+    assert skipped > 0 and result.updates > 0, rows[-1]
+    assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r and r["updates"] > 0)
+    calls["every"] = 1
+    monkeypatch.setattr("learner.algorithm.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
+    with pytest.raises(FloatingPointError, match="non-finite loss"):
+        run_inprocess(job, out_dir=tmp_path / "always", progress=False)

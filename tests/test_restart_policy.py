@@ -100,3 +100,40 @@ def test_runtime_settings_come_from_the_cli_and_the_rest_body() -> None:
     with pytest.raises(ConfigError) as info:
         JobSubmit(runtime={"max_restarts": -1}).job_config()
     assert info.value.field == "runtime.max_restarts"
+
+
+def test_a_diverged_learner_fails_the_job_at_once_with_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Non-finite losses in a row are deterministic: the learner exits DIVERGED and is not restarted (a restart from
+    its checkpoint would diverge the same way); the failure says what to change."""
+    from protocol.exitcodes import DIVERGED
+
+    job = job_config(algo="idqn", env="referential", steps=1000, runtime={"actors": 1})
+    group = ProcessGroup("diverge", job, "unused", ZenohSettings(), roles=("learner",))
+    spawned: list[int] = []
+
+    def spawn(generation: int) -> Slot:
+        spawned.append(generation)
+        return Slot("learner", 0, generation, FakeProc())
+
+    monkeypatch.setattr(group, "_spawn_learner", spawn)
+    group.start_learner()
+    group.learner.proc.exitcode = DIVERGED
+    events = group.poll()
+    assert events[-1].kind == "failed" and "diverged" in events[-1].detail and "lr" in events[-1].detail, events
+    assert spawned == [0] and group.poll() == []
+
+
+def test_the_learner_process_reports_divergence_by_its_exit_code(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from learner import service
+    from protocol.exitcodes import DIVERGED
+
+    def diverge(self: service.Learner) -> int:
+        raise FloatingPointError("idqn: 100 updates in a row had a non-finite loss (nan)")
+
+    monkeypatch.setattr(service.Learner, "run", diverge)
+    monkeypatch.setattr(service.signal, "signal", lambda *a: None)
+    job = job_config(algo="idqn", env="referential", steps=1000)
+    assert service.run_learner("diverge", job, "unused", ZenohSettings()) == DIVERGED
+    assert "training diverged: idqn: 100 updates in a row" in capsys.readouterr().out
