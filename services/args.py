@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from envs import ConfigError
+from protocol.config import ResourceLimits
 
 EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
 
@@ -47,3 +48,24 @@ def env_params(args: argparse.Namespace, base: dict[str, Any] | None = None) -> 
         params["n_adversaries"] = args.adversaries
     params.update(parse_pairs(args.set, "--set"))
     return params
+
+
+def add_limit_flags(p: argparse.ArgumentParser) -> None:
+    """``--max-layer-width`` etc.: one flag per ``ResourceLimits`` field, with its default."""
+    for name, field in ResourceLimits.model_fields.items():
+        p.add_argument(
+            "--" + name.replace("_", "-"),
+            type=int,
+            default=field.default,
+            metavar="N",
+            help=f"largest job to accept: {field.description} (default: %(default)s)",
+        )
+
+
+def limits_from_args(args: argparse.Namespace) -> ResourceLimits:
+    """The limits the flags of ``add_limit_flags`` set; a bad value is a ConfigError naming the flag."""
+    values = {name: getattr(args, name) for name in ResourceLimits.model_fields}
+    for name, value in values.items():
+        if value < 1:
+            raise ConfigError("--" + name.replace("_", "-"), f"must be ≥ 1 (got {value})")
+    return ResourceLimits(**values)

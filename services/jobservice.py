@@ -41,7 +41,7 @@ from api.models import EvalRequest
 from api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
 from learner.metrics import read_rows
 from protocol import keys, wire
-from protocol.config import ConfigError, JobConfig, job_config
+from protocol.config import ConfigError, JobConfig, ResourceLimits, job_config
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, free_port, loopback, open_session, read_credentials, write_credentials
 from services.jobrunner import AliveSet, drop_report
@@ -102,8 +102,15 @@ class Tracked:
 class JobService:
     """Runs the jobs of one store on this machine (``convoy serve``)."""
 
-    def __init__(self, data_dir: str | Path, max_processes: int = 8, python: str = sys.executable) -> None:
+    def __init__(
+        self,
+        data_dir: str | Path,
+        max_processes: int = 8,
+        python: str = sys.executable,
+        limits: ResourceLimits | None = None,
+    ) -> None:
         self.data_dir = Path(data_dir)
+        self.limits = limits or ResourceLimits()
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self.store = JobStore(self.data_dir / "jobs.sqlite")
         self.max_processes, self.python = max_processes, python
@@ -116,6 +123,7 @@ class JobService:
 
     # --- JobControl ----------------------------------------------------------------------------------------------
     def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord:
+        self.limits.check(job, "convoy serve")
         need = actors + 2
         if need > self.max_processes:
             raise ConfigError(

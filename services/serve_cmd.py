@@ -8,6 +8,7 @@ import secrets
 from pathlib import Path
 
 from envs import ConfigError
+from services.args import add_limit_flags, limits_from_args
 
 
 def api_token(data_dir: Path) -> tuple[str, str]:
@@ -37,7 +38,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise ConfigError("--max-processes", f"a job needs at least 3 processes (got {args.max_processes})")
     data = Path(args.data)
     token, origin = api_token(data)
-    service = JobService(data, args.max_processes)
+    service = JobService(data, args.max_processes, limits=limits_from_args(args))
     app = create_app(service, token)
     print(f"convoy serve: http://{args.host}:{args.port}/  (API docs /docs, data {data})")
     print(f"API token ({origin}): {token}", flush=True)
@@ -67,4 +68,5 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
         help="processes all running jobs may use together (default: %(default)s)",
     )
     p.add_argument("--log-level", default="warning", help="uvicorn log level (default: %(default)s)")
+    add_limit_flags(p)
     p.set_defaults(func=cmd_serve)

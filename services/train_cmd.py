@@ -14,7 +14,7 @@ from rich.table import Table
 
 from envs import ENVS, ConfigError
 from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, env_default_note, job_config
-from services.args import env_params, parse_pairs
+from services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
 from services.rundir import claim, free_default
 
 console = Console()
@@ -57,6 +57,7 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
 
 def cmd_train(args: argparse.Namespace) -> int:
     job = job_from_args(args)
+    limits_from_args(args).check(job, "convoy train")
     out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
     run_dir = claim(out, overwrite=args.overwrite)
     try:
@@ -149,6 +150,7 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     tr.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
+    add_limit_flags(tr)
     tr.set_defaults(func=cmd_train)
 
 

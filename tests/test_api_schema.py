@@ -170,6 +170,31 @@ def test_bad_env_and_algo_params(service: Service) -> None:
     assert_error(submit(service, name="bad name/with slash"), 422, "name")
 
 
+@pytest.mark.parametrize(
+    ("extra", "field", "limit"),
+    [
+        ({"algo_params": {"hidden": [1_000_000_000]}}, "algo_params.hidden", "max-layer-width"),  # wanted ~100 GB
+        ({"algo_params": {"hidden": [16_000, 16_000]}}, "algo_params.hidden", "max-hidden-weights"),
+        ({"num_envs": 4096, "env_params": {"n_agents": 256}}, "num_envs", "max-agent-envs"),  # 1.05 M cars
+    ],
+)
+def test_jobs_too_large_for_the_machine_are_refused_at_submit(
+    service: Service, extra: dict, field: str, limit: str
+) -> None:
+    """The audit's ``hidden: [1e9]`` was accepted (201) and crash-looped; now 422 names the field, the limit and
+    the server flag that changes it, and nothing is queued."""
+    before = len(service.client.get("/jobs").json()["jobs"])
+    body = assert_error(submit(service, **extra), 422, field)
+    assert limit.replace("-", "_") in body["problem"] and f"convoy serve --{limit} N" in body["problem"], body
+    assert len(service.client.get("/jobs").json()["jobs"]) == before
+
+
+def test_fewer_steps_than_one_batched_step_is_refused(service: Service) -> None:
+    """The audit's ``steps: 10`` with 4,096 envs trained 32,768 steps."""
+    body = assert_error(submit(service, steps=10, num_envs=4096), 422, "steps")
+    assert "num_envs" in body["problem"]
+
+
 @pytest.mark.parametrize("raw", [b"{", b"{'algo': 'x'}", b"not json", b'{"actors": 1,}'])
 def test_malformed_json_body(service: Service, raw: bytes) -> None:
     headers = {**AUTH, "Content-Type": "application/json"}

@@ -209,8 +209,6 @@ def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:
         ({"algo_params": {"batch_size": 128, "replay_capacity": 64}}, "batch_size"),
         ({"algo_params": {"learning_rate": 0.1}}, "learning_rate"),
         ({"algo_params": {"hidden": [64, 0]}}, "hidden"),
-        ({"algo_params": {"hidden": [1_000_000_000]}}, "hidden"),  # ~100 GB: refused, not crash-looped
-        ({"algo_params": {"hidden": [16_000, 16_000]}}, "hidden"),  # 256 M weights between the layers
         ({"steps": 10, "num_envs": 4096}, "steps"),  # less than one batched step
         ({"env": "highway"}, "env"),
         ({"env_params": {"n_agents": 0}}, "n_agents"),
@@ -223,6 +221,24 @@ def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None
     with pytest.raises(ConfigError) as info:
         job_config(**values)
     assert info.value.field == field, str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("values", "field", "limit"),
+    [
+        ({"algo_params": {"hidden": [1_000_000_000]}}, "algo_params.hidden", "max-layer-width"),  # ~100 GB
+        ({"algo_params": {"hidden": [16_000, 16_000]}}, "algo_params.hidden", "max-hidden-weights"),  # 256 M weights
+        ({"num_envs": 65_536, "env_params": {"n_agents": 32}}, "num_envs", "max-agent-envs"),  # 2.2 M cars
+    ],
+)
+def test_resource_limits_name_the_field_the_limit_and_the_flag(values: dict, field: str, limit: str) -> None:
+    from protocol.config import ResourceLimits
+
+    job = job_config(**values)  # a valid config; whether a machine should allocate it is the limits' question
+    with pytest.raises(ConfigError) as info:
+        ResourceLimits().check(job, "convoy serve")
+    assert info.value.field == field and f"convoy serve --{limit} N" in str(info.value), str(info.value)
+    ResourceLimits(**{limit.replace("-", "_"): 10**10}).check(job, "convoy serve")  # raised: accepted
 
 
 def test_env_defaults_fill_only_what_the_user_left_open() -> None:

@@ -65,6 +65,9 @@ def test_config_file_with_flag_overrides(tmp_path, capsys) -> None:
         (["--env", "referential", "--hierarchical"], "hierarchical: goals are defined for the treadmill only"),
         (["--steps", "0"], "steps: Input should be greater than or equal to 1"),
         (["--config", "/nonexistent.json"], "--config: no such file"),
+        (["--hp", "hidden=1000000000"], "raise the limit with convoy train --max-layer-width N"),
+        (["--max-hidden-weights", "100", "--hp", "hidden=64,64"], "limit max_hidden_weights = 100"),
+        (["--max-agent-envs", "0"], "--max-agent-envs: must be ≥ 1"),
     ],
 )
 def test_bad_train_input_is_one_line(argv: list[str], needle: str, capsys) -> None:
