@@ -189,6 +189,20 @@ def test_jobs_too_large_for_the_machine_are_refused_at_submit(
     assert len(service.client.get("/jobs").json()["jobs"]) == before
 
 
+def test_the_restart_policy_the_errors_name_is_settable_over_rest(service: Service) -> None:
+    """A job failed at the 6th actor death told the user to raise runtime.max_restarts, which REST refused (422
+    "extra inputs"); the runtime's restart fields are now part of the job body."""
+    runtime = {"actor_max_restarts": 500, "max_restarts": 9, "restart_backoff_s": 2.0}
+    resp = submit(service, name="policy", runtime=runtime)
+    assert resp.status_code == 201, resp.text
+    job = resp.json()
+    try:
+        assert {k: job["config"]["runtime"][k] for k in runtime} == runtime
+    finally:
+        assert service.client.delete(f"/jobs/{job['id']}", headers=AUTH).status_code == 204
+    assert_error(submit(service, runtime={"actor_max_restarts": -1}), 422, "runtime.actor_max_restarts")
+
+
 def test_fewer_steps_than_one_batched_step_is_refused(service: Service) -> None:
     """The audit's ``steps: 10`` with 4,096 envs trained 32,768 steps."""
     body = assert_error(submit(service, steps=10, num_envs=4096), 422, "steps")
