@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import torch
 
+from learner.algorithm import epsilon_at
 from learner.checkpoint import read_checkpoint
 from protocol import keys
 from protocol.config import JobConfig, job_config
@@ -197,6 +198,12 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path: Path) -> None:
     assert summary["env_steps"] >= job.steps
     kinds = [(e.kind, e.role) for e in runner.events]
     assert ("crashed", "learner") in kinds and ("respawned", "learner") in kinds
+    # the schedules go on from the checkpoint's counters: ε of every row is the schedule's at its step
+    for r in rows:
+        assert r["epsilon"] == pytest.approx(epsilon_at(cfg, r["env_steps"], job.steps), abs=1e-6), r
+    before_kill = [r["return"] for r in rows if r["env_steps"] <= resumed_steps][-3:]
+    after = [r["return"] for r in rows if r["env_steps"] > resumed_steps][:3]
+    print(f"ε-greedy training return, last 3 rows before the resume point {before_kill}, first 3 after {after}")
 
 
 def test_actor_count_scales_live_and_every_actor_delivers(tmp_path: Path) -> None:
