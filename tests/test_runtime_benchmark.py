@@ -58,14 +58,15 @@ def test_runtime_benchmark_quick_reports_every_part(tmp_path) -> None:
 
 def test_fault_benchmark_reports_respawn_memory_and_api_down_figures(tmp_path) -> None:
     out = tmp_path / "faults.json"
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "faults.py"), "--parts", "1", "4", "--kills", "2"]
-    cmd += ["--replay", "2000", "--api-down", "2", "--json", str(out)]
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "faults.py"), "--parts", "1", "4", "6", "--kills", "2"]
+    cmd += ["--replay", "2000", "--api-down", "2", "--stops", "1", "--json", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-4000:]
     data = json.loads(out.read_text())
-    churn, api = data["1"], data["4"]
+    churn, api, stop = data["1"], data["4"], data["6"]
     assert len(churn["respawn_s"]) == len(churn["token_s"]) == 2
     assert all(_positive(x) for x in churn["respawn_s"] + churn["token_s"])
     assert _positive(churn["before"]["rss_mib"]) and _positive(churn["after"]["rss_mib"])
     assert _positive(api["steps_api_up"]) and _positive(api["steps_api_down"]) and _positive(api["reattach_s"])
-    assert "Actor respawn" in proc.stdout and "API down" in proc.stdout
+    assert _positive(churn["control"]["rss_mib"]) and len(stop["stop_s"]) == 1 and _positive(stop["stop_s"][0])
+    assert "Actor respawn" in proc.stdout and "API down" in proc.stdout and "Stop while starting" in proc.stdout
