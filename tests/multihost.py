@@ -32,7 +32,14 @@ while True:
 
 
 def available() -> bool:
-    return os.geteuid() == 0 and shutil.which("ip") is not None
+    """Root, iproute2, and the right to make a namespace (a root container without CAP_SYS_ADMIN has not)."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        return False
+    probe = f"cvyprobe{secrets.token_hex(2)}"
+    made = subprocess.run(["ip", "netns", "add", probe], capture_output=True).returncode == 0
+    if made:
+        subprocess.run(["ip", "netns", "delete", probe], capture_output=True)
+    return made
 
 
 def ip(*args: str) -> None:
