@@ -560,7 +560,7 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         "logs",
         "print a job's process logs (crashes, tracebacks)",
         "Print the last lines of a job's process logs (GET /jobs/ID/logs): its host's log, where starts, "
-        "respawns, crashes and their tracebacks go. A failed job's error names its last exception; this shows "
+        "respawns, crashes and their tracebacks go. A failed job's error names its cause; this shows "
         "the whole story.",
     )
     p.add_argument("id", help="job id")

@@ -47,6 +47,7 @@ from protocol.session import ZenohSettings, free_port, loopback, open_session, r
 from services.jobrunner import AliveSet, drop_report
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
+SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
 PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 STOP_GRACE_S = 20.0
 CREDENTIALS_FILE = "zenoh-credentials"  # in the job's directory: its usrpwd dictionary (0600)
@@ -455,14 +456,17 @@ class JobService:
 
 
 def failure_summary(job_id: str, output: list[str]) -> str:
-    """Why a job failed, for its error field: the output's last line and, when a traceback precedes it, the
-    exception that ended the last one (the cause, where the last line is often only "crashed N times")."""
+    """Why a job failed, for its error field: the output's last line and the cause, where the last line is often
+    only "crashed N times": the exception that ended the last traceback, else the last line a job process printed
+    itself (not a supervisor's ``[host] event`` or ``job failed:`` line), e.g. the learner's "no chunk ..."."""
     lines = [ln for ln in output if ln.strip()]
     if not lines:
         return "no output"
     errors = [ln for ln in lines if EXCEPTION_LINE.match(ln)]
-    cause = f" (last exception: {errors[-1][-300:]})" if errors and errors[-1] != lines[-1] else ""
-    return f"{lines[-1][-300:]}{cause}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
+    own = [ln for ln in lines if not SUPERVISOR_LINE.match(ln)]
+    cause = errors[-1] if errors else own[-1] if own else None
+    said = f" (cause: {cause[-300:]})" if cause and cause != lines[-1] else ""
+    return f"{lines[-1][-300:]}{said}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
 
 
 def host_name(job_id: str) -> str:

@@ -158,6 +158,22 @@ def _matches(pub: object, timeout: float = 10.0) -> bool:
     return False
 
 
+def test_a_failed_jobs_status_carries_the_cause_from_its_process_log(tmp_path: Path) -> None:
+    """A real failure: the learner gives up waiting for data at once (data_timeout_s 0.01 s, no restart allowed).
+    The job's error is not only "learner crashed 1 times": it carries the learner's own last line, the cause."""
+    svc = Service(tmp_path / "svc").start()
+    try:
+        job = submit(svc, steps=100_000, actors=1, runtime={"max_restarts": 0, "data_timeout_s": 0.01})
+        view = svc.wait(job, lambda v: v["state"] in ("failed", "completed"), timeout=120, what="the job to end")
+        assert view["state"] == "failed", view
+        assert "learner crashed 1 times" in view["error"] and "cause: learner: no chunk from any actor" in view["error"]
+        assert "raise runtime.data_timeout_s" in view["error"] and f"convoy jobs logs {job}" in view["error"]
+        lines = svc.client.get(f"/jobs/{job}/logs", params={"lines": 50}).json()["lines"]
+        assert any(line.startswith("learner: no chunk from any actor") for line in lines), lines
+    finally:
+        svc.stop()
+
+
 def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path: Path) -> None:
     data = tmp_path / "svc"
     svc = Service(data).start()

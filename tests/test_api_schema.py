@@ -423,6 +423,6 @@ def test_a_failed_jobs_error_names_its_last_exception() -> None:
     ]
     text = failure_summary("x", output)
     assert text.startswith("[h-x] failed learner-0.5 learner crashed 6 times")
-    assert "last exception: torch.OutOfMemoryError: CUDA out of memory" in text
+    assert "cause: torch.OutOfMemoryError: CUDA out of memory" in text
     assert "convoy jobs logs x" in text
     assert failure_summary("x", []) == "no output"
