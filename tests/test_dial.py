@@ -289,6 +289,7 @@ def test_importance_weights_are_clipped_joint_ratios() -> None:
 # --------------------------------------------------------------------------- learning
 
 
+@pytest.mark.slow
 def test_dial_learns_the_two_round_referential_game() -> None:
     """The speaker's round-1 message reaches the listener in round 2; only then can it beat chance (1/4)."""
     algo, env = make_dial(num_envs=64, lr=1e-3, message_bits=16, unroll=4, eps_decay_fraction=0.3)

@@ -249,6 +249,7 @@ def test_lockstep_queue_releases_contiguous_columns() -> None:
 
 
 # --- through the trainer ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["idqn", "dqn-ser", "ma-mesn", "ma-bon", "ims", "dial"])
 def test_every_meta_algorithm_trains_both_levels(algo: str) -> None:
     hp = {"hidden": (32,), "learning_starts": 100, "batch_size": 32, "replay_ratio": 1.0}
@@ -264,6 +265,7 @@ def test_every_meta_algorithm_trains_both_levels(algo: str) -> None:
     assert (out.messages is not None) == agent.uses_messages
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo", ["idqn", "ma-mesn"])
 def test_hierarchical_training_beats_the_random_policy(algo: str) -> None:
     result = run_inprocess(job(algo, steps=12_000, log_every=4_000), out_dir=None, progress=False)
@@ -272,6 +274,7 @@ def test_hierarchical_training_beats_the_random_policy(algo: str) -> None:
     )
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_gives_identical_greedy_actions(tmp_path) -> None:
     hp = {"hidden": (32,), "learning_starts": 100, "batch_size": 32}
     j = job("ma-mesn", algo_params=hp, steps=1_600, num_envs=8, eval_episodes=0, checkpoint_every=10**6)

@@ -241,6 +241,7 @@ def train_referential(algo_name: str, seed: int = 0, iterations: int = 300) -> t
     return float(np.mean(hits)), time.perf_counter() - start
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo_name", ["ims", "ma-bon"])
 def test_learns_the_referential_game(algo_name: str, one_thread: None) -> None:
     success, seconds = train_referential(algo_name)

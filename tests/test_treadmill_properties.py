@@ -130,6 +130,7 @@ def test_parallel_cars_never_collide(x: int, y: int, heading: int, speed: int, g
     assert not r.info["crashed"][0].any()
 
 
+@pytest.mark.slow
 @FAST
 @given(
     st.integers(0, 2**31),
@@ -155,6 +156,7 @@ def test_rewards_in_unit_interval_except_crash_penalty(seed, n_agents, n_adv, ma
         assert np.all(np.abs(r.obs) <= 1) and np.all(np.abs(r.final_obs) <= 1)
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None)
 @given(
     st.lists(st.integers(0, 2**40), min_size=1, max_size=6),
