@@ -13,9 +13,21 @@ from typing import Any, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from protocol.config import ConfigError, JobConfig, MessageSource, job_config
+from protocol.config import ConfigError, JobConfig, MessageSource, RuntimeConfig, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
+ACTORS_DEFAULT: int = RuntimeConfig.model_fields["actors"].default
+MAX_STEPS: int = next(m.le for m in JobConfig.model_fields["steps"].metadata if hasattr(m, "le"))
+
+
+def job_field(name: str) -> Any:
+    """``JobConfig``'s field ``name`` as a body field — its default, bounds and description — so that the REST
+    body, ``convoy train`` and the processes share one definition."""
+    info = JobConfig.model_fields[name]
+    bounds = {k: getattr(m, k) for m in info.metadata for k in ("ge", "gt", "le", "lt", "max_length") if hasattr(m, k)}
+    if info.default_factory is not None:
+        return Field(default_factory=info.default_factory, description=info.description, **bounds)
+    return Field(info.default, description=info.description, **bounds)
 
 
 class JsonBody(BaseModel):
@@ -39,29 +51,21 @@ class JsonBody(BaseModel):
 class JobSubmit(JsonBody):
     """``POST /jobs``: what to train, on what, for how long, with how many actor processes."""
 
-    algo: str = Field("ma-mesn", max_length=32, description="Algorithm (see `convoy train --help`).")
-    env: str = Field("treadmill", max_length=32, description="Environment (see `convoy env list`).")
-    env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
-    algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
-    hierarchical: bool = Field(False, description="Hierarchical DQN around the algorithm (treadmill).")
-    actors: int = Field(2, ge=1, le=MAX_ACTORS, description="Actor processes.")
-    steps: int = Field(100_000, ge=1, le=1_000_000_000, description="Total env steps.")
-    num_envs: int = Field(16, ge=1, le=4096, description="Envs stepped together per actor.")
-    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of envs, exploration and network init.")
-    eval_episodes: int = Field(
-        JobConfig.model_fields["eval_episodes"].default,
-        ge=0,
-        le=10_000,
-        description=JobConfig.model_fields["eval_episodes"].description,
+    algo: str = job_field("algo")
+    env: str = job_field("env")
+    env_params: dict[str, Any] = job_field("env_params")
+    algo_params: dict[str, Any] = job_field("algo_params")
+    hierarchical: bool = job_field("hierarchical")
+    actors: int = Field(
+        RuntimeConfig.model_fields["actors"].default, ge=1, le=MAX_ACTORS, description="Actor processes."
     )
-    eval_every: int = Field(
-        JobConfig.model_fields["eval_every"].default,
-        ge=0,
-        le=1_000_000_000,
-        description=JobConfig.model_fields["eval_every"].description,
-    )
-    log_every: int = Field(2_000, ge=1, le=1_000_000_000, description="Env steps between metric rows.")
-    checkpoint_every: int = Field(50_000, ge=1, le=1_000_000_000, description="Env steps between checkpoints.")
+    steps: int = job_field("steps")
+    num_envs: int = job_field("num_envs")
+    seed: int = job_field("seed")
+    eval_episodes: int = job_field("eval_episodes")
+    eval_every: int = job_field("eval_every")
+    log_every: int = job_field("log_every")
+    checkpoint_every: int = job_field("checkpoint_every")
     name: str | None = Field(
         None, pattern=r"^[A-Za-z0-9_.-]{1,32}$", description="Prefix of the job id (letters, digits, _ . -)."
     )
@@ -92,7 +96,9 @@ class JobResume(JsonBody):
     larger step budget."""
 
     actors: int | None = Field(None, ge=1, le=MAX_ACTORS, description="Actor processes (default: as before).")
-    steps: int | None = Field(None, ge=1, le=1_000_000_000, description="New total env-step budget.")
+    steps: int | None = Field(
+        None, ge=1, le=JobConfig.model_fields["steps"].metadata[-1].le, description="New total env-step budget."
+    )
 
 
 class EvalRequest(JsonBody):

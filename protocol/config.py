@@ -460,19 +460,20 @@ class JobConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     ALGOS: ClassVar[tuple[str, ...]] = tuple(ALGO_CONFIGS)
 
-    algo: str = Field("ma-mesn", description=f"Algorithm: {', '.join(ALGO_CONFIGS)}.")
-    env: str = Field("treadmill", description="Environment name (see `convoy env list`).")
+    algo: str = Field("ma-mesn", max_length=32, description=f"Algorithm: {', '.join(ALGO_CONFIGS)}.")
+    env: str = Field("treadmill", max_length=32, description="Environment name (see `convoy env list`).")
     env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
     algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
     hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
     steps: int = Field(
         200_000,
         ge=1,
+        le=1_000_000_000,
         description="Total env steps (summed over parallel envs); a run ends at the first chunk boundary at or "
         "past it, so it may exceed it by less than one chunk per actor (num_envs × runtime.publish_steps).",
     )
     num_envs: int = Field(16, ge=1, le=65536, description="Envs stepped together per actor.")
-    seed: int = Field(0, ge=0, description="Seed of envs, exploration and network init.")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of envs, exploration and network init.")
     eval_episodes: int = Field(
         100,
         ge=0,
@@ -482,10 +483,11 @@ class JobConfig(BaseModel):
     eval_every: int = Field(
         10_000,
         ge=0,
+        le=1_000_000_000,
         description="Env steps between greedy evaluations, the learning curve (at metric rows); 0 = the final only.",
     )
-    log_every: int = Field(2_000, ge=1, description="Env steps between metric rows.")
-    checkpoint_every: int = Field(50_000, ge=1, description="Env steps between checkpoints.")
+    log_every: int = Field(2_000, ge=1, le=1_000_000_000, description="Env steps between metric rows.")
+    checkpoint_every: int = Field(50_000, ge=1, le=1_000_000_000, description="Env steps between checkpoints.")
     device: Device = Field("auto", description="Torch device; auto = CUDA when present.")
     torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig, description="Distributed runtime settings.")

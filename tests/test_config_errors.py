@@ -53,3 +53,21 @@ def test_bad_channel_spec() -> None:
         MessageChannel.from_spec("drop=2")
     with pytest.raises(ValueError, match="key=value"):
         MessageChannel.from_spec("drop")
+
+
+def test_the_rest_body_and_the_cli_take_the_job_fields_from_jobconfig() -> None:
+    """One definition of each job field: the REST body's defaults, bounds and descriptions are JobConfig's (they
+    once disagreed: 100 k vs 200 k default steps, num_envs ≤ 4,096 vs 65,536)."""
+    from api.models import JobSubmit
+    from protocol.config import JobConfig
+    from services.cli import build_parser
+    from services.jobs_cmd import submit_body
+
+    shared = set(JobSubmit.model_fields) & set(JobConfig.model_fields) - {"runtime"}  # the body takes a part of it
+    assert {"algo", "env", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every"} <= shared
+    body, job = JobSubmit.model_json_schema()["properties"], JobConfig.model_json_schema()["properties"]
+    for name in shared:
+        for key in ("default", "minimum", "maximum", "maxLength", "description"):
+            assert body[name].get(key) == job[name].get(key), (name, key)
+    cli = submit_body(build_parser().parse_args(["jobs", "submit"]))  # no flags: nothing overrides JobConfig's
+    assert JobSubmit(**cli).job_config() == JobSubmit().job_config() == JobConfig()
