@@ -1,0 +1,28 @@
+"""The service itself: its health and the dashboard page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import FileResponse, PlainTextResponse, Response
+
+from api.deps import JobControl, control_of
+
+router = APIRouter()
+CONTROL = Depends(control_of)
+STATIC = Path(__file__).resolve().parents[1] / "static"
+
+
+@router.get("/healthz", tags=["service"])
+def healthz(control: JobControl = CONTROL) -> dict[str, Any]:
+    return {"ok": True, "jobs": control.store.count_by_state()}
+
+
+@router.get("/", include_in_schema=False)
+def dashboard() -> Response:
+    index = STATIC / "index.html"
+    if not index.is_file():
+        return PlainTextResponse("dashboard assets missing", status_code=404)
+    return FileResponse(index, media_type="text/html")
