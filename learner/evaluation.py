@@ -45,6 +45,35 @@ class EvalResult:
         return f"{self.mean:.3f} ± {self.ci95:.3f} (95 % CI, {len(self.returns)} episodes, messages: {heard})"
 
 
+def evaluate(
+    env: BatchedEnv, algo: Algorithm, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
+) -> np.ndarray:
+    """Per-episode returns (mean over agents) of ``episodes`` episodes with ε-greedy acting.
+
+    Every env contributes its *first* episode only (in rounds of B envs, reseeded each round): scoring the first
+    episodes to finish would over-sample short ones, i.e. early crashes.
+    """
+    b = env.num_envs
+    out: list[float] = []
+    limit = max_iters or env.spec.max_steps + 1
+    for rnd in range(-(-episodes // b)):
+        obs = env.reset(seed=seed + rnd)
+        state = algo.reset_state(algo.initial_state(b), np.ones(b, dtype=bool))  # nothing in flight from a round
+        ep_ret = np.zeros(b)
+        active = np.ones(b, dtype=bool)
+        for _ in range(limit):
+            act = algo.act(obs, epsilon, state)
+            res = env.step(act.actions)
+            ep_ret += np.where(active, res.reward.mean(axis=1), 0.0)
+            active &= ~res.done
+            if not active.any():
+                break
+            state = algo.reset_state(act.state, res.done)
+            obs = res.obs
+        out.extend(ep_ret.tolist())
+    return np.asarray(out[:episodes], dtype=np.float64)
+
+
 def parse_channel(spec: str, seed: int | None = None) -> MessageChannel:
     """``drop=0.3,flip=0.01,latency=1`` → a channel, or a ConfigError naming ``channel`` and the bad key."""
     try:
@@ -101,7 +130,6 @@ def evaluate_policy(
     fill_lost: Literal["predicted", "zeros"] = "predicted",
 ) -> EvalResult:
     """Returns of ``episodes`` greedy (or ε-greedy) episodes with the agents hearing ``messages``/``channel``."""
-    from learner.inprocess import evaluate
 
     how = listening_for(algo, messages, channel, seed, fill_lost)
     with listening(algo, how):

@@ -20,6 +20,7 @@ import numpy as np
 
 from envs.batched import BatchedEnv
 from envs.rollout import ci95_half
+from learner.evaluation import evaluate
 from learner.metrics import MetricsWriter, plot_curves
 
 
@@ -143,8 +144,6 @@ class Evaluator:
 
     def returns(self, algo: Any, epsilon: float = 0.0) -> np.ndarray:
         """Per-episode returns of ``eval_episodes`` episodes on the fixed evaluation seeds."""
-        from learner.inprocess import evaluate
-
         if self._env is None:
             assert self.make_env is not None
             self._env = self.make_env(min(self.episodes, 256))

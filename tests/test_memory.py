@@ -27,8 +27,7 @@ from learner.agent import make_agent
 from learner.algorithm import Algorithm, Progress
 from learner.algos.codbc import CoDBC
 from learner.checkpoint import load_checkpoint, save_checkpoint
-from learner.evaluation import listening, listening_for
-from learner.inprocess import evaluate
+from learner.evaluation import evaluate, listening, listening_for
 from learner.listening import Listening
 from learner.memory import HISTORY, MemoryModule
 from learner.registry import make_algorithm
