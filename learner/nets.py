@@ -53,7 +53,12 @@ class GroupLinear(nn.Module):
 
 
 class GroupMLP(nn.Module):
-    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits)."""
+    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits).
+
+    ``fused`` (class-wide) sends every forward pass through ``learner.fused_mlp``'s one autograd node; off, the
+    layers run one by one through autograd. ``benchmarks/updates.py`` measures both in the same run."""
+
+    fused = True
 
     def __init__(self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int) -> None:
         super().__init__()
@@ -63,6 +68,10 @@ class GroupMLP(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """All layers in one layout, ``[rows, in]`` (shared) or ``[N, rows, in]`` (per agent), reshaped once, through
         one autograd node (``learner.fused_mlp``: biases folded into widening matmuls, ReLU masks applied in place)."""
+        if not self.fused:
+            for layer in self.layers[:-1]:
+                x = torch.relu(layer(x))
+            return self.layers[-1](x)
         if self.layers[0].groups == 1:
             # views, not ``weight[0]``: a select's backward writes its gradient into a fresh zero tensor
             params = [(la.weight.view(la.weight.shape[1:]), la.bias.view(-1)) for la in self.layers]

@@ -70,3 +70,41 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
         capture_output=True, text=True, timeout=60, cwd=ROOT,
     )  # fmt: skip
     assert bad.returncode != 0 and "unknown variant 'oracle'" in bad.stderr
+
+
+def test_updates_quick_run_compares_fused_plain_and_the_reference(tmp_path) -> None:
+    out = tmp_path / "updates.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "updates.py"), "--quick", "--algos", "idqn", "ma-mesn",
+         "--json", str(out)],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "plain ÷ fused" in proc.stdout and "reference ÷ Convoy" in proc.stdout
+    (size,) = json.loads(out.read_text()).values()
+    assert size["idqn"]["fused_ms"] > 0 and size["ma-mesn"]["plain_ms"] > 0 and size["reference_dqn"]["ms"] > 0
+
+
+def test_the_plain_layer_chain_computes_what_the_fused_node_does() -> None:
+    """``GroupMLP.fused = False`` (the benchmark's other arm) is the same function, values and gradients."""
+    import torch
+
+    from learner.nets import GroupMLP
+
+    for groups in (1, 3):
+        torch.manual_seed(0)
+        mlp = GroupMLP(groups, 7, (16, 5), 4)
+        x = torch.randn(10, 3, 7)
+        outs, grads = [], []
+        for fused in (True, False):
+            GroupMLP.fused = fused
+            try:
+                y = mlp(x)
+                y.square().sum().backward()
+            finally:
+                GroupMLP.fused = True
+            outs.append(y.detach())
+            grads.append([p.grad.clone() for p in mlp.parameters()])
+            mlp.zero_grad()
+        assert torch.allclose(outs[0], outs[1], atol=1e-5)
+        assert all(torch.allclose(a, b, atol=1e-4) for a, b in zip(*grads, strict=True))
