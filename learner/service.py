@@ -275,7 +275,7 @@ class Learner:
                     algo.updates,
                     epsilon_at(cfg, env_steps, job.steps),
                     policy_lag=float(np.mean(lags)) if lags else 0.0,
-                    dropped=float(inbox.drops + sum(self.rejected.values())),
+                    dropped=float(sum(self.dropped_by_reason(inbox).values())),
                     chunks=float(ingested_chunks),
                     **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in self.dropped_by_reason(inbox).items()},
                     **curve,
@@ -308,7 +308,7 @@ class Learner:
             if rows
             else float("nan"),
             **final,
-            "dropped": inbox.drops + sum(self.rejected.values()),
+            "dropped": sum(self.dropped_by_reason(inbox).values()),
             "dropped_by_reason": self.dropped_by_reason(inbox),
         }
         write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")

@@ -15,7 +15,7 @@ import math
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -27,20 +27,46 @@ from protocol.session import ZenohSettings, open_session
 from services.procs import Event, JobFailed, ProcessGroup
 
 
-def drop_report(
-    learner: dict[str, float], actors: Iterable[dict[str, float]], own_role: str, own: Mapping[str, int], unusable: int
-) -> dict[str, dict[str, int]]:
-    """Every message a job dropped, by role and reason: the learner's and the actors' from their last metrics
-    (``dropped_<reason>`` values: counts since each process started), this supervisor's own inbox and the metrics
-    messages it could not use."""
-    summed: collections.Counter[str] = collections.Counter()
-    for values in actors:
-        summed.update(wire.dropped_reasons(values))
-    return {
-        "learner": wire.dropped_reasons(learner),
-        "actors": {"garbage": summed["garbage"], "overflow": summed["overflow"]},
-        own_role: {**dict(own), "unusable-metrics": unusable},
-    }
+class MetricReports:
+    """What a supervisor (``JobRunner``, the job service) hears on a job's ``metrics/**`` keys: each live actor's last
+    report, the learner's last row, and how many messages it could not use. Any well-formed message is survivable:
+    one lacking what it is used for, or from an actor id that is not alive, is counted in ``bad`` and ignored."""
+
+    def __init__(self) -> None:
+        self.actors: dict[str, dict[str, float]] = {}  # bounded: only the job's live actors get an entry
+        self.learner: dict[str, float] = {}
+        self.bad = 0
+
+    def take(self, msg: wire.Message, live: set[str]) -> str:
+        """Sort one message: ``actor``, ``resumed`` (a learner back from its checkpoint), ``row`` (a learner row
+        with a usable step count), ``other`` (a learner message with no row, e.g. its last) or ``bad``."""
+        values, role, ident = msg.body["values"], msg.body["role"], msg.body["id"]
+        kind = "bad"
+        if role == "actor" and (ident in live or ident in self.actors):
+            self.actors[ident], kind = values, "actor"
+        elif role != "learner":
+            pass
+        elif "resumed_updates" in values or "resumed_env_steps" in values:
+            kind = "resumed" if "resumed_updates" in values and "resumed_env_steps" in values else "bad"
+        elif "return" not in values:
+            kind = "other"
+        elif math.isfinite(values.get("env_steps", math.nan)) and values["env_steps"] >= 0:
+            self.learner, kind = values, "row"
+        self.bad += kind == "bad"
+        return kind
+
+    def dropped(self, own_role: str, own: Mapping[str, int]) -> dict[str, dict[str, int]]:
+        """Every message the job dropped, by role and reason: the learner's and the actors' from their last metrics
+        (``dropped_<reason>`` values: counts since each process started), the supervisor's own inbox (``own``) and
+        the metrics messages it could not use."""
+        summed: collections.Counter[str] = collections.Counter()
+        for values in self.actors.values():
+            summed.update(wire.dropped_reasons(values))
+        return {
+            "learner": wire.dropped_reasons(self.learner),
+            "actors": {"garbage": summed["garbage"], "overflow": summed["overflow"]},
+            own_role: {**dict(own), "unusable-metrics": self.bad},
+        }
 
 
 class AliveSet:
@@ -94,10 +120,9 @@ class JobRunner:
         self.group: ProcessGroup | None = None
         self.alive: AliveSet | None = None
         self.last_row: dict[str, float] = {}
-        self.actor_metrics: dict[str, dict[str, float]] = {}
+        self.reports = MetricReports()
         self.events: list[Event] = []
         self.resumes: list[dict[str, float]] = []
-        self.bad_metrics = 0  # well-formed metrics messages that were not usable (missing fields, unknown sender)
         self.started = threading.Event()
         self._stop = threading.Event()
 
@@ -161,43 +186,27 @@ class JobRunner:
 
     def drop_report(self, metrics: Inbox) -> dict[str, Any]:
         """What the learner's ``dropped_by_reason`` does not see: the actors' drops and the supervisor's own."""
-        report = drop_report({}, self.actor_metrics.values(), "supervisor", metrics.dropped, self.bad_metrics)
+        report = self.reports.dropped("supervisor", metrics.dropped)
         report.pop("learner")
         return report
 
     def _metric(self, msg: wire.Message, display: ProgressDisplay) -> None:
-        """Take in one metrics message. Any well-formed one is survivable: a row lacking what it is used for, or an
-        actor id that is not alive, is counted in ``bad_metrics`` and ignored."""
-        values, role, ident = msg.body["values"], msg.body["role"], msg.body["id"]
+        """Take in one metrics message (``MetricReports.take``): a learner resume is said, a learner row shown."""
         live = self.alive.ids("actor") if self.alive else set()
-        if role == "actor":
-            if ident in live or ident in self.actor_metrics:
-                self.actor_metrics[ident] = values
-            else:  # not one of this job's live actors: keeping it would let a peer grow this dict without bound
-                self.bad_metrics += 1
-            return
-        if role != "learner":
-            self.bad_metrics += 1
-            return
-        if "resumed_updates" in values:
-            if "resumed_env_steps" not in values:
-                self.bad_metrics += 1
-                return
+        kind, values = self.reports.take(msg, live), msg.body["values"]
+        if kind == "resumed":
             self.resumes.append(values)
             print(
                 f"[resumed] learner from its checkpoint: {values['resumed_env_steps']:,.0f} env steps, "
                 f"{values['resumed_updates']:,.0f} updates, {values.get('resumed_replay_rows', 0):,.0f} replay rows",
                 flush=True,
             )
-        if "return" not in values:
-            return
-        if not math.isfinite(values.get("env_steps", math.nan)) or values["env_steps"] < 0:
-            self.bad_metrics += 1
+        if kind != "row":
             return
         row = dict(values)
         row["actors_alive"] = float(self.alive.count("actor")) if self.alive else math.nan
         row["actor_env_steps_per_s"] = sum(
-            m.get("env_steps_per_s", 0.0) for i, m in self.actor_metrics.items() if i in live
+            m.get("env_steps_per_s", 0.0) for i, m in self.reports.actors.items() if i in live
         )
         self.last_row = row
         display.update(int(row["env_steps"]), row)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
-import math
 import os
 import re
 import secrets
@@ -44,7 +43,7 @@ from protocol import keys, wire
 from protocol.config import ConfigError, JobConfig, ResourceLimits, job_config
 from protocol.inbox import Inbox
 from protocol.session import ZenohSettings, free_port, loopback, open_session, read_credentials, write_credentials
-from services.jobrunner import AliveSet, drop_report
+from services.jobrunner import AliveSet, MetricReports
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
@@ -78,15 +77,7 @@ class Tracked:
         self.sub = session.declare_subscriber(keys.metrics_all(rec.id), self.inbox)
         self.stop_asked: float | None = None
         self.ckpt_mtime = 0.0
-        self.actor_metrics: dict[str, dict[str, float]] = {}  # each live actor's last report (its drop counts)
-        self.learner_values: dict[str, float] = {}  # the learner's last row
-        self.bad_metrics = 0  # metrics messages this service could not use
-
-    def dropped(self) -> dict[str, dict[str, int]]:
-        """The job's dropped messages by role and reason, as far as this service has heard."""
-        return drop_report(
-            self.learner_values, self.actor_metrics.values(), "service", self.inbox.dropped, self.bad_metrics
-        )
+        self.reports = MetricReports()
 
     def exited(self) -> int | None:
         """The host's exit code once it has exited (−1 when it was not our child), else None."""
@@ -285,22 +276,15 @@ class JobService:
         messages = tracked.inbox.drain()
         live = tracked.alive.ids("actor") if messages else set()
         for msg in messages:
-            values, role, ident = msg.body["values"], msg.body["role"], msg.body["id"]
-            if role == "actor" and (ident in live or ident in tracked.actor_metrics):
-                tracked.actor_metrics[ident] = values  # bounded: only the job's live actors get an entry
-            elif role != "learner":
-                tracked.bad_metrics += 1
-            elif "resumed_env_steps" in values:
+            kind, values = tracked.reports.take(msg, live), msg.body["values"]
+            if kind == "resumed":
                 self.store.cut_metrics(job_id, int(values["resumed_env_steps"]))
-            elif "return" in values and math.isfinite(values.get("env_steps", math.nan)) and values["env_steps"] >= 0:
+            elif kind == "row":
                 row = {**values, "env_steps": int(values["env_steps"]), "actors_alive": tracked.alive.count("actor")}
                 rows.append(row)
                 progress.update({k: row[k] for k in PROGRESS_KEYS if k in row})
-                tracked.learner_values = values
-            elif "done" not in values:
-                tracked.bad_metrics += 1
         if messages:
-            progress["dropped"] = tracked.dropped()
+            progress["dropped"] = tracked.reports.dropped("service", tracked.inbox.dropped)
         if rows:
             last = self.store.last_step(job_id) or 0
             every = int(self.store.get(job_id).config.get("log_every", 0)) or 1

@@ -104,7 +104,7 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
     from protocol.config import job_config
     from protocol.session import ZenohSettings, open_session, read_credentials
     from services.jobservice import CREDENTIALS_FILE
-    from tests.test_runtime import hostile_chunks
+    from tests.test_runtime import hostile_chunks, wait_for
 
     data = tmp_path / "svc"
     svc = Service(data).start()
@@ -122,7 +122,7 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
             weights = session.declare_publisher(keys.weights(job), congestion_control=block)
             metrics = session.declare_publisher(keys.metrics(job, "learner", "0"), congestion_control=block)
             for pub in (chunks, weights, metrics):
-                assert _matches(pub), "the insider reaches the job"
+                wait_for(lambda p=pub: p.matching_status.matching, 10, "the insider to reach the job")
             for _reason, body in hostile_chunks(job_config(**config)) * 3:
                 chunks.put(wire.encode("chunk", body, "insider"))
             for i in range(50):
@@ -147,15 +147,6 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
         assert f'convoy_job_dropped_messages{{job="{job}",reason="garbage",role="actors"}}' in text
     finally:
         svc.stop()
-
-
-def _matches(pub: object, timeout: float = 10.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if pub.matching_status.matching:  # type: ignore[attr-defined]
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_a_failed_jobs_status_carries_the_cause_from_its_process_log(tmp_path: Path) -> None:

@@ -217,8 +217,8 @@ def test_actor_count_scales_live_and_every_actor_delivers(tmp_path: Path) -> Non
     def rates(ids: int) -> list[float]:
         wait_for(lambda: runner.alive.count("actor") == ids, 60, f"{ids} actors alive")
         live = runner.alive.ids("actor")
-        wait_for(lambda: live <= set(runner.actor_metrics), 60, f"metrics from all {ids} live actors")
-        return [runner.actor_metrics[i]["env_steps_per_s"] for i in live]
+        wait_for(lambda: live <= set(runner.reports.actors), 60, f"metrics from all {ids} live actors")
+        return [runner.reports.actors[i]["env_steps_per_s"] for i in live]
 
     with Background(runner):
         one = rates(1)
@@ -282,7 +282,7 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
             time.sleep(1.5)  # the actor reports drops in its next metrics message
         finally:
             session.close()
-        actor_drops = max(m.get("dropped", 0) for m in runner.actor_metrics.values())
+        actor_drops = max(m.get("dropped", 0) for m in runner.reports.actors.values())
         summary = bg.join(120)
     assert not [e for e in runner.events if e.kind in ("crashed", "failed")], runner.events
     assert summary["env_steps"] >= job.steps
@@ -291,7 +291,7 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
     expected = collections.Counter(reason for reason, _ in hostile)
     for reason, n in expected.items():  # each well-formed hostile chunk was refused for its reason, none inserted
         assert summary["dropped_by_reason"].get(reason, 0) >= n * HOSTILE_REPEATS, summary["dropped_by_reason"]
-    assert runner.bad_metrics >= 1
+    assert runner.reports.bad >= 1
     elsewhere = summary["dropped_elsewhere"]  # the job's summary also counts what actors and the supervisor dropped
     assert elsewhere["actors"]["garbage"] >= sent[1] + sent[2] - 5
     assert sum(elsewhere["supervisor"].values()) >= sent[3] + 1
