@@ -18,16 +18,15 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from envs import make_batched
-from learner.agent import make_agent
-from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.stepping import EnvStepper
-from protocol import keys, wire
-from protocol.config import JobConfig
-from protocol.exitcodes import STOPPED, ParentWatch
-from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, open_session
+from convoy.envs import make_batched
+from convoy.learner.agent import make_agent
+from convoy.learner.algorithm import Algorithm, Progress, epsilon_at
+from convoy.learner.stepping import EnvStepper
+from convoy.protocol import keys, wire
+from convoy.protocol.config import JobConfig
+from convoy.protocol.exitcodes import STOPPED, ParentWatch
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.session import ZenohSettings, open_session
 
 METRICS_EVERY_S = 1.0
 

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from convoy.api.deps import JobControl
+from convoy.api.errors import ERROR_RESPONSES, install_error_handlers
+from convoy.api.routes import jobs, metrics, service
+from convoy.api.routes.service import STATIC
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
-
-from api.deps import JobControl
-from api.errors import ERROR_RESPONSES, install_error_handlers
-from api.routes import jobs, metrics, service
-from api.routes.service import STATIC
 
 
 def create_app(control: JobControl, token: str) -> FastAPI:

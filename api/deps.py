@@ -11,12 +11,11 @@ import secrets
 from pathlib import Path
 from typing import Any, Protocol
 
+from convoy.api.errors import ApiError
+from convoy.api.models import EvalRequest, JobView, Progress
+from convoy.api.store import JobRecord, JobState, JobStore
+from convoy.protocol.config import JobConfig
 from fastapi import Request
-
-from api.errors import ApiError
-from api.models import EvalRequest, JobView, Progress
-from api.store import JobRecord, JobState, JobStore
-from protocol.config import JobConfig
 
 PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"

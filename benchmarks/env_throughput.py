@@ -129,7 +129,7 @@ class Case:
 
 # --------------------------------------------------------------------------------------------- the cases
 def treadmill_case(num_envs: int, n_agents: int, seconds: float, seed: int) -> Case:
-    from envs.treadmill import N_ACTIONS, TreadmillConfig, TreadmillEngine
+    from convoy.envs.treadmill import N_ACTIONS, TreadmillConfig, TreadmillEngine
 
     engine = TreadmillEngine(TreadmillConfig(n_agents=n_agents, n_adversaries=1), num_envs=num_envs)
     engine.reset(seed)
@@ -183,7 +183,7 @@ def mpe_case(seconds: float, seed: int) -> Case:
 
 
 def adapter_case(num_envs: int, seconds: float, seed: int) -> Case:
-    from envs.registry import make_batched
+    from convoy.envs.registry import make_batched
 
     batch = make_batched("speaker-listener", num_envs=num_envs)
     batch.reset(seed)

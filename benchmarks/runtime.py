@@ -194,11 +194,11 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
     ``learner.stepping.EnvStepper`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
     learner's transition schema (field → dtype, per-step shape) and the transitions per chunk."""
 
-    from envs import make_batched
-    from learner.agent import make_agent
-    from learner.stepping import EnvStepper
-    from protocol import wire
-    from protocol.config import job_config
+    from convoy.envs import make_batched
+    from convoy.learner.agent import make_agent
+    from convoy.learner.stepping import EnvStepper
+    from convoy.protocol import wire
+    from convoy.protocol.config import job_config
 
     job = job_config(algo=ALGO, env=ENV, num_envs=num_envs, seed=seed, device="cpu", algo_params={"hidden": (32, 12)})
     env = make_batched(ENV, num_envs)
@@ -225,8 +225,7 @@ def _ingest_publisher(
     done: Any, out_q: Any,
 ) -> None:  # fmt: skip
     import zenoh
-
-    from protocol.session import open_session
+    from convoy.protocol.session import open_session
 
     session = open_session(settings)
     try:
@@ -255,7 +254,7 @@ def _ingest_subscriber(
     settings: Any, key: str, warm_key: str, mode: str, n: int, window: int, schema: dict[str, Any], capacity: int,
     progress: Any, ready: Any, done: Any, out_q: Any,
 ) -> None:  # fmt: skip
-    from protocol.session import open_session
+    from convoy.protocol.session import open_session
 
     session = open_session(settings)
     try:
@@ -280,9 +279,8 @@ def _ingest_subscriber(
             out_q.put(("sub", {"t_last": counts["t_last"], "msgs": counts["msgs"], "bytes": counts["bytes"]}))
         else:
             import numpy as np
-
-            from learner.replay import JointReplay
-            from protocol.inbox import Inbox
+            from convoy.learner.replay import JointReplay
+            from convoy.protocol.inbox import Inbox
 
             inbox = Inbox({"chunk"}, maxlen=window + 8)
             declared.append(session.declare_subscriber(key, inbox))
@@ -323,7 +321,7 @@ def _ingest_subscriber(
 
 def ingest_once(mode: str, payloads: list[bytes], n: int, window: int, schema: dict[str, Any], tag: str) -> dict:
     """One publisher → one subscriber transfer of ``n`` chunks; seconds from the first put to the last ingest."""
-    from protocol.session import ZenohSettings, open_session
+    from convoy.protocol.session import ZenohSettings, open_session
 
     root = ZenohSettings().rooted()  # this process is the router, as a job's runner is; both ends are its clients
     router = open_session(root)
@@ -372,9 +370,8 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
     """Seconds for the Convoy ingest work alone on ``n`` chunks in this process (Inbox.offer + get, schema check,
     episode clock, JointReplay.add): what the transport adds is the rest."""
     import numpy as np
-
-    from learner.replay import JointReplay
-    from protocol.inbox import Inbox
+    from convoy.learner.replay import JointReplay
+    from convoy.protocol.inbox import Inbox
 
     inbox, replay = Inbox({"chunk"}, maxlen=8), JointReplay(100_000)
     t0 = time.perf_counter()
@@ -390,7 +387,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
 
 
 def part_ingest(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
-    from protocol.config import RuntimeConfig
+    from convoy.protocol.config import RuntimeConfig
 
     t_len, envs = RuntimeConfig().publish_steps, args.ingest_envs
     payloads, schema, per_chunk = make_chunks(envs, t_len, args.ingest_pool, args.seed)
@@ -463,12 +460,12 @@ def _weights_subscriber(sub_id: int, settings: Any, hidden: tuple[int, ...], cmd
     import torch
 
     torch.set_num_threads(1)
-    from actors.actor import load_weights
-    from envs import make_batched
-    from learner.agent import make_agent
-    from protocol.config import job_config
-    from protocol.inbox import Inbox
-    from protocol.session import open_session
+    from convoy.actors.actor import load_weights
+    from convoy.envs import make_batched
+    from convoy.learner.agent import make_agent
+    from convoy.protocol.config import job_config
+    from convoy.protocol.inbox import Inbox
+    from convoy.protocol.session import open_session
 
     env = make_batched(ENV, 1)
     spec = env.spec
@@ -530,8 +527,7 @@ def broadcast_round(
     nbytes: int,
 ) -> dict[str, Any]:  # fmt: skip
     import zenoh
-
-    from protocol import keys, wire
+    from convoy.protocol import keys, wire
 
     job_id = f"bench-{os.getpid()}-{rnd}"
     key, warm_key = keys.weights(job_id), keys.ctl(job_id, "warm")
@@ -605,11 +601,11 @@ def broadcast_round(
 
 
 def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
-    from envs import make_batched
-    from learner.agent import make_agent
-    from protocol import wire
-    from protocol.config import job_config
-    from protocol.session import ZenohSettings, open_session
+    from convoy.envs import make_batched
+    from convoy.learner.agent import make_agent
+    from convoy.protocol import wire
+    from convoy.protocol.config import job_config
+    from convoy.protocol.session import ZenohSettings, open_session
 
     hidden = tuple(args.weights_hidden)
     env = make_batched(ENV, 1)
@@ -708,8 +704,7 @@ def steady(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 def env_only_rate(num_envs: int, seconds: float, seed: int) -> float:
     import numpy as np
-
-    from envs import make_batched
+    from convoy.envs import make_batched
 
     env = make_batched(ENV, num_envs)
     rng = np.random.default_rng(seed)
@@ -726,7 +721,7 @@ def env_only_rate(num_envs: int, seconds: float, seed: int) -> float:
 
 
 def scaling_job(args: argparse.Namespace, actors: int) -> Any:
-    from protocol.config import job_config
+    from convoy.protocol.config import job_config
 
     return job_config(
         algo=ALGO,
@@ -743,9 +738,9 @@ def scaling_job(args: argparse.Namespace, actors: int) -> Any:
 
 
 def part_scaling(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, Any]]:
-    from learner.metrics import read_rows
-    from services.jobrunner import JobRunner
-    from services.training import run_inprocess
+    from convoy.learner.metrics import read_rows
+    from convoy.services.jobrunner import JobRunner
+    from convoy.services.training import run_inprocess
 
     results: list[dict[str, Any]] = []
     for actors in args.actors:
@@ -829,10 +824,20 @@ def threshold_job(args: argparse.Namespace, seed: int) -> dict[str, Any]:
 
 def time_to_threshold(cfg: Path, out: Path, inprocess: bool, args: argparse.Namespace) -> dict[str, Any]:
     """Run ``convoy train`` as a subprocess, watch its metrics rows, stop it once the threshold is reached."""
-    from learner.metrics import read_rows
+    from convoy.learner.metrics import read_rows
 
     shutil.rmtree(out, ignore_errors=True)  # a learner resumes from a checkpoint it finds there
-    cmd = [sys.executable, "-m", "services.cli", "train", "--config", str(cfg), "--out", str(out), "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "convoy.services.cli",
+        "train",
+        "--config",
+        str(cfg),
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     if inprocess:
         cmd.append("--inprocess")
     logfile = out.with_suffix(".log")

@@ -41,12 +41,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
+from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
+from convoy.envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 from scipy import stats  # noqa: E402
-
-from envs.treadmill.config import TreadmillConfig  # noqa: E402
-from envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
 
 HELD_OUT_SEED = 50_000  # best.pt is chosen on seed + 10,000 (learner.runlog.EVAL_SEED_OFFSET); scored here
 
@@ -82,8 +81,8 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     """One ``convoy train --inprocess`` run in its own process (one torch thread); its summary."""
     algo, flags = variant_flags(name)
     out = Path(args.out) / f"{name}-s{seed}"
-    cmd = [sys.executable, "-m", "services.cli", "train", "--inprocess", "--algo", algo, "--steps", str(args.steps),
-           "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress",
+    cmd = [sys.executable, "-m", "convoy.services.cli", "train", "--inprocess", "--algo", algo,
+           "--steps", str(args.steps), "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress",
            "--eval-every", str(args.eval_every)]  # fmt: skip
     cmd += flags
     for hp in args.hp or []:
@@ -106,10 +105,10 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
 def held_out(run: dict, episodes: int, analyze: bool, samples: int) -> dict:
     """best.pt's greedy return on held-out seeds; for communicating algorithms the analysis of best.pt and of the
     last checkpoint (best.pt is picked on the greedy curve, which can favour a policy that ignores its messages)."""
-    from learner.analysis import analyze as analyze_policy
-    from learner.checkpoint import load_checkpoint
-    from learner.evaluation import evaluate_policy
-    from services.training import make_env
+    from convoy.learner.analysis import analyze as analyze_policy
+    from convoy.learner.checkpoint import load_checkpoint
+    from convoy.learner.evaluation import evaluate_policy
+    from convoy.services.training import make_env
 
     out: dict = {}
     checkpoints = (("best.pt", "analysis"), ("checkpoint.pt", "analysis_last"))

@@ -24,13 +24,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from convoy.envs.config import build_config  # noqa: E402
+from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
+from convoy.envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
+from convoy.services.args import parse_pairs  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
-
-from envs.config import build_config  # noqa: E402
-from envs.treadmill import TreadmillConfig  # noqa: E402
-from envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
-from services.args import parse_pairs  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,18 +5,17 @@ of Convoy's, so every other package can depend on it.
 """
 
 import gymnasium
-
-from envs.batched import BatchedEnv, EnvSpec, StepResult
-from envs.channel import ChannelConfig, MessageChannel
-from envs.config import ConfigError
-from envs.registry import ENVS, make_batched, make_parallel
+from convoy.envs.batched import BatchedEnv, EnvSpec, StepResult
+from convoy.envs.channel import ChannelConfig, MessageChannel
+from convoy.envs.config import ConfigError
+from convoy.envs.registry import ENVS, make_batched, make_parallel
 
 TREADMILL_GYM_ID = "convoy/Treadmill-v0"
 
 if TREADMILL_GYM_ID not in gymnasium.registry:
     gymnasium.register(
         id=TREADMILL_GYM_ID,
-        entry_point="envs.treadmill.gym_env:TreadmillGymEnv",
+        entry_point="convoy.envs.treadmill.gym_env:TreadmillGymEnv",
         max_episode_steps=None,  # the env truncates itself at its own max_steps
     )
 

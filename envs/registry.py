@@ -6,12 +6,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from convoy.envs.batched import BatchedEnv
+from convoy.envs.config import ConfigError, build_config
+from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel
-
-from envs.batched import BatchedEnv
-from envs.config import ConfigError, build_config
-from envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
 
 
 @dataclass(frozen=True)
@@ -32,7 +31,7 @@ def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
 
 
 def _treadmill_references(params: dict[str, Any], episodes: int, seed: int) -> dict[str, tuple[float, float]]:
-    from envs.treadmill.references import summary_references
+    from convoy.envs.treadmill.references import summary_references
 
     return summary_references(build_config(TreadmillConfig, **params), episodes, seed)
 
@@ -41,7 +40,7 @@ def _particle(name: str, summary: str, config: str) -> EnvEntry:
     """Particle envs are imported on first use: mpe2 costs half a second and the treadmill never needs it."""
 
     def attr(attribute: str) -> Any:
-        import envs.particle as particle
+        import convoy.envs.particle as particle
 
         return getattr(particle, attribute)
 

@@ -9,8 +9,7 @@ vectorised, batch-independent and fast.
 from __future__ import annotations
 
 import numpy as np
-
-from envs.batched import env_seeds
+from convoy.envs.batched import env_seeds
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)

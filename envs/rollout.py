@@ -12,8 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-from envs.batched import BatchedEnv, EnvSpec
+from convoy.envs.batched import BatchedEnv, EnvSpec
 
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [B, N, D] -> actions [B, N]
 

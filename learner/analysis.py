@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from envs.batched import BatchedEnv
-from envs.config import ConfigError
-from learner.algorithm import Algorithm
-from learner.comm_metrics import (
+from convoy.envs.batched import BatchedEnv
+from convoy.envs.config import ConfigError
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,
     instantaneous_coordination,
@@ -39,9 +38,9 @@ from learner.comm_metrics import (
     speaker_consistency,
     symbols,
 )
-from learner.evaluation import evaluate_policy
-from learner.listening import HearsMessages
-from learner.memory import MemoryModule
+from convoy.learner.evaluation import evaluate_policy
+from convoy.learner.listening import HearsMessages
+from convoy.learner.memory import MemoryModule
 
 
 @dataclass

@@ -14,14 +14,13 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-
-from envs.batched import BatchedEnv
-from envs.channel import MessageChannel
-from envs.config import ConfigError
-from envs.rollout import ci95_half
-from learner.algorithm import Algorithm
-from learner.listening import HearsMessages, Listening, Source
-from learner.memory import MemoryModule
+from convoy.envs.batched import BatchedEnv
+from convoy.envs.channel import MessageChannel
+from convoy.envs.config import ConfigError
+from convoy.envs.rollout import ci95_half
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.listening import HearsMessages, Listening, Source
+from convoy.learner.memory import MemoryModule
 
 
 @dataclass(frozen=True)

@@ -16,13 +16,12 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from envs.batched import BatchedEnv
-from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import BEST_CHECKPOINT, save_checkpoint
-from learner.runlog import Evaluator, RunLog, write_artefacts
-from learner.stepping import EnvStepper
-from protocol.config import JobConfig
+from convoy.envs.batched import BatchedEnv
+from convoy.learner.algorithm import Algorithm, Progress, epsilon_at
+from convoy.learner.checkpoint import BEST_CHECKPOINT, save_checkpoint
+from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
+from convoy.learner.stepping import EnvStepper
+from convoy.protocol.config import JobConfig
 
 
 @dataclass

@@ -23,12 +23,11 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
+from convoy.envs.channel import MessageChannel
+from convoy.envs.config import ConfigError
+from convoy.learner.nets import signalling_loss
+from convoy.protocol.config import MessageSource
 from torch import Tensor, nn
-
-from envs.channel import MessageChannel
-from envs.config import ConfigError
-from learner.nets import signalling_loss
-from protocol.config import MessageSource
 
 Source = MessageSource
 SOURCES: tuple[str, ...] = get_args(Source)

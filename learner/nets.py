@@ -14,12 +14,11 @@ from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
+from convoy.learner.fused_mlp import fused_mlp
 from torch import Tensor, nn
 
-from learner.fused_mlp import fused_mlp
-
 if TYPE_CHECKING:
-    from protocol.config import GumbelConfig
+    from convoy.protocol.config import GumbelConfig
 
 
 def pick_device(name: str = "auto") -> torch.device:

@@ -5,21 +5,20 @@ from __future__ import annotations
 import importlib
 
 import torch
-
-from envs.batched import EnvSpec
-from learner.algorithm import Algorithm
-from protocol.config import AlgoConfig, algo_name
+from convoy.envs.batched import EnvSpec
+from convoy.learner.algorithm import Algorithm
+from convoy.protocol.config import AlgoConfig, algo_name
 
 ALGORITHMS: dict[str, str] = {
-    "idqn": "learner.algos.idqn:IndependentDQN",
-    "dqn-ser": "learner.algos.dqn_ser:DQNSER",
-    "dial": "learner.algos.dial:DIAL",
-    "ims": "learner.algos.ims:IMS",
-    "ma-mesn": "learner.algos.ma_mesn:MAMeSN",
-    "ma-bon": "learner.algos.ma_bon:MABoN",
-    "ma-mesn-mm": "learner.algos.ma_mesn_mm:MAMeSNMM",
-    "ma-bon-mm": "learner.algos.ma_bon_mm:MABoNMM",
-    "codbc": "learner.algos.codbc:CoDBC",
+    "idqn": "convoy.learner.algos.idqn:IndependentDQN",
+    "dqn-ser": "convoy.learner.algos.dqn_ser:DQNSER",
+    "dial": "convoy.learner.algos.dial:DIAL",
+    "ims": "convoy.learner.algos.ims:IMS",
+    "ma-mesn": "convoy.learner.algos.ma_mesn:MAMeSN",
+    "ma-bon": "convoy.learner.algos.ma_bon:MABoN",
+    "ma-mesn-mm": "convoy.learner.algos.ma_mesn_mm:MAMeSNMM",
+    "ma-bon-mm": "convoy.learner.algos.ma_bon_mm:MABoNMM",
+    "codbc": "convoy.learner.algos.codbc:CoDBC",
 }
 
 

@@ -17,11 +17,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from envs.batched import BatchedEnv
-from envs.rollout import ci95_half
-from learner.evaluation import evaluate
-from learner.metrics import MetricsWriter, plot_curves
+from convoy.envs.batched import BatchedEnv
+from convoy.envs.rollout import ci95_half
+from convoy.learner.evaluation import evaluate
+from convoy.learner.metrics import MetricsWriter, plot_curves
 
 
 class RunLog:
@@ -175,7 +174,7 @@ class Evaluator:
             return {"eval_return": nan, "eval_ci95": nan, "random_return": nan, "references": {}}
         greedy, rand = self.returns(algo), self.returns(algo, epsilon=1.0)
         refs: dict[str, tuple[float, float]] = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
-        from envs.registry import env_entry
+        from convoy.envs.registry import env_entry
 
         table = env_entry(self.env_name).references
         if table is not None:

@@ -26,11 +26,10 @@ from typing import Any
 
 import numpy as np
 import torch
-
-from envs import make_batched
-from learner.agent import make_agent
-from learner.algorithm import Algorithm, Progress, epsilon_at
-from learner.checkpoint import (
+from convoy.envs import make_batched
+from convoy.learner.agent import make_agent
+from convoy.learner.algorithm import Algorithm, Progress, epsilon_at
+from convoy.learner.checkpoint import (
     BEST_CHECKPOINT,
     REPLAY_FILE,
     CheckpointError,
@@ -39,14 +38,14 @@ from learner.checkpoint import (
     save_checkpoint,
     save_replay,
 )
-from learner.runlog import Evaluator, RunLog, write_artefacts
-from learner.runtime import configure_learner
-from learner.stepping import EnvStepper
-from protocol import keys, wire
-from protocol.config import ConfigError, JobConfig, job_config
-from protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
-from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, open_session
+from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
+from convoy.learner.runtime import configure_learner
+from convoy.learner.stepping import EnvStepper
+from convoy.protocol import keys, wire
+from convoy.protocol.config import ConfigError, JobConfig, job_config
+from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.session import ZenohSettings, open_session
 
 WEIGHTS_EVERY_S = 1.0
 WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights

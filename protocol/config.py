@@ -12,10 +12,9 @@ from __future__ import annotations
 import itertools
 from typing import Any, ClassVar, Literal, get_args
 
+from convoy.envs.config import ConfigError, build_config
+from convoy.protocol.session import ZenohSettings
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-
-from envs.config import ConfigError, build_config
-from protocol.session import ZenohSettings
 
 Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
@@ -494,7 +493,7 @@ class JobConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> JobConfig:
-        from envs.registry import env_entry
+        from convoy.envs.registry import env_entry
 
         object.__setattr__(self, "algo", algo_name(self.algo))
         entry = env_entry(self.env)
@@ -524,13 +523,13 @@ class JobConfig(BaseModel):
 
     def env_config(self) -> BaseModel:
         """The env's validated parameter model."""
-        from envs.registry import env_entry
+        from convoy.envs.registry import env_entry
 
         return build_config(env_entry(self.env).config(), **self.env_params)
 
 
 def _env_table() -> dict[str, Any]:
-    from envs.registry import ENVS
+    from convoy.envs.registry import ENVS
 
     return ENVS
 

@@ -13,7 +13,7 @@ import threading
 from collections.abc import Iterable
 from typing import Any
 
-from protocol.wire import Message, WireError, decode
+from convoy.protocol.wire import Message, WireError, decode
 
 
 class Inbox:

@@ -9,18 +9,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from convoy.envs import ENVS, ConfigError, make_batched
+from convoy.envs.config import allowed_range, build_config
+from convoy.envs.registry import env_entry
+from convoy.envs.rollout import RolloutResult, random_policy, rollout
+from convoy.envs.treadmill.references import REFERENCES
+from convoy.learner.errors import CheckpointError
+from convoy.services.args import env_params
+from convoy.services.procs import JobFailed
 from pydantic import ValidationError
 from rich.console import Console
 from rich.table import Table
-
-from envs import ENVS, ConfigError, make_batched
-from envs.config import allowed_range, build_config
-from envs.registry import env_entry
-from envs.rollout import RolloutResult, random_policy, rollout
-from envs.treadmill.references import REFERENCES
-from learner.errors import CheckpointError
-from services.args import env_params
-from services.procs import JobFailed
 
 console = Console()
 err_console = Console(stderr=True)
@@ -64,7 +63,7 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
         raise ConfigError("--gif", "only the treadmill renders GIFs so far; drop --gif")
     render = None
     if is_treadmill:
-        from envs.treadmill import TreadmillConfig, TreadmillEngine, reference_policy, render_frame
+        from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, reference_policy, render_frame
 
         cfg = build_config(TreadmillConfig, **params)
         env = TreadmillEngine(cfg, args.episodes, autoreset=False)  # keeps each episode's last frame for the GIF
@@ -76,7 +75,7 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
     result = rollout(env, policy, seed=args.seed, render=render)
     _print_rollout(args, env.spec.agent_ids, result)
     if args.gif:
-        from envs.treadmill import write_gif
+        from convoy.envs.treadmill import write_gif
 
         Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
         write_gif(result.frames, args.gif)
@@ -212,11 +211,11 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
     ro.set_defaults(func=cmd_env_rollout)
 
-    from services.eval_cmd import add_eval_parsers
-    from services.jobs_cmd import add_jobs_parser
-    from services.roles_cmd import add_role_parsers
-    from services.serve_cmd import add_serve_parser
-    from services.train_cmd import add_train_parser
+    from convoy.services.eval_cmd import add_eval_parsers
+    from convoy.services.jobs_cmd import add_jobs_parser
+    from convoy.services.roles_cmd import add_role_parsers
+    from convoy.services.serve_cmd import add_serve_parser
+    from convoy.services.train_cmd import add_train_parser
 
     add_train_parser(sub)
     add_eval_parsers(sub)

@@ -16,11 +16,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from protocol import keys
-from protocol.config import JobConfig
-from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, open_session
-from services.procs import JobFailed, ProcessGroup
+from convoy.protocol import keys
+from convoy.protocol.config import JobConfig
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.session import ZenohSettings, open_session
+from convoy.services.procs import JobFailed, ProcessGroup
 
 
 class HostAgent:

@@ -19,12 +19,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from learner.runlog import ProgressDisplay
-from protocol import keys, wire
-from protocol.config import JobConfig
-from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, open_session
-from services.procs import Event, JobFailed, ProcessGroup
+from convoy.learner.runlog import ProgressDisplay
+from convoy.protocol import keys, wire
+from convoy.protocol.config import JobConfig
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.session import ZenohSettings, open_session
+from convoy.services.procs import Event, JobFailed, ProcessGroup
 
 
 class MetricReports:

@@ -36,14 +36,21 @@ import time
 from pathlib import Path
 from typing import Any
 
-from api.models import EvalRequest
-from api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
-from learner.metrics import read_rows
-from protocol import keys, wire
-from protocol.config import ConfigError, JobConfig, ResourceLimits, job_config
-from protocol.inbox import Inbox
-from protocol.session import ZenohSettings, free_port, loopback, open_session, read_credentials, write_credentials
-from services.jobrunner import AliveSet, MetricReports
+from convoy.api.models import EvalRequest
+from convoy.api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
+from convoy.learner.metrics import read_rows
+from convoy.protocol import keys, wire
+from convoy.protocol.config import ConfigError, JobConfig, ResourceLimits, job_config
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.session import (
+    ZenohSettings,
+    free_port,
+    loopback,
+    open_session,
+    read_credentials,
+    write_credentials,
+)
+from convoy.services.jobrunner import AliveSet, MetricReports
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
@@ -206,10 +213,10 @@ class JobService:
         return path
 
     def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]:
-        from learner.checkpoint import load_checkpoint
-        from learner.errors import CheckpointError
-        from learner.evaluation import evaluate_policy
-        from services.training import make_env
+        from convoy.learner.checkpoint import load_checkpoint
+        from convoy.learner.errors import CheckpointError
+        from convoy.learner.evaluation import evaluate_policy
+        from convoy.services.training import make_env
 
         path = self._out(job_id) / "checkpoint.pt"
         try:
@@ -353,7 +360,7 @@ class JobService:
         config["runtime"] = runtime
         (out / "job.json").write_text(json.dumps(config, indent=2))
         cmd = [
-            self.python, "-m", "services.cli", "host", "--job-id", rec.id, "--name", host_name(rec.id),
+            self.python, "-m", "convoy.services.cli", "host", "--job-id", rec.id, "--name", host_name(rec.id),
             "--roles", "learner,actor", "--actors", str(rec.actors), "--out", str(out),
             "--config", str(out / "job.json"),
         ]  # fmt: skip

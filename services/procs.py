@@ -25,14 +25,14 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from protocol.config import JobConfig
-from protocol.exitcodes import DIVERGED
-from protocol.session import ZenohSettings
+from convoy.protocol.config import JobConfig
+from convoy.protocol.exitcodes import DIVERGED
+from convoy.protocol.session import ZenohSettings
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
 # torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's
 # first update while every actor waits for it.
-PRELOAD = ["actors.actor", "learner.agent", "learner.service", "torch._dynamo"]
+PRELOAD = ["convoy.actors.actor", "convoy.learner.agent", "convoy.learner.service", "torch._dynamo"]
 SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
 MAX_BACKOFF_S = 30.0
 
@@ -49,13 +49,13 @@ _CTX = _context()
 
 
 def _actor_main(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int) -> None:
-    from actors.actor import run_actor
+    from convoy.actors.actor import run_actor
 
     raise SystemExit(run_actor(job_id, job, index, ident, settings, seed))
 
 
 def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> None:
-    from learner.service import run_learner
+    from convoy.learner.service import run_learner
 
     raise SystemExit(run_learner(job_id, job, out_dir, settings))
 

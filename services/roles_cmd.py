@@ -10,10 +10,10 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from envs import ConfigError
-from protocol import keys
-from protocol.session import ZenohSettings
-from services.train_cmd import add_job_arguments, job_from_args
+from convoy.envs import ConfigError
+from convoy.protocol import keys
+from convoy.protocol.session import ZenohSettings
+from convoy.services.train_cmd import add_job_arguments, job_from_args
 
 ZENOH_HELP = "Zenoh: flags override CONVOY_ZENOH_* environment variables, which override the job file."
 
@@ -55,7 +55,7 @@ def _job_id(args: argparse.Namespace) -> str:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from services.host import run_router
+    from convoy.services.host import run_router
 
     settings = zenoh_from_args(args)
     if not settings.listen:
@@ -64,14 +64,14 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
-    from learner.service import run_learner
+    from convoy.learner.service import run_learner
 
     job = job_from_args(args)
     return run_learner(_job_id(args), job, args.out, zenoh_from_args(args, job.runtime.zenoh))
 
 
 def cmd_actor(args: argparse.Namespace) -> int:
-    from actors.actor import run_actor
+    from convoy.actors.actor import run_actor
 
     job = job_from_args(args)
     ident = args.ident or f"actor-{args.index}"
@@ -81,7 +81,7 @@ def cmd_actor(args: argparse.Namespace) -> int:
 
 
 def cmd_host(args: argparse.Namespace) -> int:
-    from services.host import run_host
+    from convoy.services.host import run_host
 
     job = job_from_args(args)
     roles = tuple(r.strip() for r in args.roles.split(",") if r.strip())

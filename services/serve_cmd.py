@@ -7,8 +7,8 @@ import os
 import secrets
 from pathlib import Path
 
-from envs import ConfigError
-from services.args import add_limit_flags, limits_from_args
+from convoy.envs import ConfigError
+from convoy.services.args import add_limit_flags, limits_from_args
 
 
 def api_token(data_dir: Path) -> tuple[str, str]:
@@ -28,9 +28,8 @@ def api_token(data_dir: Path) -> tuple[str, str]:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
-
-    from api.app import create_app
-    from services.jobservice import JobService
+    from convoy.api.app import create_app
+    from convoy.services.jobservice import JobService
 
     if not 1 <= args.port <= 65535:
         raise ConfigError("--port", f"must be a TCP port 1–65535 (got {args.port})")

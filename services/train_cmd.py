@@ -9,13 +9,20 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from convoy.envs import ENVS, ConfigError
+from convoy.protocol.config import (
+    ALGO_CONFIGS,
+    ALGO_SUMMARIES,
+    DEVICES,
+    AlgoConfig,
+    JobConfig,
+    env_default_note,
+    job_config,
+)
+from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
+from convoy.services.rundir import claim, free_default
 from rich.console import Console
 from rich.table import Table
-
-from envs import ENVS, ConfigError
-from protocol.config import ALGO_CONFIGS, ALGO_SUMMARIES, DEVICES, AlgoConfig, JobConfig, env_default_note, job_config
-from services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
-from services.rundir import claim, free_default
 
 console = Console()
 
@@ -67,8 +74,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
-    from services.procs import JobFailed
-    from services.training import run_distributed, run_inprocess
+    from convoy.services.procs import JobFailed
+    from convoy.services.training import run_distributed, run_inprocess
 
     cfg = job.algo_config()
     where = "in this process" if args.inprocess else f"{job.runtime.actors} actor processes + a learner (Zenoh)"

@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from envs import make_batched
-from envs.batched import BatchedEnv
-from protocol.config import JobConfig
+from convoy.envs import make_batched
+from convoy.envs.batched import BatchedEnv
+from convoy.protocol.config import JobConfig
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
-    from learner.inprocess import TrainResult
+    from convoy.learner.inprocess import TrainResult
 
 
 def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
@@ -20,9 +20,9 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
 
 def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
-    from learner.agent import make_agent
-    from learner.inprocess import Trainer
-    from learner.runtime import configure_learner
+    from convoy.learner.agent import make_agent
+    from convoy.learner.inprocess import Trainer
+    from convoy.learner.runtime import configure_learner
 
     configure_learner(job.torch_threads)
     env = make_env(job)  # the agent's initial weights follow job.seed, and Trainer.run seeds the training stream
@@ -54,7 +54,7 @@ def run_distributed(
     ``stop_on_sigterm`` (the CLI): SIGTERM stops the job cleanly — children stopped, the learner checkpointed."""
     import signal
 
-    from services.jobrunner import JobRunner
+    from convoy.services.jobrunner import JobRunner
 
     runner = JobRunner(job_id or default_job_id(out_dir), job, out_dir, progress=progress)
     if stop_on_sigterm:

@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SUBNET = "10.77.{}.{}"
 LISTEN = """
 import sys, time, zenoh
-from protocol import keys
-from protocol.session import ZenohSettings, open_session
+from convoy.protocol import keys
+from convoy.protocol.session import ZenohSettings, open_session
 session = open_session(ZenohSettings(mode='client', connect=(sys.argv[1],), shared_memory=False))
 out = open(sys.argv[2], 'a', buffering=1)
 sub = session.declare_subscriber(keys.metrics_all(sys.argv[3]), lambda s: out.write(f'{time.time()} {s.key_expr}\\n'))
@@ -94,7 +94,7 @@ class MultiHostJob:
 
     def _start(self, ns: str, name: str, args: list[str]) -> subprocess.Popen:
         fh = open(self.logs / f"{name}.log", "w")  # noqa: SIM115 (closed with the process)
-        cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "services.cli", *args]
+        cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "convoy.services.cli", *args]
         p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
         self.procs.append(p)
         return p

@@ -17,8 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-
-from protocol.session import free_port
+from convoy.protocol.session import free_port
 
 TOKEN = "test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -44,7 +43,7 @@ class Service:
 
     def start(self, timeout: float = 60.0) -> Service:
         env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
-        cmd = [sys.executable, "-m", "services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
+        cmd = [sys.executable, "-m", "convoy.services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
         cmd += ["--max-processes", str(self.max_processes)]
         log = open(self.data.parent / f"serve-{self.port}.log", "ab")  # noqa: SIM115
         self.data.mkdir(parents=True, exist_ok=True)

@@ -13,8 +13,7 @@ from typing import Any
 
 import pytest
 import torch
-
-from protocol.config import MemoryFields
+from convoy.protocol.config import MemoryFields
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -80,7 +80,7 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
 
 def test_a_stop_while_the_job_is_starting_takes_effect_at_once(tmp_path: Path) -> None:
     """The job's host may not be subscribed to its commands yet: the stop must not wait for the grace kill."""
-    from services.jobservice import STOP_GRACE_S
+    from convoy.services.jobservice import STOP_GRACE_S
 
     svc = Service(tmp_path / "svc").start()
     try:
@@ -99,11 +99,11 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
     chunks with impossible values: the job runs on, and ``GET /jobs/{id}`` and ``/metrics`` count them by role
     (learner, actors, service) and reason while it runs."""
     import zenoh
+    from convoy.protocol import keys, wire
+    from convoy.protocol.config import job_config
+    from convoy.protocol.session import ZenohSettings, open_session, read_credentials
+    from convoy.services.jobservice import CREDENTIALS_FILE
 
-    from protocol import keys, wire
-    from protocol.config import job_config
-    from protocol.session import ZenohSettings, open_session, read_credentials
-    from services.jobservice import CREDENTIALS_FILE
     from tests.test_runtime import hostile_chunks, wait_for
 
     data = tmp_path / "svc"
@@ -221,10 +221,9 @@ def test_a_process_without_the_jobs_credential_cannot_command_it(tmp_path: Path)
     without the API's token."""
 
     import zenoh
-
-    from protocol import keys, wire
-    from protocol.session import ZenohSettings, open_session
-    from services.jobservice import host_name
+    from convoy.protocol import keys, wire
+    from convoy.protocol.session import ZenohSettings, open_session
+    from convoy.services.jobservice import host_name
 
     data = tmp_path / "svc"
     svc = Service(data).start()

@@ -412,7 +412,7 @@ def test_the_schema_documents_the_error_body_the_server_sends(service: Service) 
 
 
 def test_a_failed_jobs_error_names_its_last_exception() -> None:
-    from services.jobservice import failure_summary
+    from convoy.services.jobservice import failure_summary
 
     output = [
         "[h-x] crashed learner-0 exit code 1",

@@ -9,8 +9,7 @@ import threading
 from pathlib import Path
 
 import pytest
-
-from api.store import (
+from convoy.api.store import (
     ACTIVE_STATES,
     ALLOWED_TRANSITIONS,
     FINAL_STATES,

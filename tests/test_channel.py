@@ -1,8 +1,7 @@
 """The message channel model: drops, bit flips and latency do what they say."""
 
 import numpy as np
-
-from envs.channel import ChannelConfig, MessageChannel
+from convoy.envs.channel import ChannelConfig, MessageChannel
 
 
 def messages(b: int = 64, n: int = 3, bits: int = 16, seed: int = 0) -> np.ndarray:

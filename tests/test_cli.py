@@ -5,10 +5,9 @@ import subprocess
 import sys
 
 import pytest
+from convoy.envs.treadmill import TreadmillConfig
+from convoy.services.cli import build_parser, main
 from PIL import Image
-
-from envs.treadmill import TreadmillConfig
-from services.cli import build_parser, main
 
 
 def test_rollout_writes_gif_summary_and_plot(tmp_path, capsys) -> None:
@@ -57,7 +56,10 @@ def test_rollout_runs_every_env(env, capsys) -> None:
 )
 def test_bad_input_prints_one_line_without_traceback(argv, needle) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "services.cli", "env", "rollout", *argv], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "convoy.services.cli", "env", "rollout", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2
     assert needle in proc.stderr and "Traceback" not in proc.stderr + proc.stdout

@@ -6,8 +6,7 @@ import math
 
 import numpy as np
 import pytest
-
-from learner.comm_metrics import (
+from convoy.learner.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,
     entropy,

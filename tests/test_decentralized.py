@@ -20,12 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from learner.analysis import analyze
-from learner.checkpoint import load_checkpoint
-from learner.evaluation import evaluate_policy
-from protocol.config import job_config
-from services.training import make_env, run_inprocess
+from convoy.learner.analysis import analyze
+from convoy.learner.checkpoint import load_checkpoint
+from convoy.learner.evaluation import evaluate_policy
+from convoy.protocol.config import job_config
+from convoy.services.training import make_env, run_inprocess
 
 K = 4
 GAME = {"n_targets": K, "rounds": 2, "listener_glimpse": True}

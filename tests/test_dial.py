@@ -9,12 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-
-from envs import make_batched
-from learner.algorithm import epsilon_at
-from learner.algos.dial import DIAL, dru
-from learner.registry import make_algorithm
-from protocol.config import DIALConfig, resolve_algo
+from convoy.envs import make_batched
+from convoy.learner.algorithm import epsilon_at
+from convoy.learner.algos.dial import DIAL, dru
+from convoy.learner.registry import make_algorithm
+from convoy.protocol.config import DIALConfig, resolve_algo
 
 
 @pytest.fixture(autouse=True)

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-
-from learner.fused_mlp import FusedMLP, fused_mlp
-from learner.nets import GroupMLP
+from convoy.learner.fused_mlp import FusedMLP, fused_mlp
+from convoy.learner.nets import GroupMLP
 
 
 def reference(m: GroupMLP, x: torch.Tensor) -> torch.Tensor:

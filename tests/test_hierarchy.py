@@ -11,12 +11,11 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-
-from envs import make_batched
-from envs.treadmill.config import N_HEADINGS, TreadmillConfig
-from learner.agent import make_agent
-from learner.checkpoint import load_checkpoint
-from learner.hierarchy import (
+from convoy.envs import make_batched
+from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
+from convoy.learner.agent import make_agent
+from convoy.learner.checkpoint import load_checkpoint
+from convoy.learner.hierarchy import (
     CRUISE,
     FASTER,
     GOALS,
@@ -28,9 +27,9 @@ from learner.hierarchy import (
     HierarchicalAgent,
     LockstepQueue,
 )
-from learner.inprocess import Trainer
-from protocol.config import job_config
-from services.training import make_env, run_inprocess
+from convoy.learner.inprocess import Trainer
+from convoy.protocol.config import job_config
+from convoy.services.training import make_env, run_inprocess
 
 ENV = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 60}
 CFG = TreadmillConfig(**ENV)

@@ -9,9 +9,9 @@ import re
 from collections.abc import Iterator
 
 import pytest
+from convoy.protocol.session import free_port
+from convoy.services.cli import main
 
-from protocol.session import free_port
-from services.cli import main
 from tests.service_fixture import TOKEN, Service
 
 pytestmark = pytest.mark.timeout(240)
@@ -141,7 +141,7 @@ def test_status_shows_completed(capsys: pytest.CaptureFixture[str], service: Ser
 
 
 def test_dropped_messages_read_by_role_and_reason() -> None:
-    from services.jobs_cmd import dropped_text
+    from convoy.services.jobs_cmd import dropped_text
 
     dropped = {"learner": {"action-range": 3, "non-finite": 6}, "actors": {"garbage": 1200, "overflow": 0}}
     assert dropped_text(dropped) == "learner: action-range 3, non-finite 6; actors: garbage 1,200"
@@ -226,7 +226,7 @@ def test_watch_of_a_failing_job_rewinds_and_exits_1(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Scripted answers (no server): running at step 5000, re-queued with its history cut to 3000, then failed."""
-    import services.jobs_cmd as jobs_cmd
+    import convoy.services.jobs_cmd as jobs_cmd
 
     def view(state: str, env_steps: int, error: str | None = None) -> dict[str, object]:
         progress = {"env_steps": env_steps, "fraction": env_steps / 10_000, "return": 1.5, "updates": 7}

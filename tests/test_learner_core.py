@@ -8,14 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
-from envs import ConfigError, make_batched
-from envs.batched import EnvSpec
-from learner.algorithm import epsilon_at, td_target
-from learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from learner.registry import ALGORITHMS, make_algorithm
-from learner.replay import JointReplay
-from protocol.config import job_config, resolve_algo
+from convoy.envs import ConfigError, make_batched
+from convoy.envs.batched import EnvSpec
+from convoy.learner.algorithm import epsilon_at, td_target
+from convoy.learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from convoy.learner.registry import ALGORITHMS, make_algorithm
+from convoy.learner.replay import JointReplay
+from convoy.protocol.config import job_config, resolve_algo
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
 
@@ -232,7 +231,7 @@ def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None
     ],
 )
 def test_resource_limits_name_the_field_the_limit_and_the_flag(values: dict, field: str, limit: str) -> None:
-    from protocol.config import ResourceLimits
+    from convoy.protocol.config import ResourceLimits
 
     job = job_config(**values)  # a valid config; whether a machine should allocate it is the limits' question
     with pytest.raises(ConfigError) as info:
@@ -259,7 +258,7 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
 
 
 def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
-    from learner.nets import message_bits
+    from convoy.learner.nets import message_bits
 
     logits = torch.tensor([[0.3, -0.2, 2.0, -2.0, -0.1, 0.1]], requires_grad=True)  # 3 bits as (off, on) pairs
     exe = message_bits(logits, 3, train=False)
@@ -277,7 +276,7 @@ def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
 def test_channel_information_counts_codewords_not_bits() -> None:
     """The positive-signalling estimate scores a message by its codewords: 16 copies of one split carry ln 2 nats,
     16 independent splits far more, and a message that ignores the observation none."""
-    from learner.nets import channel_information
+    from convoy.learner.nets import channel_information
 
     gen = torch.Generator().manual_seed(0)
     split = torch.where(torch.rand(512, 1, 1, generator=gen) < 0.5, -20.0, 20.0)
@@ -291,7 +290,7 @@ def test_channel_information_counts_codewords_not_bits() -> None:
 
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
 def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
-    from learner.algorithm import MAX_NONFINITE_IN_A_ROW
+    from convoy.learner.algorithm import MAX_NONFINITE_IN_A_ROW
 
     algo = build(name)
     b = random_batch(SPEC, 256)
@@ -308,7 +307,7 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
 
 
 def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
-    from learner.service import chunk_problem
+    from convoy.learner.service import chunk_problem
 
     schema = {"obs": ("<f4", (3, 5)), "action": ("<i8", (3,)), "reward": ("<f4", (3,)), "mu": ("<f4", (3,))}
 
@@ -333,7 +332,7 @@ def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
 
 
 def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) -> None:
-    from learner.checkpoint import load_replay, save_replay
+    from convoy.learner.checkpoint import load_replay, save_replay
 
     algo = build("idqn")
     fill(algo, SPEC, rows=300)
@@ -352,7 +351,7 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
 def test_a_learner_killed_between_its_replay_and_its_checkpoint_resumes_with_the_replay_before(tmp_path) -> None:
     """The replay is written before the checkpoint: a kill in between leaves a checkpoint of the step before,
     whose replay must still be there (it was lost, and the resume started from an empty buffer)."""
-    from learner.checkpoint import load_replay, save_replay
+    from convoy.learner.checkpoint import load_replay, save_replay
 
     algo = build("idqn")
     fill(algo, SPEC, rows=200)
@@ -371,9 +370,9 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     ``metrics.jsonl``; one that always is ends the run with the cause instead of training on."""
     import json
 
-    from learner.algorithm import Algorithm
-    from protocol.config import job_config
-    from services.training import run_inprocess
+    from convoy.learner.algorithm import Algorithm
+    from convoy.protocol.config import job_config
+    from convoy.services.training import run_inprocess
 
     real = Algorithm.agent_losses
     calls = {"n": 0, "every": 3}
@@ -393,6 +392,8 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     assert skipped > 0 and result.updates > 0, rows[-1]
     assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r and r["updates"] > 0)
     calls["every"] = 1
-    monkeypatch.setattr("learner.algorithm.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
+    monkeypatch.setattr(
+        "convoy.learner.algorithm.MAX_NONFINITE_IN_A_ROW", 5
+    )  # fewer attempts than this short run makes
     with pytest.raises(FloatingPointError, match="non-finite loss"):
         run_inprocess(job, out_dir=tmp_path / "always", progress=False)

@@ -10,10 +10,9 @@ teammate can see the chaser, MA-MeSN must beat independent DQN.
 from __future__ import annotations
 
 import pytest
-
-from learner.algorithm import Algorithm
-from protocol.config import JobConfig, job_config, resolve_algo
-from services.training import run_inprocess
+from convoy.learner.algorithm import Algorithm
+from convoy.protocol.config import JobConfig, job_config, resolve_algo
+from convoy.services.training import run_inprocess
 
 K = 4
 REFERENTIAL_HP = {"hidden": (64,), "learning_starts": 256, "replay_ratio": 2.0, "target_update": 50}
@@ -113,9 +112,9 @@ def _small_treadmill_job(algo: str, env_params: dict, algo_params: dict, steps: 
 
 def _train(job: JobConfig) -> Algorithm:
     """The agent after ``job``'s training run (no evaluation, no files), for the tests to probe."""
-    from learner.agent import make_agent
-    from learner.inprocess import Trainer
-    from services.training import make_env
+    from convoy.learner.agent import make_agent
+    from convoy.learner.inprocess import Trainer
+    from convoy.services.training import make_env
 
     env = make_env(job)
     agent = make_agent(job, env.spec)
@@ -125,9 +124,9 @@ def _train(job: JobConfig) -> Algorithm:
 
 def _message_entropy_after_training(gumbel_noise: float | None) -> float:
     """MA-MeSN's greedy message entropy (nats, per agent) after 40 k steps on the small treadmill."""
-    from learner.analysis import record
-    from learner.comm_metrics import message_entropy
-    from services.training import make_env
+    from convoy.learner.analysis import record
+    from convoy.learner.comm_metrics import message_entropy
+    from convoy.services.training import make_env
 
     hp = {**TREADMILL_HP, "replay_ratio": 4.0, "gumbel_noise": gumbel_noise}
     job = _small_treadmill_job("ma-mesn", SMALL_TREADMILL, hp, steps=40_000, seed=0)
@@ -157,9 +156,9 @@ BLIND_REAR_TREADMILL = {**SMALL_TREADMILL, "observe_k": 2, "sensor_fov": 180.0, 
 def _trained_returns(algo: str, seed: int) -> dict[str, list[float]]:
     """Greedy returns of 256 evaluation episodes after 200 k env steps on the blind-rear treadmill (and, for
     MA-MeSN, with white noise in place of the messages). Runs in a worker process of its own."""
-    from learner.evaluation import evaluate_policy
-    from learner.runtime import configure_learner
-    from services.training import make_env
+    from convoy.learner.evaluation import evaluate_policy
+    from convoy.learner.runtime import configure_learner
+    from convoy.services.training import make_env
 
     job = _small_treadmill_job(algo, BLIND_REAR_TREADMILL, TREADMILL_HP, steps=200_000, seed=seed)
     configure_learner(job.torch_threads)  # one thread, as run_inprocess: the figures in the docstring below
@@ -181,8 +180,7 @@ def test_ma_mesn_beats_independent_dqn_where_only_a_teammate_sees_the_chaser() -
     import multiprocessing as mp
 
     import numpy as np
-
-    from envs.rollout import ci95_half
+    from convoy.envs.rollout import ci95_half
 
     def pooled(algo: str, src: str) -> tuple[float, float]:
         x = np.concatenate([out[algo, s][src] for s in (0, 1)])

@@ -18,22 +18,21 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from convoy.envs import EnvSpec, make_batched
+from convoy.envs.channel import ChannelConfig, MessageChannel
+from convoy.envs.config import ConfigError
+from convoy.learner.agent import make_agent
+from convoy.learner.algorithm import Algorithm, Progress
+from convoy.learner.algos.codbc import CoDBC
+from convoy.learner.checkpoint import load_checkpoint, save_checkpoint
+from convoy.learner.evaluation import evaluate, listening, listening_for
+from convoy.learner.listening import Listening
+from convoy.learner.memory import HISTORY, MemoryModule
+from convoy.learner.registry import make_algorithm
+from convoy.learner.stepping import EnvStepper
+from convoy.protocol.config import ALGO_CONFIGS, job_config, resolve_algo
+from convoy.services.training import run_inprocess
 from torch import Tensor, nn
-
-from envs import EnvSpec, make_batched
-from envs.channel import ChannelConfig, MessageChannel
-from envs.config import ConfigError
-from learner.agent import make_agent
-from learner.algorithm import Algorithm, Progress
-from learner.algos.codbc import CoDBC
-from learner.checkpoint import load_checkpoint, save_checkpoint
-from learner.evaluation import evaluate, listening, listening_for
-from learner.listening import Listening
-from learner.memory import HISTORY, MemoryModule
-from learner.registry import make_algorithm
-from learner.stepping import EnvStepper
-from protocol.config import ALGO_CONFIGS, job_config, resolve_algo
-from services.training import run_inprocess
 
 MM_ALGOS = ("ma-mesn-mm", "ma-bon-mm")
 TINY = {"hidden": (16,), "message_bits": 4, "learning_starts": 16, "batch_size": 16}
@@ -625,7 +624,7 @@ def test_glimpse_shows_the_target_on_the_first_round_only() -> None:
 
 def test_shared_fused_lstm_matches_the_grouped_cell() -> None:
     """One group runs torch's fused LSTM, several groups a stepped cell: the same maths, gate for gate."""
-    from learner.memory import GroupLSTM
+    from convoy.learner.memory import GroupLSTM
 
     torch.manual_seed(0)
     fused, stepped = GroupLSTM(1, 5, 7, 3), GroupLSTM(2, 5, 7, 3)
@@ -647,7 +646,7 @@ def test_curve_points_measure_the_student_alone(tmp_path: Path) -> None:
     so driving it would fail) never takes a curve episode, though training still hands it 60 % of the envs."""
     from types import SimpleNamespace
 
-    from learner.runlog import Evaluator
+    from convoy.learner.runlog import Evaluator
 
     student, _ = make_student(tmp_path / "never-loaded.pt", teacher_fraction=0.6)
     job = SimpleNamespace(eval_episodes=8, eval_every=1_000, seed=0, env="treadmill", env_params=SMALL_TREADMILL)

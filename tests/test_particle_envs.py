@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test, parallel_seed_test
-
-from envs.batched import BatchedEnv, env_seeds
-from envs.config import ConfigError
-from envs.particle import (
+from convoy.envs.batched import BatchedEnv, env_seeds
+from convoy.envs.config import ConfigError
+from convoy.envs.particle import (
     PredatorPreyEnv,
     evade_action,
     make_predator_prey,
@@ -18,7 +16,8 @@ from envs.particle import (
     make_speaker_listener,
     make_speaker_listener_batch,
 )
-from envs.particle.predator_prey import MINUS_X, MINUS_Y, NOOP, PLUS_X, PLUS_Y
+from convoy.envs.particle.predator_prey import MINUS_X, MINUS_Y, NOOP, PLUS_X, PLUS_Y
+from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 NOOPS = {"predator_0": 0, "predator_1": 0}
 

@@ -6,10 +6,9 @@ from __future__ import annotations
 import time
 
 import pytest
-
-from protocol.config import job_config
-from protocol.session import ZenohSettings
-from services.procs import SHORT_LIFE_S, ProcessGroup, Slot
+from convoy.protocol.config import job_config
+from convoy.protocol.session import ZenohSettings
+from convoy.services.procs import SHORT_LIFE_S, ProcessGroup, Slot
 
 
 class FakeProc:
@@ -81,11 +80,11 @@ def test_the_actor_budget_names_the_field_and_how_to_set_it(monkeypatch: pytest.
 
 
 def test_runtime_settings_come_from_the_cli_and_the_rest_body() -> None:
-    from api.models import JobSubmit
-    from protocol.config import ConfigError
-    from services.cli import build_parser
-    from services.jobs_cmd import submit_body
-    from services.train_cmd import job_from_args
+    from convoy.api.models import JobSubmit
+    from convoy.protocol.config import ConfigError
+    from convoy.services.cli import build_parser
+    from convoy.services.jobs_cmd import submit_body
+    from convoy.services.train_cmd import job_from_args
 
     args = build_parser().parse_args(["train", "--runtime", "actor_max_restarts=500", "--runtime", "max_restarts=9"])
     job = job_from_args(args)
@@ -105,7 +104,7 @@ def test_runtime_settings_come_from_the_cli_and_the_rest_body() -> None:
 def test_a_diverged_learner_fails_the_job_at_once_with_the_fix(monkeypatch: pytest.MonkeyPatch) -> None:
     """Non-finite losses in a row are deterministic: the learner exits DIVERGED and is not restarted (a restart from
     its checkpoint would diverge the same way); the failure says what to change."""
-    from protocol.exitcodes import DIVERGED
+    from convoy.protocol.exitcodes import DIVERGED
 
     job = job_config(algo="idqn", env="referential", steps=1000, runtime={"actors": 1})
     group = ProcessGroup("diverge", job, "unused", ZenohSettings(), roles=("learner",))
@@ -126,8 +125,8 @@ def test_a_diverged_learner_fails_the_job_at_once_with_the_fix(monkeypatch: pyte
 def test_the_learner_process_reports_divergence_by_its_exit_code(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from learner import service
-    from protocol.exitcodes import DIVERGED
+    from convoy.learner import service
+    from convoy.protocol.exitcodes import DIVERGED
 
     def diverge(self: service.Learner) -> int:
         raise FloatingPointError("idqn: 100 updates in a row had a non-finite loss (nan)")

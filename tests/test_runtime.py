@@ -22,14 +22,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
-from learner.algorithm import epsilon_at
-from learner.checkpoint import read_checkpoint
-from protocol import keys
-from protocol.config import JobConfig, job_config
-from protocol.session import ZenohSettings, free_port, loopback, open_session
-from services.jobrunner import JobRunner
-from services.training import run_inprocess
+from convoy.learner.algorithm import epsilon_at
+from convoy.learner.checkpoint import read_checkpoint
+from convoy.protocol import keys
+from convoy.protocol.config import JobConfig, job_config
+from convoy.protocol.session import ZenohSettings, free_port, loopback, open_session
+from convoy.services.jobrunner import JobRunner
+from convoy.services.training import run_inprocess
 
 REFERENTIAL = {
     "env": "referential",
@@ -239,8 +238,7 @@ HOSTILE_REPEATS = 20
 
 def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None:
     import zenoh
-
-    from protocol import wire
+    from convoy.protocol import wire
 
     job = job_config(algo="idqn", steps=40_000, seed=4, runtime={"actors": 1}, **TREADMILL)
     runner = JobRunner("garbage", job, tmp_path, progress=False)
@@ -304,8 +302,7 @@ def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_p
     """Forged stop commands and a forged final budget make actors exit 0; the supervisor takes that as leaving
     early (its learner has not reported the job's steps), respawns them and the job completes."""
     import zenoh
-
-    from protocol import wire
+    from convoy.protocol import wire
 
     job = job_config(algo="idqn", steps=30_000, seed=5, runtime={"actors": 2}, **TREADMILL)
     runner = JobRunner("forged", job, tmp_path, progress=False)
@@ -340,9 +337,8 @@ def test_a_peer_without_the_jobs_credential_cannot_reach_it(tmp_path: Path) -> N
     import stat
 
     import zenoh
-
-    from protocol import wire
-    from protocol.session import ZenohSettings
+    from convoy.protocol import wire
+    from convoy.protocol.session import ZenohSettings
 
     job = job_config(algo="idqn", steps=20_000, seed=6, runtime={"actors": 1}, **TREADMILL)
     runner = JobRunner("locked", job, tmp_path, progress=False)
@@ -383,10 +379,10 @@ def _tensors(x: object) -> list[torch.Tensor]:
 
 def hostile_chunks(job: JobConfig) -> list[tuple[str, dict]]:
     """(drop reason, a chunk body) that has this job's fields, dtypes and shapes but values no env can produce."""
-    from envs import make_batched
-    from learner.agent import make_agent
-    from learner.service import transition_schema
-    from protocol import wire
+    from convoy.envs import make_batched
+    from convoy.learner.agent import make_agent
+    from convoy.learner.service import transition_schema
+    from convoy.protocol import wire
 
     env = make_batched(job.env, 1, **job.env_params)
     schema = transition_schema(job, make_agent(job, env.spec))
@@ -410,7 +406,7 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
     job_flags = "--job-id mh --env referential --steps 12000 --num-envs 32 --hp hidden=64 --hp learning_starts=256"
     job_flags = [*job_flags.split(), "--eval-episodes", "200", "--log-every", "2000"]
     net = ["--mode", "client", "--connect", endpoint, "--no-shm"]
-    cmd = [sys.executable, "-m", "services.cli"]
+    cmd = [sys.executable, "-m", "convoy.services.cli"]
     procs: list[subprocess.Popen] = []
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -448,8 +444,7 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
 
 def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: Path) -> None:
     import torch
-
-    from services.procs import JobFailed
+    from convoy.services.procs import JobFailed
 
     if torch.cuda.is_available():
         pytest.skip("needs a machine without CUDA (the learner must crash on device=cuda)")
@@ -495,7 +490,7 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
     keep alive) notice their supervisor is gone and exit, and the forkserver with them — nothing runs on."""
     cfg = tmp_path / "job.json"
     cfg.write_text(json.dumps({"algo": "idqn", "steps": 10_000_000, "runtime": {"actors": 2}, **TREADMILL}))
-    cmd = [sys.executable, "-m", "services.cli", "train", "--config", str(cfg), "--out", str(tmp_path / "run")]
+    cmd = [sys.executable, "-m", "convoy.services.cli", "train", "--config", str(cfg), "--out", str(tmp_path / "run")]
     with open(tmp_path / "train.log", "w") as log:
         proc = subprocess.Popen([*cmd, "--no-progress"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
@@ -514,8 +509,8 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
 
 def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """No actor ever sends a chunk: the learner checkpoints and exits NO_DATA after runtime.data_timeout_s."""
-    from learner.service import Learner
-    from protocol.exitcodes import NO_DATA
+    from convoy.learner.service import Learner
+    from convoy.protocol.exitcodes import NO_DATA
 
     job = job_config(algo="idqn", steps=10_000, runtime={"actors": 1, "data_timeout_s": 1.0}, **TREADMILL)
     code = Learner("nodata", job, tmp_path, ZenohSettings()).run()

@@ -7,10 +7,9 @@ import json
 import numpy as np
 import pytest
 import torch
+from convoy.learner.checkpoint import load_checkpoint
+from convoy.services.cli import main
 from PIL import Image
-
-from learner.checkpoint import load_checkpoint
-from services.cli import main
 
 TINY = ["--inprocess", "--env", "referential", "--steps", "3000", "--num-envs", "32", "--log-every", "500",
         "--eval-episodes", "50", "--no-progress", "--hp", "hidden=32", "--hp", "learning_starts=64"]  # fmt: skip
@@ -115,10 +114,10 @@ def test_the_same_seed_trains_the_same_run(tmp_path, capsys) -> None:
 
 def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
     """Greedy curve points every 500 steps leave training exactly as a run without them: same losses, same weights."""
-    from learner.agent import make_agent
-    from learner.inprocess import Trainer
-    from protocol.config import job_config
-    from services.training import make_env
+    from convoy.learner.agent import make_agent
+    from convoy.learner.inprocess import Trainer
+    from convoy.protocol.config import job_config
+    from convoy.services.training import make_env
 
     def train(eval_every: int) -> tuple[list[float], dict[str, torch.Tensor]]:
         hp = {"hidden": 32, "learning_starts": 64}
@@ -135,7 +134,7 @@ def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
 
 
 def test_runs_never_share_a_directory_by_accident(tmp_path, capsys, monkeypatch) -> None:
-    from services.rundir import claim
+    from convoy.services.rundir import claim
 
     out = tmp_path / "run"
     assert main(["train", "--algo", "idqn", *TINY, "--out", str(out)]) == 0

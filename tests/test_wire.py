@@ -14,14 +14,13 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+from convoy.protocol import inbox as inbox_mod
+from convoy.protocol import keys, wire
+from convoy.protocol.inbox import Inbox
+from convoy.protocol.wire import WireError
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-
-from protocol import inbox as inbox_mod
-from protocol import keys, wire
-from protocol.inbox import Inbox
-from protocol.wire import WireError
 
 FAST = settings(
     max_examples=60,
@@ -874,7 +873,7 @@ def test_chunk_size_is_raw_bytes_plus_a_constant() -> None:
 def test_a_root_gets_a_private_job_credential_and_a_joining_peer_keeps_the_users(tmp_path) -> None:
     import stat
 
-    from protocol.session import ZenohSettings, read_credentials, zenoh_config
+    from convoy.protocol.session import ZenohSettings, read_credentials, zenoh_config
 
     root = ZenohSettings().secured(tmp_path, "job-1").rooted()
     assert root.user == "job-1" and root.credentials_file == str(tmp_path / "zenoh-credentials")

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
+from convoy.api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
+from convoy.api.store import JobState
 from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
-
-from api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
-from api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
-from api.store import JobState
 
 router = APIRouter(tags=["jobs"])
 CONTROL = Depends(control_of)

@@ -7,13 +7,12 @@ import json
 import time
 from collections.abc import AsyncIterator
 
+from convoy.api.deps import JOB_ID, JobControl, control_of, finite
+from convoy.api.models import MetricsPage
+from convoy.api.store import FINAL_STATES
 from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import PlainTextResponse, StreamingResponse
-
-from api.deps import JOB_ID, JobControl, control_of, finite
-from api.models import MetricsPage
-from api.store import FINAL_STATES
 
 router = APIRouter()
 CONTROL = Depends(control_of)
@@ -65,7 +64,7 @@ async def events(
 
 @router.get("/metrics", tags=["service"], response_class=PlainTextResponse)
 def prometheus(control: JobControl = CONTROL) -> PlainTextResponse:
-    from api.prometheus import exposition
+    from convoy.api.prometheus import exposition
 
     text, content_type = exposition(control.store, control)
     return PlainTextResponse(text, media_type=content_type)

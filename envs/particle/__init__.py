@@ -4,8 +4,8 @@ Each env is available two ways: as a PettingZoo ``ParallelEnv`` (``make_<env>``)
 PettingZoo test-suite, and behind the array-shaped ``BatchedEnv`` API (``make_<env>_batch``) for actors.
 """
 
-from envs.particle.batch import ParallelEnvBatch
-from envs.particle.predator_prey import (
+from convoy.envs.particle.batch import ParallelEnvBatch
+from convoy.envs.particle.predator_prey import (
     PredatorPreyConfig,
     PredatorPreyEnv,
     capture_rewards,
@@ -13,14 +13,14 @@ from envs.particle.predator_prey import (
     make_predator_prey,
     make_predator_prey_batch,
 )
-from envs.particle.referential import (
+from convoy.envs.particle.referential import (
     ReferentialBatch,
     ReferentialConfig,
     ReferentialEnv,
     make_referential,
     make_referential_batch,
 )
-from envs.particle.speaker_listener import (
+from convoy.envs.particle.speaker_listener import (
     SpeakerListenerConfig,
     SpeakerListenerEnv,
     make_speaker_listener,

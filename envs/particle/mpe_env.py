@@ -10,11 +10,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from convoy.envs.batched import EnvSpec
+from convoy.envs.config import ConfigError
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
-
-from envs.batched import EnvSpec
-from envs.config import ConfigError
 
 
 class MpeParallelEnv(ParallelEnv):

@@ -42,10 +42,9 @@ b of a batch seeded s).
 from __future__ import annotations
 
 import numpy as np
-
-from envs import rng
-from envs.batched import EnvSpec, StepResult, check_actions
-from envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
+from convoy.envs import rng
+from convoy.envs.batched import EnvSpec, StepResult, check_actions
+from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
 
 # Unit move per heading, counter-clockwise from "forward along the road".
 DX = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)

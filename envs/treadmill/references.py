@@ -16,11 +16,10 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-
-from envs.rollout import RolloutResult, random_policy, rollout
-from envs.treadmill.config import N_ACTIONS, TreadmillConfig
-from envs.treadmill.engine import TreadmillEngine
-from envs.treadmill.scripted import DANGER, full_information_actions, scripted_actions
+from convoy.envs.rollout import RolloutResult, random_policy, rollout
+from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
+from convoy.envs.treadmill.engine import TreadmillEngine
+from convoy.envs.treadmill.scripted import DANGER, full_information_actions, scripted_actions
 
 Policy = Callable[[np.ndarray], np.ndarray]
 CONSTANTS: tuple[str, ...] = tuple(f"constant-{a}" for a in range(N_ACTIONS))

@@ -8,8 +8,7 @@ each car's nose.
 from __future__ import annotations
 
 import numpy as np
-
-from envs.treadmill.engine import DX, DY
+from convoy.envs.treadmill.engine import DX, DY
 
 ROAD = np.array([70, 70, 78], np.uint8)
 LANE = np.array([200, 200, 120], np.uint8)

@@ -13,9 +13,8 @@ hold a place in the middle of the treadmill. They differ only in what they know 
 from __future__ import annotations
 
 import numpy as np
-
-from envs.treadmill.config import LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
-from envs.treadmill.engine import DY
+from convoy.envs.treadmill.config import LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
+from convoy.envs.treadmill.engine import DY
 
 DANGER = 12.0  # cells: flee a threat closer than this
 

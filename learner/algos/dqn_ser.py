@@ -14,10 +14,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from convoy.learner.algos.idqn import IndependentDQN
+from convoy.protocol.config import SERConfig
 from torch import Tensor
-
-from learner.algos.idqn import IndependentDQN
-from protocol.config import SERConfig
 
 
 class DQNSER(IndependentDQN):
@@ -32,7 +31,7 @@ class DQNSER(IndependentDQN):
 
     def fingerprint(self) -> np.ndarray:
         """(ε, training progress) as seen by the acting policy right now."""
-        from learner.algorithm import epsilon_at
+        from convoy.learner.algorithm import epsilon_at
 
         p = self.progress
         return np.array(

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.nets import GroupMLP, id_width, with_agent_id
+from convoy.protocol.config import IDQNConfig
 from torch import Tensor, nn
-
-from learner.algorithm import Algorithm
-from learner.nets import GroupMLP, id_width, with_agent_id
-from protocol.config import IDQNConfig
 
 
 class IndependentDQN(Algorithm):

@@ -27,11 +27,10 @@ from __future__ import annotations
 from typing import Any
 
 import torch.nn.functional as F
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
+from convoy.protocol.config import IMSConfig
 from torch import Tensor, nn
-
-from learner.algorithm import Algorithm
-from learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
-from protocol.config import IMSConfig
 
 
 def mean_of_others(sent: Tensor) -> Tensor:

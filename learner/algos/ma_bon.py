@@ -26,12 +26,11 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.listening import HearsMessages
+from convoy.learner.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
+from convoy.protocol.config import BoNConfig
 from torch import Tensor, nn
-
-from learner.algorithm import Algorithm
-from learner.listening import HearsMessages
-from learner.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
-from protocol.config import BoNConfig
 
 
 class MABoN(HearsMessages, Algorithm):

@@ -6,9 +6,9 @@ broadcast, the agent's own prediction of it (no channel), or the broadcast with 
 
 from __future__ import annotations
 
-from learner.algos.ma_bon import MABoN
-from learner.memory import MemoryModule
-from protocol.config import BoNMMConfig
+from convoy.learner.algos.ma_bon import MABoN
+from convoy.learner.memory import MemoryModule
+from convoy.protocol.config import BoNMMConfig
 
 
 class MABoNMM(MemoryModule, MABoN):

@@ -13,12 +13,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from convoy.learner.algorithm import Algorithm
+from convoy.learner.listening import HearsMessages
+from convoy.learner.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
+from convoy.protocol.config import MeSNConfig
 from torch import Tensor, nn
-
-from learner.algorithm import Algorithm
-from learner.listening import HearsMessages
-from learner.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
-from protocol.config import MeSNConfig
 
 
 class MAMeSN(HearsMessages, Algorithm):

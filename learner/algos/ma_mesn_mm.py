@@ -8,9 +8,9 @@ the true messages with the lost ones replaced by predictions (a lossy channel) â
 
 from __future__ import annotations
 
-from learner.algos.ma_mesn import MAMeSN
-from learner.memory import MemoryModule
-from protocol.config import MeSNMMConfig
+from convoy.learner.algos.ma_mesn import MAMeSN
+from convoy.learner.memory import MemoryModule
+from convoy.protocol.config import MeSNMMConfig
 
 
 class MAMeSNMM(MemoryModule, MAMeSN):
