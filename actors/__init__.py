@@ -1,1 +1,1 @@
-"""The actor process: batched env stepping, policy inference, publishing transitions (the runtime issue)."""
+"""Acting: the one acting loop (``stepping``) and the actor process that runs it and publishes transitions."""

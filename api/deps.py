@@ -14,8 +14,9 @@ from typing import Any, Protocol
 from convoy.api.errors import ApiError
 from convoy.api.models import EvalRequest, JobView, Progress
 from convoy.api.store import JobRecord, JobState, JobStore
-from convoy.protocol.config import JobConfig
 from fastapi import Request
+
+from convoy.config import JobConfig
 
 PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"

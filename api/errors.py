@@ -12,12 +12,13 @@ from typing import Any
 
 from convoy.api.models import ErrorBody
 from convoy.api.store import StoreError, UnknownJob
-from convoy.protocol.config import ConfigError
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
+
+from convoy.config import ConfigError
 
 MAX_BODY = 64 * 1024
 

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 from typing import Any, get_args
 
-from convoy.protocol.config import ConfigError, JobConfig, MessageSource, RuntimeConfig, job_config
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+
+from convoy.config import ConfigError, JobConfig, MessageSource, RuntimeConfig, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 ACTORS_DEFAULT: int = RuntimeConfig.model_fields["actors"].default

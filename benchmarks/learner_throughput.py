@@ -66,12 +66,11 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.registry import ALGORITHMS
 from convoy.envs.registry import make_batched
-from convoy.learner.algorithm import Algorithm, Progress
-from convoy.learner.registry import ALGORITHMS
 from convoy.learner.runtime import configure_learner
-from convoy.learner.stepping import EnvStepper
-from convoy.protocol.config import PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden
 from flops import RNN_FLOPS, count_flops, op_flops
 from inference_scaling import (
     ENV,
@@ -86,6 +85,8 @@ from inference_scaling import (
     write_outputs,
 )
 from report import cpu_model, markdown_table
+
+from convoy.config import PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden
 
 try:
     import resource

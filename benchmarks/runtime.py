@@ -194,11 +194,12 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
     ``learner.stepping.EnvStepper`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
     learner's transition schema (field → dtype, per-step shape) and the transitions per chunk."""
 
+    from convoy.actors.stepping import EnvStepper
+    from convoy.algos.agent import make_agent
     from convoy.envs import make_batched
-    from convoy.learner.agent import make_agent
-    from convoy.learner.stepping import EnvStepper
     from convoy.protocol import wire
-    from convoy.protocol.config import job_config
+
+    from convoy.config import job_config
 
     job = job_config(algo=ALGO, env=ENV, num_envs=num_envs, seed=seed, device="cpu", algo_params={"hidden": (32, 12)})
     env = make_batched(ENV, num_envs)
@@ -279,7 +280,7 @@ def _ingest_subscriber(
             out_q.put(("sub", {"t_last": counts["t_last"], "msgs": counts["msgs"], "bytes": counts["bytes"]}))
         else:
             import numpy as np
-            from convoy.learner.replay import JointReplay
+            from convoy.algos.replay import JointReplay
             from convoy.protocol.inbox import Inbox
 
             inbox = Inbox({"chunk"}, maxlen=window + 8)
@@ -370,7 +371,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
     """Seconds for the Convoy ingest work alone on ``n`` chunks in this process (Inbox.offer + get, schema check,
     episode clock, JointReplay.add): what the transport adds is the rest."""
     import numpy as np
-    from convoy.learner.replay import JointReplay
+    from convoy.algos.replay import JointReplay
     from convoy.protocol.inbox import Inbox
 
     inbox, replay = Inbox({"chunk"}, maxlen=8), JointReplay(100_000)
@@ -387,7 +388,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
 
 
 def part_ingest(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
-    from convoy.protocol.config import RuntimeConfig
+    from convoy.config import RuntimeConfig
 
     t_len, envs = RuntimeConfig().publish_steps, args.ingest_envs
     payloads, schema, per_chunk = make_chunks(envs, t_len, args.ingest_pool, args.seed)
@@ -461,11 +462,12 @@ def _weights_subscriber(sub_id: int, settings: Any, hidden: tuple[int, ...], cmd
 
     torch.set_num_threads(1)
     from convoy.actors.actor import load_weights
+    from convoy.algos.agent import make_agent
     from convoy.envs import make_batched
-    from convoy.learner.agent import make_agent
-    from convoy.protocol.config import job_config
     from convoy.protocol.inbox import Inbox
     from convoy.protocol.session import open_session
+
+    from convoy.config import job_config
 
     env = make_batched(ENV, 1)
     spec = env.spec
@@ -601,11 +603,12 @@ def broadcast_round(
 
 
 def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    from convoy.algos.agent import make_agent
     from convoy.envs import make_batched
-    from convoy.learner.agent import make_agent
     from convoy.protocol import wire
-    from convoy.protocol.config import job_config
     from convoy.protocol.session import ZenohSettings, open_session
+
+    from convoy.config import job_config
 
     hidden = tuple(args.weights_hidden)
     env = make_batched(ENV, 1)
@@ -721,7 +724,7 @@ def env_only_rate(num_envs: int, seconds: float, seed: int) -> float:
 
 
 def scaling_job(args: argparse.Namespace, actors: int) -> Any:
-    from convoy.protocol.config import job_config
+    from convoy.config import job_config
 
     return job_config(
         algo=ALGO,

@@ -2,7 +2,7 @@
 
 The paper's Fig. 3 question — do communicating learners drive better than independent ones? — asked on Convoy's
 treadmill. Each (algorithm, seed) is a ``convoy train --inprocess`` run of ``--steps`` env steps with the
-treadmill's default hyper-parameters (``protocol/config.py`` ``ENV_DEFAULTS``), written to ``--out/ALGO-sSEED/``;
+treadmill's default hyper-parameters (``convoy/config.py`` ``ENV_DEFAULTS``), written to ``--out/ALGO-sSEED/``;
 ``--jobs`` runs go side by side (one core each). For every run the table reports
 
 * **final**: the greedy return of the last policy (the trainer's final evaluation, ``eval_episodes`` episodes);
@@ -105,9 +105,9 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
 def held_out(run: dict, episodes: int, analyze: bool, samples: int) -> dict:
     """best.pt's greedy return on held-out seeds; for communicating algorithms the analysis of best.pt and of the
     last checkpoint (best.pt is picked on the greedy curve, which can favour a policy that ignores its messages)."""
-    from convoy.learner.analysis import analyze as analyze_policy
-    from convoy.learner.checkpoint import load_checkpoint
-    from convoy.learner.evaluation import evaluate_policy
+    from convoy.algos.checkpoint import load_checkpoint
+    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.analysis.recording import analyze as analyze_policy
     from convoy.services.training import make_env
 
     out: dict = {}

@@ -1,13 +1,12 @@
 """Convoy's environments: the treadmill highway and the particle envs, behind one batched interface.
 
-Importing this package registers ``convoy/Treadmill-v0`` with Gymnasium. It imports nothing else
-of Convoy's, so every other package can depend on it.
+Importing this package registers ``convoy/Treadmill-v0`` with Gymnasium. It imports only Convoy's
+shared helpers (``convoy.validation``, ``convoy.stats``), so every other package can depend on it.
 """
 
 import gymnasium
 from convoy.envs.batched import BatchedEnv, EnvSpec, StepResult
 from convoy.envs.channel import ChannelConfig, MessageChannel
-from convoy.envs.config import ConfigError
 from convoy.envs.registry import ENVS, make_batched, make_parallel
 
 TREADMILL_GYM_ID = "convoy/Treadmill-v0"
@@ -24,7 +23,6 @@ __all__ = [
     "TREADMILL_GYM_ID",
     "BatchedEnv",
     "ChannelConfig",
-    "ConfigError",
     "EnvSpec",
     "MessageChannel",
     "StepResult",

@@ -14,8 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from convoy.envs.config import build_config
 from pydantic import BaseModel, ConfigDict, Field
+
+from convoy.validation import build_config
 
 
 class ChannelConfig(BaseModel):

@@ -7,10 +7,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from convoy.envs.batched import BatchedEnv
-from convoy.envs.config import ConfigError, build_config
 from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel
+
+from convoy.validation import ConfigError, build_config
 
 
 @dataclass(frozen=True)

@@ -14,13 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from convoy.envs.batched import BatchedEnv, EnvSpec
 
+from convoy.stats import ci95_half
+
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [B, N, D] -> actions [B, N]
-
-
-def ci95_half(x: np.ndarray, single: float = float("nan")) -> float:
-    """Half-width of the normal 95 % confidence interval of the mean of ``x`` (``single`` when len(x) < 2)."""
-    x = np.asarray(x, dtype=np.float64)
-    return float(1.96 * x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else single
 
 
 @dataclass

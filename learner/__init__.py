@@ -1,1 +1,3 @@
-"""Networks, replay and one module per algorithm (MA-MeSN, MA-BoN, DIAL, IMS, DQN variants): the algorithms issue."""
+"""Training: the one trainer core (``core``), the in-process trainer (``inprocess``) and the distributed learner
+process (``service``) that feed it, what every run reports (``runlog``, ``metrics``) and process tuning
+(``runtime``)."""

@@ -16,12 +16,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.checkpoint import BEST_CHECKPOINT, save_checkpoint
 from convoy.envs.batched import BatchedEnv
-from convoy.learner.algorithm import Algorithm, Progress, epsilon_at
-from convoy.learner.checkpoint import BEST_CHECKPOINT, save_checkpoint
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
-from convoy.learner.stepping import EnvStepper
-from convoy.protocol.config import JobConfig
+
+from convoy.config import JobConfig
 
 
 @dataclass

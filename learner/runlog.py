@@ -17,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from convoy.analysis.evaluation import evaluate
 from convoy.envs.batched import BatchedEnv
-from convoy.envs.rollout import ci95_half
-from convoy.learner.evaluation import evaluate
 from convoy.learner.metrics import MetricsWriter, plot_curves
+
+from convoy.stats import ci95_half
 
 
 class RunLog:

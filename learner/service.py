@@ -26,10 +26,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from convoy.envs import make_batched
-from convoy.learner.agent import make_agent
-from convoy.learner.algorithm import Algorithm, Progress, epsilon_at
-from convoy.learner.checkpoint import (
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.agent import make_agent
+from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.checkpoint import (
     BEST_CHECKPOINT,
     REPLAY_FILE,
     CheckpointError,
@@ -38,14 +38,15 @@ from convoy.learner.checkpoint import (
     save_checkpoint,
     save_replay,
 )
+from convoy.envs import make_batched
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 from convoy.learner.runtime import configure_learner
-from convoy.learner.stepping import EnvStepper
 from convoy.protocol import keys, wire
-from convoy.protocol.config import ConfigError, JobConfig, job_config
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
+
+from convoy.config import ConfigError, JobConfig, job_config
 
 WEIGHTS_EVERY_S = 1.0
 WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights

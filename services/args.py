@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from convoy.envs import ConfigError
-from convoy.protocol.config import ResourceLimits
+from convoy.config import ResourceLimits
+from convoy.validation import ConfigError
 
 EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
 

@@ -9,17 +9,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from convoy.envs import ENVS, ConfigError, make_batched
-from convoy.envs.config import allowed_range, build_config
+from convoy.algos.errors import CheckpointError
+from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
-from convoy.learner.errors import CheckpointError
 from convoy.services.args import env_params
 from convoy.services.procs import JobFailed
 from pydantic import ValidationError
 from rich.console import Console
 from rich.table import Table
+
+from convoy.validation import ConfigError, allowed_range, build_config
 
 console = Console()
 err_console = Console(stderr=True)

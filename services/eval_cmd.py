@@ -8,9 +8,10 @@ import json
 from pathlib import Path
 from typing import Any
 
-from convoy.envs import ConfigError
-from convoy.protocol.config import MESSAGE_SOURCES
 from rich.console import Console
+
+from convoy.config import MESSAGE_SOURCES
+from convoy.validation import ConfigError
 
 console = Console()
 
@@ -22,7 +23,7 @@ CHANNEL_HELP = (
 
 def load(path: str, device: str) -> tuple[Any, Any, dict[str, Any]]:
     """(algorithm, job, counters) of a checkpoint; a bad file is a CheckpointError that says what to do."""
-    from convoy.learner.checkpoint import load_checkpoint
+    from convoy.algos.checkpoint import load_checkpoint
 
     if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
         raise ConfigError("--device", f"unknown device {device!r}; use auto, cpu, cuda or cuda:N")
@@ -31,7 +32,7 @@ def load(path: str, device: str) -> tuple[Any, Any, dict[str, Any]]:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from convoy.learner.evaluation import evaluate_policy, parse_channel
+    from convoy.analysis.evaluation import evaluate_policy, parse_channel
     from convoy.services.training import make_env
 
     if args.episodes < 1:
@@ -80,9 +81,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
     """Play one greedy treadmill episode (same message source and channel) and write it as a GIF."""
     import torch
+    from convoy.analysis.evaluation import listening, listening_for
     from convoy.envs.rollout import rollout
     from convoy.envs.treadmill import TreadmillEngine, render_frame, write_gif
-    from convoy.learner.evaluation import listening, listening_for
 
     cfg = job.env_config()
     env = TreadmillEngine(cfg, 1, autoreset=False)
@@ -106,7 +107,7 @@ def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    from convoy.learner.analysis import analyze
+    from convoy.analysis.recording import analyze
     from convoy.services.training import make_env
 
     for flag in ("samples", "episodes", "repeats"):

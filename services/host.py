@@ -17,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from convoy.protocol import keys
-from convoy.protocol.config import JobConfig
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 from convoy.services.procs import JobFailed, ProcessGroup
+
+from convoy.config import JobConfig
 
 
 class HostAgent:

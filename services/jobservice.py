@@ -40,7 +40,6 @@ from convoy.api.models import EvalRequest
 from convoy.api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
 from convoy.learner.metrics import read_rows
 from convoy.protocol import keys, wire
-from convoy.protocol.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import (
     ZenohSettings,
@@ -51,6 +50,8 @@ from convoy.protocol.session import (
     write_credentials,
 )
 from convoy.services.jobrunner import AliveSet, MetricReports
+
+from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
@@ -213,9 +214,9 @@ class JobService:
         return path
 
     def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]:
-        from convoy.learner.checkpoint import load_checkpoint
-        from convoy.learner.errors import CheckpointError
-        from convoy.learner.evaluation import evaluate_policy
+        from convoy.algos.checkpoint import load_checkpoint
+        from convoy.algos.errors import CheckpointError
+        from convoy.analysis.evaluation import evaluate_policy
         from convoy.services.training import make_env
 
         path = self._out(job_id) / "checkpoint.pt"

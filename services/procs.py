@@ -25,14 +25,15 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
-from convoy.protocol.config import JobConfig
 from convoy.protocol.exitcodes import DIVERGED
 from convoy.protocol.session import ZenohSettings
+
+from convoy.config import JobConfig
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
 # torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's
 # first update while every actor waits for it.
-PRELOAD = ["convoy.actors.actor", "convoy.learner.agent", "convoy.learner.service", "torch._dynamo"]
+PRELOAD = ["convoy.actors.actor", "convoy.algos.agent", "convoy.learner.service", "torch._dynamo"]
 SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
 MAX_BACKOFF_S = 30.0
 

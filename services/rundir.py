@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 from typing import IO
 
-from convoy.envs import ConfigError
+from convoy.validation import ConfigError
 
 LOCK = ".convoy.lock"
 RUN_FILES = ("checkpoint.pt", "metrics.jsonl", "summary.json")  # what makes a directory hold a run

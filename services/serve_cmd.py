@@ -7,8 +7,9 @@ import os
 import secrets
 from pathlib import Path
 
-from convoy.envs import ConfigError
 from convoy.services.args import add_limit_flags, limits_from_args
+
+from convoy.validation import ConfigError
 
 
 def api_token(data_dir: Path) -> tuple[str, str]:

@@ -9,8 +9,13 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from convoy.envs import ENVS, ConfigError
-from convoy.protocol.config import (
+from convoy.envs import ENVS
+from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
+from convoy.services.rundir import claim, free_default
+from rich.console import Console
+from rich.table import Table
+
+from convoy.config import (
     ALGO_CONFIGS,
     ALGO_SUMMARIES,
     DEVICES,
@@ -19,10 +24,7 @@ from convoy.protocol.config import (
     env_default_note,
     job_config,
 )
-from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
-from convoy.services.rundir import claim, free_default
-from rich.console import Console
-from rich.table import Table
+from convoy.validation import ConfigError
 
 console = Console()
 

@@ -7,7 +7,8 @@ from typing import TYPE_CHECKING, Any
 
 from convoy.envs import make_batched
 from convoy.envs.batched import BatchedEnv
-from convoy.protocol.config import JobConfig
+
+from convoy.config import JobConfig
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
     from convoy.learner.inprocess import TrainResult
@@ -20,7 +21,7 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
 
 def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
-    from convoy.learner.agent import make_agent
+    from convoy.algos.agent import make_agent
     from convoy.learner.inprocess import Trainer
     from convoy.learner.runtime import configure_learner
 

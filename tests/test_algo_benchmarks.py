@@ -13,7 +13,8 @@ from typing import Any
 
 import pytest
 import torch
-from convoy.protocol.config import MemoryFields
+
+from convoy.config import MemoryFields
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -100,10 +100,10 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
     (learner, actors, service) and reason while it runs."""
     import zenoh
     from convoy.protocol import keys, wire
-    from convoy.protocol.config import job_config
     from convoy.protocol.session import ZenohSettings, open_session, read_credentials
     from convoy.services.jobservice import CREDENTIALS_FILE
 
+    from convoy.config import job_config
     from tests.test_runtime import hostile_chunks, wait_for
 
     data = tmp_path / "svc"

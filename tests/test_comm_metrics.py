@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from convoy.learner.comm_metrics import (
+from convoy.analysis.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,
     entropy,

@@ -9,11 +9,12 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from convoy.algos.algorithm import epsilon_at
+from convoy.algos.dial import DIAL, dru
+from convoy.algos.registry import make_algorithm
 from convoy.envs import make_batched
-from convoy.learner.algorithm import epsilon_at
-from convoy.learner.algos.dial import DIAL, dru
-from convoy.learner.registry import make_algorithm
-from convoy.protocol.config import DIALConfig, resolve_algo
+
+from convoy.config import DIALConfig, resolve_algo
 
 
 @pytest.fixture(autouse=True)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from convoy.learner.fused_mlp import FusedMLP, fused_mlp
-from convoy.learner.nets import GroupMLP
+from convoy.algos.fused_mlp import FusedMLP, fused_mlp
+from convoy.algos.nets import GroupMLP
 
 
 def reference(m: GroupMLP, x: torch.Tensor) -> torch.Tensor:

@@ -8,13 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from convoy.envs import ConfigError, make_batched
+from convoy.algos.algorithm import epsilon_at, td_target
+from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from convoy.algos.registry import ALGORITHMS, make_algorithm
+from convoy.algos.replay import JointReplay
+from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
-from convoy.learner.algorithm import epsilon_at, td_target
-from convoy.learner.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from convoy.learner.registry import ALGORITHMS, make_algorithm
-from convoy.learner.replay import JointReplay
-from convoy.protocol.config import job_config, resolve_algo
+
+from convoy.config import job_config, resolve_algo
+from convoy.validation import ConfigError
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
 
@@ -231,7 +233,7 @@ def test_impossible_job_configs_name_the_field(values: dict, field: str) -> None
     ],
 )
 def test_resource_limits_name_the_field_the_limit_and_the_flag(values: dict, field: str, limit: str) -> None:
-    from convoy.protocol.config import ResourceLimits
+    from convoy.config import ResourceLimits
 
     job = job_config(**values)  # a valid config; whether a machine should allocate it is the limits' question
     with pytest.raises(ConfigError) as info:
@@ -258,7 +260,7 @@ def test_env_defaults_fill_only_what_the_user_left_open() -> None:
 
 
 def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
-    from convoy.learner.nets import message_bits
+    from convoy.algos.nets import message_bits
 
     logits = torch.tensor([[0.3, -0.2, 2.0, -2.0, -0.1, 0.1]], requires_grad=True)  # 3 bits as (off, on) pairs
     exe = message_bits(logits, 3, train=False)
@@ -276,7 +278,7 @@ def test_message_bits_are_hard_forward_and_differentiable_backward() -> None:
 def test_channel_information_counts_codewords_not_bits() -> None:
     """The positive-signalling estimate scores a message by its codewords: 16 copies of one split carry ln 2 nats,
     16 independent splits far more, and a message that ignores the observation none."""
-    from convoy.learner.nets import channel_information
+    from convoy.algos.nets import channel_information
 
     gen = torch.Generator().manual_seed(0)
     split = torch.where(torch.rand(512, 1, 1, generator=gen) < 0.5, -20.0, 20.0)
@@ -290,7 +292,7 @@ def test_channel_information_counts_codewords_not_bits() -> None:
 
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
 def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
-    from convoy.learner.algorithm import MAX_NONFINITE_IN_A_ROW
+    from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW
 
     algo = build(name)
     b = random_batch(SPEC, 256)
@@ -332,7 +334,7 @@ def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
 
 
 def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) -> None:
-    from convoy.learner.checkpoint import load_replay, save_replay
+    from convoy.algos.checkpoint import load_replay, save_replay
 
     algo = build("idqn")
     fill(algo, SPEC, rows=300)
@@ -351,7 +353,7 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
 def test_a_learner_killed_between_its_replay_and_its_checkpoint_resumes_with_the_replay_before(tmp_path) -> None:
     """The replay is written before the checkpoint: a kill in between leaves a checkpoint of the step before,
     whose replay must still be there (it was lost, and the resume started from an empty buffer)."""
-    from convoy.learner.checkpoint import load_replay, save_replay
+    from convoy.algos.checkpoint import load_replay, save_replay
 
     algo = build("idqn")
     fill(algo, SPEC, rows=200)
@@ -370,9 +372,10 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     ``metrics.jsonl``; one that always is ends the run with the cause instead of training on."""
     import json
 
-    from convoy.learner.algorithm import Algorithm
-    from convoy.protocol.config import job_config
+    from convoy.algos.algorithm import Algorithm
     from convoy.services.training import run_inprocess
+
+    from convoy.config import job_config
 
     real = Algorithm.agent_losses
     calls = {"n": 0, "every": 3}
@@ -392,8 +395,6 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     assert skipped > 0 and result.updates > 0, rows[-1]
     assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r and r["updates"] > 0)
     calls["every"] = 1
-    monkeypatch.setattr(
-        "convoy.learner.algorithm.MAX_NONFINITE_IN_A_ROW", 5
-    )  # fewer attempts than this short run makes
+    monkeypatch.setattr("convoy.algos.algorithm.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
     with pytest.raises(FloatingPointError, match="non-finite loss"):
         run_inprocess(job, out_dir=tmp_path / "always", progress=False)

@@ -10,9 +10,10 @@ teammate can see the chaser, MA-MeSN must beat independent DQN.
 from __future__ import annotations
 
 import pytest
-from convoy.learner.algorithm import Algorithm
-from convoy.protocol.config import JobConfig, job_config, resolve_algo
+from convoy.algos.algorithm import Algorithm
 from convoy.services.training import run_inprocess
+
+from convoy.config import JobConfig, job_config, resolve_algo
 
 K = 4
 REFERENTIAL_HP = {"hidden": (64,), "learning_starts": 256, "replay_ratio": 2.0, "target_update": 50}
@@ -112,7 +113,7 @@ def _small_treadmill_job(algo: str, env_params: dict, algo_params: dict, steps: 
 
 def _train(job: JobConfig) -> Algorithm:
     """The agent after ``job``'s training run (no evaluation, no files), for the tests to probe."""
-    from convoy.learner.agent import make_agent
+    from convoy.algos.agent import make_agent
     from convoy.learner.inprocess import Trainer
     from convoy.services.training import make_env
 
@@ -124,8 +125,8 @@ def _train(job: JobConfig) -> Algorithm:
 
 def _message_entropy_after_training(gumbel_noise: float | None) -> float:
     """MA-MeSN's greedy message entropy (nats, per agent) after 40 k steps on the small treadmill."""
-    from convoy.learner.analysis import record
-    from convoy.learner.comm_metrics import message_entropy
+    from convoy.analysis.comm_metrics import message_entropy
+    from convoy.analysis.recording import record
     from convoy.services.training import make_env
 
     hp = {**TREADMILL_HP, "replay_ratio": 4.0, "gumbel_noise": gumbel_noise}
@@ -156,7 +157,7 @@ BLIND_REAR_TREADMILL = {**SMALL_TREADMILL, "observe_k": 2, "sensor_fov": 180.0, 
 def _trained_returns(algo: str, seed: int) -> dict[str, list[float]]:
     """Greedy returns of 256 evaluation episodes after 200 k env steps on the blind-rear treadmill (and, for
     MA-MeSN, with white noise in place of the messages). Runs in a worker process of its own."""
-    from convoy.learner.evaluation import evaluate_policy
+    from convoy.analysis.evaluation import evaluate_policy
     from convoy.learner.runtime import configure_learner
     from convoy.services.training import make_env
 
@@ -180,7 +181,8 @@ def test_ma_mesn_beats_independent_dqn_where_only_a_teammate_sees_the_chaser() -
     import multiprocessing as mp
 
     import numpy as np
-    from convoy.envs.rollout import ci95_half
+
+    from convoy.stats import ci95_half
 
     def pooled(algo: str, src: str) -> tuple[float, float]:
         x = np.concatenate([out[algo, s][src] for s in (0, 1)])

@@ -18,21 +18,22 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.agent import make_agent
+from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.checkpoint import load_checkpoint, save_checkpoint
+from convoy.algos.codbc import CoDBC
+from convoy.algos.listening import Listening
+from convoy.algos.memory import HISTORY, MemoryModule
+from convoy.algos.registry import make_algorithm
+from convoy.analysis.evaluation import evaluate, listening, listening_for
 from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
-from convoy.envs.config import ConfigError
-from convoy.learner.agent import make_agent
-from convoy.learner.algorithm import Algorithm, Progress
-from convoy.learner.algos.codbc import CoDBC
-from convoy.learner.checkpoint import load_checkpoint, save_checkpoint
-from convoy.learner.evaluation import evaluate, listening, listening_for
-from convoy.learner.listening import Listening
-from convoy.learner.memory import HISTORY, MemoryModule
-from convoy.learner.registry import make_algorithm
-from convoy.learner.stepping import EnvStepper
-from convoy.protocol.config import ALGO_CONFIGS, job_config, resolve_algo
 from convoy.services.training import run_inprocess
 from torch import Tensor, nn
+
+from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
+from convoy.validation import ConfigError
 
 MM_ALGOS = ("ma-mesn-mm", "ma-bon-mm")
 TINY = {"hidden": (16,), "message_bits": 4, "learning_starts": 16, "batch_size": 16}
@@ -582,7 +583,7 @@ def test_a_loaded_codbc_checkpoint_acts_as_its_student(tmp_path: Path) -> None:
         device="cpu",
     )
     ckpt = save_checkpoint(tmp_path / "student.pt", student, job, {"env_steps": 10_000, "episodes": 0, "updates": 0})
-    teacher.unlink()  # "evaluating a CoDBC checkpoint needs only the student" (learner/algos/codbc.py)
+    teacher.unlink()  # "evaluating a CoDBC checkpoint needs only the student" (algos/codbc.py)
     loaded, _, _ = load_checkpoint(ckpt, device="cpu")
     obs = env.reset(seed=1)
     greedy = loaded.logits(torch.as_tensor(obs)).argmax(dim=-1).numpy()
@@ -624,7 +625,7 @@ def test_glimpse_shows_the_target_on_the_first_round_only() -> None:
 
 def test_shared_fused_lstm_matches_the_grouped_cell() -> None:
     """One group runs torch's fused LSTM, several groups a stepped cell: the same maths, gate for gate."""
-    from convoy.learner.memory import GroupLSTM
+    from convoy.algos.memory import GroupLSTM
 
     torch.manual_seed(0)
     fused, stepped = GroupLSTM(1, 5, 7, 3), GroupLSTM(2, 5, 7, 3)

@@ -15,8 +15,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from convoy.protocol.config import RuntimeConfig
 
+from convoy.config import RuntimeConfig
 from tests.multihost import Hosts, MultiHostJob, available
 
 STEPS = 1_000_000  # so the job outlasts the 10 s cut: the uncut host alone can do ~300 k in it on a quiet machine

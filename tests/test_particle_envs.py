@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from convoy.envs.batched import BatchedEnv, env_seeds
-from convoy.envs.config import ConfigError
 from convoy.envs.particle import (
     PredatorPreyEnv,
     evade_action,
@@ -18,6 +17,8 @@ from convoy.envs.particle import (
 )
 from convoy.envs.particle.predator_prey import MINUS_X, MINUS_Y, NOOP, PLUS_X, PLUS_Y
 from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from convoy.validation import ConfigError
 
 NOOPS = {"predator_0": 0, "predator_1": 0}
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from convoy.envs.config import ConfigError
 from convoy.envs.particle import make_referential, make_referential_batch
 from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from convoy.validation import ConfigError
 
 
 def test_rounds_one_is_the_one_step_game_bit_for_bit() -> None:

@@ -22,13 +22,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from convoy.learner.algorithm import epsilon_at
-from convoy.learner.checkpoint import read_checkpoint
+from convoy.algos.algorithm import epsilon_at
+from convoy.algos.checkpoint import read_checkpoint
 from convoy.protocol import keys
-from convoy.protocol.config import JobConfig, job_config
 from convoy.protocol.session import ZenohSettings, free_port, loopback, open_session
 from convoy.services.jobrunner import JobRunner
 from convoy.services.training import run_inprocess
+
+from convoy.config import JobConfig, job_config
 
 REFERENTIAL = {
     "env": "referential",
@@ -379,8 +380,8 @@ def _tensors(x: object) -> list[torch.Tensor]:
 
 def hostile_chunks(job: JobConfig) -> list[tuple[str, dict]]:
     """(drop reason, a chunk body) that has this job's fields, dtypes and shapes but values no env can produce."""
+    from convoy.algos.agent import make_agent
     from convoy.envs import make_batched
-    from convoy.learner.agent import make_agent
     from convoy.learner.service import transition_schema
     from convoy.protocol import wire
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from convoy.learner.checkpoint import load_checkpoint
+from convoy.algos.checkpoint import load_checkpoint
 from convoy.services.cli import main
 from PIL import Image
 
@@ -114,10 +114,11 @@ def test_the_same_seed_trains_the_same_run(tmp_path, capsys) -> None:
 
 def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
     """Greedy curve points every 500 steps leave training exactly as a run without them: same losses, same weights."""
-    from convoy.learner.agent import make_agent
+    from convoy.algos.agent import make_agent
     from convoy.learner.inprocess import Trainer
-    from convoy.protocol.config import job_config
     from convoy.services.training import make_env
+
+    from convoy.config import job_config
 
     def train(eval_every: int) -> tuple[list[float], dict[str, torch.Tensor]]:
         hp = {"hidden": 32, "learning_starts": 64}

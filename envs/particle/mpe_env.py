@@ -11,9 +11,10 @@ from typing import Any
 
 import numpy as np
 from convoy.envs.batched import EnvSpec
-from convoy.envs.config import ConfigError
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+
+from convoy.validation import ConfigError
 
 
 class MpeParallelEnv(ParallelEnv):

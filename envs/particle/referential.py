@@ -41,10 +41,11 @@ from typing import Any, ClassVar
 import numpy as np
 from convoy.envs import rng
 from convoy.envs.batched import EnvSpec, StepResult, check_actions
-from convoy.envs.config import ConfigError, build_config
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from convoy.validation import ConfigError, build_config
 
 SPEAKER, LISTENER = "speaker", "listener"
 AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)

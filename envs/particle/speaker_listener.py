@@ -23,11 +23,12 @@ from typing import Any, ClassVar
 
 import numpy as np
 from convoy.envs.batched import EnvSpec
-from convoy.envs.config import build_config
 from convoy.envs.particle.batch import ParallelEnvBatch
 from convoy.envs.particle.mpe_env import MpeParallelEnv
 from mpe2 import simple_speaker_listener_v4
 from pydantic import BaseModel, ConfigDict, Field
+
+from convoy.validation import build_config
 
 SPEAKER, LISTENER = "speaker_0", "listener_0"
 AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)

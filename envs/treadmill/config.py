@@ -9,8 +9,9 @@ agent and (c) one crash costs everyone; ``docs/treadmill.md`` has the measuremen
 
 from __future__ import annotations
 
-from convoy.envs.config import ConfigError
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from convoy.validation import ConfigError
 
 
 class TreadmillConfig(BaseModel):

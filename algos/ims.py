@@ -27,10 +27,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch.nn.functional as F
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
-from convoy.protocol.config import IMSConfig
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from torch import Tensor, nn
+
+from convoy.config import IMSConfig
 
 
 def mean_of_others(sent: Tensor) -> Tensor:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from convoy.learner.nets import GroupLinear, id_width, with_agent_id
+from convoy.algos.nets import GroupLinear, id_width, with_agent_id
 from torch import Tensor, nn
 
 HISTORY = "history"

@@ -23,11 +23,12 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
+from convoy.algos.nets import signalling_loss
 from convoy.envs.channel import MessageChannel
-from convoy.envs.config import ConfigError
-from convoy.learner.nets import signalling_loss
-from convoy.protocol.config import MessageSource
 from torch import Tensor, nn
+
+from convoy.config import MessageSource
+from convoy.validation import ConfigError
 
 Source = MessageSource
 SOURCES: tuple[str, ...] = get_args(Source)

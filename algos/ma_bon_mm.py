@@ -6,9 +6,10 @@ broadcast, the agent's own prediction of it (no channel), or the broadcast with 
 
 from __future__ import annotations
 
-from convoy.learner.algos.ma_bon import MABoN
-from convoy.learner.memory import MemoryModule
-from convoy.protocol.config import BoNMMConfig
+from convoy.algos.ma_bon import MABoN
+from convoy.algos.memory import MemoryModule
+
+from convoy.config import BoNMMConfig
 
 
 class MABoNMM(MemoryModule, MABoN):

@@ -26,11 +26,12 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from convoy.envs.config import ConfigError
-from convoy.learner.algorithm import NEG, ActOutput, Algorithm, decay_progress
-from convoy.learner.nets import GroupMLP, id_width, with_agent_id
-from convoy.protocol.config import CoDBCConfig
+from convoy.algos.algorithm import NEG, ActOutput, Algorithm, decay_progress
+from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from torch import Tensor, nn
+
+from convoy.config import CoDBCConfig
+from convoy.validation import ConfigError
 
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
 
@@ -53,7 +54,7 @@ class CoDBC(Algorithm):
     def teacher(self) -> Algorithm:
         """The centralised policy being cloned, loaded from ``cfg.teacher`` on first use (frozen, greedy)."""
         if self._teacher is None:
-            from convoy.learner.checkpoint import CheckpointError, load_checkpoint
+            from convoy.algos.checkpoint import CheckpointError, load_checkpoint
 
             try:
                 algo, job, _ = load_checkpoint(self.cfg.teacher, device=str(self.device))

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.nets import GroupMLP, id_width, with_agent_id
-from convoy.protocol.config import IDQNConfig
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from torch import Tensor, nn
+
+from convoy.config import IDQNConfig
 
 
 class IndependentDQN(Algorithm):

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from convoy.envs.batched import BatchedEnv
-from convoy.envs.config import ConfigError
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.comm_metrics import (
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.listening import HearsMessages
+from convoy.algos.memory import MemoryModule
+from convoy.analysis.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,
     instantaneous_coordination,
@@ -38,9 +38,10 @@ from convoy.learner.comm_metrics import (
     speaker_consistency,
     symbols,
 )
-from convoy.learner.evaluation import evaluate_policy
-from convoy.learner.listening import HearsMessages
-from convoy.learner.memory import MemoryModule
+from convoy.analysis.evaluation import evaluate_policy
+from convoy.envs.batched import BatchedEnv
+
+from convoy.validation import ConfigError
 
 
 @dataclass

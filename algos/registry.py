@@ -5,20 +5,21 @@ from __future__ import annotations
 import importlib
 
 import torch
+from convoy.algos.algorithm import Algorithm
 from convoy.envs.batched import EnvSpec
-from convoy.learner.algorithm import Algorithm
-from convoy.protocol.config import AlgoConfig, algo_name
+
+from convoy.config import AlgoConfig, algo_name
 
 ALGORITHMS: dict[str, str] = {
-    "idqn": "convoy.learner.algos.idqn:IndependentDQN",
-    "dqn-ser": "convoy.learner.algos.dqn_ser:DQNSER",
-    "dial": "convoy.learner.algos.dial:DIAL",
-    "ims": "convoy.learner.algos.ims:IMS",
-    "ma-mesn": "convoy.learner.algos.ma_mesn:MAMeSN",
-    "ma-bon": "convoy.learner.algos.ma_bon:MABoN",
-    "ma-mesn-mm": "convoy.learner.algos.ma_mesn_mm:MAMeSNMM",
-    "ma-bon-mm": "convoy.learner.algos.ma_bon_mm:MABoNMM",
-    "codbc": "convoy.learner.algos.codbc:CoDBC",
+    "idqn": "convoy.algos.idqn:IndependentDQN",
+    "dqn-ser": "convoy.algos.dqn_ser:DQNSER",
+    "dial": "convoy.algos.dial:DIAL",
+    "ims": "convoy.algos.ims:IMS",
+    "ma-mesn": "convoy.algos.ma_mesn:MAMeSN",
+    "ma-bon": "convoy.algos.ma_bon:MABoN",
+    "ma-mesn-mm": "convoy.algos.ma_mesn_mm:MAMeSNMM",
+    "ma-bon-mm": "convoy.algos.ma_bon_mm:MABoNMM",
+    "codbc": "convoy.algos.codbc:CoDBC",
 }
 
 

@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import torch
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.registry import make_algorithm
 from convoy.envs.batched import EnvSpec
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.registry import make_algorithm
-from convoy.protocol.config import JobConfig
+
+from convoy.config import JobConfig
 
 
 def make_agent(job: JobConfig, spec: EnvSpec, device: str | torch.device | None = None) -> Algorithm:
     """The job's algorithm for ``spec`` (its env defaults resolved), hierarchical when ``job.hierarchical``."""
     dev = job.device if device is None else device
     if job.hierarchical:
-        from convoy.learner.hierarchy import HierarchicalAgent
+        from convoy.algos.hierarchy import HierarchicalAgent
 
         return HierarchicalAgent(job, spec, device=dev)
     return make_algorithm(job.algo, spec, job.algo_config(), device=dev, seed=job.seed)

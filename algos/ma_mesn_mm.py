@@ -8,9 +8,10 @@ the true messages with the lost ones replaced by predictions (a lossy channel) â
 
 from __future__ import annotations
 
-from convoy.learner.algos.ma_mesn import MAMeSN
-from convoy.learner.memory import MemoryModule
-from convoy.protocol.config import MeSNMMConfig
+from convoy.algos.ma_mesn import MAMeSN
+from convoy.algos.memory import MemoryModule
+
+from convoy.config import MeSNMMConfig
 
 
 class MAMeSNMM(MemoryModule, MAMeSN):

@@ -8,8 +8,8 @@ env's running return and the episode stamp that stabilised experience replay wei
 from __future__ import annotations
 
 import numpy as np
+from convoy.algos.algorithm import ActOutput, Algorithm
 from convoy.envs.batched import BatchedEnv, StepResult
-from convoy.learner.algorithm import ActOutput, Algorithm
 
 
 def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:

@@ -14,13 +14,14 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.listening import HearsMessages, Listening, Source
+from convoy.algos.memory import MemoryModule
 from convoy.envs.batched import BatchedEnv
 from convoy.envs.channel import MessageChannel
-from convoy.envs.config import ConfigError
-from convoy.envs.rollout import ci95_half
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.listening import HearsMessages, Listening, Source
-from convoy.learner.memory import MemoryModule
+
+from convoy.stats import ci95_half
+from convoy.validation import ConfigError
 
 
 @dataclass(frozen=True)

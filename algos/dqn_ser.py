@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from convoy.learner.algos.idqn import IndependentDQN
-from convoy.protocol.config import SERConfig
+from convoy.algos.idqn import IndependentDQN
 from torch import Tensor
+
+from convoy.config import SERConfig
 
 
 class DQNSER(IndependentDQN):
@@ -31,7 +32,7 @@ class DQNSER(IndependentDQN):
 
     def fingerprint(self) -> np.ndarray:
         """(ε, training progress) as seen by the acting policy right now."""
-        from convoy.learner.algorithm import epsilon_at
+        from convoy.algos.algorithm import epsilon_at
 
         p = self.progress
         return np.array(

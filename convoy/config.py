@@ -12,9 +12,10 @@ from __future__ import annotations
 import itertools
 from typing import Any, ClassVar, Literal, get_args
 
-from convoy.envs.config import ConfigError, build_config
-from convoy.protocol.session import ZenohSettings
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from convoy.protocol.session import ZenohSettings
+from convoy.validation import ConfigError, build_config
 
 Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device

@@ -17,12 +17,13 @@ from typing import IO, Any
 
 import numpy as np
 import torch
+from convoy.algos.agent import make_agent
+from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.errors import CheckpointError
+from convoy.algos.replay import JointReplay
 from convoy.envs.batched import EnvSpec
-from convoy.learner.agent import make_agent
-from convoy.learner.algorithm import Algorithm, Progress
-from convoy.learner.errors import CheckpointError
-from convoy.learner.replay import JointReplay
-from convoy.protocol.config import JobConfig, job_config
+
+from convoy.config import JobConfig, job_config
 
 FORMAT = 1
 BEST_CHECKPOINT = "best.pt"  # beside checkpoint.pt: the policy of the best point of the greedy learning curve

@@ -26,11 +26,12 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from convoy.learner.algorithm import Algorithm
-from convoy.learner.listening import HearsMessages
-from convoy.learner.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
-from convoy.protocol.config import BoNConfig
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.listening import HearsMessages
+from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
 from torch import Tensor, nn
+
+from convoy.config import BoNConfig
 
 
 class MABoN(HearsMessages, Algorithm):

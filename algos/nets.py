@@ -14,11 +14,11 @@ from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
-from convoy.learner.fused_mlp import fused_mlp
+from convoy.algos.fused_mlp import fused_mlp
 from torch import Tensor, nn
 
 if TYPE_CHECKING:
-    from convoy.protocol.config import GumbelConfig
+    from convoy.config import GumbelConfig
 
 
 def pick_device(name: str = "auto") -> torch.device:

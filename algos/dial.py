@@ -23,12 +23,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from convoy.algos.algorithm import NEG, ActOutput, Algorithm, epsilon_at
+from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
+from convoy.algos.replay import JointReplay
 from convoy.envs.batched import EnvSpec
-from convoy.learner.algorithm import NEG, ActOutput, Algorithm, epsilon_at
-from convoy.learner.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
-from convoy.learner.replay import JointReplay
-from convoy.protocol.config import DIALConfig
 from torch import Tensor, nn
+
+from convoy.config import DIALConfig
 
 # Fields of an observed chunk that learning needs (anything else the trainer adds is not kept).
 SEQ_KEYS: tuple[str, ...] = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "msg_in")

@@ -72,14 +72,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from convoy.algos.algorithm import ActOutput, Algorithm, Progress
+from convoy.algos.idqn import IndependentDQN
+from convoy.algos.nets import pick_device
+from convoy.algos.registry import make_algorithm
 from convoy.envs.batched import EnvSpec
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
-from convoy.learner.algorithm import ActOutput, Algorithm, Progress
-from convoy.learner.algos.idqn import IndependentDQN
-from convoy.learner.nets import pick_device
-from convoy.learner.registry import make_algorithm
-from convoy.protocol.config import AlgoConfig, IDQNConfig, JobConfig
 from torch import Tensor
+
+from convoy.config import AlgoConfig, IDQNConfig, JobConfig
 
 GOALS: tuple[str, ...] = ("cruise", "left", "right", "faster", "slower")
 CRUISE, LEFT, RIGHT, FASTER, SLOWER = range(len(GOALS))

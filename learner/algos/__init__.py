@@ -1,1 +1,0 @@
-"""One module per algorithm; ``learner.registry`` maps names to classes."""
