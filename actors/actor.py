@@ -18,16 +18,16 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import STOPPED, ParentWatch
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
-
-from convoy.config import JobConfig
 
 METRICS_EVERY_S = 1.0
 

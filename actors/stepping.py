@@ -8,6 +8,7 @@ env's running return and the episode stamp that stabilised experience replay wei
 from __future__ import annotations
 
 import numpy as np
+
 from convoy.algos.algorithm import ActOutput, Algorithm
 from convoy.envs.batched import BatchedEnv, StepResult
 

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import torch
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.registry import make_algorithm
-from convoy.envs.batched import EnvSpec
-
 from convoy.config import JobConfig
+from convoy.envs.batched import EnvSpec
 
 
 def make_agent(job: JobConfig, spec: EnvSpec, device: str | torch.device | None = None) -> Algorithm:

@@ -19,12 +19,12 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 import torch.nn.functional as F
-from convoy.algos.nets import pick_device
-from convoy.algos.replay import JointReplay
-from convoy.envs.batched import EnvSpec
 from torch import Tensor, nn
 
+from convoy.algos.nets import pick_device
+from convoy.algos.replay import JointReplay
 from convoy.config import AlgoConfig
+from convoy.envs.batched import EnvSpec
 
 # Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
 # many means the weights or the data are broken and going on would only hide it.

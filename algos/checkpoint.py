@@ -17,13 +17,13 @@ from typing import IO, Any
 
 import numpy as np
 import torch
+
 from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import Algorithm, Progress
 from convoy.algos.errors import CheckpointError
 from convoy.algos.replay import JointReplay
-from convoy.envs.batched import EnvSpec
-
 from convoy.config import JobConfig, job_config
+from convoy.envs.batched import EnvSpec
 
 FORMAT = 1
 BEST_CHECKPOINT = "best.pt"  # beside checkpoint.pt: the policy of the best point of the greedy learning curve

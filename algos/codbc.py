@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from convoy.algos.algorithm import NEG, ActOutput, Algorithm, decay_progress
-from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from torch import Tensor, nn
 
+from convoy.algos.algorithm import NEG, ActOutput, Algorithm, decay_progress
+from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import CoDBCConfig
 from convoy.validation import ConfigError
 

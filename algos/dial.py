@@ -23,13 +23,13 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor, nn
+
 from convoy.algos.algorithm import NEG, ActOutput, Algorithm, epsilon_at
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
-from convoy.envs.batched import EnvSpec
-from torch import Tensor, nn
-
 from convoy.config import DIALConfig
+from convoy.envs.batched import EnvSpec
 
 # Fields of an observed chunk that learning needs (anything else the trainer adds is not kept).
 SEQ_KEYS: tuple[str, ...] = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "msg_in")

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from convoy.algos.idqn import IndependentDQN
 from torch import Tensor
 
+from convoy.algos.idqn import IndependentDQN
 from convoy.config import SERConfig
 
 

@@ -72,15 +72,15 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor
+
 from convoy.algos.algorithm import ActOutput, Algorithm, Progress
 from convoy.algos.idqn import IndependentDQN
 from convoy.algos.nets import pick_device
 from convoy.algos.registry import make_algorithm
+from convoy.config import AlgoConfig, IDQNConfig, JobConfig
 from convoy.envs.batched import EnvSpec
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
-from torch import Tensor
-
-from convoy.config import AlgoConfig, IDQNConfig, JobConfig
 
 GOALS: tuple[str, ...] = ("cruise", "left", "right", "faster", "slower")
 CRUISE, LEFT, RIGHT, FASTER, SLOWER = range(len(GOALS))

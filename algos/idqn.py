@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from convoy.algos.algorithm import Algorithm
-from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from torch import Tensor, nn
 
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import IDQNConfig
 
 

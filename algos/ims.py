@@ -27,10 +27,10 @@ from __future__ import annotations
 from typing import Any
 
 import torch.nn.functional as F
-from convoy.algos.algorithm import Algorithm
-from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from torch import Tensor, nn
 
+from convoy.algos.algorithm import Algorithm
+from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from convoy.config import IMSConfig
 
 

@@ -23,11 +23,11 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
-from convoy.algos.nets import signalling_loss
-from convoy.envs.channel import MessageChannel
 from torch import Tensor, nn
 
+from convoy.algos.nets import signalling_loss
 from convoy.config import MessageSource
+from convoy.envs.channel import MessageChannel
 from convoy.validation import ConfigError
 
 Source = MessageSource

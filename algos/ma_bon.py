@@ -26,11 +26,11 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from torch import Tensor, nn
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
-from torch import Tensor, nn
-
 from convoy.config import BoNConfig
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from convoy.algos.ma_bon import MABoN
 from convoy.algos.memory import MemoryModule
-
 from convoy.config import BoNMMConfig
 
 

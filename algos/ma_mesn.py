@@ -13,11 +13,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from torch import Tensor, nn
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
-from torch import Tensor, nn
-
 from convoy.config import MeSNConfig
 
 

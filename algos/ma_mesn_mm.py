@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.memory import MemoryModule
-
 from convoy.config import MeSNMMConfig
 
 

@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from convoy.algos.nets import GroupLinear, id_width, with_agent_id
 from torch import Tensor, nn
+
+from convoy.algos.nets import GroupLinear, id_width, with_agent_id
 
 HISTORY = "history"
 

@@ -14,8 +14,9 @@ from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
-from convoy.algos.fused_mlp import fused_mlp
 from torch import Tensor, nn
+
+from convoy.algos.fused_mlp import fused_mlp
 
 if TYPE_CHECKING:
     from convoy.config import GumbelConfig

@@ -5,10 +5,10 @@ from __future__ import annotations
 import importlib
 
 import torch
-from convoy.algos.algorithm import Algorithm
-from convoy.envs.batched import EnvSpec
 
+from convoy.algos.algorithm import Algorithm
 from convoy.config import AlgoConfig, algo_name
+from convoy.envs.batched import EnvSpec
 
 ALGORITHMS: dict[str, str] = {
     "idqn": "convoy.algos.idqn:IndependentDQN",

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.listening import HearsMessages, Listening, Source
 from convoy.algos.memory import MemoryModule
 from convoy.envs.batched import BatchedEnv
 from convoy.envs.channel import MessageChannel
-
 from convoy.stats import ci95_half
 from convoy.validation import ConfigError
 

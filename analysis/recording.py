@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.listening import HearsMessages
 from convoy.algos.memory import MemoryModule
@@ -40,7 +41,6 @@ from convoy.analysis.comm_metrics import (
 )
 from convoy.analysis.evaluation import evaluate_policy
 from convoy.envs.batched import BatchedEnv
-
 from convoy.validation import ConfigError
 
 

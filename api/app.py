@@ -12,12 +12,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
 from convoy.api.deps import JobControl
 from convoy.api.errors import ERROR_RESPONSES, install_error_handlers
 from convoy.api.routes import jobs, metrics, service
 from convoy.api.routes.service import STATIC
-from fastapi import FastAPI
-from fastapi.staticfiles import StaticFiles
 
 
 def create_app(control: JobControl, token: str) -> FastAPI:

@@ -11,11 +11,11 @@ import secrets
 from pathlib import Path
 from typing import Any, Protocol
 
+from fastapi import Request
+
 from convoy.api.errors import ApiError
 from convoy.api.models import EvalRequest, JobView, Progress
 from convoy.api.store import JobRecord, JobState, JobStore
-from fastapi import Request
-
 from convoy.config import JobConfig
 
 PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")

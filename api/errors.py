@@ -10,14 +10,14 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from convoy.api.models import ErrorBody
-from convoy.api.store import StoreError, UnknownJob
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+from convoy.api.models import ErrorBody
+from convoy.api.store import StoreError, UnknownJob
 from convoy.config import ConfigError
 
 MAX_BODY = 64 * 1024

@@ -10,10 +10,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from convoy.api.store import ACTIVE_STATES, JobStore
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+from convoy.api.store import ACTIVE_STATES, JobStore
 
 PER_JOB = {
     "env_steps": "Env steps the learner has ingested.",

@@ -42,16 +42,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from convoy.algos.agent import make_agent  # noqa: E402
-from convoy.algos.checkpoint import load_checkpoint  # noqa: E402
-from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
-from convoy.learner.inprocess import Trainer  # noqa: E402
-from convoy.learner.runtime import configure_learner  # noqa: E402
-from convoy.services.training import make_env  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from convoy.algos.agent import make_agent  # noqa: E402
+from convoy.algos.checkpoint import load_checkpoint  # noqa: E402
+from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
 from convoy.config import JobConfig, job_config  # noqa: E402
+from convoy.learner.inprocess import Trainer  # noqa: E402
+from convoy.learner.runtime import configure_learner  # noqa: E402
+from convoy.services.training import make_env  # noqa: E402
 
 TREADMILL = {"n_agents": 3, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 HP = {"hidden": (64,), "learning_starts": 500, "replay_ratio": 4.0, "target_update": 100, "gamma": 0.95, "lr": 1e-3}

@@ -52,14 +52,14 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from convoy.algos.algorithm import Algorithm  # noqa: E402
-from convoy.algos.nets import pick_device  # noqa: E402
-from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
-from convoy.envs.registry import make_batched  # noqa: E402
 from flops import count_flops  # noqa: E402 (benchmarks/flops.py, next to this script)
 from report import cpu_model, markdown_table  # noqa: E402 (benchmarks/report.py, next to this script)
 
+from convoy.algos.algorithm import Algorithm  # noqa: E402
+from convoy.algos.nets import pick_device  # noqa: E402
+from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
 from convoy.config import DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
+from convoy.envs.registry import make_batched  # noqa: E402
 
 ENV = "treadmill"
 AGENT_COUNTS = (2, 4, 8, 16, 32, 64)

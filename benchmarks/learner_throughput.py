@@ -66,11 +66,6 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling script's helpers
-from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import Algorithm, Progress
-from convoy.algos.registry import ALGORITHMS
-from convoy.envs.registry import make_batched
-from convoy.learner.runtime import configure_learner
 from flops import RNN_FLOPS, count_flops, op_flops
 from inference_scaling import (
     ENV,
@@ -86,7 +81,12 @@ from inference_scaling import (
 )
 from report import cpu_model, markdown_table
 
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.registry import ALGORITHMS
 from convoy.config import PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden
+from convoy.envs.registry import make_batched
+from convoy.learner.runtime import configure_learner
 
 try:
     import resource

@@ -196,10 +196,9 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
 
     from convoy.actors.stepping import EnvStepper
     from convoy.algos.agent import make_agent
+    from convoy.config import job_config
     from convoy.envs import make_batched
     from convoy.protocol import wire
-
-    from convoy.config import job_config
 
     job = job_config(algo=ALGO, env=ENV, num_envs=num_envs, seed=seed, device="cpu", algo_params={"hidden": (32, 12)})
     env = make_batched(ENV, num_envs)
@@ -226,6 +225,7 @@ def _ingest_publisher(
     done: Any, out_q: Any,
 ) -> None:  # fmt: skip
     import zenoh
+
     from convoy.protocol.session import open_session
 
     session = open_session(settings)
@@ -280,6 +280,7 @@ def _ingest_subscriber(
             out_q.put(("sub", {"t_last": counts["t_last"], "msgs": counts["msgs"], "bytes": counts["bytes"]}))
         else:
             import numpy as np
+
             from convoy.algos.replay import JointReplay
             from convoy.protocol.inbox import Inbox
 
@@ -371,6 +372,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
     """Seconds for the Convoy ingest work alone on ``n`` chunks in this process (Inbox.offer + get, schema check,
     episode clock, JointReplay.add): what the transport adds is the rest."""
     import numpy as np
+
     from convoy.algos.replay import JointReplay
     from convoy.protocol.inbox import Inbox
 
@@ -463,11 +465,10 @@ def _weights_subscriber(sub_id: int, settings: Any, hidden: tuple[int, ...], cmd
     torch.set_num_threads(1)
     from convoy.actors.actor import load_weights
     from convoy.algos.agent import make_agent
+    from convoy.config import job_config
     from convoy.envs import make_batched
     from convoy.protocol.inbox import Inbox
     from convoy.protocol.session import open_session
-
-    from convoy.config import job_config
 
     env = make_batched(ENV, 1)
     spec = env.spec
@@ -529,6 +530,7 @@ def broadcast_round(
     nbytes: int,
 ) -> dict[str, Any]:  # fmt: skip
     import zenoh
+
     from convoy.protocol import keys, wire
 
     job_id = f"bench-{os.getpid()}-{rnd}"
@@ -604,11 +606,10 @@ def broadcast_round(
 
 def part_weights(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     from convoy.algos.agent import make_agent
+    from convoy.config import job_config
     from convoy.envs import make_batched
     from convoy.protocol import wire
     from convoy.protocol.session import ZenohSettings, open_session
-
-    from convoy.config import job_config
 
     hidden = tuple(args.weights_hidden)
     env = make_batched(ENV, 1)
@@ -707,6 +708,7 @@ def steady(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 def env_only_rate(num_envs: int, seconds: float, seed: int) -> float:
     import numpy as np
+
     from convoy.envs import make_batched
 
     env = make_batched(ENV, num_envs)

@@ -33,11 +33,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from convoy.services.training import run_inprocess  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from convoy.config import job_config  # noqa: E402
+from convoy.services.training import run_inprocess  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 
 NO_COMM, ORACLE, TARGET = -16.0, -7.7, -12.0

@@ -41,11 +41,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
-from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
-from convoy.envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 from scipy import stats  # noqa: E402
+
+from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
+from convoy.envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
 
 HELD_OUT_SEED = 50_000  # best.pt is chosen on seed + 10,000 (learner.runlog.EVAL_SEED_OFFSET); scored here
 

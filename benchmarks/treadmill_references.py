@@ -24,12 +24,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
-from convoy.envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
-from convoy.services.args import parse_pairs  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
+from convoy.envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
+from convoy.services.args import parse_pairs  # noqa: E402
 from convoy.validation import build_config  # noqa: E402
 
 

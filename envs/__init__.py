@@ -5,6 +5,7 @@ shared helpers (``convoy.validation``, ``convoy.stats``), so every other package
 """
 
 import gymnasium
+
 from convoy.envs.batched import BatchedEnv, EnvSpec, StepResult
 from convoy.envs.channel import ChannelConfig, MessageChannel
 from convoy.envs.registry import ENVS, make_batched, make_parallel

@@ -6,11 +6,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from convoy.envs.batched import BatchedEnv
-from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel
 
+from convoy.envs.batched import BatchedEnv
+from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, TreadmillParallelEnv
 from convoy.validation import ConfigError, build_config
 
 

@@ -9,6 +9,7 @@ vectorised, batch-independent and fast.
 from __future__ import annotations
 
 import numpy as np
+
 from convoy.envs.batched import env_seeds
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)

@@ -12,8 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from convoy.envs.batched import BatchedEnv, EnvSpec
 
+from convoy.envs.batched import BatchedEnv, EnvSpec
 from convoy.stats import ci95_half
 
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [B, N, D] -> actions [B, N]

@@ -8,21 +8,18 @@ learner process will, and to the env only through the batched interface, so the 
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
-from convoy.algos.checkpoint import BEST_CHECKPOINT, save_checkpoint
-from convoy.envs.batched import BatchedEnv
-from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 
+from convoy.actors.stepping import EnvStepper
+from convoy.algos.algorithm import Algorithm
 from convoy.config import JobConfig
+from convoy.envs.batched import BatchedEnv
+from convoy.learner.core import TrainingCore
 
 
 @dataclass
@@ -75,71 +72,21 @@ class Trainer:
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
         torch.manual_seed(job.seed)
-        log = RunLog(job.steps, job.log_every, self.out_dir, self.show_progress)
-        finished: list[float] = []
-        env_steps = 0
-
-        def save_best() -> None:  # best.pt, stamped with the step of the curve point that beat the best
-            self._checkpoint(env_steps, len(finished), BEST_CHECKPOINT)
-
-        evaluator = Evaluator(job, self.make_eval_env, save_best if self.out_dir else None)
+        core = TrainingCore(job, algo, self.out_dir, self.make_eval_env, progress=self.show_progress)
         stepper = EnvStepper(env, algo, job.seed)
-        owed = 0.0
-        next_ckpt = job.checkpoint_every
-        t0 = time.perf_counter()
         try:
-            while env_steps < job.steps:
-                algo.progress = Progress(env_steps, len(finished), job.steps, training=True)
-                eps = epsilon_at(self.cfg, env_steps, job.steps)
-                rets = stepper.step(eps)
-                finished.extend(rets)
-                log.episodes(rets)
-                env_steps += env.num_envs
+            while not core.done:
+                core.set_progress()
+                returns = stepper.step(core.epsilon)
+                core.stepped(env.num_envs, returns)
                 if stepper.chunk_steps >= algo.chunk_len:
-                    t_len = stepper.chunk_steps
-                    algo.observe(stepper.take_chunk())
-                    if algo.can_update():
-                        owed += algo.updates_for(t_len * env.num_envs)
-                    while owed >= 1.0 and algo.can_update():
-                        log.update(algo.update())
-                        owed -= 1.0
-                extra: dict[str, float] = {}
-                if log.row_due(env_steps):
-                    if evaluator.due(env_steps, job.steps):
-                        extra.update(evaluator.point(algo, env_steps))
-                    if self.on_row:
-                        extra.update(self.on_row(env_steps))
-                log.maybe_row(env_steps, len(finished), algo.updates, eps, **extra)
-                if self.out_dir and env_steps >= next_ckpt:
-                    self._checkpoint(env_steps, len(finished))
-                    next_ckpt += job.checkpoint_every
-        finally:
-            log.close()
-        wall = time.perf_counter() - t0
-        tail = finished[-max(1, len(finished) // 10) :] if finished else [float("nan")]
-        try:
-            final = evaluator.final(algo)
-        finally:
-            evaluator.close()
-        result = TrainResult(
-            env_steps=env_steps,
-            updates=algo.updates,
-            episodes=len(finished),
-            wall_s=wall,
-            env_steps_per_s=env_steps / wall,
-            updates_per_s=algo.updates / wall,
-            final_return=float(np.mean(tail)),
-            **final,
-            out_dir=str(self.out_dir) if self.out_dir else None,
-            rows=log.rows,
-        )
-        if self.out_dir:
-            self._checkpoint(env_steps, len(finished))
-            write_artefacts(self.out_dir, result.as_dict(), log.rows, title=f"{job.algo} on {job.env}")
-        return result
-
-    def _checkpoint(self, env_steps: int, episodes: int, name: str = "checkpoint.pt") -> None:
-        """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point."""
-        assert self.out_dir is not None
-        counters = {"env_steps": env_steps, "episodes": episodes, "updates": self.algo.updates}
-        save_checkpoint(self.out_dir / name, self.algo, self.job, counters)
+                    steps = stepper.chunk_steps * env.num_envs
+                    core.observe(stepper.take_chunk(), steps)
+                    core.update()
+                core.row(self.on_row)
+                core.maybe_checkpoint()
+        except BaseException:
+            core.close()
+            raise
+        summary = core.finish(f"{job.algo} on {job.env}")
+        return TrainResult(**summary, out_dir=str(self.out_dir) if self.out_dir else None, rows=core.log.rows)

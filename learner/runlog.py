@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from convoy.analysis.evaluation import evaluate
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.metrics import MetricsWriter, plot_curves
-
 from convoy.stats import ci95_half
 
 
@@ -47,6 +47,7 @@ class RunLog:
         self.next_row = (first_step // log_every + 1) * log_every
         self.t0 = self.t_row = time.perf_counter()
         self.steps_at_row, self.updates_at_row = first_step, first_updates
+        self.updates_at_start = first_updates
         self.wall_before = float(self.rows[-1].get("wall_s", 0.0)) if self.rows else 0.0
         self.bar = ProgressDisplay(total_steps, progress)
 

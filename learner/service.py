@@ -26,27 +26,24 @@ from typing import Any
 
 import numpy as np
 import torch
+
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.algorithm import Algorithm
 from convoy.algos.checkpoint import (
-    BEST_CHECKPOINT,
     REPLAY_FILE,
     CheckpointError,
     load_replay,
     read_checkpoint,
-    save_checkpoint,
-    save_replay,
 )
+from convoy.config import ConfigError, JobConfig, job_config
 from convoy.envs import make_batched
-from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
+from convoy.learner.core import TrainingCore
 from convoy.learner.runtime import configure_learner
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
-
-from convoy.config import ConfigError, JobConfig, job_config
 
 WEIGHTS_EVERY_S = 1.0
 WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights
@@ -104,7 +101,7 @@ class Learner:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.stopping = False
         self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
-        self.evaluator: Evaluator | None = None  # the greedy curve; its best point goes into every checkpoint
+        self.core: TrainingCore | None = None
 
     def stop(self, *_: Any) -> None:
         self.stopping = True
@@ -182,28 +179,15 @@ class Learner:
         self.pub_budget.put(wire.encode("budget", body, "learner"))
 
     def _loop(self, algo: Algorithm, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
-        job, rt, cfg = self.job, self.job.runtime, self.job.algo_config()
-        env_steps = int(counters.get("env_steps", 0))
-        episodes = int(counters.get("episodes", 0))
-        resumed = bool(counters)
-        log = RunLog(
-            job.steps,
-            job.log_every,
-            self.out_dir,
-            progress=False,
-            resume_at=env_steps if resumed else None,
-            first_step=env_steps,
-            first_updates=algo.updates,
-        )
-        self.evaluator = evaluator = Evaluator(
+        job, rt = self.job, self.job.runtime
+        self.core = core = TrainingCore(
             job,
+            algo,
+            self.out_dir,
             lambda n: make_batched(job.env, n, **job.env_params),
-            save_best=lambda: self._checkpoint(algo, env_steps, episodes, BEST_CHECKPOINT),
-            best=float(counters.get("best_eval_return", float("-inf"))),
-            first_step=env_steps,
+            counters=counters,
+            replay_bytes=rt.replay_checkpoint_mb << 20,
         )
-        owed = 0.0  # updates owed to ingested data (fractional carry, as in-process)
-        next_ckpt = (env_steps // job.checkpoint_every + 1) * job.checkpoint_every
         t_weights = t_budget = t_chunk = 0.0
         t_start = time.perf_counter()
         last_weights_version = -1
@@ -211,16 +195,24 @@ class Learner:
         ingested_chunks = 0
         chunk_steps = job.num_envs * rt.publish_steps
         slack = rt.slack(job.num_envs)
-        t0 = time.perf_counter()
 
         def allowance() -> int:
             """Steps actors may have sent: chunks still queued count as taken, so actors wait while the learner
             catches up."""
-            return env_steps + max(0, slack - len(inbox) * chunk_steps)
+            return core.env_steps + max(0, slack - len(inbox) * chunk_steps)
+
+        def transport(_: int) -> dict[str, float]:
+            dropped = self.dropped_by_reason(inbox)
+            return {
+                "policy_lag": float(np.mean(lags)) if lags else 0.0,
+                "dropped": float(sum(dropped.values())),
+                "chunks": float(ingested_chunks),
+                **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in dropped.items()},
+            }
 
         try:
             watch = ParentWatch()
-            while env_steps < job.steps and not self.stopping:
+            while not core.done and not self.stopping:
                 if watch.orphaned():
                     self.stopping = True
                     break
@@ -230,14 +222,15 @@ class Learner:
                     self._publish_weights(algo)
                     last_weights_version, t_weights = algo.updates, now
                 if now - t_budget >= BUDGET_EVERY_S:
-                    self._publish_budget(allowance(), env_steps, algo.updates)
+                    self._publish_budget(allowance(), core.env_steps, algo.updates)
                     t_budget = now
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
                     if now - max(t_chunk, t_start) > rt.data_timeout_s:
-                        self._checkpoint(algo, env_steps, episodes)
+                        core.close()
+                        core.checkpoint()
                         print(
-                            f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {env_steps:,} of "
+                            f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
                             f"{job.steps:,} env steps; are the job's actors running? (convoy jobs logs ID, or "
                             "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start",
                             flush=True,
@@ -250,79 +243,38 @@ class Learner:
                     self.rejected[problem] = self.rejected.get(problem, 0) + 1
                     continue
                 arrays = dict(arrays)
-                arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
-                algo.progress = Progress(env_steps, episodes, job.steps, training=True)
-                algo.observe(arrays)
+                arrays["episode"] = np.full_like(arrays["episode"], core.episodes)  # the learner's episode clock
+                core.set_progress()
                 t_len, b = arrays["obs"].shape[:2]
                 chunk_steps = t_len * b
-                env_steps += chunk_steps
-                episodes += len(msg.body["returns"])
-                self._publish_budget(allowance(), env_steps, algo.updates)  # credit now, not after the updates
+                core.observe(arrays, chunk_steps)
+                core.stepped(chunk_steps, list(msg.body["returns"]))
+                self._publish_budget(allowance(), core.env_steps, algo.updates)  # credit now, not after the updates
                 t_budget = t_chunk = time.perf_counter()
-                log.episodes(msg.body["returns"])
                 lags.append(algo.updates - msg.body["policy_version"])
                 ingested_chunks += 1
-                if algo.can_update():  # the updates this chunk is owed, as in-process: samples per insert exact
-                    owed += algo.updates_for(chunk_steps)
-                while owed >= 1.0 and algo.can_update():
-                    log.update(algo.update())
-                    owed -= 1.0
-                due = log.row_due(env_steps) and evaluator.due(env_steps, job.steps)
-                curve = evaluator.point(algo, env_steps) if due else {}
-                row = log.maybe_row(
-                    env_steps,
-                    episodes,
-                    algo.updates,
-                    epsilon_at(cfg, env_steps, job.steps),
-                    policy_lag=float(np.mean(lags)) if lags else 0.0,
-                    dropped=float(sum(self.dropped_by_reason(inbox).values())),
-                    chunks=float(ingested_chunks),
-                    **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in self.dropped_by_reason(inbox).items()},
-                    **curve,
-                )
+                core.update()
+                row = core.row(transport)
                 if row is not None:
                     self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
                     lags = []
-                if env_steps >= next_ckpt:
-                    self._checkpoint(algo, env_steps, episodes)
-                    next_ckpt += job.checkpoint_every
+                core.maybe_checkpoint()
             if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
-                self._checkpoint(algo, env_steps, episodes)
+                core.close()
+                core.checkpoint()
                 return STOPPED
-            self._publish_budget(job.steps, env_steps, algo.updates)  # tells actors the job has its data
-        finally:
-            log.close()
-        self._checkpoint(algo, env_steps, episodes)
-        wall = time.perf_counter() - t0
-        try:
-            final = evaluator.final(algo)
-        finally:
-            evaluator.close()
-        rows = log.rows
-        summary = {
-            "env_steps": env_steps,
-            "updates": algo.updates,
-            "episodes": episodes,
-            "wall_s": rows[-1]["wall_s"] if rows else wall,
-            "final_return": float(np.nanmean([r["return"] for r in rows[-max(1, len(rows) // 10) :]]))
-            if rows
-            else float("nan"),
-            **final,
-            "dropped": sum(self.dropped_by_reason(inbox).values()),
-            "dropped_by_reason": self.dropped_by_reason(inbox),
-        }
-        write_artefacts(self.out_dir, summary, rows, title=f"{job.algo} on {job.env} (distributed)")
-        done = {"done": 1.0, "eval_return": final["eval_return"], "env_steps": env_steps, "updates": algo.updates}
+            self._publish_budget(job.steps, core.env_steps, algo.updates)  # tells actors the job has its data
+        except BaseException:
+            core.close()
+            raise
+        dropped = self.dropped_by_reason(inbox)
+        summary = core.finish(
+            f"{job.algo} on {job.env} (distributed)", dropped=sum(dropped.values()), dropped_by_reason=dropped
+        )
+        done = {"done": 1.0, "eval_return": summary["eval_return"], "env_steps": core.env_steps}
+        done["updates"] = algo.updates
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
         return 0
-
-    def _checkpoint(self, algo: Algorithm, env_steps: int, episodes: int, name: str = "checkpoint.pt") -> None:
-        counters = {"env_steps": env_steps, "episodes": episodes, "updates": algo.updates}
-        if self.evaluator is not None and self.evaluator.best > float("-inf"):
-            counters["best_eval_return"] = self.evaluator.best  # a restarted learner keeps best.pt unless it beats it
-        if name == "checkpoint.pt":  # the replay first: a crash between the two leaves a pair that does not match
-            save_replay(self.out_dir / REPLAY_FILE, algo, env_steps, self.job.runtime.replay_checkpoint_mb << 20)
-        save_checkpoint(self.out_dir / name, algo, self.job, counters)
 
 
 def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:

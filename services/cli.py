@@ -9,6 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
+from rich.console import Console
+from rich.table import Table
+
 from convoy.algos.errors import CheckpointError
 from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
@@ -16,10 +20,6 @@ from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
 from convoy.services.args import env_params
 from convoy.services.procs import JobFailed
-from pydantic import ValidationError
-from rich.console import Console
-from rich.table import Table
-
 from convoy.validation import ConfigError, allowed_range, build_config
 
 console = Console()

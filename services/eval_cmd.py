@@ -81,6 +81,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
     """Play one greedy treadmill episode (same message source and channel) and write it as a GIF."""
     import torch
+
     from convoy.analysis.evaluation import listening, listening_for
     from convoy.envs.rollout import rollout
     from convoy.envs.treadmill import TreadmillEngine, render_frame, write_gif

@@ -16,12 +16,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from convoy.config import JobConfig
 from convoy.protocol import keys
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 from convoy.services.procs import JobFailed, ProcessGroup
-
-from convoy.config import JobConfig
 
 
 class HostAgent:

@@ -19,13 +19,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from convoy.config import JobConfig
 from convoy.learner.runlog import ProgressDisplay
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 from convoy.services.procs import Event, JobFailed, ProcessGroup
-
-from convoy.config import JobConfig
 
 
 class MetricReports:

@@ -18,13 +18,14 @@ from collections.abc import Callable
 from typing import Any
 
 import httpx
-from convoy.api.models import MAX_ACTORS, JobSubmit
-from convoy.services.args import env_params, parse_pairs
-from convoy.services.train_cmd import add_job_flags
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
+
+from convoy.api.models import MAX_ACTORS, JobSubmit
+from convoy.services.args import env_params, parse_pairs
+from convoy.services.train_cmd import add_job_flags
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 FINAL_STATES = ("completed", "stopped", "failed")

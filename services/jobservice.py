@@ -38,6 +38,7 @@ from typing import Any
 
 from convoy.api.models import EvalRequest
 from convoy.api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
+from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
@@ -50,8 +51,6 @@ from convoy.protocol.session import (
     write_credentials,
 )
 from convoy.services.jobrunner import AliveSet, MetricReports
-
-from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames

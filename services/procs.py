@@ -25,10 +25,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from convoy.config import JobConfig
 from convoy.protocol.exitcodes import DIVERGED
 from convoy.protocol.session import ZenohSettings
-
-from convoy.config import JobConfig
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
 # torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's

@@ -8,7 +8,6 @@ import secrets
 from pathlib import Path
 
 from convoy.services.args import add_limit_flags, limits_from_args
-
 from convoy.validation import ConfigError
 
 
@@ -29,6 +28,7 @@ def api_token(data_dir: Path) -> tuple[str, str]:
 
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
+
     from convoy.api.app import create_app
     from convoy.services.jobservice import JobService
 

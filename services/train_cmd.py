@@ -9,9 +9,6 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from convoy.envs import ENVS
-from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
-from convoy.services.rundir import claim, free_default
 from rich.console import Console
 from rich.table import Table
 
@@ -24,6 +21,9 @@ from convoy.config import (
     env_default_note,
     job_config,
 )
+from convoy.envs import ENVS
+from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
+from convoy.services.rundir import claim, free_default
 from convoy.validation import ConfigError
 
 console = Console()

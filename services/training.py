@@ -5,10 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.envs.batched import BatchedEnv
-
-from convoy.config import JobConfig
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
     from convoy.learner.inprocess import TrainResult

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
 from convoy.protocol.session import free_port
 
 TOKEN = "test-token"

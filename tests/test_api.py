@@ -99,11 +99,11 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
     chunks with impossible values: the job runs on, and ``GET /jobs/{id}`` and ``/metrics`` count them by role
     (learner, actors, service) and reason while it runs."""
     import zenoh
+
+    from convoy.config import job_config
     from convoy.protocol import keys, wire
     from convoy.protocol.session import ZenohSettings, open_session, read_credentials
     from convoy.services.jobservice import CREDENTIALS_FILE
-
-    from convoy.config import job_config
     from tests.test_runtime import hostile_chunks, wait_for
 
     data = tmp_path / "svc"
@@ -221,6 +221,7 @@ def test_a_process_without_the_jobs_credential_cannot_command_it(tmp_path: Path)
     without the API's token."""
 
     import zenoh
+
     from convoy.protocol import keys, wire
     from convoy.protocol.session import ZenohSettings, open_session
     from convoy.services.jobservice import host_name

@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 
 import pytest
+
 from convoy.api.store import (
     ACTIVE_STATES,
     ALLOWED_TRANSITIONS,

@@ -88,6 +88,7 @@ def test_updates_quick_run_compares_fused_plain_and_the_reference(tmp_path) -> N
 def test_the_plain_layer_chain_computes_what_the_fused_node_does() -> None:
     """``GroupMLP.fused = False`` (the benchmark's other arm) is the same function, values and gradients."""
     import torch
+
     from convoy.algos.nets import GroupMLP
 
     for groups in (1, 3):

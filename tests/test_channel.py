@@ -1,6 +1,7 @@
 """The message channel model: drops, bit flips and latency do what they say."""
 
 import numpy as np
+
 from convoy.envs.channel import ChannelConfig, MessageChannel
 
 

@@ -5,9 +5,10 @@ import subprocess
 import sys
 
 import pytest
+from PIL import Image
+
 from convoy.envs.treadmill import TreadmillConfig
 from convoy.services.cli import build_parser, main
-from PIL import Image
 
 
 def test_rollout_writes_gif_summary_and_plot(tmp_path, capsys) -> None:

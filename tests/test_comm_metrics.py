@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from convoy.analysis.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.analysis.evaluation import evaluate_policy
 from convoy.analysis.recording import analyze
-from convoy.services.training import make_env, run_inprocess
-
 from convoy.config import job_config
+from convoy.services.training import make_env, run_inprocess
 
 K = 4
 GAME = {"n_targets": K, "rounds": 2, "listener_glimpse": True}

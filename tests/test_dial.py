@@ -9,12 +9,12 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+
 from convoy.algos.algorithm import epsilon_at
 from convoy.algos.dial import DIAL, dru
 from convoy.algos.registry import make_algorithm
-from convoy.envs import make_batched
-
 from convoy.config import DIALConfig, resolve_algo
+from convoy.envs import make_batched
 
 
 @pytest.fixture(autouse=True)

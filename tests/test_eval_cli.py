@@ -15,11 +15,11 @@ from typing import Any
 
 import pytest
 import torch
-from convoy.services.cli import main
-from convoy.services.training import run_inprocess
 from PIL import Image
 
 from convoy.config import job_config
+from convoy.services.cli import main
+from convoy.services.training import run_inprocess
 
 GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}

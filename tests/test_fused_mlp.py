@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from convoy.algos.fused_mlp import FusedMLP, fused_mlp
 from convoy.algos.nets import GroupMLP
 

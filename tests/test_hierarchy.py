@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+
 from convoy.algos.agent import make_agent
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.algos.hierarchy import (
@@ -25,12 +26,11 @@ from convoy.algos.hierarchy import (
     HierarchicalAgent,
     LockstepQueue,
 )
+from convoy.config import job_config
 from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
-
-from convoy.config import job_config
 
 ENV = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 60}
 CFG = TreadmillConfig(**ENV)

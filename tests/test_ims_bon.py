@@ -8,13 +8,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import torch
+from torch import Tensor, nn
+
 from convoy.algos.algorithm import Algorithm
 from convoy.algos.ims import mean_of_others
 from convoy.algos.registry import make_algorithm
-from convoy.envs import EnvSpec, make_batched
-from torch import Tensor, nn
-
 from convoy.config import resolve_algo
+from convoy.envs import EnvSpec, make_batched
 
 SMALL = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
 

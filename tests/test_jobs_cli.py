@@ -9,9 +9,9 @@ import re
 from collections.abc import Iterator
 
 import pytest
+
 from convoy.protocol.session import free_port
 from convoy.services.cli import main
-
 from tests.service_fixture import TOKEN, Service
 
 pytestmark = pytest.mark.timeout(240)

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
 from convoy.algos.algorithm import epsilon_at, td_target
 from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from convoy.algos.registry import ALGORITHMS, make_algorithm
 from convoy.algos.replay import JointReplay
+from convoy.config import job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
-
-from convoy.config import job_config, resolve_algo
 from convoy.validation import ConfigError
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
@@ -373,9 +373,8 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     import json
 
     from convoy.algos.algorithm import Algorithm
-    from convoy.services.training import run_inprocess
-
     from convoy.config import job_config
+    from convoy.services.training import run_inprocess
 
     real = Algorithm.agent_losses
     calls = {"n": 0, "every": 3}

@@ -10,10 +10,10 @@ teammate can see the chaser, MA-MeSN must beat independent DQN.
 from __future__ import annotations
 
 import pytest
-from convoy.algos.algorithm import Algorithm
-from convoy.services.training import run_inprocess
 
+from convoy.algos.algorithm import Algorithm
 from convoy.config import JobConfig, job_config, resolve_algo
+from convoy.services.training import run_inprocess
 
 K = 4
 REFERENTIAL_HP = {"hidden": (64,), "learning_starts": 256, "replay_ratio": 2.0, "target_update": 50}

@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from torch import Tensor, nn
+
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import Algorithm, Progress
@@ -27,12 +29,10 @@ from convoy.algos.listening import Listening
 from convoy.algos.memory import HISTORY, MemoryModule
 from convoy.algos.registry import make_algorithm
 from convoy.analysis.evaluation import evaluate, listening, listening_for
+from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
 from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
 from convoy.services.training import run_inprocess
-from torch import Tensor, nn
-
-from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
 from convoy.validation import ConfigError
 
 MM_ALGOS = ("ma-mesn-mm", "ma-bon-mm")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
 from convoy.envs.batched import BatchedEnv, env_seeds
 from convoy.envs.particle import (
     PredatorPreyEnv,
@@ -16,8 +18,6 @@ from convoy.envs.particle import (
     make_speaker_listener_batch,
 )
 from convoy.envs.particle.predator_prey import MINUS_X, MINUS_Y, NOOP, PLUS_X, PLUS_Y
-from pettingzoo.test import parallel_api_test, parallel_seed_test
-
 from convoy.validation import ConfigError
 
 NOOPS = {"predator_0": 0, "predator_1": 0}

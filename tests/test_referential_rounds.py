@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from convoy.envs.particle import make_referential, make_referential_batch
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
+from convoy.envs.particle import make_referential, make_referential_batch
 from convoy.validation import ConfigError
 
 

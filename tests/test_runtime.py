@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
 from convoy.algos.algorithm import epsilon_at
 from convoy.algos.checkpoint import read_checkpoint
+from convoy.config import JobConfig, job_config
 from convoy.protocol import keys
 from convoy.protocol.session import ZenohSettings, free_port, loopback, open_session
 from convoy.services.jobrunner import JobRunner
 from convoy.services.training import run_inprocess
-
-from convoy.config import JobConfig, job_config
 
 REFERENTIAL = {
     "env": "referential",
@@ -239,6 +239,7 @@ HOSTILE_REPEATS = 20
 
 def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None:
     import zenoh
+
     from convoy.protocol import wire
 
     job = job_config(algo="idqn", steps=40_000, seed=4, runtime={"actors": 1}, **TREADMILL)
@@ -303,6 +304,7 @@ def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_p
     """Forged stop commands and a forged final budget make actors exit 0; the supervisor takes that as leaving
     early (its learner has not reported the job's steps), respawns them and the job completes."""
     import zenoh
+
     from convoy.protocol import wire
 
     job = job_config(algo="idqn", steps=30_000, seed=5, runtime={"actors": 2}, **TREADMILL)
@@ -338,6 +340,7 @@ def test_a_peer_without_the_jobs_credential_cannot_reach_it(tmp_path: Path) -> N
     import stat
 
     import zenoh
+
     from convoy.protocol import wire
     from convoy.protocol.session import ZenohSettings
 
@@ -445,6 +448,7 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
 
 def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: Path) -> None:
     import torch
+
     from convoy.services.procs import JobFailed
 
     if torch.cuda.is_available():

@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 import torch
+from PIL import Image
+
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.services.cli import main
-from PIL import Image
 
 TINY = ["--inprocess", "--env", "referential", "--steps", "3000", "--num-envs", "32", "--log-every", "500",
         "--eval-episodes", "50", "--no-progress", "--hp", "hidden=32", "--hp", "learning_starts=64"]  # fmt: skip
@@ -115,10 +116,9 @@ def test_the_same_seed_trains_the_same_run(tmp_path, capsys) -> None:
 def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
     """Greedy curve points every 500 steps leave training exactly as a run without them: same losses, same weights."""
     from convoy.algos.agent import make_agent
+    from convoy.config import job_config
     from convoy.learner.inprocess import Trainer
     from convoy.services.training import make_env
-
-    from convoy.config import job_config
 
     def train(eval_every: int) -> tuple[list[float], dict[str, torch.Tensor]]:
         hp = {"hidden": 32, "learning_starts": 64}

@@ -1,12 +1,13 @@
 """The treadmill behind the ecosystem's APIs: PettingZoo's and Gymnasium's own checkers."""
 
-import convoy.envs as envs
 import gymnasium
 import numpy as np
 import pytest
-from convoy.envs.treadmill import TreadmillGymEnv, TreadmillParallelEnv
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+import convoy.envs as envs
+from convoy.envs.treadmill import TreadmillGymEnv, TreadmillParallelEnv
 
 
 @pytest.mark.parametrize(("n", "m"), [(1, 1), (3, 1), (8, 3)])

@@ -2,12 +2,13 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from convoy.envs.batched import env_seeds
 from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, distance
 from convoy.envs.treadmill.config import FULL_FEATURES, OWN_FEATURES, SIGHTING_FEATURES
 from convoy.envs.treadmill.engine import DX, DY
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 KEEP = 4  # steer 0, accelerate 0
 FAST = settings(max_examples=60, deadline=None)

@@ -5,6 +5,7 @@ full-information driver beats its private-observation twin by ≥ 30 % with the 
 """
 
 import pytest
+
 from convoy.envs.treadmill import TreadmillConfig
 from convoy.envs.treadmill.references import CONSTANTS, best_constant, evaluate_references, who_sees_the_threat
 

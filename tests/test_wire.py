@@ -14,13 +14,14 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
 from convoy.protocol import inbox as inbox_mod
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.wire import WireError
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from hypothesis.extra import numpy as hnp
 
 FAST = settings(
     max_examples=60,

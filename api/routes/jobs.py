@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
-from convoy.api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
-from convoy.api.store import JobState
 from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
+
+from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
+from convoy.api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
+from convoy.api.store import JobState
 
 router = APIRouter(tags=["jobs"])
 CONTROL = Depends(control_of)

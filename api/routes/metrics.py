@@ -7,12 +7,13 @@ import json
 import time
 from collections.abc import AsyncIterator
 
-from convoy.api.deps import JOB_ID, JobControl, control_of, finite
-from convoy.api.models import MetricsPage
-from convoy.api.store import FINAL_STATES
 from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import PlainTextResponse, StreamingResponse
+
+from convoy.api.deps import JOB_ID, JobControl, control_of, finite
+from convoy.api.models import MetricsPage
+from convoy.api.store import FINAL_STATES
 
 router = APIRouter()
 CONTROL = Depends(control_of)

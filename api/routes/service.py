@@ -5,9 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from convoy.api.deps import JobControl, control_of
 from fastapi import APIRouter, Depends
 from fastapi.responses import FileResponse, PlainTextResponse, Response
+
+from convoy.api.deps import JobControl, control_of
 
 router = APIRouter()
 CONTROL = Depends(control_of)

@@ -22,9 +22,10 @@ from collections.abc import Callable
 from numbers import Number
 
 import numpy as np
-from convoy.envs.batched import EnvSpec, StepResult, check_actions, env_seeds
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
+
+from convoy.envs.batched import EnvSpec, StepResult, check_actions, env_seeds
 
 
 class ParallelEnvBatch:

@@ -10,10 +10,10 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from convoy.envs.batched import EnvSpec
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError
 
 

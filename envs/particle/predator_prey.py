@@ -19,12 +19,12 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from convoy.envs.batched import EnvSpec
-from convoy.envs.particle.batch import ParallelEnvBatch
-from convoy.envs.particle.mpe_env import MpeParallelEnv
 from mpe2 import simple_tag_v3
 from pydantic import BaseModel, ConfigDict, Field
 
+from convoy.envs.batched import EnvSpec
+from convoy.envs.particle.batch import ParallelEnvBatch
+from convoy.envs.particle.mpe_env import MpeParallelEnv
 from convoy.validation import build_config
 
 PREDATORS: tuple[str, ...] = ("predator_0", "predator_1")

@@ -39,12 +39,12 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from convoy.envs import rng
-from convoy.envs.batched import EnvSpec, StepResult, check_actions
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from convoy.envs import rng
+from convoy.envs.batched import EnvSpec, StepResult, check_actions
 from convoy.validation import ConfigError, build_config
 
 SPEAKER, LISTENER = "speaker", "listener"

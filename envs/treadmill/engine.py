@@ -42,6 +42,7 @@ b of a batch seeded s).
 from __future__ import annotations
 
 import numpy as np
+
 from convoy.envs import rng
 from convoy.envs.batched import EnvSpec, StepResult, check_actions
 from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig

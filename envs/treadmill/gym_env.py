@@ -12,12 +12,12 @@ from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
+
 from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
 from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.envs.treadmill.render import render_frame
 from convoy.envs.treadmill.scripted import scripted_actions
-from gymnasium import spaces
-
 from convoy.validation import build_config
 
 

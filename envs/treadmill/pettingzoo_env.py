@@ -12,12 +12,12 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
-from convoy.envs.treadmill.engine import TreadmillEngine
-from convoy.envs.treadmill.render import render_frame
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
+from convoy.envs.treadmill.engine import TreadmillEngine
+from convoy.envs.treadmill.render import render_frame
 from convoy.validation import build_config
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
 from convoy.envs.treadmill.engine import TreadmillEngine

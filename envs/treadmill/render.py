@@ -8,6 +8,7 @@ each car's nose.
 from __future__ import annotations
 
 import numpy as np
+
 from convoy.envs.treadmill.engine import DX, DY
 
 ROAD = np.array([70, 70, 78], np.uint8)

@@ -13,6 +13,7 @@ hold a place in the middle of the treadmill. They differ only in what they know 
 from __future__ import annotations
 
 import numpy as np
+
 from convoy.envs.treadmill.config import LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
 from convoy.envs.treadmill.engine import DY
 

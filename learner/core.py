@@ -1,0 +1,166 @@
+"""The one trainer core: what a training run does with experience, whoever steps the envs.
+
+The in-process trainer (``learner/inprocess.py``) feeds it the chunks of its own envs; the learner process
+(``learner/service.py``) feeds it the chunks actors send over Zenoh. Both then share one rule for the updates a
+chunk is owed (``updates_for``: samples per insert exactly), one metric row, one greedy curve with its best
+policy (``best.pt``), one checkpoint cadence and one summary.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, save_checkpoint, save_replay
+from convoy.config import JobConfig
+from convoy.envs.batched import BatchedEnv
+from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
+
+
+class TrainingCore:
+    """Counts env steps and episodes, runs the owed updates, logs rows, evaluates, checkpoints and summarises.
+
+    ``counters`` (a checkpoint's) resume a run where it stopped: the metric history is cut at its step and the
+    best greedy return so far is kept. ``replay_bytes`` > 0 also writes the replay beside every ``checkpoint.pt``
+    (the learner process, whose restarts should not start from an empty buffer).
+    """
+
+    def __init__(
+        self,
+        job: JobConfig,
+        algo: Algorithm,
+        out_dir: str | Path | None,
+        make_eval_env: Callable[[int], BatchedEnv] | None,
+        *,
+        progress: bool = False,
+        counters: dict[str, Any] | None = None,
+        replay_bytes: int = 0,
+    ) -> None:
+        counters = counters or {}
+        self.job, self.algo, self.cfg = job, algo, job.algo_config()
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.replay_bytes = replay_bytes
+        self.env_steps = int(counters.get("env_steps", 0))
+        self.episodes = int(counters.get("episodes", 0))
+        self.returns: list[float] = []  # this process's finished episodes (their mean over agents)
+        self.log = RunLog(
+            job.steps,
+            job.log_every,
+            self.out_dir,
+            progress,
+            resume_at=self.env_steps if counters else None,
+            first_step=self.env_steps,
+            first_updates=algo.updates,
+        )
+        self.evaluator = Evaluator(
+            job,
+            make_eval_env,
+            save_best=(lambda: self.checkpoint(BEST_CHECKPOINT)) if self.out_dir else None,
+            best=float(counters.get("best_eval_return", -math.inf)),
+            first_step=self.env_steps,
+        )
+        self.owed = 0.0  # updates owed to observed data (the fractional part carries over)
+        every = job.checkpoint_every
+        self.next_checkpoint = (self.env_steps // every + 1) * every
+        self.t0 = time.perf_counter()
+        self.steps_at_start = self.env_steps
+        self._closed = False
+
+    @property
+    def done(self) -> bool:
+        return self.env_steps >= self.job.steps
+
+    @property
+    def epsilon(self) -> float:
+        return epsilon_at(self.cfg, self.env_steps, self.job.steps)
+
+    def set_progress(self) -> None:
+        """Tell the algorithm where training stands (SER's episode clock, CoDBC's β, hierarchical goals)."""
+        self.algo.progress = Progress(self.env_steps, self.episodes, self.job.steps, training=True)
+
+    def stepped(self, steps: int, returns: list[float]) -> None:
+        """``steps`` env steps were taken and the episodes with ``returns`` ended."""
+        self.env_steps += steps
+        self.episodes += len(returns)
+        self.returns.extend(returns)
+        self.log.episodes(returns)
+
+    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+        """A chunk ``[T, B, …]`` of ``steps`` env steps goes into the algorithm; it is owed ``updates_for(steps)``."""
+        self.algo.observe(chunk)
+        if self.algo.can_update():
+            self.owed += self.algo.updates_for(steps)
+
+    def update(self) -> None:
+        """Run the updates observed data is owed."""
+        while self.owed >= 1.0 and self.algo.can_update():
+            self.log.update(self.algo.update())
+            self.owed -= 1.0
+
+    def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> dict[str, Any] | None:
+        """The metric row due at this step (with a greedy-curve point when one is due, and ``extra(env_steps)``),
+        or None."""
+        figures: dict[str, float] = {}
+        if self.log.row_due(self.env_steps):
+            if self.evaluator.due(self.env_steps, self.job.steps):
+                figures.update(self.evaluator.point(self.algo, self.env_steps))
+            if extra is not None:
+                figures.update(extra(self.env_steps))
+        return self.log.maybe_row(self.env_steps, self.episodes, self.algo.updates, self.epsilon, **figures)
+
+    def maybe_checkpoint(self) -> None:
+        if self.out_dir is not None and self.env_steps >= self.next_checkpoint:
+            self.checkpoint()
+            while self.next_checkpoint <= self.env_steps:
+                self.next_checkpoint += self.job.checkpoint_every
+
+    def checkpoint(self, name: str = "checkpoint.pt") -> None:
+        """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point."""
+        assert self.out_dir is not None
+        counters: dict[str, Any] = {"env_steps": self.env_steps, "episodes": self.episodes}
+        counters["updates"] = self.algo.updates
+        if self.evaluator.best > -math.inf:
+            counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
+        if name == "checkpoint.pt" and self.replay_bytes:  # replay first: a crash between leaves no mismatched pair
+            save_replay(self.out_dir / REPLAY_FILE, self.algo, self.env_steps, self.replay_bytes)
+        save_checkpoint(self.out_dir / name, self.algo, self.job, counters)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.log.close()
+
+    def finish(self, title: str, **extra: Any) -> dict[str, Any]:
+        """Close the log, checkpoint, evaluate the final policy beside the references, write ``summary.json`` and
+        ``curve.png``; the summary. ``final_return`` is the mean ε-greedy return of the last 10 % of this
+        process's episodes."""
+        self.close()
+        if self.out_dir is not None:
+            self.checkpoint()
+        wall = time.perf_counter() - self.t0
+        try:
+            final = self.evaluator.final(self.algo)
+        finally:
+            self.evaluator.close()
+        tail = self.returns[-max(1, len(self.returns) // 10) :] if self.returns else [math.nan]
+        steps_here = self.env_steps - self.steps_at_start
+        summary = {
+            "env_steps": self.env_steps,
+            "updates": self.algo.updates,
+            "episodes": self.episodes,
+            "wall_s": self.log.wall_before + wall,
+            "env_steps_per_s": steps_here / wall,
+            "updates_per_s": (self.algo.updates - self.log.updates_at_start) / wall,
+            "final_return": float(np.mean(tail)),
+            **final,
+            **extra,
+        }
+        if self.out_dir is not None:
+            write_artefacts(self.out_dir, summary, self.log.rows, title=title)
+        return summary
