@@ -14,13 +14,16 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
 
 WORKDIR /opt/convoy
-# Only what the package needs (the packages of pyproject's [tool.setuptools] list — tests/test_compose.py checks
-# the two lists agree), so a local .venv/ or runs/ never enters the image.
+# Only what the package needs (the folders of pyproject's [tool.setuptools.package-dir] — tests/test_compose.py
+# checks the two lists agree), so a local .venv/ or runs/ never enters the image.
 COPY pyproject.toml README.md ./
+COPY convoy/ convoy/
 COPY protocol/ protocol/
 COPY envs/ envs/
-COPY learner/ learner/
+COPY algos/ algos/
 COPY actors/ actors/
+COPY analysis/ analysis/
+COPY learner/ learner/
 COPY api/ api/
 COPY services/ services/
 RUN pip install . && convoy --help > /dev/null

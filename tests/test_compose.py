@@ -241,12 +241,12 @@ def test_router_config_is_a_valid_zenoh_router_config() -> None:
 
 
 def test_dockerfile_installs_every_package() -> None:
-    """The image copies each top-level package of pyproject's list (and only sources, never .venv or runs)."""
+    """The image copies each folder pyproject maps into ``convoy`` (and only sources, never .venv or runs)."""
     text = DOCKERFILE.read_text()
     lines = [line.split() for line in text.splitlines()]
     copied = {parts[1].rstrip("/") for parts in lines if parts and parts[0] == "COPY"}
-    packages = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
-    assert {p.split(".")[0] for p in packages} <= copied
+    folders = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"].values()
+    assert {"convoy", *folders} <= copied
     assert not copied & {".", ".venv", "runs"}
     assert [parts[1:] for parts in lines if parts and parts[0] == "FROM"] == [["python:3.11-slim"]]
     runs = [" ".join(parts[1:]) for parts in lines if parts and parts[0] == "RUN"]
