@@ -21,7 +21,7 @@ import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.algorithm import Agent, Progress, epsilon_at
 from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.protocol import keys, wire
@@ -39,7 +39,7 @@ def actor_epsilon(base: float, index: int, actors: int, spread: float) -> float:
     return float(base ** (1.0 + spread * min(index, actors - 1) / (actors - 1)))
 
 
-def load_weights(algo: Algorithm, state: dict[str, np.ndarray]) -> None:
+def load_weights(algo: Agent, state: dict[str, np.ndarray]) -> None:
     """Received arrays (read-only views on the payload) into the policy networks."""
     algo.load_policy_state({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
 

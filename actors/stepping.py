@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from convoy.algos.algorithm import ActOutput, Algorithm
+from convoy.algos.algorithm import ActOutput, Agent
 from convoy.envs.batched import BatchedEnv, StepResult
 
 
@@ -30,7 +30,7 @@ def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.nda
 class EnvStepper:
     """``algo`` acting in ``env`` (reset with ``seed``); ``step`` records into the chunk ``take_chunk`` returns."""
 
-    def __init__(self, env: BatchedEnv, algo: Algorithm, seed: int) -> None:
+    def __init__(self, env: BatchedEnv, algo: Agent, seed: int) -> None:
         self.env, self.algo = env, algo
         b, n = env.num_envs, env.spec.n_agents
         self.obs = env.reset(seed=seed)

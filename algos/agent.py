@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import torch
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Agent
 from convoy.algos.registry import make_algorithm
 from convoy.config import JobConfig
 from convoy.envs.batched import EnvSpec
 
 
-def make_agent(job: JobConfig, spec: EnvSpec, device: str | torch.device | None = None) -> Algorithm:
+def make_agent(job: JobConfig, spec: EnvSpec, device: str | torch.device | None = None) -> Agent:
     """The job's algorithm for ``spec`` (its env defaults resolved), hierarchical when ``job.hierarchical``."""
     dev = job.device if device is None else device
     if job.hierarchical:

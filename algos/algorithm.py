@@ -1,11 +1,11 @@
-"""What every algorithm shares: acting with ε-greedy over masked Q-values, replay, double-Q targets, target sync.
+"""What the algorithms share: the agent protocol trainers and actors drive, and the small pieces every value
+learner is made of (ε-greedy acting, the double-Q TD target, the TD loss, target sync, a guarded gradient step).
 
-An algorithm object is transport-free: the in-process trainer, the tests and (later) the distributed learner all
-drive it through the same four calls — ``act`` (a batch of observations → actions), ``observe`` (a chunk of joint
-transitions ``[T, B, …]``), ``update`` (one gradient step when ``can_update``) and ``state_dict`` (checkpoints
-and weight broadcasts). Step-based algorithms (everything but DIAL) flatten chunks into the joint replay buffer and
-only implement ``q_and_target``; the per-agent TD losses are computed here so that tests can back-propagate one
-agent's loss and see exactly which weights it reaches.
+Each algorithm file reads top to bottom beside its paper: its networks (``build``), how it acts (``greedy_q``)
+and its ``loss(batch)`` written out in Algorithm 1's order. Two small bases hold the plumbing so that no file
+repeats it: :class:`NetworkAgent` (online and target networks, Adam, ε-greedy ``act``, one guarded ``update`` of
+``loss``, checkpoints) and :class:`ReplayAgent` (the joint replay every step-based learner samples from). DIAL
+learns from sequences and brings its own data path; hierarchical DQN wraps two agents; both fit :class:`Agent`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import copy
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -30,6 +30,9 @@ from convoy.envs.batched import EnvSpec
 # many means the weights or the data are broken and going on would only hide it.
 MAX_NONFINITE_IN_A_ROW = 100
 NEG = -1e9  # Q-value given to actions an agent does not have (heterogeneous action spaces)
+
+Batch = dict[str, Tensor]
+QFn = Callable[[nn.ModuleDict, Tensor], Tensor]  # (networks, observations [M, N, D]) → Q [M, N, A]
 
 
 @dataclass
@@ -50,6 +53,78 @@ class ActOutput:
     messages: np.ndarray | None = None  # [B, N, bits] sent this step, for metrics and the channel model
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     state: Any = None  # recurrent state to pass to the next act (DIAL's messages from t−1)
+
+
+class Loss(NamedTuple):
+    """What one batch costs: each agent's loss ``[N]`` (their sum is minimised), an auxiliary term trained on the
+    same batch (positive signalling, a memory module's message prediction) and figures to report."""
+
+    agents: Tensor
+    extra: Tensor | None = None
+    stats: dict[str, float] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
+
+    def plus(self, extra: Tensor | None, stats: dict[str, float]) -> Loss:
+        """This loss with one more auxiliary term and its figures."""
+        total = self.extra if extra is None else extra if self.extra is None else self.extra + extra
+        return Loss(self.agents, total, {**self.stats, **stats})
+
+
+class Agent(Protocol):
+    """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
+
+    name: str
+    spec: EnvSpec
+    cfg: AlgoConfig
+    device: torch.device
+    progress: Progress
+    updates: int
+    chunk_len: int
+
+    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput: ...
+    def initial_state(self, num_envs: int) -> Any: ...
+    def reset_state(self, state: Any, done: np.ndarray) -> Any: ...
+    def observe(self, chunk: dict[str, np.ndarray]) -> None: ...
+    def can_update(self) -> bool: ...
+    def updates_for(self, n_transitions: int) -> float: ...
+    def update(self) -> dict[str, float]: ...
+    def policy_state(self) -> dict[str, Tensor]: ...
+    def load_policy_state(self, state: dict[str, Tensor]) -> None: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+    def n_parameters(self) -> int: ...
+
+
+# --- the shared pieces ---------------------------------------------------------------------------------------------
+def decay_progress(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
+    """How far the exploration schedule has run, 0 → 1 over min(fraction × run, max steps), then 1."""
+    horizon = max(1, min(int(cfg.eps_decay_fraction * total_steps), cfg.eps_decay_max_steps))
+    return min(1.0, env_steps / horizon)
+
+
+def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
+    """Linear decay from ``eps_start`` to ``eps_end`` over min(fraction × run, max steps), then constant."""
+    return cfg.eps_start + decay_progress(cfg, env_steps, total_steps) * (cfg.eps_end - cfg.eps_start)
+
+
+def epsilon_greedy(
+    q: Tensor, epsilon: float | np.ndarray, mask: Tensor, n_actions: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
+    agent's own action count (``mask`` ``[N, A]``). At ε = 0 no random number is drawn: greedy acting (an
+    evaluation in the middle of training) leaves the exploration stream, and so the training run, as it was."""
+    greedy = q.masked_fill(~mask, NEG).argmax(dim=-1).cpu().numpy()
+    b, n = greedy.shape
+    eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, n))
+    if not eps.any():
+        return greedy, greedy, eps
+    explore = rng.random((b, n)) < eps
+    random_a = (rng.random((b, n)) * n_actions).astype(np.int64)
+    return np.where(explore, random_a, greedy), greedy, eps
+
+
+def taken(q: Tensor, action: Tensor) -> Tensor:
+    """Q of the actions taken: ``[..., N, A]`` → ``[..., N]``."""
+    return q.gather(-1, action.unsqueeze(-1)).squeeze(-1)
 
 
 def td_target(
@@ -77,30 +152,55 @@ def td_target(
     return reward + gamma * cont * best
 
 
-def decay_progress(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
-    """How far the exploration schedule has run, 0 → 1 over min(fraction × run, max steps), then 1."""
-    horizon = max(1, min(int(cfg.eps_decay_fraction * total_steps), cfg.eps_decay_max_steps))
-    return min(1.0, env_steps / horizon)
+@torch.no_grad()
+def bootstrap_target(q_fn: QFn, online: nn.ModuleDict, target: nn.ModuleDict, batch: Batch, cfg: AlgoConfig,
+                     mask: Tensor) -> Tensor:  # fmt: skip
+    """The TD target ``[M, N]`` of a batch for any ``q_fn``: the target networks' Q at the next observation, the
+    action picked by the online networks (``double_q``), a per-sample ``discount`` when stored (options), and
+    advantage learning's action gap ``max_b Q̄(s, b) − Q̄(s, a)`` subtracted when ``advantage_learning`` > 0."""
+    q_next_t = q_fn(target, batch["next_obs"])
+    q_next_o = q_fn(online, batch["next_obs"]) if cfg.double_q else None
+    y = td_target(batch["reward"], batch["terminated"], batch.get("discount", cfg.gamma), q_next_t, q_next_o, mask)
+    if cfg.advantage_learning:
+        q_now = q_fn(target, batch["obs"])
+        gap = q_now.masked_fill(~mask, NEG).max(dim=-1).values - taken(q_now, batch["action"])
+        y = y - cfg.advantage_learning * gap
+    return y
 
 
-def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
-    """Linear decay from ``eps_start`` to ``eps_end`` over min(fraction × run, max steps), then constant."""
-    return cfg.eps_start + decay_progress(cfg, env_steps, total_steps) * (cfg.eps_end - cfg.eps_start)
+def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
+    """Elementwise TD loss: Huber (clipped error) or the paper's squared error, per the ``huber`` switch."""
+    return F.smooth_l1_loss(q, y, reduction="none") if cfg.huber else 0.5 * (q - y) ** 2
 
 
-class Algorithm(ABC):
-    """Base class: subclasses build networks in ``build`` and define ``greedy_q`` and ``q_and_target``."""
+def update_target(target: nn.Module, online: nn.Module, updates: int, cfg: AlgoConfig) -> None:
+    """Copy the online weights every ``target_update`` updates, or move a step ``target_tau`` towards them after
+    every update."""
+    if cfg.target_tau < 1.0:
+        with torch.no_grad():
+            torch._foreach_lerp_(list(target.parameters()), list(online.parameters()), cfg.target_tau)
+    elif updates % cfg.target_update == 0:
+        target.load_state_dict(online.state_dict())
+
+
+# --- the plumbing every network agent shares -------------------------------------------------------------------------
+class NetworkAgent(ABC):
+    """Online and target networks (``build``), Adam, ε-greedy acting on ``greedy_q`` and one guarded gradient step
+    of ``loss`` per ``update``. Subclasses say how they get their data (``observe``, ``can_update``,
+    ``updates_for``, ``sample``)."""
 
     name: ClassVar[str]
     config_model: ClassVar[type[AlgoConfig]]
     chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
     uses_messages: ClassVar[bool] = False
+    has_target: ClassVar[bool] = True  # behaviour cloning has no bootstrap target to sync
+    syncs_by_updates: ClassVar[bool] = True  # DIAL syncs its targets by finished episodes instead
 
     def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
         if not isinstance(cfg, self.config_model):
             raise TypeError(f"{self.name} needs a {self.config_model.__name__}, got {type(cfg).__name__}")
         if cfg.hidden is None or cfg.share_params is None:
-            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+            raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.spec, self.cfg = spec, cfg
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
@@ -113,7 +213,6 @@ class Algorithm(ABC):
         self.updates = 0
         self.skipped_updates = 0  # updates whose loss or gradient was not finite: no step taken
         self._nonfinite_in_a_row = 0
-        self.replay = JointReplay(cfg.replay_capacity)
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
         with torch.random.fork_rng(devices=[]):
@@ -132,7 +231,7 @@ class Algorithm(ABC):
             self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
         return self._optimizer
 
-    # --- what subclasses provide -------------------------------------------------------------------------------
+    # --- what each algorithm writes ------------------------------------------------------------------------------
     @abstractmethod
     def build(self) -> dict[str, nn.Module]:
         """The online networks by name (targets are deep copies)."""
@@ -142,10 +241,25 @@ class Algorithm(ABC):
         """Execution-mode Q-values ``[B, N, A]``, messages sent (or None) and the next recurrent state."""
 
     @abstractmethod
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """Q of the taken actions ``[M, N]`` (with grad) and their TD targets ``[M, N]`` (no grad)."""
+    def loss(self, batch: Batch) -> Loss:
+        """The batch's loss, in the order of the algorithm's paper."""
 
-    # --- acting ------------------------------------------------------------------------------------------------
+    @abstractmethod
+    def observe(self, chunk: dict[str, np.ndarray]) -> None:
+        """Take in a chunk of joint transitions ``[T, B, …]``."""
+
+    @abstractmethod
+    def can_update(self) -> bool: ...
+
+    @abstractmethod
+    def updates_for(self, n_transitions: int) -> float:
+        """Updates owed for ``n_transitions`` newly observed joint transitions."""
+
+    @abstractmethod
+    def sample(self) -> Batch:
+        """The next training batch, on the device."""
+
+    # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
         """Recurrent state for a fresh batch of envs (None for feed-forward algorithms)."""
         return None
@@ -164,7 +278,7 @@ class Algorithm(ABC):
         """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, msgs, new_state = self.greedy_q(obs_t, state)
-        actions, _, _ = self.epsilon_greedy(q, epsilon)
+        actions, _, _ = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
         return ActOutput(
             actions=actions,
             messages=None if msgs is None else msgs.cpu().numpy(),
@@ -172,103 +286,43 @@ class Algorithm(ABC):
             state=new_state,
         )
 
-    def epsilon_greedy(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
-        agent's own action count. At ε = 0 no random number is drawn: greedy acting (an evaluation in the middle of
-        training) leaves the exploration stream, and so the training run, as it was."""
-        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
-        b = q.shape[0]
-        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, self.n_agents))
-        if not eps.any():
-            return greedy, greedy, eps
-        explore = self.rng.random((b, self.n_agents)) < eps
-        random_a = (self.rng.random((b, self.n_agents)) * self.n_actions_np).astype(np.int64)
-        return np.where(explore, random_a, greedy), greedy, eps
-
-    # --- learning ----------------------------------------------------------------------------------------------
-    def observe(self, chunk: dict[str, np.ndarray]) -> None:
-        """Store a chunk of joint transitions with leading dims ``[T, B]`` (flattened into the replay)."""
-        self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
-
-    def can_update(self) -> bool:
-        return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
-
-    def updates_for(self, n_transitions: int) -> float:
-        """Updates owed for ``n_transitions`` newly observed joint transitions (the replay ratio)."""
-        return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
-
-    def sample(self) -> dict[str, Tensor]:
-        batch = self.replay.sample(self.cfg.batch_size, self.rng)
-        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
-
-    def sample_weights(self, batch: dict[str, Tensor]) -> Tensor | None:
-        """Per-sample loss weights ``[M]`` (stabilised experience replay); None = uniform."""
-        return None
-
-    def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
-        """Each agent's mean TD loss ``[N]``; their sum is what ``update`` minimises."""
-        q, y = self.q_and_target(batch)
-        err = self.td_error(q, y)
-        w = self.sample_weights(batch)
-        if w is None:
-            return err.mean(dim=0)
-        return (err * w.unsqueeze(-1)).sum(dim=0) / w.sum().clamp_min(1e-8)
-
-    def td_error(self, q: Tensor, y: Tensor) -> Tensor:
-        """Elementwise TD loss: Huber (clipped error) or the paper's squared error, per the ``huber`` switch."""
-        return F.smooth_l1_loss(q, y, reduction="none") if self.cfg.huber else 0.5 * (q - y) ** 2
+    # --- learning ------------------------------------------------------------------------------------------------
+    def agent_losses(self, batch: Batch) -> Tensor:
+        """Each agent's loss ``[N]`` on ``batch`` (tests back-propagate one to see which weights it reaches)."""
+        return self.loss(batch).agents
 
     def update(self) -> dict[str, float]:
-        """One gradient step on a sampled batch; syncs the targets every ``target_update`` updates."""
-        batch = self.sample()
-        losses = self.agent_losses(batch)
-        loss = losses.sum()
-        aux, stats = self.aux_loss(batch)
-        total = loss if aux is None else loss + aux
+        """One gradient step on a sampled batch (the agents' losses summed, plus any auxiliary term), then the
+        target sync. A non-finite loss or gradient never reaches the weights; many in a row end the run."""
+        out = self.loss(self.sample())
+        loss = out.agents.sum()
+        total = loss if out.extra is None else loss + out.extra
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
         loss_value, norm = float(loss.detach()), float(grad_norm)
         if not (np.isfinite(loss_value) and np.isfinite(norm)):
-            return self._skip_update(loss_value, norm)
+            self.optimizer.zero_grad(set_to_none=True)
+            self.skipped_updates += 1
+            self._nonfinite_in_a_row += 1
+            if self._nonfinite_in_a_row >= MAX_NONFINITE_IN_A_ROW:
+                raise FloatingPointError(
+                    f"{self.name}: {self._nonfinite_in_a_row} updates in a row had a non-finite loss ({loss_value}) "
+                    f"or gradient norm ({norm}); the weights were kept as they were. Check the env's rewards and "
+                    "observations for NaN/inf, or lower lr"
+                )
+            return {"loss": float("nan"), "grad_norm": float("nan")}
         self._nonfinite_in_a_row = 0
         self.optimizer.step()
         self.updates += 1
-        self.after_update()
-        return {"loss": loss_value, "grad_norm": norm, **stats}
-
-    def _skip_update(self, loss_value: float, norm: float) -> dict[str, float]:
-        """A non-finite loss or gradient never reaches the weights; many in a row end the run with the cause."""
-        self.optimizer.zero_grad(set_to_none=True)
-        self.skipped_updates += 1
-        self._nonfinite_in_a_row += 1
-        if self._nonfinite_in_a_row >= MAX_NONFINITE_IN_A_ROW:
-            raise FloatingPointError(
-                f"{self.name}: {self._nonfinite_in_a_row} updates in a row had a non-finite loss ({loss_value}) or "
-                f"gradient norm ({norm}); the weights were kept as they were. Check the env's rewards and "
-                "observations for NaN/inf, or lower lr"
-            )
-        return {"loss": float("nan"), "grad_norm": float("nan")}
-
-    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
-        """A loss trained alongside the TD losses on the same batch (the memory modules' supervised message
-        prediction) and figures to report with it; none by default."""
-        return None, {}
-
-    def after_update(self) -> None:
-        """Sync the targets every ``target_update`` updates, or move them a step ``target_tau`` towards the online
-        weights after every update (DIAL syncs by episodes instead)."""
-        if self.cfg.target_tau < 1.0:
-            target, online = list(self.target.parameters()), list(self.online.parameters())
-            with torch.no_grad():
-                torch._foreach_lerp_(target, online, self.cfg.target_tau)
-        elif self.updates % self.cfg.target_update == 0:
-            self.sync_target()
+        if self.has_target and self.syncs_by_updates:
+            update_target(self.target, self.online, self.updates, self.cfg)
+        return {"loss": loss_value, "grad_norm": norm, **out.stats}
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
 
-    # --- persistence -------------------------------------------------------------------------------------------
+    # --- persistence ---------------------------------------------------------------------------------------------
     def policy_state(self) -> dict[str, Tensor]:
         """What an actor needs to act: the online weights (on CPU, for the wire or a file)."""
         return {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
@@ -293,36 +347,27 @@ class Algorithm(ABC):
         self.updates = int(state["updates"])
         self.rng.bit_generator.state = state["rng"]
 
-    # --- helpers for subclasses --------------------------------------------------------------------------------
-    def td_pair(
-        self, q_fn: Callable[[nn.ModuleDict, Tensor, bool], Tensor], batch: dict[str, Tensor]
-    ) -> tuple[Tensor, Tensor]:
-        """Q of the taken actions (online, training mode) and their double-Q targets, for any
-        ``q_fn(nets, obs, train) → Q [..., N, A]``: what ``q_and_target`` is for every feed-forward algorithm."""
-        q = q_fn(self.online, batch["obs"], True).gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
-        with torch.no_grad():
-            q_next_t = q_fn(self.target, batch["next_obs"], False)
-            q_next_o = q_fn(self.online, batch["next_obs"], False) if self.cfg.double_q else None
-            y = self.target_for(q_next_t, q_next_o, batch)
-            if self.cfg.advantage_learning:
-                y = y - self.cfg.advantage_learning * self.action_gap(q_fn(self.target, batch["obs"], False), batch)
-        return q, y
-
-    def action_gap(self, q_target: Tensor, batch: dict[str, Tensor]) -> Tensor:
-        """``max_b Q̄(s, b) − Q̄(s, a)`` of the taken actions ``[M, N]``: what advantage learning subtracts."""
-        best = q_target.masked_fill(~self.action_mask, NEG).max(dim=-1).values
-        return best - q_target.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
-
-    def target_for(self, q_next_target: Tensor, q_next_online: Tensor | None, batch: dict[str, Tensor]) -> Tensor:
-        """TD target for this batch, honouring the ``double_q`` switch and a per-sample ``discount`` if stored."""
-        return td_target(
-            batch["reward"],
-            batch["terminated"],
-            batch.get("discount", self.cfg.gamma),
-            q_next_target,
-            q_next_online if self.cfg.double_q else None,
-            self.action_mask,
-        )
-
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.online.parameters())
+
+
+class ReplayAgent(NetworkAgent):
+    """A step-based learner: chunks are flattened into the joint replay; ``batch_size`` transitions per update,
+    ``replay_ratio`` sampled per inserted transition."""
+
+    def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
+        self.replay = JointReplay(cfg.replay_capacity)
+        super().__init__(spec, cfg, device=device, seed=seed)
+
+    def observe(self, chunk: dict[str, np.ndarray]) -> None:
+        self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
+
+    def can_update(self) -> bool:
+        return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
+
+    def updates_for(self, n_transitions: int) -> float:
+        return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
+
+    def sample(self) -> Batch:
+        batch = self.replay.sample(self.cfg.batch_size, self.rng)
+        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}

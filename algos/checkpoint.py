@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.algorithm import Agent, Progress
 from convoy.algos.errors import CheckpointError
 from convoy.algos.replay import JointReplay
 from convoy.config import JobConfig, job_config
@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 
-def save_checkpoint(path: str | Path, algo: Algorithm, job: JobConfig, counters: dict[str, Any]) -> Path:
+def save_checkpoint(path: str | Path, algo: Agent, job: JobConfig, counters: dict[str, Any]) -> Path:
     """Write ``algo``'s state atomically to ``path`` (parents created)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -97,7 +97,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return payload
 
 
-def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Algorithm, JobConfig, dict[str, Any]]:
+def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Agent, JobConfig, dict[str, Any]]:
     """Rebuild the algorithm from a checkpoint: (algorithm, job, counters)."""
     payload = read_checkpoint(path)
     try:

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import NEG, ActOutput, Algorithm, decay_progress
+from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, ReplayAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import CoDBCConfig
 from convoy.validation import ConfigError
@@ -36,22 +36,22 @@ from convoy.validation import ConfigError
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
 
 
-class CoDBC(Algorithm):
+class CoDBC(ReplayAgent):
     """A decentralised student per agent, trained to reproduce the teacher's greedy actions."""
 
     name = "codbc"
     config_model = CoDBCConfig
+    has_target = False  # no bootstrapping: nothing to sync
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
-        self._teacher: Algorithm | None = None
-        self._agreement = float("nan")
+        self._teacher: NetworkAgent | None = None
         return {
             "policy": GroupMLP(groups, self.obs_dim + id_width(self.n_agents, self.shared), self.cfg.hidden, self.n_act)
         }
 
     @property
-    def teacher(self) -> Algorithm:
+    def teacher(self) -> NetworkAgent:
         """The centralised policy being cloned, loaded from ``cfg.teacher`` on first use (frozen, greedy)."""
         if self._teacher is None:
             from convoy.algos.checkpoint import CheckpointError, load_checkpoint
@@ -105,19 +105,11 @@ class CoDBC(Algorithm):
                 out.actions[drive] = self.teacher_actions(rows).cpu().numpy()
         return out
 
-    def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
+    def loss(self, batch: Batch) -> Loss:
+        """Each agent's cross-entropy to the teacher's greedy action in every visited state (DAgger's labels)."""
         logits = self.logits(batch["obs"])  # [M, N, A]
         with torch.no_grad():
             labels = self.teacher_actions(batch["obs"])  # [M, N]
-            self._agreement = float((logits.argmax(dim=-1) == labels).float().mean())
+            agreement = float((logits.argmax(dim=-1) == labels).float().mean())
         ce = F.cross_entropy(logits.flatten(0, 1), labels.flatten(), reduction="none").view_as(labels)
-        return ce.mean(dim=0)
-
-    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
-        return None, {"teacher_agreement": self._agreement}
-
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        raise NotImplementedError("CoDBC learns by behaviour cloning (agent_losses), not from TD targets")
-
-    def after_update(self) -> None:
-        """No target network to sync."""
+        return Loss(ce.mean(dim=0), None, {"teacher_agreement": agreement})

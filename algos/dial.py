@@ -25,7 +25,17 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import NEG, ActOutput, Algorithm, epsilon_at
+from convoy.algos.algorithm import (
+    NEG,
+    ActOutput,
+    Batch,
+    Loss,
+    NetworkAgent,
+    epsilon_at,
+    epsilon_greedy,
+    td_loss,
+    td_target,
+)
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
 from convoy.config import DIALConfig
@@ -50,12 +60,13 @@ def dru(logits: Tensor, sigma: float, train: bool, generator: torch.Generator | 
     return torch.sigmoid(logits)
 
 
-class DIAL(Algorithm):
+class DIAL(NetworkAgent):
     """Differentiable inter-agent learning; all agents' C-Nets evaluated in one batched pass per time step."""
 
     name = "dial"
     config_model = DIALConfig
     uses_messages = True
+    syncs_by_updates = False  # targets follow finished episodes (``observe``)
     cfg: DIALConfig
 
     def __init__(self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
@@ -136,7 +147,7 @@ class DIAL(Algorithm):
         ``[B, N, (N−1)·bits]``) and ``mu`` (behaviour probability of each taken action, ``[B, N]``, for replay)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, sent, heard = self.execute(obs_t, state)
-        actions, greedy, eps = self.epsilon_greedy(q, epsilon)
+        actions, greedy, eps = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
         mu = (1.0 - eps) * (actions == greedy) + eps / self.n_actions_np
         extras = {**self.extras(obs), "msg_in": heard.cpu().numpy(), "mu": mu.astype(np.float32)}
         return ActOutput(actions=actions, messages=sent.cpu().numpy(), extras=extras, state=sent)
@@ -190,7 +201,7 @@ class DIAL(Algorithm):
             return n_transitions / self.last_chunk_rows if self.last_chunk_rows else 0.0
         return n_transitions * self.cfg.replay_ratio / (self.cfg.batch_size * self.seq_len)
 
-    def sample(self) -> dict[str, Tensor]:
+    def sample(self) -> Batch:
         """The next sequence batch ``[T, B, …]``: the oldest queued chunk (on-policy) or ``batch_size`` sequences
         drawn uniformly from the ring."""
         if self.cfg.replay:
@@ -201,7 +212,7 @@ class DIAL(Algorithm):
         return {k: torch.as_tensor(np.ascontiguousarray(v), device=self.device) for k, v in data.items()}
 
     # --- learning ----------------------------------------------------------------------------------------------
-    def sequence_q(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    def sequence_q(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
         """All Q-values ``[T, B, N, A]`` (training unroll, with grad), Q of the taken actions and their double-Q
         TD targets ``[T, B, N]``.
 
@@ -220,14 +231,10 @@ class DIAL(Algorithm):
             q_next_o = (
                 self.cnet(self.online, batch["next_obs"], self.hear(sent.detach()))[0] if self.cfg.double_q else None
             )
-            y = self.target_for(q_next_t, q_next_o, batch)
+            y = td_target(batch["reward"], batch["terminated"], self.cfg.gamma, q_next_t, q_next_o, self.action_mask)
         return q_all, q, y
 
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        _, q, y = self.sequence_q(batch)
-        return q.reshape(-1, self.n_agents), y.reshape(-1, self.n_agents)
-
-    def is_weights(self, q_all: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    def is_weights(self, q_all: Tensor, batch: Batch) -> Tensor:
         """Per-step importance weights ``[T, B]`` for replayed sequences: ``min(1, Π_i π_i(a_i) / μ_i(a_i))``.
 
         π is the current ε-greedy policy (greedy w.r.t. the training unroll's Q, ε from the schedule at the current
@@ -241,16 +248,14 @@ class DIAL(Algorithm):
         pi = (1.0 - eps) * (batch["action"] == greedy).float() + eps / self.n_actions_t
         return (pi / batch["mu"].clamp_min(1e-8)).prod(dim=-1).clamp(max=1.0)
 
-    def agent_losses(self, batch: dict[str, Tensor]) -> Tensor:
-        """Each agent's TD loss ``[N]``, a mean over steps and envs (importance-weighted under replay)."""
+    def loss(self, batch: Batch) -> Loss:
+        """One sequence batch: the unroll (messages through time) → Q → double-Q targets → each agent's TD loss
+        ``[N]``, a mean over steps and envs (importance-weighted under replay)."""
         q_all, q, y = self.sequence_q(batch)
-        err = self.td_error(q, y)
+        err = td_loss(q, y, self.cfg)
         valid = batch["valid"].float() if "valid" in batch else torch.ones_like(err[..., 0])
         w = valid * self.is_weights(q_all, batch) if self.cfg.replay else valid
-        return (err * w.unsqueeze(-1)).sum(dim=(0, 1)) / valid.sum().clamp_min(1.0)
-
-    def after_update(self) -> None:
-        """Nothing: DIAL's targets are synced by finished episodes, in ``observe``."""
+        return Loss((err * w.unsqueeze(-1)).sum(dim=(0, 1)) / valid.sum().clamp_min(1.0))
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -16,8 +16,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from convoy.algos.algorithm import Batch, Loss, epsilon_at, td_loss
 from convoy.algos.idqn import IndependentDQN
 from convoy.config import SERConfig
+
+
+def age_weights(episode: Tensor, episodes: int, horizon: int) -> Tensor:
+    """SER's ``max(0, 1 − age / horizon)`` per sample; age = episodes finished since its episode began."""
+    age = (episodes - episode).clamp_min(0).float()
+    return (1.0 - age / horizon).clamp_min(0.0)
 
 
 class DQNSER(IndependentDQN):
@@ -32,8 +39,6 @@ class DQNSER(IndependentDQN):
 
     def fingerprint(self) -> np.ndarray:
         """(ε, training progress) as seen by the acting policy right now."""
-        from convoy.algos.algorithm import epsilon_at
-
         p = self.progress
         return np.array(
             [epsilon_at(self.cfg, p.env_steps, p.total_steps), min(1.0, p.env_steps / max(p.total_steps, 1))],
@@ -45,7 +50,7 @@ class DQNSER(IndependentDQN):
             return {}
         return {"fingerprint": np.broadcast_to(self.fingerprint(), (obs.shape[0], self.FP_DIM)).copy()}
 
-    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None) -> Tensor:
+    def features(self, obs: Tensor, batch: Batch | None = None) -> Tensor:
         x = super().features(obs)
         if not self.cfg.fingerprint:
             return x
@@ -56,11 +61,13 @@ class DQNSER(IndependentDQN):
         fp = fp.to(x.dtype).unsqueeze(-2).expand(*x.shape[:-1], self.FP_DIM)
         return torch.cat([x, fp], dim=-1)
 
-    def sample_weights(self, batch: dict[str, Tensor]) -> Tensor:
-        """``1 − age/horizon`` clipped at 0; age = episodes finished since the sample's episode began.
+    def loss(self, batch: Batch) -> Loss:
+        """Independent DQN's TD losses, each sample weighted by its age: ``w = max(0, 1 − age / ser_horizon)``.
 
-        The trainer stamps every transition with ``episode`` = the number of episodes finished when its episode
-        started, so ``progress.episodes − episode`` counts the episodes collected since.
+        Age = episodes finished since the sample's episode began: the trainer stamps every transition with
+        ``episode`` = the number of episodes finished when its episode started, so ``progress.episodes − episode``
+        counts the episodes collected since.
         """
-        age = (self.progress.episodes - batch["episode"]).clamp_min(0).float()
-        return (1.0 - age / self.cfg.ser_horizon).clamp_min(0.0)
+        err = td_loss(*self.q_and_y(batch), self.cfg)
+        w = age_weights(batch["episode"], self.progress.episodes, self.cfg.ser_horizon)
+        return Loss((err * w.unsqueeze(-1)).sum(dim=0) / w.sum().clamp_min(1e-8))

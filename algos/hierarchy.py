@@ -74,7 +74,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from convoy.algos.algorithm import ActOutput, Algorithm, Progress
+from convoy.algos.algorithm import ActOutput, NetworkAgent, Progress
 from convoy.algos.idqn import IndependentDQN
 from convoy.algos.nets import pick_device
 from convoy.algos.registry import make_algorithm
@@ -210,7 +210,7 @@ class LockstepQueue:
 
 class HierarchicalAgent:
     """Meta-controller (the job's algorithm over goals) + goal-conditioned double-DQN controller, driven through the
-    same calls as an ``Algorithm`` (act / observe / can_update / updates_for / update / state_dict)."""
+    calls of the ``Agent`` protocol (act / observe / can_update / updates_for / update / state_dict)."""
 
     chunk_len: int = 1
 
@@ -246,7 +246,7 @@ class HierarchicalAgent:
             n_actions=(N_GOALS,) * spec.n_agents,
             max_steps=math.ceil(spec.max_steps / self.goal_steps),
         )
-        self.meta: Algorithm = make_algorithm(job.algo, meta_spec, self.cfg, device=self.device, seed=job.seed)
+        self.meta: NetworkAgent = make_algorithm(job.algo, meta_spec, self.cfg, device=self.device, seed=job.seed)
         n = spec.n_agents
         base = {k: getattr(self.cfg, k) for k in AlgoConfig.model_fields}
         base.update(

@@ -6,12 +6,12 @@ from typing import Any
 
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import IDQNConfig
 
 
-class IndependentDQN(Algorithm):
+class IndependentDQN(ReplayAgent):
     """N independent (double) DQNs, evaluated in one batched pass; shared weights when ``share_params``."""
 
     name = "idqn"
@@ -20,7 +20,7 @@ class IndependentDQN(Algorithm):
     def input_width(self) -> int:
         return self.obs_dim + id_width(self.n_agents, self.shared)
 
-    def features(self, obs: Tensor, batch: dict[str, Tensor] | None = None) -> Tensor:
+    def features(self, obs: Tensor, batch: Batch | None = None) -> Tensor:
         """Network input from observations ``[..., N, D]`` (subclasses append e.g. a fingerprint)."""
         return with_agent_id(obs, self.shared)
 
@@ -31,5 +31,12 @@ class IndependentDQN(Algorithm):
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.online["q"](self.features(obs)), None, None
 
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        return self.td_pair(lambda nets, obs, train: nets["q"](self.features(obs, batch)), batch)
+    def q_and_y(self, batch: Batch) -> tuple[Tensor, Tensor]:
+        """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network."""
+        q = taken(self.online["q"](self.features(batch["obs"], batch)), batch["action"])
+        q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
+        return q, bootstrap_target(q_fn, self.online, self.target, batch, self.cfg, self.action_mask)
+
+    def loss(self, batch: Batch) -> Loss:
+        """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""
+        return Loss(td_loss(*self.q_and_y(batch), self.cfg).mean(dim=0))

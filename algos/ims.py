@@ -29,7 +29,7 @@ from typing import Any
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from convoy.config import IMSConfig
 
@@ -62,7 +62,7 @@ class CommStep(nn.Module):
         return F.relu(self.recur(h) + self.listen(heard) + h0), sent
 
 
-class IMS(Algorithm):
+class IMS(ReplayAgent):
     """CommNet with P rounds of averaged messages; every round is one batched pass over all agents."""
 
     name = "ims"
@@ -71,7 +71,7 @@ class IMS(Algorithm):
 
     def build(self) -> dict[str, nn.Module]:
         if self.cfg.message_bits is None or self.cfg.comm_iterations is None:
-            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+            raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.bits: int = int(self.cfg.message_bits)
         self.rounds: int = int(self.cfg.comm_iterations)
         groups = 1 if self.shared else self.n_agents
@@ -99,10 +99,18 @@ class IMS(Algorithm):
         q, first = self.forward(self.online, obs, train=False)
         return q, first, None
 
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)
+    def q_values(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        return self.forward(nets, obs, train=False)[0]
 
-    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+    def loss(self, batch: Batch) -> Loss:
+        """P rounds of averaged messages → Q → double-Q target → per-agent TD losses (summed by ``update``)."""
+        # the centralised pass: every round's messages stay in the graph, so each agent's loss reaches every encoder
+        q = taken(self.forward(self.online, batch["obs"], train=True)[0], batch["action"])
+        # double-Q target from the target copy of the whole stack
+        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
+        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))
+
+    def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, float]]:
         """The positive-signalling term (``signalling_coef``) on the first round's discrete messages."""
         if not (self.cfg.discrete and self.cfg.signalling_coef):
             return None, {}

@@ -103,7 +103,7 @@ class HearsMessages:
         """Every sender's message logits ``[..., senders, 2·bits]`` from the raw observations ``[..., N, D]``."""
         raise NotImplementedError
 
-    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+    def signalling(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
         """The positive-signalling term, −coef × I(observation; message) on this batch (``signalling_coef``)."""
         if not self.cfg.signalling_coef:  # type: ignore[attr-defined]
             return None, {}

@@ -28,13 +28,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
 from convoy.config import BoNConfig
 
 
-class MABoN(HearsMessages, Algorithm):
+class MABoN(HearsMessages, ReplayAgent):
     """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
 
     name = "ma-bon"
@@ -43,7 +43,7 @@ class MABoN(HearsMessages, Algorithm):
 
     def build(self) -> dict[str, nn.Module]:
         if self.cfg.message_bits is None:
-            raise ValueError("config: resolve env defaults first (protocol.config.resolve_algo)")
+            raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.bits: int = int(self.cfg.message_bits)
         self.senders = 1
         self.use_id: bool = self.shared and bool(self.cfg.agent_id)
@@ -83,5 +83,17 @@ class MABoN(HearsMessages, Algorithm):
         x, sent, heard = self.speak(self.online, obs, False)
         return self.listen(self.online, x, self.hear(heard.contiguous())), sent.contiguous(), None
 
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)
+    def q_values(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        """Execution-mode Q-values of any copy of the networks (targets, double-Q's online pick)."""
+        return self.forward(nets, obs, train=False)[0]
+
+    def loss(self, batch: Batch) -> Loss:
+        """Algorithm 1 with one broadcast: message → Q → double-Q target → per-agent TD losses (summed)."""
+        # the env's broadcast bm = f′(e_1 … e_N) (Gumbel bits, straight-through), heard by every agent
+        x, _, heard = self.speak(self.online, batch["obs"], train=True)
+        # Q_i = g′_i(o_i, bm) of the actions taken
+        q = taken(self.listen(self.online, x, heard), batch["action"])
+        # double-Q target: the target copies of the encoders, f′ and g′ at o′, the action picked online
+        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
+        # per-agent TD losses: their sum reaches f′ and every encoder through every agent's Q
+        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))

@@ -15,13 +15,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
 from convoy.config import MeSNConfig
 
 
-class MAMeSN(HearsMessages, Algorithm):
+class MAMeSN(HearsMessages, ReplayAgent):
     """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
 
     name = "ma-mesn"
@@ -63,5 +63,17 @@ class MAMeSN(HearsMessages, Algorithm):
         x, sent, heard = self.speak(self.online, obs, False)
         return self.listen(self.online, x, self.hear(heard)), sent, None
 
-    def q_and_target(self, batch: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        return self.td_pair(lambda nets, obs, train: self.forward(nets, obs, train)[0], batch)
+    def q_values(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
+        """Execution-mode Q-values of any copy of the networks (targets, double-Q's online pick)."""
+        return self.forward(nets, obs, train=False)[0]
+
+    def loss(self, batch: Batch) -> Loss:
+        """Algorithm 1 on one batch: messages → Q → double-Q target → per-agent TD losses (summed by ``update``)."""
+        # every agent's message m_j = f′_j(o_j) (Gumbel bits, straight-through) and what agent i hears: m_−i
+        x, _, heard = self.speak(self.online, batch["obs"], train=True)
+        # Q_i = f″_i(o_i, m_−i) of the actions taken
+        q = taken(self.listen(self.online, x, heard), batch["action"])
+        # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
+        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
+        # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
+        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))

@@ -138,7 +138,9 @@ class MemoryModule:
         return extra
 
     # --- learning: supervised, in parallel with the TD losses ---------------------------------------------------
-    def aux_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float]]:
+    def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        """``memory_coef`` × the BCE of the predicted bits against the messages each agent truly hears, and the
+        prediction's accuracy per bit and per whole message."""
         if HISTORY not in batch:
             raise KeyError(f"{type(self).__name__} needs '{HISTORY}' in its transitions: collect them with its act()")
         logits = self.predict(self.online, batch[HISTORY])
@@ -154,6 +156,4 @@ class MemoryModule:
             "memory_bit_acc": float(right.float().mean()),
             "memory_msg_acc": float(msg_right.float().mean()),
         }
-        base, base_stats = super().aux_loss(batch)  # type: ignore[misc]
-        loss = self.cfg.memory_coef * bce
-        return (loss if base is None else loss + base), {**base_stats, **stats}
+        return self.cfg.memory_coef * bce, stats  # type: ignore[attr-defined]

@@ -1,4 +1,4 @@
-"""Algorithm names → classes, imported on first use (one module per algorithm under ``learner/algos``)."""
+"""NetworkAgent names → classes, imported on first use (one module per algorithm under ``learner/algos``)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import importlib
 
 import torch
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import NetworkAgent
 from convoy.config import AlgoConfig, algo_name
 from convoy.envs.batched import EnvSpec
 
@@ -23,13 +23,13 @@ ALGORITHMS: dict[str, str] = {
 }
 
 
-def algorithm_class(name: str) -> type[Algorithm]:
+def algorithm_class(name: str) -> type[NetworkAgent]:
     module, _, attr = ALGORITHMS[algo_name(name)].partition(":")
     return getattr(importlib.import_module(module), attr)
 
 
 def make_algorithm(
     name: str, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0
-) -> Algorithm:
+) -> NetworkAgent:
     """Build algorithm ``name`` for env ``spec`` with a resolved config (see ``protocol.config.resolve_algo``)."""
     return algorithm_class(name)(spec, cfg, device=device, seed=seed)

@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Agent
 from convoy.algos.listening import HearsMessages, Listening, Source
 from convoy.algos.memory import MemoryModule
 from convoy.envs.batched import BatchedEnv
@@ -46,7 +46,7 @@ class EvalResult:
 
 
 def evaluate(
-    env: BatchedEnv, algo: Algorithm, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
+    env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
 ) -> np.ndarray:
     """Per-episode returns (mean over agents) of ``episodes`` episodes with ε-greedy acting.
 
@@ -83,7 +83,7 @@ def parse_channel(spec: str, seed: int | None = None) -> MessageChannel:
 
 
 def listening_for(
-    algo: Algorithm,
+    algo: Agent,
     messages: Source = "sent",
     channel: str | None = None,
     seed: int | None = None,
@@ -107,7 +107,7 @@ def listening_for(
 
 
 @contextmanager
-def listening(algo: Algorithm, how: Listening | None) -> Iterator[None]:
+def listening(algo: Agent, how: Listening | None) -> Iterator[None]:
     """Let ``algo`` hear through ``how`` inside the block (training always hears the true messages)."""
     before = getattr(algo, "listening", None)
     if isinstance(algo, HearsMessages):
@@ -120,7 +120,7 @@ def listening(algo: Algorithm, how: Listening | None) -> Iterator[None]:
 
 
 def evaluate_policy(
-    algo: Algorithm,
+    algo: Agent,
     env: BatchedEnv,
     episodes: int,
     seed: int,

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.memory import MemoryModule
 from convoy.analysis.comm_metrics import (
@@ -72,7 +72,7 @@ class Analysis:
         return {"algo": self.algo, "env": self.env, "figures": [asdict(f) for f in self.figures], "files": self.files}
 
 
-def check_analysable(algo: Algorithm) -> None:
+def check_analysable(algo: NetworkAgent) -> None:
     if not isinstance(algo, HearsMessages):
         raise ConfigError(
             "checkpoint",
@@ -82,7 +82,7 @@ def check_analysable(algo: Algorithm) -> None:
 
 
 @torch.no_grad()
-def record(algo: Algorithm, env: BatchedEnv, steps: int, seed: int) -> Recording:
+def record(algo: NetworkAgent, env: BatchedEnv, steps: int, seed: int) -> Recording:
     """``steps`` greedy steps of every env (auto-reset), recording messages and actions."""
     check_analysable(algo)
     obs = env.reset(seed=seed)
@@ -99,7 +99,7 @@ def record(algo: Algorithm, env: BatchedEnv, steps: int, seed: int) -> Recording
     return Recording(np.stack(msgs).round().astype(np.int8), np.stack(acts))
 
 
-def message_input_norm(algo: Algorithm) -> MetricFigure:
+def message_input_norm(algo: NetworkAgent) -> MetricFigure:
     """L2 norm of the policy network's first-layer weights on its message inputs (mean over listener groups)."""
     check_analysable(algo)
     first = algo.online["policy"].layers[0].weight.detach()  # [G, inputs, out]; messages are the last inputs
@@ -118,7 +118,7 @@ def message_input_norm(algo: Algorithm) -> MetricFigure:
     )
 
 
-def return_figures(algo: Algorithm, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
+def return_figures(algo: NetworkAgent, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
     """Greedy return with the true messages, with white noise in their place and (memory modules) predicted."""
     sources = ["sent", "noise"] + (["predicted"] if isinstance(algo, MemoryModule) else [])
     names = {
@@ -143,7 +143,7 @@ def return_figures(algo: Algorithm, env: BatchedEnv, episodes: int, seed: int) -
 
 
 def analyze(
-    algo: Algorithm,
+    algo: NetworkAgent,
     env: BatchedEnv,
     env_name: str,
     steps: int,

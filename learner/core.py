@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from convoy.algos.algorithm import Algorithm, Progress, epsilon_at
+from convoy.algos.algorithm import Agent, Progress, epsilon_at
 from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, save_checkpoint, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
@@ -34,7 +34,7 @@ class TrainingCore:
     def __init__(
         self,
         job: JobConfig,
-        algo: Algorithm,
+        algo: Agent,
         out_dir: str | Path | None,
         make_eval_env: Callable[[int], BatchedEnv] | None,
         *,

@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Agent
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.core import TrainingCore
@@ -55,7 +55,7 @@ class Trainer:
         self,
         job: JobConfig,
         env: BatchedEnv,
-        algo: Algorithm,
+        algo: Agent,
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
         out_dir: str | Path | None = None,
         progress: bool = True,

@@ -29,7 +29,7 @@ import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import (
     REPLAY_FILE,
     CheckpointError,
@@ -50,7 +50,7 @@ WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor
 BUDGET_EVERY_S = 0.02
 
 
-def transition_schema(job: JobConfig, algo: Algorithm) -> dict[str, tuple[str, tuple[int, ...]]]:
+def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple[int, ...]]]:
     """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step."""
     env = make_batched(job.env, 1, **job.env_params)
     try:
@@ -110,7 +110,7 @@ class Learner:
         """Every chunk-key message this learner refused so far, by reason (the inbox's and its own value checks)."""
         return dict(collections.Counter(inbox.dropped) + collections.Counter(self.rejected))
 
-    def _restore(self, algo: Algorithm) -> dict[str, Any]:
+    def _restore(self, algo: Agent) -> dict[str, Any]:
         """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
         return its counters; an unreadable file is set aside and the job starts afresh."""
         path = self.out_dir / "checkpoint.pt"
@@ -169,7 +169,7 @@ class Learner:
         finally:
             session.close()
 
-    def _publish_weights(self, algo: Algorithm) -> None:
+    def _publish_weights(self, algo: Agent) -> None:
         state = {k: v.numpy() for k, v in algo.policy_state().items()}
         body = wire.weights_body(algo.updates, algo.name, state)
         self.pub_weights.put(wire.encode("weights", body, "learner"))
@@ -178,7 +178,7 @@ class Learner:
         body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
         self.pub_budget.put(wire.encode("budget", body, "learner"))
 
-    def _loop(self, algo: Algorithm, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
+    def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
         job, rt = self.job, self.job.runtime
         self.core = core = TrainingCore(
             job,
@@ -284,6 +284,6 @@ def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettin
     signal.signal(signal.SIGINT, learner.stop)
     try:
         return learner.run()
-    except FloatingPointError as exc:  # Algorithm.update gave up after many non-finite losses in a row
+    except FloatingPointError as exc:  # Agent.update gave up after many non-finite losses in a row
         print(f"learner: training diverged: {exc}", flush=True)
         return DIVERGED

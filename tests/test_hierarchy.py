@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from convoy.algos.agent import make_agent
+from convoy.algos.algorithm import bootstrap_target
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.algos.hierarchy import (
     CRUISE,
@@ -228,8 +229,12 @@ def test_meta_target_bootstraps_with_the_option_discount() -> None:
         "reward": torch.ones(3, 2),
         "terminated": torch.tensor([False, False, True]),
         "discount": torch.tensor([1.0, 0.5, 0.5]),
+        "next_obs": torch.zeros(3, 2, 1),
+        "obs": torch.zeros(3, 2, 1),
+        "action": torch.ones(3, 2, dtype=torch.long),  # the greedy goal: advantage learning's gap is 0
     }
-    y = agent.meta.target_for(q_next, q_next, batch)
+    meta = agent.meta
+    y = bootstrap_target(lambda nets, obs: q_next, meta.online, meta.target, batch, meta.cfg, meta.action_mask)
     np.testing.assert_allclose(y.numpy(), [[3.0, 3.0], [2.0, 2.0], [1.0, 1.0]])
 
 

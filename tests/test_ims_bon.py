@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.ims import mean_of_others
 from convoy.algos.registry import make_algorithm
 from convoy.config import resolve_algo
@@ -30,13 +30,13 @@ def synthetic_spec(n_agents: int, obs_dim: int = 5, n_actions: int = 3) -> EnvSp
     )
 
 
-def build(algo: str, spec: EnvSpec, seed: int = 0, **params: object) -> Algorithm:
+def build(algo: str, spec: EnvSpec, seed: int = 0, **params: object) -> NetworkAgent:
     torch.manual_seed(seed)
     cfg = resolve_algo(algo, "referential", {**SMALL, **params})
     return make_algorithm(algo, spec, cfg, device="cpu", seed=seed)
 
 
-def random_batch(algo: Algorithm, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
+def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
     return {

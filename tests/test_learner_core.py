@@ -11,6 +11,7 @@ import torch
 
 from convoy.algos.algorithm import epsilon_at, td_target
 from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from convoy.algos.dqn_ser import age_weights
 from convoy.algos.registry import ALGORITHMS, make_algorithm
 from convoy.algos.replay import JointReplay
 from convoy.config import job_config, resolve_algo
@@ -106,10 +107,7 @@ def test_double_q_uses_online_argmax_and_target_value() -> None:
 
 
 def test_ser_weights_decay_linearly_with_sample_age() -> None:
-    algo = build("dqn-ser", ser_horizon=100)
-    algo.progress.episodes = 150
-    batch = {"episode": torch.tensor([150, 100, 50, 0])}
-    w = algo.sample_weights(batch)
+    w = age_weights(torch.tensor([150, 100, 50, 0]), episodes=150, horizon=100)
     torch.testing.assert_close(w, torch.tensor([1.0, 0.5, 0.0, 0.0]))
 
 
@@ -372,19 +370,20 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     ``metrics.jsonl``; one that always is ends the run with the cause instead of training on."""
     import json
 
-    from convoy.algos.algorithm import Algorithm
+    from convoy.algos.algorithm import Loss
+    from convoy.algos.idqn import IndependentDQN
     from convoy.config import job_config
     from convoy.services.training import run_inprocess
 
-    real = Algorithm.agent_losses
+    real = IndependentDQN.loss
     calls = {"n": 0, "every": 3}
 
-    def sometimes_nan(self: Algorithm, batch: dict) -> torch.Tensor:
+    def sometimes_nan(self: IndependentDQN, batch: dict) -> Loss:
         calls["n"] += 1
-        losses = real(self, batch)
-        return losses * float("nan") if calls["n"] % calls["every"] == 0 else losses
+        out = real(self, batch)
+        return out._replace(agents=out.agents * float("nan")) if calls["n"] % calls["every"] == 0 else out
 
-    monkeypatch.setattr(Algorithm, "agent_losses", sometimes_nan)
+    monkeypatch.setattr(IndependentDQN, "loss", sometimes_nan)
     params = {"hidden": [32], "learning_starts": 64, "batch_size": 32}
     job = job_config(algo="idqn", env="referential", steps=3000, num_envs=8, log_every=500, eval_episodes=8,
                      algo_params=params)  # fmt: skip

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from convoy.algos.algorithm import Algorithm
+from convoy.algos.algorithm import NetworkAgent
 from convoy.config import JobConfig, job_config, resolve_algo
 from convoy.services.training import run_inprocess
 
@@ -111,7 +111,7 @@ def _small_treadmill_job(algo: str, env_params: dict, algo_params: dict, steps: 
     )
 
 
-def _train(job: JobConfig) -> Algorithm:
+def _train(job: JobConfig) -> NetworkAgent:
     """The agent after ``job``'s training run (no evaluation, no files), for the tests to probe."""
     from convoy.algos.agent import make_agent
     from convoy.learner.inprocess import Trainer

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Algorithm, Progress
+from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.algos.checkpoint import load_checkpoint, save_checkpoint
 from convoy.algos.codbc import CoDBC
 from convoy.algos.listening import Listening
@@ -53,7 +53,7 @@ def synthetic_spec(n_agents: int = 3, obs_dim: int = 5, n_actions: int = 3) -> E
     )
 
 
-def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) -> Algorithm:
+def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) -> NetworkAgent:
     """A tiny CPU algorithm (message and memory sizes only where the algorithm has them)."""
     torch.manual_seed(seed)
     fields = ALGO_CONFIGS[name].model_fields
@@ -62,7 +62,7 @@ def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) 
     return make_algorithm(name, spec or synthetic_spec(), cfg, device="cpu", seed=seed)
 
 
-def random_batch(algo: Algorithm, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
+def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
     """A replay-like batch with a float16 history window whose valid steps are marked, as ``act`` stores them."""
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
@@ -110,7 +110,7 @@ def _one_thread() -> Iterator[None]:
 @pytest.mark.parametrize("name", MM_ALGOS)
 def test_memory_loss_reaches_only_the_memory_module(name: str) -> None:
     algo = build(name)
-    loss, stats = algo.aux_loss(random_batch(algo))
+    loss, stats = algo.memory_loss(random_batch(algo))
     assert loss is not None and loss.ndim == 0
     assert {"memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
     assert 0.0 <= stats["memory_bit_acc"] <= 1.0 and 0.0 <= stats["memory_msg_acc"] <= stats["memory_bit_acc"]
@@ -146,12 +146,12 @@ def test_update_trains_memory_and_reports_its_figures(name: str) -> None:
     assert all(not torch.equal(before[k], after[k]) for k in before)
 
 
-def test_aux_loss_without_history_says_what_is_missing() -> None:
+def test_memory_loss_without_history_says_what_is_missing() -> None:
     algo = build("ma-mesn-mm")
     batch = random_batch(algo)
     del batch[HISTORY]
     with pytest.raises(KeyError, match="history"):
-        algo.aux_loss(batch)
+        algo.memory_loss(batch)
 
 
 # --------------------------------------------------------------------------- 2. the history window
@@ -215,7 +215,7 @@ def test_env_stepper_records_history_and_clears_it_between_episodes() -> None:
     np.testing.assert_array_equal(hist[1, :, -2, :, :d], obs[0].astype(np.float16))  # same episode: remembered
     assert (hist[2, :, :-1] == 0).all()  # a new episode: nothing of the previous one is left
     algo.observe(chunk)  # and the replay can train on it
-    _, stats = algo.aux_loss(algo.sample())
+    _, stats = algo.memory_loss(algo.sample())
     assert np.isfinite(stats["memory_loss"])
 
 
