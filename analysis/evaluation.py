@@ -15,11 +15,13 @@ from typing import Literal
 
 import numpy as np
 
+from convoy.actors.stepping import AgentPolicy
 from convoy.algos.algorithm import Agent
 from convoy.algos.listening import HearsMessages, Listening, Source
 from convoy.algos.memory import MemoryModule
 from convoy.envs.batched import BatchedEnv
 from convoy.envs.channel import MessageChannel
+from convoy.envs.rollout import rollout
 from convoy.stats import ci95_half
 from convoy.validation import ConfigError
 
@@ -45,33 +47,17 @@ class EvalResult:
         return f"{self.mean:.3f} ± {self.ci95:.3f} (95 % CI, {len(self.returns)} episodes, messages: {heard})"
 
 
-def evaluate(
-    env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: float = 0.0, max_iters: int | None = None
-) -> np.ndarray:
+def evaluate(env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: float = 0.0) -> np.ndarray:
     """Per-episode returns (mean over agents) of ``episodes`` episodes with ε-greedy acting.
 
     Every env contributes its *first* episode only (in rounds of B envs, reseeded each round): scoring the first
     episodes to finish would over-sample short ones, i.e. early crashes.
     """
-    b = env.num_envs
-    out: list[float] = []
-    limit = max_iters or env.spec.max_steps + 1
-    for rnd in range(-(-episodes // b)):
-        obs = env.reset(seed=seed + rnd)
-        state = algo.reset_state(algo.initial_state(b), np.ones(b, dtype=bool))  # nothing in flight from a round
-        ep_ret = np.zeros(b)
-        active = np.ones(b, dtype=bool)
-        for _ in range(limit):
-            act = algo.act(obs, epsilon, state)
-            res = env.step(act.actions)
-            ep_ret += np.where(active, res.reward.mean(axis=1), 0.0)
-            active &= ~res.done
-            if not active.any():
-                break
-            state = algo.reset_state(act.state, res.done)
-            obs = res.obs
-        out.extend(ep_ret.tolist())
-    return np.asarray(out[:episodes], dtype=np.float64)
+    out: list[np.ndarray] = []
+    for rnd in range(-(-episodes // env.num_envs)):
+        policy = AgentPolicy(algo, env.num_envs, epsilon)  # nothing in flight from an earlier round
+        out.append(rollout(env, policy, seed=seed + rnd, after_step=policy.after_step).mean_return)
+    return np.concatenate(out)[:episodes].astype(np.float64)
 
 
 def parse_channel(spec: str, seed: int | None = None) -> MessageChannel:

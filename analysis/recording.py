@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.memory import MemoryModule
@@ -85,17 +86,13 @@ def check_analysable(algo: NetworkAgent) -> None:
 def record(algo: NetworkAgent, env: BatchedEnv, steps: int, seed: int) -> Recording:
     """``steps`` greedy steps of every env (auto-reset), recording messages and actions."""
     check_analysable(algo)
-    obs = env.reset(seed=seed)
-    state = algo.initial_state(env.num_envs)
+    stepper = EnvStepper(env, algo, seed, record=False)
     msgs, acts = [], []
     for _ in range(steps):
-        out = algo.act(obs, 0.0, state)
-        assert out.messages is not None
-        msgs.append(out.messages)
-        acts.append(out.actions)
-        res = env.step(out.actions)
-        state = algo.reset_state(out.state, res.done)
-        obs = res.obs
+        stepper.step(0.0)
+        assert stepper.last is not None and stepper.last.messages is not None
+        msgs.append(stepper.last.messages)
+        acts.append(stepper.last.actions)
     return Recording(np.stack(msgs).round().astype(np.int8), np.stack(acts))
 
 

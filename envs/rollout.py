@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convoy.envs.batched import BatchedEnv, EnvSpec
+from convoy.envs.batched import BatchedEnv, EnvSpec, StepResult
 from convoy.stats import ci95_half
 
 Policy = Callable[[np.ndarray], np.ndarray]  # obs [B, N, D] -> actions [B, N]
@@ -57,8 +57,10 @@ def rollout(
     seed: int | None = None,
     render: Callable[[], np.ndarray] | None = None,
     max_frames: int = 1000,
+    after_step: Callable[[StepResult], None] | None = None,
 ) -> RolloutResult:
-    """Play one episode in each of the env's B slots; ``render`` (if given) draws env 0 each step."""
+    """Play one episode in each of the env's B slots; ``render`` (if given) draws env 0 each step and
+    ``after_step`` sees every step's result (a policy with memory forgets the envs whose episode ended)."""
     b, n = env.num_envs, env.spec.n_agents
     returns = np.zeros((b, n), np.float64)
     lengths = np.zeros(b, np.int64)
@@ -72,6 +74,8 @@ def rollout(
     start = time.perf_counter()
     while running.any():
         r = env.step(policy(obs))
+        if after_step is not None:
+            after_step(r)
         steps += 1
         returns[running] += r.reward[running]
         lengths[running] += 1

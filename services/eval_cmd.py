@@ -80,28 +80,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
     """Play one greedy treadmill episode (same message source and channel) and write it as a GIF."""
-    import torch
 
+    from convoy.actors.stepping import AgentPolicy
     from convoy.analysis.evaluation import listening, listening_for
     from convoy.envs.rollout import rollout
     from convoy.envs.treadmill import TreadmillEngine, render_frame, write_gif
 
     cfg = job.env_config()
     env = TreadmillEngine(cfg, 1, autoreset=False)
-    state = algo.initial_state(1)
-
-    @torch.no_grad()
-    def policy(obs: Any) -> Any:
-        nonlocal state
-        out = algo.act(obs, 0.0, state)
-        state = out.state
-        return out.actions
+    policy = AgentPolicy(algo, 1)
 
     def draw() -> Any:
         return render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)
 
     with listening(algo, listening_for(algo, args.messages, args.channel, args.seed)):
-        result = rollout(env, policy, seed=args.seed, render=draw)
+        result = rollout(env, policy, seed=args.seed, render=draw, after_step=policy.after_step)
     Path(args.gif).parent.mkdir(parents=True, exist_ok=True)
     write_gif(result.frames, args.gif)
     return len(result.frames)
