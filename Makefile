@@ -52,7 +52,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python benchmarks/env_throughput.py --markdown runs/bench/env_throughput.md
-	$(BIN)/python benchmarks/learner_throughput.py --markdown runs/bench/learner_throughput.md
+	$(BIN)/python benchmarks/updates.py --json runs/bench/updates.json
 	$(BIN)/python benchmarks/inference_scaling.py --markdown runs/bench/inference_scaling.md
 	$(BIN)/python benchmarks/speaker_listener.py --json runs/bench/speaker_listener.json
 	$(BIN)/python benchmarks/runtime.py --markdown runs/bench/runtime.md

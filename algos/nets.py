@@ -16,8 +16,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.fused_mlp import fused_mlp
-
 if TYPE_CHECKING:
     from convoy.config import GumbelConfig
 
@@ -53,12 +51,7 @@ class GroupLinear(nn.Module):
 
 
 class GroupMLP(nn.Module):
-    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits).
-
-    ``fused`` (class-wide) sends every forward pass through ``learner.fused_mlp``'s one autograd node; off, the
-    layers run one by one through autograd. ``benchmarks/updates.py`` measures both in the same run."""
-
-    fused = True
+    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits)."""
 
     def __init__(self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int) -> None:
         super().__init__()
@@ -66,20 +59,9 @@ class GroupMLP(nn.Module):
         self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in itertools.pairwise(sizes))
 
     def forward(self, x: Tensor) -> Tensor:
-        """All layers in one layout, ``[rows, in]`` (shared) or ``[N, rows, in]`` (per agent), reshaped once, through
-        one autograd node (``learner.fused_mlp``: biases folded into widening matmuls, ReLU masks applied in place)."""
-        if not self.fused:
-            for layer in self.layers[:-1]:
-                x = torch.relu(layer(x))
-            return self.layers[-1](x)
-        if self.layers[0].groups == 1:
-            # views, not ``weight[0]``: a select's backward writes its gradient into a fresh zero tensor
-            params = [(la.weight.view(la.weight.shape[1:]), la.bias.view(-1)) for la in self.layers]
-            h = fused_mlp(x.reshape(-1, x.shape[-1]), params)
-            return h.reshape(*x.shape[:-1], h.shape[-1])
-        n = x.shape[-2]
-        h = fused_mlp(x.reshape(-1, n, x.shape[-1]).transpose(0, 1), [(la.weight, la.bias) for la in self.layers])
-        return h.transpose(0, 1).reshape(*x.shape[:-1], h.shape[-1])
+        for layer in self.layers[:-1]:
+            x = torch.relu(layer(x))
+        return self.layers[-1](x)
 
 
 def with_agent_id(x: Tensor, shared: bool) -> Tensor:

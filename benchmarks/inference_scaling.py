@@ -6,7 +6,7 @@ treadmill (one adversary, the default 100 × 100 road, which has 625 spawn cells
 wall time of one ``algo.act(obs, 0.0, state)`` call for B = 1 env (``--batch``), i.e. the decision of all N agents
 for one env step, including the numpy ↔ torch conversions and ε-greedy bookkeeping an actor pays. Recurrent state
 (DIAL's messages from t−1) is carried from call to call as an actor would. The table also gives the parameter count
-and the matmul FLOPs of one call (torch's ``FlopCounterMode``, ``benchmarks/flops.py``), and fits the exponent k of
+and the matmul FLOPs of one call (torch's ``FlopCounterMode``; see ``count_flops``), and fits the exponent k of
 time ≈ c·N^k by least squares on log-log axes over every N and over the upper half of N (fixed per-call overheads,
 a few hundred µs of Python and dispatch, flatten the curve at small N, so the upper half is the better estimate of
 the asymptotic order). The same fit on the FLOPs shows the order the architecture implies.
@@ -40,6 +40,7 @@ import platform
 import statistics
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,10 +53,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from flops import count_flops  # noqa: E402 (benchmarks/flops.py, next to this script)
-from report import cpu_model, markdown_table  # noqa: E402 (benchmarks/report.py, next to this script)
-
-from convoy.algos.algorithm import Algorithm  # noqa: E402
+from benchmarks.report import cpu_model, markdown_table  # noqa: E402
+from convoy.algos.algorithm import NetworkAgent  # noqa: E402
 from convoy.algos.nets import pick_device  # noqa: E402
 from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
 from convoy.config import DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
@@ -69,7 +68,24 @@ OBS_POOL = 16  # distinct observations cycled through, so the policy sees varied
 DEFAULT_PLOT = ROOT / "runs" / "bench" / "inference_scaling.png"
 
 
-# ------------------------------------------------------------------------------------- helpers (also for learner)
+# ------------------------------------------------------------------------------------------------- helpers
+def count_flops(fn: Callable[[], Any]) -> int:
+    """Matmul FLOPs of ``fn()`` as torch's ``FlopCounterMode`` counts them. oneDNN and cuDNN are off while it
+    counts: their fused LSTM layer (the memory modules') is one kernel call the counter knows no formula for, and
+    counts as 0; without them the same layer runs as the matmuls it is made of, and those are counted."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with warnings.catch_warnings():  # mkldnn.flags() warns about Intel-GPU TF32 on builds without XPU
+        warnings.filterwarnings("ignore", message="TF32 acceleration on top of oneDNN")
+        with (
+            torch.backends.mkldnn.flags(enabled=False),
+            torch.backends.cudnn.flags(enabled=False),
+            FlopCounterMode(display=False) as mode,
+        ):
+            fn()
+    return int(mode.get_total_flops())
+
+
 def importable_algorithms(names: Sequence[str], notes: list[str]) -> list[str]:
     """The registry names whose module imports; the others get a note (they are being written elsewhere)."""
     ok = []
@@ -186,7 +202,7 @@ class Case:
     algo_name: str
     n_agents: int
     batch: int
-    algo: Algorithm
+    algo: NetworkAgent
     obs_pool: list[np.ndarray]
     n_params: int
     flops_per_act: int = 0
@@ -229,7 +245,7 @@ def make_case(
     case = Case(name, n_agents, batch, algo, pool, algo.n_parameters(), state=algo.initial_state(batch))
     for _ in range(warmup):
         case.act()
-    case.flops_per_act, _ = count_flops(case.act)
+    case.flops_per_act = count_flops(case.act)
     return case
 
 

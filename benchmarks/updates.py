@@ -1,19 +1,19 @@
-"""Learner updates per second: Convoy's update beside a plain PyTorch one, and the fused MLP node on and off.
+"""Learner updates per second: each algorithm's ``update()`` beside a plain PyTorch DQN update of the same sizes.
 
-Two questions, measured in the same run on the same thread:
+For every algorithm, ms per ``update()`` of Convoy's learner, and of a reference written the way a textbook (or
+CleanRL) writes a DQN update: an ``nn.Sequential`` of ``nn.Linear``/``nn.ReLU`` with the algorithm's widths (the
+agent's observation and one-hot id in, the treadmill's actions out), ``torch.optim.Adam`` at the algorithm's
+learning rate, a batch sampled from a replay of the same rows (batch × agents; DIAL: batch × unroll × agents), a
+double-Q target from a target network with the advantage-learning gap Convoy's configs use, the Huber TD loss
+summed over agents, and the gradient clipped to the algorithm's norm. For independent DQN that is the same update,
+so the ratio is what Convoy's code costs beyond plain PyTorch; for the others it is also what the algorithm adds
+(messages, more networks, DIAL's unroll) over a DQN of that size.
 
-1. **Is the fused MLP node worth keeping?** Every algorithm's networks are ``GroupMLP``s, which by default run a
-   forward pass through ``learner.fused_mlp`` (one autograd node per MLP). With ``GroupMLP.fused = False`` the same
-   weights run layer by layer through autograd. Per algorithm and network size, ms per ``update()`` both ways,
-   interleaved (on, off, on, off, ...) so that drift on a shared machine hits both alike; the ratio is plain ÷ fused.
-   The rule (issue "a house a newcomer can live in"): keep the node only where it is ≥ 1.3× at the paper's sizes.
-2. **How far is Convoy's independent DQN from a textbook one?** The reference is CleanRL's shape: an
-   ``nn.Sequential`` of the same widths, ``torch.optim.Adam``, a double-Q Huber TD loss with a target network and
-   gradient clipping, on a batch of the same rows (batch × agents, shared weights); the ratio is reference ÷ Convoy.
-
-Sizes: the paper's treadmill networks (hidden 4096 → 12, batch 64) and Convoy's treadmill defaults (256, 256;
-batch 128), N = 3 agents + 1 adversary. The replay is filled with random play through each algorithm's own acting
-path (``EnvStepper``); DIAL uses its replay variant (``replay=true``), so an update samples like the others.
+The two run interleaved on one thread (Convoy, reference, Convoy, reference, ...; median of ``--repeats``), so
+drift on a shared machine hits both alike. Sizes: the paper's treadmill networks (hidden 4096 → 12, batch 64) and
+Convoy's treadmill defaults (256, 256; batch 128), N = 3 agents + 1 adversary. Convoy's replay is filled with
+random play through each algorithm's own acting path (``EnvStepper``); DIAL uses its replay variant
+(``replay=true``, unroll 8), so an update samples like the others.
 
 Run from the repository root: ``python benchmarks/updates.py`` (~3 min); ``--quick`` for a smoke run of seconds;
 ``--algos`` to choose; ``--json`` to save the figures.
@@ -36,11 +36,10 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
-from torch import nn  # noqa: E402
+from torch import Tensor, nn  # noqa: E402
 
 from benchmarks.report import cpu_model, markdown_table  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
-from convoy.algos.nets import GroupMLP  # noqa: E402
 from convoy.algos.registry import make_algorithm  # noqa: E402
 from convoy.config import PAPER_TREADMILL_HIDDEN, resolve_algo  # noqa: E402
 from convoy.envs import make_batched  # noqa: E402
@@ -49,6 +48,7 @@ ALGOS = ("idqn", "dqn-ser", "dial", "ims", "ma-mesn", "ma-bon", "ma-mesn-mm", "m
 SIZES = {"paper (4096, 12), batch 64": (PAPER_TREADMILL_HIDDEN, 64), "default (256, 256), batch 128": ((256, 256), 128)}
 QUICK_SIZES = {"quick (64, 32), batch 32": ((64, 32), 32)}
 PLAY_STEPS = 64  # random env steps × 16 envs: the replay the updates sample from
+DIAL_UNROLL = 8
 
 
 def filled(name: str, hidden: tuple[int, ...], batch: int) -> Any:
@@ -56,7 +56,7 @@ def filled(name: str, hidden: tuple[int, ...], batch: int) -> Any:
     env = make_batched("treadmill", 16, n_agents=3, n_adversaries=1)
     params: dict[str, Any] = {"hidden": hidden, "batch_size": batch, "learning_starts": 0, "replay_capacity": 4096}
     if name == "dial":
-        params.update(replay=True, unroll=8)
+        params.update(replay=True, unroll=DIAL_UNROLL)
     algo = make_algorithm(name, env.spec, resolve_algo(name, "treadmill", params), device="cpu", seed=0)
     stepper = EnvStepper(env, algo, 0)
     for _ in range(PLAY_STEPS):
@@ -77,48 +77,89 @@ def ms_per_call(step: Any, seconds: float) -> float:
     return (time.perf_counter() - t0) / n * 1e3
 
 
-def fused_vs_plain(algo: Any, seconds: float, repeats: int) -> tuple[float, float]:
-    """Median ms per update with the fused node and without, interleaved."""
-    fused, plain = [], []
-    try:
-        for _ in range(repeats):
-            GroupMLP.fused = True
-            fused.append(ms_per_call(algo.update, seconds))
-            GroupMLP.fused = False
-            plain.append(ms_per_call(algo.update, seconds))
-    finally:
-        GroupMLP.fused = True
-    return statistics.median(fused), statistics.median(plain)
-
-
 class ReferenceDQN:
-    """CleanRL-style double DQN update on ``rows`` observations: nn.Sequential, Adam, Huber TD, clipped gradients."""
+    """A double DQN update in plain PyTorch: ``nn.Sequential``, ``torch.optim.Adam``, Huber TD, clipped gradients.
 
-    def __init__(self, obs_dim: int, hidden: tuple[int, ...], n_actions: int, rows: int, lr: float) -> None:
+    One row is one agent's transition (observation with the agent's one-hot id appended); a sampled batch holds
+    ``samples`` joint transitions of ``agents`` rows each, and the loss is each agent's mean Huber error, summed,
+    as Convoy's learners minimise it."""
+
+    def __init__(
+        self,
+        obs_dim: int,
+        hidden: tuple[int, ...],
+        n_actions: int,
+        agents: int,
+        samples: int,
+        cfg: Any,
+        replay_rows: int = 4096,
+    ) -> None:
         def net() -> nn.Sequential:
-            sizes, layers = [obs_dim, *hidden], []
+            sizes, layers = [obs_dim + agents, *hidden], []
             for a, b in itertools.pairwise(sizes):
                 layers += [nn.Linear(a, b), nn.ReLU()]
             return nn.Sequential(*layers, nn.Linear(sizes[-1], n_actions))
 
+        self.agents, self.samples = agents, samples
+        self.gamma, self.gap, self.clip = cfg.gamma, cfg.advantage_learning, cfg.grad_clip
         self.q, self.target = net(), net()
         self.target.load_state_dict(self.q.state_dict())
-        self.opt = torch.optim.Adam(self.q.parameters(), lr=lr)
+        self.opt = torch.optim.Adam(self.q.parameters(), lr=cfg.lr)
         g = torch.Generator().manual_seed(0)
-        self.obs, self.next_obs = torch.randn(rows, obs_dim, generator=g), torch.randn(rows, obs_dim, generator=g)
-        self.action = torch.randint(0, n_actions, (rows,), generator=g)
-        self.reward, self.done = torch.rand(rows, generator=g), torch.zeros(rows)
+        self.replay = {
+            "obs": torch.randn(replay_rows, agents, obs_dim, generator=g),
+            "next_obs": torch.randn(replay_rows, agents, obs_dim, generator=g),
+            "action": torch.randint(0, n_actions, (replay_rows, agents), generator=g),
+            "reward": torch.rand(replay_rows, agents, generator=g),
+            "terminated": torch.rand(replay_rows, generator=g) < 0.02,
+        }
+        self.eye = torch.eye(agents)
+
+    def sample(self) -> dict[str, Tensor]:
+        idx = torch.randint(0, len(self.replay["obs"]), (self.samples,))
+        return {k: v[idx] for k, v in self.replay.items()}
+
+    def rows(self, obs: Tensor) -> Tensor:
+        """``[M, N, D]`` → ``[M·N, D + N]``: every agent's observation with its one-hot id."""
+        ids = self.eye.expand(obs.shape[0], -1, -1)
+        return torch.cat([obs, ids], dim=-1).reshape(-1, obs.shape[-1] + self.agents)
+
+    def loss(self, batch: dict[str, Tensor]) -> Tensor:
+        obs, next_obs = self.rows(batch["obs"]), self.rows(batch["next_obs"])
+        action = batch["action"].reshape(-1, 1)
+        with torch.no_grad():
+            best = self.q(next_obs).argmax(dim=1, keepdim=True)
+            cont = (~batch["terminated"]).float().repeat_interleave(self.agents)
+            y = batch["reward"].reshape(-1) + self.gamma * cont * self.target(next_obs).gather(1, best).squeeze(1)
+            if self.gap:
+                q_t = self.target(obs)
+                y = y - self.gap * (q_t.max(dim=1).values - q_t.gather(1, action).squeeze(1))
+        q = self.q(obs).gather(1, action).squeeze(1)
+        err = F.smooth_l1_loss(q, y, reduction="none").reshape(-1, self.agents)
+        return err.mean(dim=0).sum()
 
     def update(self) -> None:
-        with torch.no_grad():
-            best = self.q(self.next_obs).argmax(dim=1, keepdim=True)
-            y = self.reward + 0.95 * (1 - self.done) * self.target(self.next_obs).gather(1, best).squeeze(1)
-        q = self.q(self.obs).gather(1, self.action[:, None]).squeeze(1)
-        loss = F.smooth_l1_loss(q, y)
+        loss = self.loss(self.sample())
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        nn.utils.clip_grad_norm_(self.q.parameters(), 10.0)
+        nn.utils.clip_grad_norm_(self.q.parameters(), self.clip)
         self.opt.step()
+
+
+def reference_for(algo: Any, hidden: tuple[int, ...]) -> ReferenceDQN:
+    """The reference update at ``algo``'s sizes: its observation, actions, agents, batch rows and hyperparameters."""
+    cfg = algo.cfg
+    samples = cfg.batch_size * (int(cfg.unroll) if algo.name == "dial" else 1)
+    return ReferenceDQN(algo.obs_dim, hidden, algo.n_act, algo.n_agents, samples, cfg)
+
+
+def interleaved(convoy: Any, reference: Any, seconds: float, repeats: int) -> tuple[float, float]:
+    """Median ms per call of each, measured in turns."""
+    a, b = [], []
+    for _ in range(repeats):
+        a.append(ms_per_call(convoy, seconds))
+        b.append(ms_per_call(reference, seconds))
+    return statistics.median(a), statistics.median(b)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,27 +180,24 @@ def main(argv: list[str] | None = None) -> int:
         rows, out = [], {}
         for name in args.algos:
             algo = filled(name, hidden, batch)
-            fused, plain = fused_vs_plain(algo, args.seconds, args.repeats)
-            out[name] = {"fused_ms": fused, "plain_ms": plain, "plain_over_fused": plain / fused}
-            rows.append([name, f"{fused:.2f}", f"{plain:.2f}", f"{plain / fused:.2f}"])
-        idqn = filled("idqn", hidden, batch)
-        spec = idqn.spec
-        ref = ReferenceDQN(idqn.obs_dim + spec.n_agents, hidden, spec.n_actions[0], batch * spec.n_agents, 1e-4)
-        ref_ms = statistics.median(ms_per_call(ref.update, args.seconds) for _ in range(args.repeats))
-        convoy_ms = out["idqn"]["fused_ms"] if "idqn" in out else fused_vs_plain(idqn, args.seconds, args.repeats)[0]
-        out["reference_dqn"] = {"ms": ref_ms, "convoy_idqn_ms": convoy_ms, "reference_over_convoy": ref_ms / convoy_ms}
+            ref = reference_for(algo, hidden)
+            convoy_ms, ref_ms = interleaved(algo.update, ref.update, args.seconds, args.repeats)
+            out[name] = {
+                "rows_per_update": ref.samples * ref.agents,
+                "convoy_ms": convoy_ms,
+                "reference_ms": ref_ms,
+                "convoy_updates_per_s": 1e3 / convoy_ms,
+                "convoy_over_reference": convoy_ms / ref_ms,
+            }
+            rows.append([name, f"{ref.samples * ref.agents:,}", f"{convoy_ms:.2f}", f"{1e3 / convoy_ms:.1f}",
+                         f"{ref_ms:.2f}", f"{convoy_ms / ref_ms:.2f}"])  # fmt: skip
         figures[size_name] = out
         print(f"### {size_name}\n")
-        print(markdown_table(["algorithm", "fused ms/update", "plain ms/update", "plain ÷ fused"], rows,
-                             [False, True, True, True]))  # fmt: skip
-        kept = [r[0] for r in rows if float(r[3]) >= 1.3]
-        print(f"\nfused ≥ 1.3× faster for: {', '.join(kept) or 'none'}")
-        print(
-            f"independent DQN: Convoy {convoy_ms:.2f} ms/update, plain nn.Sequential + Adam reference {ref_ms:.2f} "
-            f"ms/update → reference ÷ Convoy = {ref_ms / convoy_ms:.2f}\n",
-            flush=True,
-        )
+        header = ["algorithm", "rows/update", "Convoy ms/update", "Convoy updates/s", "reference ms/update",
+                  "Convoy ÷ reference"]  # fmt: skip
+        print(markdown_table(header, rows, [False, True, True, True, True, True]) + "\n", flush=True)
     if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(figures, indent=2))
     return 0
 

@@ -273,10 +273,13 @@ def test_every_meta_algorithm_trains_both_levels(algo: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["idqn", "ma-mesn"])
 def test_hierarchical_training_beats_the_random_policy(algo: str) -> None:
-    result = run_inprocess(job(algo, steps=12_000, log_every=4_000), out_dir=None, progress=False)
-    assert result.eval_return > result.random_return + 1.5, (
-        f"h-{algo}: greedy return {result.eval_return:.2f} does not beat random {result.random_return:.2f}"
-    )
+    """By 1.5 on average over three seeds: one seed's margin moves by a few tenths with float rounding alone, and seed
+    0's h-idqn sits near 1.5 (seeds 1–5 near 3–4), so a single seed would test the rounding as much as the learning."""
+    margins = []
+    for seed in range(3):
+        result = run_inprocess(job(algo, steps=12_000, log_every=4_000, seed=seed), out_dir=None, progress=False)
+        margins.append(result.eval_return - result.random_return)
+    assert sum(margins) / len(margins) > 1.5, f"h-{algo}: greedy minus random return by seed {margins}"
 
 
 @pytest.mark.slow
