@@ -28,8 +28,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
+from convoy.algos.algorithm import ReplayAgent
 from convoy.algos.listening import HearsMessages
+from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
 from convoy.config import BoNConfig
 
@@ -83,17 +84,7 @@ class MABoN(HearsMessages, ReplayAgent):
         x, sent, heard = self.speak(self.online, obs, False)
         return self.listen(self.online, x, self.hear(heard.contiguous())), sent.contiguous(), None
 
-    def q_values(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
-        """Execution-mode Q-values of any copy of the networks (targets, double-Q's online pick)."""
-        return self.forward(nets, obs, train=False)[0]
-
-    def loss(self, batch: Batch) -> Loss:
-        """Algorithm 1 with one broadcast: message → Q → double-Q target → per-agent TD losses (summed)."""
-        # the env's broadcast bm = f′(e_1 … e_N) (Gumbel bits, straight-through), heard by every agent
-        x, _, heard = self.speak(self.online, batch["obs"], train=True)
-        # Q_i = g′_i(o_i, bm) of the actions taken
-        q = taken(self.listen(self.online, x, heard), batch["action"])
-        # double-Q target: the target copies of the encoders, f′ and g′ at o′, the action picked online
-        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
-        # per-agent TD losses: their sum reaches f′ and every encoder through every agent's Q
-        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))
+    # MA-BoN trains exactly as MA-MeSN (Algorithm 1): message → Q_i(o_i, bm) → double-Q target → per-agent TD
+    # losses, summed, so every agent's loss reaches f′ and every encoder; only ``speak`` above differs.
+    q_values = MAMeSN.q_values
+    loss = MAMeSN.loss

@@ -6,7 +6,6 @@ broadcast, the agent's own prediction of it (no channel), or the broadcast with 
 
 from __future__ import annotations
 
-from convoy.algos.algorithm import Batch, Loss
 from convoy.algos.ma_bon import MABoN
 from convoy.algos.memory import MemoryModule
 from convoy.config import BoNMMConfig
@@ -17,8 +16,3 @@ class MABoNMM(MemoryModule, MABoN):
 
     name = "ma-bon-mm"
     config_model = BoNMMConfig
-
-    def loss(self, batch: Batch) -> Loss:
-        """MA-BoN's loss, plus the memory module's on the same batch: predict the messages each agent hears from its
-        own observation window (no gradient of it reaches the message or policy networks)."""
-        return super().loss(batch).plus(*self.memory_loss(batch))

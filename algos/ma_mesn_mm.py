@@ -8,7 +8,6 @@ the true messages with the lost ones replaced by predictions (a lossy channel) â
 
 from __future__ import annotations
 
-from convoy.algos.algorithm import Batch, Loss
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.memory import MemoryModule
 from convoy.config import MeSNMMConfig
@@ -19,8 +18,3 @@ class MAMeSNMM(MemoryModule, MAMeSN):
 
     name = "ma-mesn-mm"
     config_model = MeSNMMConfig
-
-    def loss(self, batch: Batch) -> Loss:
-        """MA-MeSN's loss, plus the memory module's on the same batch: predict the messages each agent hears from its
-        own observation window (no gradient of it reaches the message or policy networks)."""
-        return super().loss(batch).plus(*self.memory_loss(batch))

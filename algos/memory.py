@@ -138,6 +138,11 @@ class MemoryModule:
         return extra
 
     # --- learning: supervised, in parallel with the TD losses ---------------------------------------------------
+    def loss(self, batch: dict[str, Tensor]) -> Any:
+        """The algorithm's own loss, plus the memory module's on the same batch: predict the messages each agent
+        hears from its own observation window (no gradient of it reaches the message or policy networks)."""
+        return super().loss(batch).plus(*self.memory_loss(batch))  # type: ignore[misc]
+
     def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         """``memory_coef`` × the BCE of the predicted bits against the messages each agent truly hears, and the
         prediction's accuracy per bit and per whole message."""

@@ -122,6 +122,19 @@ class _Pairing:
         return np.array([self.mi(self.iy[rng.permutation(len(self.iy))]) for _ in range(repeats)])
 
 
+def _bits_and_actions(bits: np.ndarray, actions: np.ndarray, dims: str) -> tuple[np.ndarray, np.ndarray]:
+    """``bits [dims…, k]`` and ``actions [dims…]`` checked to agree (``dims`` as written in the error: "M, N")."""
+    b, act = _check_bits(bits), np.asarray(actions)
+    nd = len(dims.split(","))
+    if b.ndim != nd + 1:
+        raise ValueError(f"bits must be [{dims}, k], got shape {b.shape}")
+    if act.ndim != nd:
+        raise ValueError(f"actions must be [{dims}], got shape {act.shape}")
+    if b.shape[:nd] != act.shape:
+        raise ValueError(f"bits [{dims}, k] and actions [{dims}] disagree: {b.shape} vs {act.shape}")
+    return b, act
+
+
 def _per_bit_codes(b: np.ndarray, iy: np.ndarray, ny: int) -> np.ndarray:
     """MI(bit_j; y) for all j at once from a [k, 2, ny] table built with a single bincount."""
     k = b.shape[1]
@@ -181,16 +194,16 @@ def per_bit_mi(bits: np.ndarray, y: np.ndarray) -> np.ndarray:
 class MetricFigure:
     """One row of the metrics table: a value with the baselines that say whether it means anything."""
 
-    name: str
-    key: str
+    name: str  # as the table shows it
+    key: str  # as JSON stores it
     value: float
-    unit: str
-    shuffled: float | None = None
-    shuffled_std: float | None = None
-    per_bit: float | None = None
+    unit: str  # nats, bits, …
+    shuffled: float | None = None  # the same figure with messages shuffled across samples: chance level
+    shuffled_std: float | None = None  # its spread over the shuffles
+    per_bit: float | None = None  # mean over message bits taken one at a time
     per_bit_shuffled: float | None = None
     samples: int | None = None
-    note: str = ""
+    note: str = ""  # what was skipped and why
 
 
 def _pair_stats(
@@ -223,14 +236,7 @@ def speaker_consistency(
     it does? Averaged over agents with more than one distinct action (the others carry no information).
     """
     _check_repeats(repeats)
-    b = _check_bits(bits)
-    act = np.asarray(actions)
-    if b.ndim != 3:
-        raise ValueError(f"bits must be [M, N, k], got shape {b.shape}")
-    if act.ndim != 2:
-        raise ValueError(f"actions must be [M, N], got shape {act.shape}")
-    if b.shape[:2] != act.shape:
-        raise ValueError(f"bits [M, N, k] and actions [M, N] disagree: {b.shape} vs {act.shape}")
+    b, act = _bits_and_actions(bits, actions, "M, N")
     m, n_agents = act.shape
     if m == 0 or n_agents == 0:
         raise ValueError(f"bits and actions are empty (M={m}, N={n_agents})")
@@ -257,14 +263,7 @@ def instantaneous_coordination(
     pair them; samples = (T − delay)·B. Listeners with a single distinct action are skipped.
     """
     _check_repeats(repeats)
-    b = _check_bits(bits)
-    act = np.asarray(actions)
-    if b.ndim != 4:
-        raise ValueError(f"bits must be [T, B, N, k], got shape {b.shape}")
-    if act.ndim != 3:
-        raise ValueError(f"actions must be [T, B, N], got shape {act.shape}")
-    if b.shape[:3] != act.shape:
-        raise ValueError(f"bits [T, B, N, k] and actions [T, B, N] disagree: {b.shape} vs {act.shape}")
+    b, act = _bits_and_actions(bits, actions, "T, B, N")
     t_len, batch, n_agents = act.shape
     if t_len == 0 or batch == 0:
         raise ValueError(f"bits and actions are empty (T={t_len}, B={batch})")

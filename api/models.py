@@ -132,19 +132,19 @@ class JobView(BaseModel):
     """A job as ``GET /jobs/{id}`` shows it."""
 
     id: str
-    state: str
+    state: str = Field(description="queued, starting, running, completed, stopped or failed.")
     algo: str
     env: str
     actors: int = Field(description="Actor processes requested.")
     actors_alive: int = Field(description="Actor processes holding a liveliness token now.")
-    steps: int
+    steps: int = Field(description="Env steps the job trains for.")
     progress: Progress
-    created_at: float
-    updated_at: float
-    error: str | None = None
-    last_checkpoint: str | None = None
-    queue_position: int | None = None
-    config: dict[str, Any]
+    created_at: float = Field(description="Unix time of the submission.")
+    updated_at: float = Field(description="Unix time of the last state change or progress report.")
+    error: str | None = Field(None, description="Why a failed job failed: the cause and what to do.")
+    last_checkpoint: str | None = Field(None, description="Path of the newest checkpoint on the service's host.")
+    queue_position: int | None = Field(None, description="Place in the queue of a queued job (0 = next).")
+    config: dict[str, Any] = Field(description="The job's full configuration, defaults filled in.")
 
 
 class JobList(BaseModel):

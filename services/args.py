@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
+
+from pydantic import BaseModel
 
 from convoy.config import ResourceLimits
 from convoy.validation import ConfigError
@@ -37,6 +39,31 @@ def parse_pairs(items: list[str] | None, flag: str) -> dict[str, Any]:
             raise ConfigError(flag, f"expected KEY=VALUE (e.g. {EXAMPLES.get(flag, flag + ' key=1')}), got {item!r}")
         out[key.strip()] = parse_value(value.strip())
     return out
+
+
+def add_model_flags(
+    p: argparse.ArgumentParser, model: type[BaseModel], names: tuple[str, ...], flags: dict[str, str] | None = None
+) -> None:
+    """One flag per field of ``model`` in ``names`` (``--num-envs`` for ``num_envs``, or ``flags[name]``) with the
+    field's type, description and default, so the CLI cannot drift from the config. Flags default to None (off
+    for a switch): only what the user gives overrides the model's default or a config file."""
+    for name in names:
+        info = model.model_fields[name]
+        flag = (flags or {}).get(name, "--" + name.replace("_", "-"))
+        text = (info.description or name).rstrip(".")
+        if info.annotation is bool:
+            p.add_argument(flag, dest=name, action="store_const", const=True, help=f"{text} (default off)")
+            continue
+        default = f"{info.default:,}" if isinstance(info.default, int) else info.default
+        choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else None
+        kind = info.annotation if info.annotation in (int, float) else str
+        metavar = None if choices else "N" if kind in (int, float) else name.upper()
+        p.add_argument(flag, dest=name, type=kind, choices=choices, metavar=metavar, help=f"{text} (default {default})")
+
+
+def given(args: argparse.Namespace, names: tuple[str, ...]) -> dict[str, Any]:
+    """The flags among ``names`` the user gave (those still at their ``None`` default left out)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
 
 
 def env_params(args: argparse.Namespace, base: dict[str, Any] | None = None) -> dict[str, Any]:

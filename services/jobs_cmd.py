@@ -24,7 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from convoy.api.models import MAX_ACTORS, JobSubmit
-from convoy.services.args import env_params, parse_pairs
+from convoy.services.args import add_model_flags, env_params, given, parse_pairs
 from convoy.services.train_cmd import add_job_flags
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -120,9 +120,14 @@ def fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def plain(out: Console, text: str) -> None:
+    """One line as it is: no markup, highlighting or wrapping (ids, paths and JSON stay intact in pipes)."""
+    out.print(text, highlight=False, markup=False, soft_wrap=True)
+
+
 def print_json(out: Console, data: Any) -> None:
     """Indented JSON, never wrapped or coloured (for scripts and ``jq``)."""
-    out.print(json.dumps(data, indent=2), highlight=False, markup=False, soft_wrap=True)
+    plain(out, json.dumps(data, indent=2))
 
 
 def first(*values: Any) -> Any:
@@ -160,16 +165,8 @@ def summary_line(job: dict[str, Any], elapsed: float | None = None) -> str:
 
 def submit_body(args: argparse.Namespace) -> dict[str, Any]:
     """The ``POST /jobs`` body from the flags; flags not given are left to the service's defaults."""
-    body: dict[str, Any] = {}
     names = ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "eval_every", "log_every", "name")
-    for name in names:
-        value = getattr(args, name)
-        if value is not None:
-            body[name] = value
-    if args.checkpoint_every is not None:
-        body["checkpoint_every"] = args.checkpoint_every
-    if args.hierarchical:
-        body["hierarchical"] = True
+    body: dict[str, Any] = given(args, (*names, "checkpoint_every", "hierarchical"))
     params = env_params(args)
     if params:
         body["env_params"] = params
@@ -187,8 +184,8 @@ def cmd_submit(api: Api, args: argparse.Namespace, out: Console) -> int:
     if args.json:
         print_json(out, job)
     else:
-        out.print(f"submitted {job['id']}: {state_text(job)}", highlight=False, markup=False, soft_wrap=True)
-        out.print(f"follow it with: convoy jobs watch {job['id']}", highlight=False, markup=False, soft_wrap=True)
+        plain(out, f"submitted {job['id']}: {state_text(job)}")
+        plain(out, f"follow it with: convoy jobs watch {job['id']}")
     return 0
 
 
@@ -265,18 +262,13 @@ def dropped_text(dropped: dict[str, dict[str, int]]) -> str:
 
 def cmd_scale(api: Api, args: argparse.Namespace, out: Console) -> int:
     job = api.call("PATCH", f"/jobs/{args.id}", json={"actors": args.actors})
-    out.print(
-        f"{job['id']}: {job['actors']} actors requested ({state_text(job)})",
-        highlight=False,
-        markup=False,
-        soft_wrap=True,
-    )
+    plain(out, f"{job['id']}: {job['actors']} actors requested ({state_text(job)})")
     return 0
 
 
 def cmd_stop(api: Api, args: argparse.Namespace, out: Console) -> int:
     job = api.call("POST", f"/jobs/{args.id}/stop")
-    out.print(f"{job['id']}: {state_text(job)}", highlight=False, markup=False, soft_wrap=True)
+    plain(out, f"{job['id']}: {state_text(job)}")
     return 0
 
 
@@ -284,21 +276,19 @@ def cmd_resume(api: Api, args: argparse.Namespace, out: Console) -> int:
     body = {k: v for k, v in (("actors", args.actors), ("steps", args.steps)) if v is not None}
     job = api.call("POST", f"/jobs/{args.id}/resume", json=body)
     text = f"{job['id']}: {state_text(job)}, {job['actors']} actors, {job['steps']:,} env steps in all"
-    out.print(text, highlight=False, markup=False, soft_wrap=True)
+    plain(out, text)
     return 0
 
 
 def cmd_delete(api: Api, args: argparse.Namespace, out: Console) -> int:
     api.call("DELETE", f"/jobs/{args.id}")
-    out.print(
-        f"deleted {args.id} (its processes, history, metrics and files)", highlight=False, markup=False, soft_wrap=True
-    )
+    plain(out, f"deleted {args.id} (its processes, history, metrics and files)")
     return 0
 
 
 def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
     for line in api.call("GET", f"/jobs/{args.id}/logs", params={"lines": args.lines})["lines"]:
-        out.print(line, highlight=False, markup=False, soft_wrap=True)
+        plain(out, line)
     return 0
 
 
@@ -314,7 +304,7 @@ def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
     rows: list[dict[str, Any]] = page["rows"]
     if args.json:
         for row in rows:
-            out.print(json.dumps(row), highlight=False, markup=False, soft_wrap=True)
+            plain(out, json.dumps(row))
         return 0
     if not rows:
         out.print(f"no metric rows for {args.id}{' after step ' + str(args.since) if args.since is not None else ''}")
@@ -334,12 +324,7 @@ def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
         table.add_row(*(Text(fmt(row.get(col))) for col in columns))
     out.print(table)
     more = "" if args.names else " (--names a,b for other columns, --json for all)"
-    out.print(
-        f"{len(rows)} rows; newer ones: convoy jobs metrics {args.id} --since {page['last_step']}{more}",
-        highlight=False,
-        markup=False,
-        soft_wrap=True,
-    )
+    out.print(f"{len(rows)} rows; newer ones: convoy jobs metrics {args.id} --since {page['last_step']}{more}")
     return 0
 
 
@@ -396,7 +381,7 @@ def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
     line = summary_line(job, time.monotonic() - t0)
     if job["state"] == "failed":
         raise CliError("", line, f"see its log, then `convoy jobs resume {args.id}`", code=1)
-    out.print(line, highlight=False, markup=False, soft_wrap=True)
+    plain(out, line)
     return 0
 
 
@@ -480,7 +465,6 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         p.set_defaults(func=cmd_jobs)
         return p
 
-    d = JobSubmit.model_fields
     p = add(
         "submit",
         "submit a training job",
@@ -489,11 +473,7 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         "(actors + 2).",
     )
     add_job_flags(p)
-    p.add_argument(
-        "--checkpoint-every",
-        type=int,
-        help=f"env steps between checkpoints (default {d['checkpoint_every'].default:,})",
-    )
+    add_model_flags(p, JobSubmit, ("checkpoint_every",))
     p.add_argument("--name", help="prefix of the job id: letters, digits, _ . - (default: the algorithm)")
     p.add_argument("--json", action="store_true", help="print the new job as JSON")
 

@@ -15,14 +15,12 @@ from rich.table import Table
 from convoy.config import (
     ALGO_CONFIGS,
     ALGO_SUMMARIES,
-    DEVICES,
     AlgoConfig,
     JobConfig,
     env_default_note,
     job_config,
 )
-from convoy.envs import ENVS
-from convoy.services.args import add_limit_flags, env_params, limits_from_args, parse_pairs
+from convoy.services.args import add_limit_flags, add_model_flags, env_params, given, limits_from_args, parse_pairs
 from convoy.services.rundir import claim, free_default
 from convoy.validation import ConfigError
 
@@ -48,14 +46,7 @@ def read_config_file(path: str) -> dict[str, Any]:
 def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
-    for name in ("algo", "env", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every", "device"):
-        v = getattr(args, name)
-        if v is not None:
-            values[name] = v
-    if args.threads is not None:
-        values["torch_threads"] = args.threads
-    if args.hierarchical:
-        values["hierarchical"] = True
+    values.update(given(args, (*JOB_FLAGS, "device", "torch_threads")))
     values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
     if args.actors is not None:
         values["runtime"]["actors"] = args.actors
@@ -166,17 +157,18 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     add_job_flags(tr)
-    tr.add_argument("--device", choices=DEVICES, help="torch device (default auto: CUDA if present)")
-    tr.add_argument("--threads", type=int, help="torch threads of the learner (default 1)")
+    add_model_flags(tr, JobConfig, ("device", "torch_threads"), flags={"torch_threads": "--threads"})
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
 
+JOB_FLAGS = ("algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_every", "log_every")
+
+
 def add_job_flags(tr: argparse.ArgumentParser) -> None:
-    """What to train, on what, for how long: the job flags of ``convoy train`` and ``convoy jobs submit`` alike."""
-    d = JobConfig.model_fields
+    """What to train, on what, for how long: the job flags of ``convoy train`` and ``convoy jobs submit`` alike,
+    made from JobConfig's fields (type, description, default), plus the maps (``--set``, ``--hp``, ``--runtime``)."""
     tr.add_argument("--actors", type=int, help="actor processes (default 2; distributed runs only)")
-    tr.add_argument("--algo", help=f"algorithm (default {d['algo'].default}): {', '.join(ALGO_CONFIGS)}")
-    tr.add_argument("--env", help=f"environment (default {d['env'].default}): {', '.join(ENVS)}")
+    add_model_flags(tr, JobConfig, JOB_FLAGS)
     tr.add_argument("--agents", type=int, help="treadmill: cooperative cars (n_agents)")
     tr.add_argument("--adversaries", type=int, help="treadmill: adversary cars (n_adversaries)")
     tr.add_argument("--set", action="append", metavar="KEY=VALUE", help="env parameter, repeatable")
@@ -185,21 +177,5 @@ def add_job_flags(tr: argparse.ArgumentParser) -> None:
         "--runtime",
         action="append",
         metavar="KEY=VALUE",
-        help="distributed runtime setting, repeatable (e.g. actor_max_restarts=500; see RuntimeConfig in docs/api.md)",
+        help="distributed runtime setting, repeatable (e.g. actor_max_restarts=500; all: docs/training.md)",
     )
-    tr.add_argument("--steps", type=int, help=f"total env steps (default {d['steps'].default:,})")
-    tr.add_argument("--num-envs", type=int, help=f"envs stepped together (default {d['num_envs'].default})")
-    tr.add_argument("--seed", type=int, help=f"seed (default {d['seed'].default})")
-    tr.add_argument("--hierarchical", action="store_true", help="hierarchical DQN (appendix A.2), treadmill only")
-    tr.add_argument(
-        "--eval-episodes",
-        type=int,
-        help=f"greedy episodes per evaluation, fixed seeds (default {d['eval_episodes'].default})",
-    )
-    tr.add_argument(
-        "--eval-every",
-        type=int,
-        help=f"env steps between greedy evaluations, the learning curve; 0 = only at the end "
-        f"(default {d['eval_every'].default:,})",
-    )
-    tr.add_argument("--log-every", type=int, help=f"env steps between metric rows (default {d['log_every'].default})")

@@ -7,7 +7,12 @@ a module in ``SLOW_MODULES``, and tests marked ``@pytest.mark.slow`` in the othe
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
+import torch
+
+from convoy.envs.batched import EnvSpec
 
 SLOW_MODULES = {
     "test_algo_benchmarks",  # runs the benchmark scripts
@@ -36,3 +41,24 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def one_thread() -> Iterator[None]:
+    """Single-threaded torch for a test: tiny batched matmuls are many times faster on one thread than with
+    OpenMP threads oversubscribing a shared 2-core box (and the trainer runs with ``torch_threads=1``)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def synthetic_spec(n_agents: int = 3, obs_dim: int = 5, n_actions: int = 3) -> EnvSpec:
+    """A shape-only env spec, so tests can vary N freely: the algorithms never look past the shapes."""
+    return EnvSpec(
+        name="synthetic",
+        agent_ids=tuple(f"agent_{i}" for i in range(n_agents)),
+        obs_dims=(obs_dim,) * n_agents,
+        n_actions=(n_actions,) * n_agents,
+        max_steps=10,
+    )

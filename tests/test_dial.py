@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -16,14 +15,7 @@ from convoy.algos.registry import make_algorithm
 from convoy.config import DIALConfig, resolve_algo
 from convoy.envs import make_batched
 
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """Tiny batched matmuls are far faster on one thread (and the trainer runs with ``torch_threads=1``)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_dial(num_envs: int = 8, rounds: int = 2, seed: int = 0, **params: Any) -> tuple[DIAL, Any]:

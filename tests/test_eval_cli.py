@@ -9,7 +9,6 @@ readable line on stderr with exit code 2, never a traceback, and never touches t
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +23,8 @@ from convoy.services.training import run_inprocess
 GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 EPISODES = ["--episodes", "20", "--device", "cpu"]
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def train(out: Path, algo: str, env: str, env_params: dict[str, Any], steps: int, **algo_params: Any) -> Path:
@@ -45,15 +46,6 @@ def train(out: Path, algo: str, env: str, env_params: dict[str, Any], steps: int
     finally:
         torch.set_num_threads(before)
     return out / "checkpoint.pt"
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """Single-threaded torch: on a shared 2-core box oversubscribed OpenMP threads are many times slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

@@ -15,19 +15,9 @@ from convoy.algos.ims import mean_of_others
 from convoy.algos.registry import make_algorithm
 from convoy.config import resolve_algo
 from convoy.envs import EnvSpec, make_batched
+from tests.conftest import synthetic_spec
 
 SMALL = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
-
-
-def synthetic_spec(n_agents: int, obs_dim: int = 5, n_actions: int = 3) -> EnvSpec:
-    """A shape-only env spec so tests can vary N freely."""
-    return EnvSpec(
-        name="synthetic",
-        agent_ids=tuple(f"agent_{i}" for i in range(n_agents)),
-        obs_dims=(obs_dim,) * n_agents,
-        n_actions=(n_actions,) * n_agents,
-        max_steps=10,
-    )
 
 
 def build(algo: str, spec: EnvSpec, seed: int = 0, **params: object) -> NetworkAgent:

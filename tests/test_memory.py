@@ -11,7 +11,6 @@ teacher do exactly what their documentation says; and every misuse is a ``Config
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +33,7 @@ from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
 from convoy.services.training import run_inprocess
 from convoy.validation import ConfigError
+from tests.conftest import synthetic_spec
 
 MM_ALGOS = ("ma-mesn-mm", "ma-bon-mm")
 TINY = {"hidden": (16,), "message_bits": 4, "learning_starts": 16, "batch_size": 16}
@@ -41,16 +41,7 @@ TINY_MEMORY = {"memory_window": 3, "memory_hidden": 8}
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}
 
-
-def synthetic_spec(n_agents: int = 3, obs_dim: int = 5, n_actions: int = 3) -> EnvSpec:
-    """A shape-only env spec: the algorithms never look past the shapes."""
-    return EnvSpec(
-        name="synthetic",
-        agent_ids=tuple(f"agent_{i}" for i in range(n_agents)),
-        obs_dims=(obs_dim,) * n_agents,
-        n_actions=(n_actions,) * n_agents,
-        max_steps=10,
-    )
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) -> NetworkAgent:
@@ -93,15 +84,6 @@ class CallCounter:
 
     def _hook(self, *_: object) -> None:
         self.calls += 1
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> Iterator[None]:
-    """Single-threaded torch: on a shared 2-core box oversubscribed OpenMP threads make tiny updates ~50× slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 # --------------------------------------------------------------------------- 1. the memory loss's reach
