@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import inspect
+from collections.abc import Callable
 from typing import Any, Literal, get_args, get_origin
 
 from pydantic import BaseModel
@@ -39,6 +41,15 @@ def parse_pairs(items: list[str] | None, flag: str) -> dict[str, Any]:
             raise ConfigError(flag, f"expected KEY=VALUE (e.g. {EXAMPLES.get(flag, flag + ' key=1')}), got {item!r}")
         out[key.strip()] = parse_value(value.strip())
     return out
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, func: Callable[..., int], **kwargs: Any) -> Any:
+    """A subcommand whose ``--help`` is ``func``'s docstring (its first line is the short help of the command list,
+    the rest the description) and which runs ``func``."""
+    short, _, long = inspect.cleandoc(func.__doc__ or name).partition("\n\n")
+    p = sub.add_parser(name, help=short[:1].lower() + short[1:].rstrip("."), description=long or short, **kwargs)
+    p.set_defaults(func=func)
+    return p
 
 
 def add_model_flags(

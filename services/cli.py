@@ -18,7 +18,7 @@ from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
-from convoy.services.args import env_params
+from convoy.services.args import add_command, env_params
 from convoy.services.procs import JobFailed
 from convoy.validation import ConfigError, allowed_range, build_config
 
@@ -38,6 +38,10 @@ def describe_params(name: str) -> str:
 
 
 def cmd_env_list(args: argparse.Namespace) -> int:
+    """List the environments.
+
+    List the environments and, with --params, their parameters.
+    """
     table = Table(title="Convoy environments")
     table.add_column("name")
     table.add_column("what it is")
@@ -54,6 +58,12 @@ def cmd_env_list(args: argparse.Namespace) -> int:
 
 
 def cmd_env_rollout(args: argparse.Namespace) -> int:
+    """Play episodes with a reference policy (random, constant, scripted, full-information) and summarise.
+
+    Play EPISODES episodes (all in one batch) and print a per-episode table with the mean return and its 95 %
+    confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON summary and a PNG of the
+    returns.
+    """
     if args.episodes < 1:
         raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
     is_treadmill = env_entry(args.env) is ENVS["treadmill"]  # also rejects unknown names first
@@ -168,18 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
     env = sub.add_parser("env", help="inspect and run environments", description="Inspect and run environments.")
     env_sub = env.add_subparsers(dest="env_command", required=True, metavar="ENV_COMMAND")
 
-    lst = env_sub.add_parser(
-        "list", help="list the environments", description="List the environments and, with --params, their parameters."
-    )
+    lst = add_command(env_sub, "list", cmd_env_list)
     lst.add_argument("--params", action="store_true", help="also list every parameter with its default and range")
-    lst.set_defaults(func=cmd_env_list)
 
-    ro = env_sub.add_parser(
+    ro = add_command(
+        env_sub,
         "rollout",
-        help="play episodes with a reference policy (random, constant, scripted, full-information) and summarise",
-        description="Play EPISODES episodes (all in one batch) and print a per-episode table with the mean "
-        "return and its 95 % confidence interval. Optionally write a GIF of episode 0 (treadmill), a JSON "
-        "summary and a PNG of the returns.",
+        cmd_env_rollout,
         epilog="treadmill parameters for --set (see docs/treadmill.md; other envs: convoy env list --params):\n"
         + describe_params("treadmill"),
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -210,7 +215,6 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--summary", metavar="PATH", help="write the figures as JSON")
     ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
-    ro.set_defaults(func=cmd_env_rollout)
 
     from convoy.services.eval_cmd import add_eval_parsers
     from convoy.services.jobs_cmd import add_jobs_parser

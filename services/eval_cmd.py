@@ -11,6 +11,7 @@ from typing import Any
 from rich.console import Console
 
 from convoy.config import MESSAGE_SOURCES
+from convoy.services.args import add_command
 from convoy.validation import ConfigError
 
 console = Console()
@@ -32,6 +33,12 @@ def load(path: str, device: str) -> tuple[Any, Any, dict[str, Any]]:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    """Evaluate a checkpoint's greedy policy (message source, channel, GIF).
+
+    Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % confidence
+    interval, next to the random policy's. --messages and --channel probe the communication: white noise in
+    place of messages, the memory module's predictions (no channel, -mm algorithms), or a lossy channel.
+    """
     from convoy.analysis.evaluation import evaluate_policy, parse_channel
     from convoy.services.training import make_env
 
@@ -101,6 +108,13 @@ def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
+    """Emergent-communication metrics of a checkpoint (the paper's Table 1).
+
+    Record the greedy policy's messages and actions and report speaker consistency, instantaneous coordination
+    (plug-in mutual information in nats, each next to its shuffled-pairs baseline and per message bit), message
+    entropy, the message-input norm and the return with true messages vs white noise (and predicted messages for
+    -mm algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
+    """
     from convoy.analysis.recording import analyze
     from convoy.services.training import make_env
 
@@ -123,14 +137,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 
 def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
-    ev = sub.add_parser(
-        "eval",
-        help="evaluate a checkpoint's greedy policy (message source, channel, GIF)",
-        description="Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % "
-        "confidence interval, next to the random policy's. --messages and --channel probe the communication: "
-        "white noise in place of messages, the memory module's predictions (no channel, -mm algorithms), or a "
-        "lossy channel.",
-    )
+    ev = add_command(sub, "eval", cmd_eval)
     ev.add_argument("checkpoint", help="a checkpoint.pt written by convoy train")
     ev.add_argument("--episodes", type=int, default=100, help="greedy episodes to play (default: %(default)s)")
     ev.add_argument(
@@ -146,17 +153,8 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--seed", type=int, default=12345, help="seed of the evaluation envs (default: %(default)s)")
     ev.add_argument("--num-envs", type=int, default=256, help="envs played at once (default: %(default)s)")
     ev.add_argument("--device", default="auto", help="torch device: auto, cpu or cuda (default: %(default)s)")
-    ev.set_defaults(func=cmd_eval)
 
-    an = sub.add_parser(
-        "analyze",
-        help="emergent-communication metrics of a checkpoint (the paper's Table 1)",
-        description="Record the greedy policy's messages and actions and report speaker consistency, "
-        "instantaneous coordination (plug-in mutual information in nats, each next to its shuffled-pairs "
-        "baseline and per message bit), message entropy, the message-input norm and the return with true "
-        "messages vs white noise (and predicted messages for -mm algorithms). Writes table.md, analysis.json, "
-        "metrics.png and cooccurrence.png.",
-    )
+    an = add_command(sub, "analyze", cmd_analyze)
     an.add_argument("checkpoint", help="a checkpoint.pt of ma-mesn, ma-bon, ma-mesn-mm or ma-bon-mm")
     an.add_argument(
         "--samples",
@@ -172,4 +170,3 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
     an.add_argument("--seed", type=int, default=12345, help="seed of the envs and shuffles (default: %(default)s)")
     an.add_argument("--num-envs", type=int, default=256, help="envs played at once (default: %(default)s)")
     an.add_argument("--device", default="auto", help="torch device: auto, cpu or cuda (default: %(default)s)")
-    an.set_defaults(func=cmd_analyze)

@@ -24,7 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from convoy.api.models import MAX_ACTORS, JobSubmit
-from convoy.services.args import add_model_flags, env_params, given, parse_pairs
+from convoy.services.args import add_command, add_model_flags, env_params, given, parse_pairs
 from convoy.services.train_cmd import add_job_flags
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -180,6 +180,12 @@ def submit_body(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_submit(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Submit a training job.
+
+    Submit a job (POST /jobs) and print its id and state. The flags are those of `convoy train`; the ones not
+    given take the service's defaults. The job waits in the queue until the service has processes free (actors +
+    2).
+    """
     job = api.call("POST", "/jobs", json=submit_body(args))
     if args.json:
         print_json(out, job)
@@ -190,6 +196,11 @@ def cmd_submit(api: Api, args: argparse.Namespace, out: Console) -> int:
 
 
 def cmd_list(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """List the jobs.
+
+    List the jobs (GET /jobs), oldest first: id, algorithm/env, state, progress, actors alive/requested and the
+    last training return.
+    """
     params = {"state": args.state} if args.state else None
     jobs = api.call("GET", "/jobs", params=params)["jobs"]
     if args.json:
@@ -215,6 +226,10 @@ def cmd_list(api: Api, args: argparse.Namespace, out: Console) -> int:
 
 
 def cmd_status(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Show one job.
+
+    Show every field of one job (GET /jobs/ID).
+    """
     job = api.call("GET", f"/jobs/{args.id}")
     if args.json:
         print_json(out, job)
@@ -261,18 +276,33 @@ def dropped_text(dropped: dict[str, dict[str, int]]) -> str:
 
 
 def cmd_scale(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Change the actor count of a queued or running job.
+
+    Ask for ACTORS actor processes (PATCH /jobs/ID); a running job scales live. A finished job is scaled by
+    `convoy jobs resume ID --actors N` instead.
+    """
     job = api.call("PATCH", f"/jobs/{args.id}", json={"actors": args.actors})
     plain(out, f"{job['id']}: {job['actors']} actors requested ({state_text(job)})")
     return 0
 
 
 def cmd_stop(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Stop a job (it checkpoints first).
+
+    Stop a job (POST /jobs/ID/stop): a queued job is cancelled, a running one checkpoints and stops. `convoy
+    jobs resume ID` continues it.
+    """
     job = api.call("POST", f"/jobs/{args.id}/stop")
     plain(out, f"{job['id']}: {state_text(job)}")
     return 0
 
 
 def cmd_resume(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Continue a stopped, failed or completed job.
+
+    Queue a stopped, failed or completed job again (POST /jobs/ID/resume); it continues from its last
+    checkpoint, optionally with another actor count or a larger step budget.
+    """
     body = {k: v for k, v in (("actors", args.actors), ("steps", args.steps)) if v is not None}
     job = api.call("POST", f"/jobs/{args.id}/resume", json=body)
     text = f"{job['id']}: {state_text(job)}, {job['actors']} actors, {job['steps']:,} env steps in all"
@@ -281,18 +311,33 @@ def cmd_resume(api: Api, args: argparse.Namespace, out: Console) -> int:
 
 
 def cmd_delete(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Delete a job with its history and files.
+
+    Delete a job (DELETE /jobs/ID): its processes are ended, its history, metrics and output files removed.
+    """
     api.call("DELETE", f"/jobs/{args.id}")
     plain(out, f"deleted {args.id} (its processes, history, metrics and files)")
     return 0
 
 
 def cmd_logs(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Print a job's process logs (crashes, tracebacks).
+
+    Print the last lines of a job's process logs (GET /jobs/ID/logs): its host's log, where starts, respawns,
+    crashes and their tracebacks go. A failed job's error names its cause; this shows the whole story.
+    """
     for line in api.call("GET", f"/jobs/{args.id}/logs", params={"lines": args.lines})["lines"]:
         plain(out, line)
     return 0
 
 
 def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Print a job's metric rows.
+
+    Print the metric rows of a job (GET /jobs/ID/metrics) as a table, one row per --log-every env steps.
+    Columns: env_steps, episodes, updates, return, loss, env_steps_per_s, policy_lag, actors_alive, or those
+    named by --names.
+    """
     params: dict[str, Any] = {}
     if args.since is not None:
         params["since"] = args.since
@@ -329,7 +374,12 @@ def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
 
 
 def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
-    """Poll the job and its new metric rows every ``--interval`` seconds until it rests in a final state."""
+    """Follow a job live until it finishes.
+
+    Show a live progress bar of a job with its return, env-steps/s, actors alive and policy lag, polling GET
+    /jobs/ID and its new metric rows, until the job completes, stops or fails; then print a one-line summary.
+    Exit code 0 when it completed or stopped, 1 when it failed. Ctrl-C stops watching, not the job.
+    """
     t0 = time.monotonic()
     job = api.call("GET", f"/jobs/{args.id}")
     start = int(job["progress"]["env_steps"])
@@ -460,101 +510,54 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     common = argparse.ArgumentParser(add_help=False)
     _connection_options(common, argparse.SUPPRESS)  # also accepted after the subcommand
 
-    def add(name: str, help_text: str, description: str) -> argparse.ArgumentParser:
-        p = jsub.add_parser(name, help=help_text, description=description, parents=[common])
-        p.set_defaults(func=cmd_jobs)
+    def add(name: str) -> argparse.ArgumentParser:
+        p = add_command(jsub, name, COMMANDS[name], parents=[common])
+        p.set_defaults(func=cmd_jobs)  # one entry point: connects to the service, then runs COMMANDS[name]
         return p
 
-    p = add(
-        "submit",
-        "submit a training job",
-        "Submit a job (POST /jobs) and print its id and state. The flags are those of `convoy train`; the ones "
-        "not given take the service's defaults. The job waits in the queue until the service has processes free "
-        "(actors + 2).",
-    )
+    p = add("submit")
     add_job_flags(p)
     add_model_flags(p, JobSubmit, ("checkpoint_every",))
     p.add_argument("--name", help="prefix of the job id: letters, digits, _ . - (default: the algorithm)")
     p.add_argument("--json", action="store_true", help="print the new job as JSON")
 
-    p = add(
-        "list",
-        "list the jobs",
-        "List the jobs (GET /jobs), oldest first: id, algorithm/env, state, progress, actors alive/requested and "
-        "the last training return.",
-    )
+    p = add("list")
     p.add_argument("--state", help=f"only jobs in this state: {', '.join(STATES)}")
     p.add_argument("--json", action="store_true", help="print the jobs as JSON")
 
-    p = add("status", "show one job", "Show every field of one job (GET /jobs/ID).")
+    p = add("status")
     p.add_argument("id", help="job id (see `convoy jobs list`)")
     p.add_argument("--json", action="store_true", help="print the job as JSON")
 
-    p = add(
-        "scale",
-        "change the actor count of a queued or running job",
-        "Ask for ACTORS actor processes (PATCH /jobs/ID); a running job scales live. A finished job is scaled by "
-        "`convoy jobs resume ID --actors N` instead.",
-    )
+    p = add("scale")
     p.add_argument("id", help="job id")
     p.add_argument("actors", type=int, help=f"actor processes wanted, 1–{MAX_ACTORS}")
 
-    p = add(
-        "stop",
-        "stop a job (it checkpoints first)",
-        "Stop a job (POST /jobs/ID/stop): a queued job is cancelled, a running one checkpoints and stops. "
-        "`convoy jobs resume ID` continues it.",
-    )
+    p = add("stop")
     p.add_argument("id", help="job id")
 
-    p = add(
-        "resume",
-        "continue a stopped, failed or completed job",
-        "Queue a stopped, failed or completed job again (POST /jobs/ID/resume); it continues from its last "
-        "checkpoint, optionally with another actor count or a larger step budget.",
-    )
+    p = add("resume")
     p.add_argument("id", help="job id")
     p.add_argument("--actors", type=int, help="actor processes (default: as before)")
     p.add_argument("--steps", type=int, help="new total env-step budget (default: as before)")
 
-    p = add(
-        "delete",
-        "delete a job with its history and files",
-        "Delete a job (DELETE /jobs/ID): its processes are ended, its history, metrics and output files removed.",
-    )
+    p = add("delete")
     p.add_argument("id", help="job id")
 
-    p = add(
-        "metrics",
-        "print a job's metric rows",
-        "Print the metric rows of a job (GET /jobs/ID/metrics) as a table, one row per --log-every env steps. "
-        f"Columns: {', '.join(LOG_COLUMNS)}, or those named by --names.",
-    )
+    p = add("metrics")
     p.add_argument("id", help="job id")
     p.add_argument("--since", type=int, metavar="STEP", help="only rows with env_steps > STEP")
     p.add_argument("--names", metavar="A,B", help="only these metrics (comma-separated), e.g. return,loss")
     p.add_argument("--limit", type=int, metavar="N", help="at most N rows")
     p.add_argument("--json", action="store_true", help="one JSON object per row, every metric")
 
-    p = add(
-        "logs",
-        "print a job's process logs (crashes, tracebacks)",
-        "Print the last lines of a job's process logs (GET /jobs/ID/logs): its host's log, where starts, "
-        "respawns, crashes and their tracebacks go. A failed job's error names its cause; this shows "
-        "the whole story.",
-    )
+    p = add("logs")
     p.add_argument("id", help="job id")
     p.add_argument(
         "--lines", type=int, default=200, metavar="N", help="how many of the last lines (default: %(default)s)"
     )
 
-    p = add(
-        "watch",
-        "follow a job live until it finishes",
-        "Show a live progress bar of a job with its return, env-steps/s, actors alive and policy lag, polling "
-        "GET /jobs/ID and its new metric rows, until the job completes, stops or fails; then print a one-line "
-        "summary. Exit code 0 when it completed or stopped, 1 when it failed. Ctrl-C stops watching, not the job.",
-    )
+    p = add("watch")
     p.add_argument("id", help="job id")
     p.add_argument(
         "--interval", type=_positive, default=1.0, metavar="S", help="seconds between polls (default: %(default)s)"

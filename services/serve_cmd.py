@@ -7,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-from convoy.services.args import add_limit_flags, limits_from_args
+from convoy.services.args import add_command, add_limit_flags, limits_from_args
 from convoy.validation import ConfigError
 
 
@@ -27,6 +27,13 @@ def api_token(data_dir: Path) -> tuple[str, str]:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    """Run the job service: REST API, dashboard, and the jobs it starts.
+
+    Serve the REST job API (OpenAPI at /docs) and the dashboard (/) and run the submitted jobs on this machine.
+    Jobs, their history and metrics live in DATA/jobs.sqlite; jobs keep running if the service stops and are
+    reattached when it starts again. Mutating requests need 'Authorization: Bearer TOKEN': CONVOY_API_TOKEN, or
+    a token generated on first start, saved in DATA/api_token and printed.
+    """
     import uvicorn
 
     from convoy.api.app import create_app
@@ -50,14 +57,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def add_serve_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "serve",
-        help="run the job service: REST API, dashboard, and the jobs it starts",
-        description="Serve the REST job API (OpenAPI at /docs) and the dashboard (/) and run the submitted jobs on "
-        "this machine. Jobs, their history and metrics live in DATA/jobs.sqlite; jobs keep running if the service "
-        "stops and are reattached when it starts again. Mutating requests need 'Authorization: Bearer TOKEN': "
-        "CONVOY_API_TOKEN, or a token generated on first start, saved in DATA/api_token and printed.",
-    )
+    p = add_command(sub, "serve", cmd_serve)
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
     p.add_argument("--data", default="runs/service", help="jobs database and job outputs (default: %(default)s)")
@@ -69,4 +69,3 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--log-level", default="warning", help="uvicorn log level (default: %(default)s)")
     add_limit_flags(p)
-    p.set_defaults(func=cmd_serve)
