@@ -31,7 +31,6 @@ Run: ``python benchmarks/decentralized.py`` (about 5 minutes on 2 cores with the
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -45,6 +44,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from benchmarks.report import save_figure, write_json  # noqa: E402
 from convoy.algos.agent import make_agent  # noqa: E402
 from convoy.algos.checkpoint import load_checkpoint  # noqa: E402
 from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
@@ -174,10 +174,9 @@ def main(argv: list[str] | None = None) -> int:
     plot(runs, Path(args.plot), args)
     console.print(f"wrote {args.plot} (total {time.perf_counter() - t_start:.0f} s)")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         data = {"settings": {"treadmill": TREADMILL, "hp": hp, "steps": args.steps, "seeds": args.seeds}}
         data.update(runs=runs, channel=channel_rows, summary=summary)
-        Path(args.json).write_text(json.dumps(data, indent=2) + "\n")
+        write_json(args.json, data)
     return 0
 
 
@@ -284,9 +283,7 @@ def plot(runs: list[dict], path: Path, args: argparse.Namespace) -> None:
     ax.set_ylabel("greedy return per agent, no channel")
     ax.set_title(f"Decentralised execution, small treadmill (mean ± 95 % CI over {len(args.seeds)} seeds)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

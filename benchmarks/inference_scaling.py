@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.report import cpu_model, markdown_table  # noqa: E402
+from benchmarks.report import cpu_model, markdown_table, save_figure  # noqa: E402
 from convoy.algos.algorithm import NetworkAgent  # noqa: E402
 from convoy.algos.nets import pick_device  # noqa: E402
 from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
@@ -358,9 +358,7 @@ def plot(fits: dict[str, dict[str, Any]], path: Path, title: str) -> Path:
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 

@@ -24,7 +24,6 @@ Run: ``python benchmarks/speaker_listener.py`` (about 8 minutes on 2 cores with 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from benchmarks.report import save_figure, write_json  # noqa: E402
 from convoy.config import job_config  # noqa: E402
 from convoy.services.training import run_inprocess  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
@@ -107,8 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     _plot(runs, Path(args.plot))
     console.print(f"wrote {args.plot}")
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"runs": runs, "summary": summary, "random": rand}, indent=2))
+        write_json(args.json, {"runs": runs, "summary": summary, "random": rand})
     return 0
 
 
@@ -130,9 +129,7 @@ def _plot(runs: list[dict], path: Path) -> None:
     ax.set_ylabel("training return per agent (ε-greedy)")
     ax.set_title("speaker-listener")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 from scipy import stats  # noqa: E402
 
+from benchmarks.report import write_json  # noqa: E402
 from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
 
@@ -229,8 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                     f", return {a['return_sent']['value']:.1f} vs white noise {a['return_noise']['value']:.1f}"
                 )
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"runs": runs, "summary": summary}, indent=2, default=float) + "\n")
+        write_json(args.json, {"runs": runs, "summary": summary})
     return 0
 
 

@@ -17,7 +17,6 @@ Run: ``python benchmarks/treadmill_references.py`` (a few seconds); ``--set KEY=
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -27,6 +26,7 @@ sys.path.insert(0, str(ROOT))
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from benchmarks.report import write_json  # noqa: E402
 from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
 from convoy.services.args import parse_pairs  # noqa: E402
@@ -72,11 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         f"add), nobody does {seen['nobody']:.0%}"
     )
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         summary = {"config": cfg.model_dump(), "episodes": args.episodes, "seed": args.seed, "policies": figures}
         summary |= {"best_constant": const, "constant_over_scripted": open_loop, "value_of_information": value}
         summary |= {"team_over_scripted": reachable, "who_sees_the_threat": seen}
-        Path(args.json).write_text(json.dumps(summary, indent=2))
+        write_json(args.json, summary)
     return 0
 
 

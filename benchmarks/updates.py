@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import os
 import statistics
 import sys
@@ -38,7 +37,7 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 from torch import Tensor, nn  # noqa: E402
 
-from benchmarks.report import cpu_model, markdown_table  # noqa: E402
+from benchmarks.report import cpu_model, markdown_table, write_json  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
 from convoy.algos.registry import make_algorithm  # noqa: E402
 from convoy.config import PAPER_TREADMILL_HIDDEN, resolve_algo  # noqa: E402
@@ -197,8 +196,7 @@ def main(argv: list[str] | None = None) -> int:
                   "Convoy ÷ reference"]  # fmt: skip
         print(markdown_table(header, rows, [False, True, True, True, True, True]) + "\n", flush=True)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(figures, indent=2))
+        write_json(args.json, figures)
     return 0
 
 

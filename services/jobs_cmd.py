@@ -450,7 +450,12 @@ COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
 
 
 def cmd_jobs(args: argparse.Namespace) -> int:
-    """Run one ``convoy jobs`` subcommand; API and connection errors become one line on stderr and an exit code."""
+    """Submit, watch and control the jobs of a running `convoy serve`.
+
+    Talk to the job service started by `convoy serve` (its REST API, OpenAPI at URL/docs). Reading commands need
+    no token; submit, scale, stop, resume and delete send 'Authorization: Bearer TOKEN'. API errors are printed
+    as 'error: FIELD: PROBLEM — FIX' with exit code 2.
+    """
     out, err = Console(), Console(stderr=True)
     url = args.url or os.environ.get("CONVOY_API_URL", "").strip() or DEFAULT_URL
     token = args.token if args.token is not None else os.environ.get("CONVOY_API_TOKEN", "").strip() or None
@@ -490,12 +495,10 @@ def _positive(text: str) -> float:
 
 def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     """``convoy jobs …``: the subcommands, each with a complete ``--help``."""
-    jobs = sub.add_parser(
+    jobs = add_command(
+        sub,
         "jobs",
-        help="submit, watch and control the jobs of a running `convoy serve`",
-        description="Talk to the job service started by `convoy serve` (its REST API, OpenAPI at URL/docs). "
-        "Reading commands need no token; submit, scale, stop, resume and delete send 'Authorization: Bearer "
-        "TOKEN'. API errors are printed as 'error: FIELD: PROBLEM — FIX' with exit code 2.",
+        cmd_jobs,
         epilog="examples:\n"
         "  convoy jobs submit --algo ma-mesn --steps 200000 --actors 2 --set n_agents=3 --hp lr=0.001\n"
         "  convoy jobs list --state running\n"

@@ -61,11 +61,6 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8000, help="HTTP port (default: %(default)s)")
     p.add_argument("--data", default="runs/service", help="jobs database and job outputs (default: %(default)s)")
-    p.add_argument(
-        "--max-processes",
-        type=int,
-        default=8,
-        help="processes all running jobs may use together (default: %(default)s)",
-    )
+    p.add_argument("--max-processes", type=int, default=8, help="processes of all running jobs (default: %(default)s)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level (default: %(default)s)")
     add_limit_flags(p)

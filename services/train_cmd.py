@@ -20,7 +20,15 @@ from convoy.config import (
     env_default_note,
     job_config,
 )
-from convoy.services.args import add_limit_flags, add_model_flags, env_params, given, limits_from_args, parse_pairs
+from convoy.services.args import (
+    add_command,
+    add_limit_flags,
+    add_model_flags,
+    env_params,
+    given,
+    limits_from_args,
+    parse_pairs,
+)
 from convoy.services.rundir import claim, free_default
 from convoy.validation import ConfigError
 
@@ -56,6 +64,12 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    """Train an algorithm on an environment.
+
+    Train ALGO on ENV: batched envs and learner updates, a progress bar, then a summary table. Writes
+    metrics.jsonl/metrics.csv (one row per --log-every steps), curve.png, checkpoint.pt and summary.json under
+    --out.
+    """
     job = job_from_args(args)
     limits_from_args(args).check(job, "convoy train")
     out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
@@ -129,14 +143,8 @@ def _algo_epilog() -> str:
 
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
-    tr = sub.add_parser(
-        "train",
-        help="train an algorithm on an environment",
-        description="Train ALGO on ENV: batched envs and learner updates, a progress bar, then a summary table. "
-        "Writes metrics.jsonl/metrics.csv (one row per --log-every steps), curve.png, checkpoint.pt and "
-        "summary.json under --out.",
-        epilog=_algo_epilog(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    tr = add_command(
+        sub, "train", cmd_train, epilog=_algo_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter
     )
     tr.add_argument(
         "--inprocess", action="store_true", help="run envs and learner in this one process (the reference baseline)"
@@ -151,7 +159,6 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     add_limit_flags(tr)
-    tr.set_defaults(func=cmd_train)
 
 
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
