@@ -10,7 +10,7 @@ resolved, so a user who sets them explicitly always wins.
 from __future__ import annotations
 
 import itertools
-from typing import Any, ClassVar, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -18,6 +18,7 @@ from convoy.protocol.session import ZenohSettings
 from convoy.validation import ConfigError, build_config
 
 Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
+Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a discount
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
 
 MessageSource = Literal["sent", "predicted", "noise"]
@@ -31,7 +32,7 @@ class AlgoConfig(BaseModel):
 
     lr: float = Field(5e-4, gt=0, le=1, description="Adam learning rate (paper: 5e-4).")
     batch_size: int = Field(64, ge=1, le=65536, description="Transitions per update (paper: 64).")
-    gamma: float = Field(0.99, ge=0, le=1, description="Discount factor.")
+    gamma: Fraction = Field(0.99, description="Discount factor.")
     target_update: int = Field(200, ge=1, description="Updates between target-network syncs C (paper: 200).")
     target_tau: float = Field(
         1.0,
@@ -62,8 +63,8 @@ class AlgoConfig(BaseModel):
     double_q: bool = Field(True, description="Double Q-learning: online argmax, target value (paper: on).")
     huber: bool = Field(True, description="Huber TD loss (clipped error) instead of the squared TD error.")
     grad_clip: float = Field(10.0, gt=0, description="Global gradient-norm clip.")
-    eps_start: float = Field(1.0, ge=0, le=1, description="Exploration ε at step 0.")
-    eps_end: float = Field(0.05, ge=0, le=1, description="Exploration ε after the decay (paper: 0.05).")
+    eps_start: Fraction = Field(1.0, description="Exploration ε at step 0.")
+    eps_end: Fraction = Field(0.05, description="Exploration ε after the decay (paper: 0.05).")
     eps_decay_fraction: float = Field(0.2, gt=0, le=1, description="ε decays over this fraction of the run ...")
     eps_decay_max_steps: int = Field(100_000, ge=1, description="... or over this many env steps, if fewer.")
 
@@ -206,10 +207,8 @@ class CoDBCConfig(AlgoConfig):
     teacher: str | None = Field(
         None, description="Checkpoint of the trained centralised policy to clone (e.g. runs/ma-mesn/checkpoint.pt)."
     )
-    teacher_fraction: float = Field(
+    teacher_fraction: Fraction = Field(
         1.0,
-        ge=0,
-        le=1,
         description="Share of envs the teacher drives at step 0, decaying linearly to 0 with ε (DAgger's β); "
         "the student drives the rest, and the teacher labels every visited state.",
     )

@@ -81,17 +81,8 @@ def test_every_algorithm_beats_random_on_a_small_treadmill(algo: str) -> None:
         hp.update(comm_iterations=2)
     if algo == "dqn-ser":
         hp.update(ser_horizon=2_000)  # 50-step episodes: 200 episodes of weight would keep only the last ~1,800 steps
-    job = job_config(
-        algo=algo,
-        env="treadmill",
-        env_params=SMALL_TREADMILL,
-        algo_params=hp,
-        steps=60_000,
-        num_envs=16,
-        seed=0,
-        eval_episodes=64,
-        eval_every=0,
-    )
+    run = {"steps": 60_000, "num_envs": 16, "seed": 0, "eval_episodes": 64, "eval_every": 0}
+    job = job_config(algo=algo, env="treadmill", env_params=SMALL_TREADMILL, algo_params=hp, **run)
     result = run_inprocess(job, out_dir=None, progress=False)
     assert result.eval_return > result.random_return + 2.0, (
         f"{algo}: greedy return {result.eval_return:.2f} does not beat random {result.random_return:.2f}"

@@ -20,6 +20,14 @@ def place(engine: TreadmillEngine, x, y, heading, speed) -> None:
     engine.heading[0], engine.speed[0] = heading, speed
 
 
+def observe_placed(cfg: TreadmillConfig, x, y, heading, speed) -> tuple[np.ndarray, np.ndarray]:
+    """One env of ``cfg`` with its cars placed: (observations, closest-car distances) of that state."""
+    e = TreadmillEngine(cfg, 1)
+    e.reset(0)
+    place(e, x, y, heading, speed)
+    return e._observe(np.array([0]))
+
+
 def two_cars(length: int = 40, width: int = 20, max_speed: int = 3) -> TreadmillEngine:
     cfg = TreadmillConfig(n_agents=2, n_adversaries=0, length=length, width=width, max_speed=max_speed)
     e = TreadmillEngine(cfg, autoreset=False)  # a finished episode keeps its last state to look at
@@ -169,16 +177,8 @@ def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k,
     if n_agents + n_adv < 2:
         n_adv = 1
     observe_k = min(observe_k, n_agents + n_adv - 1)
-    cfg = TreadmillConfig(
-        n_agents=n_agents,
-        n_adversaries=n_adv,
-        length=30,
-        width=12,
-        spawn_gap=3,
-        max_steps=15,
-        observe_k=observe_k,
-        aggression=0.5,
-    )
+    road = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
+    cfg = TreadmillConfig(n_agents=n_agents, n_adversaries=n_adv, observe_k=observe_k, aggression=0.5, **road)
     b = len(seeds)
     batch = TreadmillEngine(cfg, b)
     singles = [TreadmillEngine(cfg, 1) for _ in range(b)]
@@ -250,10 +250,8 @@ def test_observation_encodes_the_closest_car_in_sight() -> None:
 )
 def test_sensor_sees_within_its_range_and_field_of_view(other, fov, seen) -> None:
     cfg = TreadmillConfig(n_agents=2, n_adversaries=0, sensor_range=20, sensor_fov=fov)
-    e = TreadmillEngine(cfg, 1)
-    e.reset(0)
-    place(e, [60, other[0]], [50, other[1]], [0, 0], [1, 1])  # 5 behind: in the blind spot; 21 away: out of range
-    obs, closest = e._observe(np.array([0]))
+    # 5 behind: in the blind spot; 21 away: out of range
+    obs, closest = observe_placed(cfg, [60, other[0]], [50, other[1]], [0, 0], [1, 1])
     near = obs[0, 0, OWN_FEATURES:]
     assert bool(near[0]) == seen
     if not seen:
@@ -263,10 +261,7 @@ def test_sensor_sees_within_its_range_and_field_of_view(other, fov, seen) -> Non
 
 def test_full_information_tells_every_position_and_who_is_an_adversary() -> None:
     cfg = TreadmillConfig(n_agents=2, n_adversaries=2, full_information=True)
-    e = TreadmillEngine(cfg, 1)
-    e.reset(0)
-    place(e, [50, 40, 10, 90], [50, 60, 20, 80], [0, 0, 0, 0], [1, 1, 0, 3])
-    obs, _ = e._observe(np.array([0]))
+    obs, _ = observe_placed(cfg, [50, 40, 10, 90], [50, 60, 20, 80], [0, 0, 0, 0], [1, 1, 0, 3])
     assert obs.shape[-1] == cfg.obs_dim
     full = obs[0, 0, -3 * FULL_FEATURES :].reshape(3, FULL_FEATURES)  # agent 0's view of cars 1, 2, 3
     assert full[:, 0] == pytest.approx(np.array([-10, -40, 40]) / 99)
@@ -289,11 +284,8 @@ def test_team_observations_append_each_teammates_own_observation() -> None:
 
 def test_team_sightings_tell_what_a_teammate_observes_in_the_agents_own_frame() -> None:
     cfg = TreadmillConfig(n_agents=2, n_adversaries=2, team_sightings=True)
-    e = TreadmillEngine(cfg, 1)
-    e.reset(0)
     # agent 1 sees adversary 2, which sits in agent 0's rear blind spot; adversary 3 is out of every sensor
-    place(e, [50, 30, 40, 90], [50, 50, 52, 90], [0, 0, 0, 0], [1, 1, 1, 1])
-    obs, _ = e._observe(np.array([0]))
+    obs, _ = observe_placed(cfg, [50, 30, 40, 90], [50, 50, 52, 90], [0, 0, 0, 0], [1, 1, 1, 1])
     assert obs.shape[-1] == cfg.obs_dim and obs[0, 0, OWN_FEATURES] == 0  # agent 0 itself sees nothing
     told = obs[0, 0, -3 * SIGHTING_FEATURES :].reshape(3, SIGHTING_FEATURES)  # agent 0: cars 1, 2, 3
     assert told[0].tolist() == pytest.approx([1, -20 / 99, 0, 1 / 3, 0])  # a teammate: it can say where it is

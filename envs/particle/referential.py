@@ -52,18 +52,13 @@ AGENTS: tuple[str, ...] = (SPEAKER, LISTENER)
 
 
 class ReferentialConfig(BaseModel):
-    """Referential game parameters: the number of candidate targets K and of rounds per game."""
+    """Referential game parameters: the number of candidate targets K and of rounds per game (more than one round
+    lets messages sent one step late, as DIAL's are, reach the listener before its scored guess)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     n_targets: int = Field(4, ge=2, le=64, description="Number of candidate targets K; chance success is 1/K.")
-    rounds: int = Field(
-        1,
-        ge=1,
-        le=64,
-        description="Steps per game with the same target; only the last round's guess is scored "
-        "(> 1 lets messages sent one step late, as DIAL's, reach the listener).",
-    )
+    rounds: int = Field(1, ge=1, le=64, description="Steps per game with one target; the last guess is scored.")
     listener_glimpse: bool = Field(
         False,
         description="The listener also sees the target, on the first round only (needs rounds ≥ 2): solvable "

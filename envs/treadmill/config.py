@@ -9,9 +9,18 @@ agent and (c) one crash costs everyone; ``docs/treadmill.md`` has the measuremen
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from convoy.validation import ConfigError
+
+# The kinds of quantity a rule is, with their bounds (a field may narrow them).
+Cars = Annotated[int, Field(ge=0, le=1024)]
+Cells = Annotated[int, Field(ge=3, le=100_000)]
+Speed = Annotated[int, Field(ge=0, le=16)]  # cells per step
+Distance = Annotated[float, Field(gt=0.0, le=1e6)]  # cells
+Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class TreadmillConfig(BaseModel):
@@ -20,27 +29,22 @@ class TreadmillConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     n_agents: int = Field(3, ge=1, le=1024, description="Cooperative autonomous cars controlled by the learners.")
-    n_adversaries: int = Field(1, ge=0, le=1024, description="Aggressive scripted cars that chase the closest agent.")
+    n_adversaries: Cars = Field(1, description="Aggressive scripted cars that chase the closest agent.")
     length: int = Field(
-        100, ge=8, le=100_000, description="Cells along the road: the treadmill's window; agents that leave it crash."
+        100, ge=8, le=100_000, description="Cells along the road: the treadmill's window; leaving it is a crash."
     )
-    width: int = Field(100, ge=3, le=100_000, description="Cells across the road; leaving it sideways is a crash.")
+    width: Cells = Field(100, description="Cells across the road; leaving it sideways is a crash.")
     max_speed: int = Field(3, ge=1, le=16, description="Top speed in cells per step; speeds are 0..max_speed.")
-    treadmill_speed: int = Field(
-        1, ge=0, le=16, description="Cells per step the treadmill carries every car backwards (≤ max_speed)."
+    treadmill_speed: Speed = Field(1, description="Cells per step the treadmill carries every car back (≤ max_speed).")
+    initial_speed: Speed = Field(1, description="Speed of every car at spawn (≤ max_speed).")
+    aggression: Probability = Field(
+        0.7, description="Chance an adversary chases the closest agent, else it acts at random."
     )
-    initial_speed: int = Field(1, ge=0, le=16, description="Speed of every car at spawn (≤ max_speed).")
-    aggression: float = Field(
-        0.7, ge=0.0, le=1.0, description="Probability an adversary chases the closest agent; else it acts at random."
-    )
-    sensor_range: float = Field(
-        20.0,
-        gt=0.0,
-        le=1e6,
-        description="Cells an agent's sensor reaches; cars farther away are not observed (their slots are zeros).",
+    sensor_range: Distance = Field(
+        20.0, description="Cells an agent's sensor reaches; farther cars are unobserved (zeros)."
     )
     sensor_fov: float = Field(
-        240.0, gt=0.0, le=360.0, description="Field of view of an agent's sensor in degrees, centred on its heading."
+        240.0, gt=0.0, le=360.0, description="Sensor's field of view in degrees, around the heading."
     )
     observe_k: int = Field(1, ge=1, le=64, description="Nearest other cars (within sensor_range) an agent observes.")
     full_information: bool = Field(
@@ -58,13 +62,11 @@ class TreadmillConfig(BaseModel):
         description="Reference only: append, in the agent's own frame, every teammate and every car some agent "
         "observes, with an adversary flag (what perfectly decoded messages could tell).",
     )
-    reward_distance_cap: float = Field(
-        10.0, gt=0.0, le=1e6, description="d_max: the per-step reward is min(d, d_max) / d_max for the closest car."
-    )
+    reward_distance_cap: Distance = Field(10.0, description="d_max: the per-step reward is min(d, d_max) / d_max.")
     crash_penalty: float = Field(10.0, ge=0.0, le=1e6, description="Reward −crash_penalty to a car that crashes.")
     max_steps: int = Field(200, ge=1, le=1_000_000, description="Truncation horizon of an episode, in steps.")
     spawn_gap: int = Field(
-        4, ge=1, le=1000, description="Agents spawn on a lattice of this pitch, so no two start closer than this."
+        4, ge=1, le=1000, description="Agents spawn on a lattice of this pitch: no two start closer."
     )
 
     @property
