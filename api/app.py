@@ -1,4 +1,5 @@
-"""The job service's HTTP face: FastAPI routes over a ``JobControl`` (what runs jobs) and the ``JobStore``.
+"""The job service's HTTP face: FastAPI routes over a ``JobControl`` (what runs jobs) and the job store it reads
+(``JobReader``).
 
 The app only validates, authorises, reads the store and asks the control to act; it never starts a process itself
 (``services.jobservice`` does, the composition root passes it in — ``api`` imports nothing but ``protocol``). Every

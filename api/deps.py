@@ -14,8 +14,8 @@ from typing import Any, Protocol
 from fastapi import Request
 
 from convoy.api.errors import ApiError
+from convoy.api.lifecycle import JobReader, JobRecord, JobState
 from convoy.api.models import EvalRequest, JobView, Progress
-from convoy.api.store import JobRecord, JobState, JobStore
 from convoy.config import JobConfig
 
 PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
@@ -25,7 +25,7 @@ JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
 class JobControl(Protocol):
     """What the app needs from whoever runs jobs (``services.jobservice.JobService``)."""
 
-    store: JobStore
+    store: JobReader
     max_processes: int  # a job takes actors + 2: the schema's bound on actors follows it
 
     def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord: ...

@@ -16,8 +16,8 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+from convoy.api.lifecycle import StoreError, UnknownJob
 from convoy.api.models import ErrorBody
-from convoy.api.store import StoreError, UnknownJob
 from convoy.config import ConfigError
 
 MAX_BODY = 64 * 1024

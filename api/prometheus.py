@@ -14,7 +14,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from convoy.api.store import ACTIVE_STATES, JobStore
+from convoy.api.lifecycle import ACTIVE_STATES, JobReader
 
 PER_JOB = {
     "env_steps": "Env steps the learner has ingested.",
@@ -26,7 +26,7 @@ PER_JOB = {
 
 
 class _Jobs:
-    def __init__(self, store: JobStore, control: Any) -> None:
+    def __init__(self, store: JobReader, control: Any) -> None:
         self.store, self.control = store, control
 
     def collect(self) -> Any:
@@ -60,7 +60,7 @@ class _Jobs:
         yield from gauges.values()
 
 
-def exposition(store: JobStore, control: Any) -> tuple[str, str]:
+def exposition(store: JobReader, control: Any) -> tuple[str, str]:
     """(text, content type) of one scrape."""
     registry = CollectorRegistry(auto_describe=False)
     registry.register(_Jobs(store, control))

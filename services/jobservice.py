@@ -36,8 +36,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from convoy.api.lifecycle import ACTIVE_STATES, JobRecord, JobState, StoreError
 from convoy.api.models import EvalRequest
-from convoy.api.store import ACTIVE_STATES, JobRecord, JobState, JobStore, StoreError
 from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
 from convoy.protocol import keys, wire
@@ -51,6 +51,7 @@ from convoy.protocol.session import (
     write_credentials,
 )
 from convoy.services.jobrunner import AliveSet, MetricReports
+from convoy.services.store import JobStore
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames

@@ -1,4 +1,4 @@
-"""The job service's SQLite store (``api.store``): jobs and their lifecycle, metric history and polling without
+"""The job service's SQLite store (``services/store.py``): jobs and their lifecycle, metric history and polling without
 duplicates or gaps, persistence across reopen, schema-version refusal, and concurrent writers with a poller."""
 
 from __future__ import annotations
@@ -10,18 +10,17 @@ from pathlib import Path
 
 import pytest
 
-from convoy.api.store import (
+from convoy.api.lifecycle import (
     ACTIVE_STATES,
     ALLOWED_TRANSITIONS,
     FINAL_STATES,
-    SCHEMA_VERSION,
     InvalidTransition,
     JobRecord,
     JobState,
-    JobStore,
     StoreError,
     UnknownJob,
 )
+from convoy.services.store import SCHEMA_VERSION, JobStore
 
 CONFIG = {"algo": "ma_mesn", "env": {"name": "treadmill", "lanes": 3}, "lr": 3e-4}
 

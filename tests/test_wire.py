@@ -467,12 +467,6 @@ FOREIGN: list[tuple[str, bytes, str]] = [
 ]
 
 
-def test_foreign_fixtures_are_distinct() -> None:
-    names = [name for name, _, _ in FOREIGN]
-    assert len(names) == len(set(names))
-    assert len({payload for _, payload, _ in FOREIGN}) == len(FOREIGN)
-
-
 @pytest.mark.parametrize(("payload", "reason"), [pytest.param(p, r, id=n) for n, p, r in FOREIGN])
 def test_decode_refuses_foreign_payloads_with_their_reason(payload: bytes, reason: str) -> None:
     with pytest.raises(WireError) as info:

@@ -9,8 +9,8 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
 from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
+from convoy.api.lifecycle import JobState
 from convoy.api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
-from convoy.api.store import JobState
 
 router = APIRouter(tags=["jobs"])
 CONTROL = Depends(control_of)

@@ -12,8 +12,8 @@ from fastapi import Path as PathParam
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
 from convoy.api.deps import JOB_ID, JobControl, control_of, finite
+from convoy.api.lifecycle import FINAL_STATES
 from convoy.api.models import MetricsPage
-from convoy.api.store import FINAL_STATES
 
 router = APIRouter()
 CONTROL = Depends(control_of)

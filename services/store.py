@@ -1,4 +1,5 @@
-"""The job service's persistence: jobs, their state transitions and their metric history in one SQLite file.
+"""The job service's persistence: jobs, their state transitions (``api/lifecycle.py``) and their metric history in
+one SQLite file.
 
 Why SQLite, and why this shape
 ------------------------------
@@ -31,28 +32,6 @@ apart (mapping them all to ``null`` would not). These columns are only read thro
 as strict JSON (the HTTP layer) must map non-finite floats itself. numpy/torch scalars and arrays are converted with
 their ``tolist()`` on the way in.
 
-States and transitions
-----------------------
-``queued → starting → running → completed`` is the happy path. The allowed moves (``ALLOWED_TRANSITIONS``):
-
-==========  ===============================  =====================================================================
-from        to                               why
-==========  ===============================  =====================================================================
-queued      starting, stopped                launched by the scheduler; or cancelled before it ever started
-starting    running, failed, stopping        came up; crashed while starting; stop asked during start-up
-running     stopping, completed, failed      stop asked; reached its step budget; crashed
-stopping    stopped, failed, completed       stopped cleanly; crashed while stopping; finished before the stop
-stopped     queued                           resume (from its last checkpoint)
-failed      queued                           resume after a crash (from its last checkpoint)
-completed   queued                           resume to continue training past the old budget
-==========  ===============================  =====================================================================
-
-Nothing moves to its own state (a second stop of a stopping job is the API's business, not a transition). After an
-API restart the jobs left in ``starting``/``running``/``stopping`` can be reconciled with ``→ failed`` (or
-``stopping → stopped``); ``queued`` jobs simply stay queued. ``create`` records a first transition with
-``from_state=None`` so the history starts at the job's birth. Moving to ``failed`` stores the reason as the job's
-``error``; moving to ``queued`` clears it.
-
 Polling metrics without duplicates or gaps
 ------------------------------------------
 ``metrics(job, since=s, limit=n)`` returns rows with ``step > s`` in ascending step order, at most ``n`` of them. A
@@ -73,118 +52,22 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-__all__ = [
-    "ACTIVE_STATES",
-    "ALLOWED_TRANSITIONS",
-    "FINAL_STATES",
-    "SCHEMA_VERSION",
-    "InvalidTransition",
-    "JobRecord",
-    "JobState",
-    "JobStore",
-    "StoreError",
-    "UnknownJob",
-]
+from convoy.api.lifecycle import (
+    ALLOWED_TRANSITIONS,
+    InvalidTransition,
+    JobRecord,
+    JobState,
+    StoreError,
+    UnknownJob,
+)
+
+__all__ = ["SCHEMA_VERSION", "JobStore"]
 
 SCHEMA_VERSION = 1
 """Written to ``PRAGMA user_version``; bump it (and add a migration) whenever the tables change."""
-
-
-class JobState(StrEnum):
-    """A job's lifecycle state; a ``str`` so it compares equal to, and serialises as, its name."""
-
-    queued = "queued"
-    starting = "starting"
-    running = "running"
-    stopping = "stopping"
-    stopped = "stopped"
-    completed = "completed"
-    failed = "failed"
-
-
-ALLOWED_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
-    JobState.queued: frozenset({JobState.starting, JobState.stopped}),
-    JobState.starting: frozenset({JobState.running, JobState.failed, JobState.stopping}),
-    JobState.running: frozenset({JobState.stopping, JobState.completed, JobState.failed}),
-    JobState.stopping: frozenset({JobState.stopped, JobState.failed, JobState.completed}),
-    JobState.stopped: frozenset({JobState.queued}),
-    JobState.failed: frozenset({JobState.queued}),
-    JobState.completed: frozenset({JobState.queued}),
-}
-"""Where each state may go next; see the module docstring for why."""
-
-ACTIVE_STATES: frozenset[JobState] = frozenset(
-    {JobState.queued, JobState.starting, JobState.running, JobState.stopping}
-)
-"""States in which a job holds (or waits for) resources."""
-
-FINAL_STATES: frozenset[JobState] = frozenset({JobState.stopped, JobState.completed, JobState.failed})
-"""States a job rests in until someone resumes or deletes it."""
-
-_STATE_ORDER: tuple[JobState, ...] = tuple(JobState)
-
-
-class StoreError(ValueError):
-    """Anything the caller asked for that the store cannot do; the message says what and how to fix it."""
-
-
-class UnknownJob(StoreError):
-    """The job id is not in the store (the API maps this to 404)."""
-
-    def __init__(self, job_id: str) -> None:
-        self.job_id = job_id
-        super().__init__(f"job {job_id!r} not found; list jobs with GET /jobs")
-
-
-class InvalidTransition(StoreError):
-    """A state change the transition table does not allow (the API maps this to 409)."""
-
-    def __init__(self, job_id: str, current: JobState, requested: JobState) -> None:
-        self.job_id = job_id
-        self.current = current
-        self.requested = requested
-        self.allowed = tuple(s for s in _STATE_ORDER if s in ALLOWED_TRANSITIONS[current])
-        allowed = ", ".join(s.value for s in self.allowed) or "nothing"
-        super().__init__(
-            f"job {job_id!r} is {current.value}; it cannot move to {requested.value} "
-            f"(allowed from {current.value}: {allowed})"
-        )
-
-
-@dataclass(frozen=True)
-class JobRecord:
-    """One job as stored; a snapshot — later changes to the store do not alter it."""
-
-    id: str
-    state: JobState
-    config: dict[str, Any]
-    actors: int
-    created_at: float
-    updated_at: float
-    out_dir: str | None = None
-    error: str | None = None
-    last_checkpoint: str | None = None
-    progress: dict[str, Any] = field(default_factory=dict)
-
-    def as_dict(self) -> dict[str, Any]:
-        """A plain dict for JSON responses, with the state as its string (non-finite floats are left as they are)."""
-        return {
-            "id": self.id,
-            "state": self.state.value,
-            "config": json.loads(json.dumps(self.config)),
-            "actors": self.actors,
-            "created_at": self.created_at,
-            "updated_at": self.updated_at,
-            "out_dir": self.out_dir,
-            "error": self.error,
-            "last_checkpoint": self.last_checkpoint,
-            "progress": json.loads(json.dumps(self.progress)),
-        }
 
 
 _SCHEMA: tuple[str, ...] = (
@@ -245,7 +128,7 @@ def _coerce_state(state: JobState | str) -> JobState:
     try:
         return JobState(state)
     except ValueError:
-        valid = ", ".join(s.value for s in _STATE_ORDER)
+        valid = ", ".join(s.value for s in tuple(JobState))
         raise StoreError(f"unknown job state {state!r}; valid states: {valid}") from None
 
 
@@ -550,7 +433,7 @@ class JobStore:
 
     def count_by_state(self) -> dict[str, int]:
         """How many jobs are in each state, every state present (zeros too) so Prometheus gauges never vanish."""
-        counts = {s.value: 0 for s in _STATE_ORDER}
+        counts = {s.value: 0 for s in tuple(JobState)}
         with self._read() as conn:
             for state, n in conn.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state"):
                 counts[state] = int(n)
