@@ -10,10 +10,11 @@ so the ratio is what Convoy's code costs beyond plain PyTorch; for the others it
 (messages, more networks, DIAL's unroll) over a DQN of that size.
 
 The two run interleaved on one thread (Convoy, reference, Convoy, reference, ...; median of ``--repeats``), so
-drift on a shared machine hits both alike. Sizes: the paper's treadmill networks (hidden 4096 → 12, batch 64) and
-Convoy's treadmill defaults (256, 256; batch 128), N = 3 agents + 1 adversary. Convoy's replay is filled with
-random play through each algorithm's own acting path (``EnvStepper``); DIAL uses its replay variant
-(``replay=true``, unroll 8), so an update samples like the others.
+drift on a shared machine hits both alike. Sizes: the paper's treadmill networks (hidden 4096 → 12, batch 64; for
+every algorithm, though DIAL's own is 6144 → 12) and (256, 256) with batch 128, the treadmill default of all but
+DIAL and IMS; N = 3 agents + 1 adversary. Convoy's replay is filled with random play through each algorithm's own
+acting path (``EnvStepper``); DIAL uses its replay variant (``replay=true``, unroll 8), so an update samples like
+the others.
 
 Run from the repository root: ``python benchmarks/updates.py`` (~3 min); ``--quick`` for a smoke run of seconds;
 ``--algos`` to choose; ``--json`` to save the figures.
