@@ -2,10 +2,9 @@
 
 Why the allocator: an update at batch 1024 on the treadmill's 4096-wide layers allocates activations of tens of MB.
 glibc serves blocks above its mmap threshold (at most 32 MB, adaptive) with fresh ``mmap`` calls, so every update
-faults ~400 MB of pages in and hands them back — measured at a third of the update time at batch 1024
-(``benchmarks/learner_throughput.py`` reports page faults per update). Raising the threshold and the trim threshold
-makes those blocks come from the heap and stay there, the same effect as ``MALLOC_MMAP_THRESHOLD_`` in the
-environment, but set from inside the process so nobody has to remember it.
+faults ~400 MB of pages in and hands them back — measured at a third of the update time at batch 1024. Raising the
+threshold and the trim threshold makes those blocks come from the heap and stay there, the same effect as
+``MALLOC_MMAP_THRESHOLD_`` in the environment, but set from inside the process so nobody has to remember it.
 """
 
 from __future__ import annotations
