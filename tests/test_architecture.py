@@ -134,4 +134,5 @@ def test_every_package_folder_is_installed() -> None:
     """pyproject lists packages by hand: a new folder with an ``__init__.py`` must be listed or the wheel lacks it."""
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     on_disk = {m for m, p in modules().items() if p.name == "__init__.py"}
-    assert on_disk == listed, f"missing from pyproject: {sorted(on_disk - listed)}; stale: {sorted(listed - on_disk)}"
+    data_only = {"convoy.api.static"}  # the dashboard's files: a package of data, no code
+    assert on_disk | data_only == listed, f"missing: {sorted(on_disk - listed)}; stale: {sorted(listed - on_disk)}"
