@@ -30,7 +30,7 @@ env's but with ``n_goals`` actions per agent and ``ceil(max_steps / goal_steps)`
 own recurrent state and messages) only for the envs that start an option. It learns from meta-transitions: the
 option's first observation, the goals, the env reward summed over the option, ``R = Σ_k γ^k r_{t+k}`` per agent,
 the observation the option ended on, the env's terminated/truncated flags and ``discount = γ^τ`` for an option of
-τ steps, which the shared TD target (``learner.algorithm.td_target``) bootstraps with: with one γ per meta step,
+τ steps, which the shared TD target (``algos.algorithm.td_target``) bootstraps with: with one γ per meta step,
 options that last longer collect more reward per meta step and the meta-controller learned to prefer goals that
 never finish. Meta-transitions of
 the envs whose option ended in a step go to ``meta.observe`` as one ``[1, M]`` chunk.

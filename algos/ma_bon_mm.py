@@ -1,6 +1,6 @@
 """MA-BoN-MM (section 4.2): MA-BoN with an LSTM memory module per agent predicting the broadcast message.
 
-Training is MA-BoN's plus the memory module's supervised loss (``learner.memory``); at execution g′ reads the true
+Training is MA-BoN's plus the memory module's supervised loss (``algos/memory.py``); at execution g′ reads the true
 broadcast, the agent's own prediction of it (no channel), or the broadcast with lost copies replaced by predictions.
 """
 

@@ -2,7 +2,7 @@
 history, the messages the others would send — so the trained cooperative policy can run with no channel at all.
 
 ``MemoryModule`` is a mixin over a message-passing algorithm (MA-MeSN, MA-BoN: anything with ``speak``/``listen``/
-``hear``, see ``learner.listening``). It adds:
+``hear``, see ``algos/listening.py``). It adds:
 
 * **a history window** as the acting state: each env's last ``memory_window`` observations of every agent
   ``[B, L, N, D + 1]`` (the extra column marks real steps, so the zero padding before an episode's first step is

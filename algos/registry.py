@@ -1,4 +1,4 @@
-"""NetworkAgent names → classes, imported on first use (one module per algorithm under ``learner/algos``)."""
+"""Algorithm names → classes, imported on first use (one module per algorithm under ``algos/``)."""
 
 from __future__ import annotations
 
@@ -31,5 +31,5 @@ def algorithm_class(name: str) -> type[NetworkAgent]:
 def make_algorithm(
     name: str, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0
 ) -> NetworkAgent:
-    """Build algorithm ``name`` for env ``spec`` with a resolved config (see ``protocol.config.resolve_algo``)."""
+    """Build algorithm ``name`` for env ``spec`` with a resolved config (see ``convoy.config.resolve_algo``)."""
     return algorithm_class(name)(spec, cfg, device=device, seed=seed)

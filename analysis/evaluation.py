@@ -2,7 +2,7 @@
 
 ``evaluate_policy`` plays whole episodes (each env's first episode, reseeded per round, as the trainer's final
 evaluation does) with the algorithm's ``listening`` set for the duration: the true messages, a lossy channel,
-the memory module's predictions or white noise (``learner.listening``). Algorithms without discrete messages
+the memory module's predictions or white noise (``algos/listening.py``). Algorithms without discrete messages
 accept only the true source, so a probe can never silently measure nothing.
 """
 

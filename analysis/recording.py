@@ -1,7 +1,7 @@
 """The emergent-communication analysis of a trained policy (the paper's Table 1): what ``convoy analyze`` runs.
 
 It plays the greedy policy, records every agent's message and action at every step, and reports (figures from
-``learner.comm_metrics``, which follows Lowe et al. 2019):
+``analysis/comm_metrics.py``, which follows Lowe et al. 2019):
 
 * speaker consistency MI(agent's message, its own action) and instantaneous coordination MI(speaker's message at t,
   listener's action after hearing it), each next to its shuffled-pairs baseline and per message bit, with the

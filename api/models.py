@@ -1,6 +1,6 @@
 """Request and response bodies of the job service (OpenAPI at ``/docs``), shared with ``convoy jobs``.
 
-A submitted job is validated by the same ``protocol.config.job_config`` as ``convoy train`` and the processes, so
+A submitted job is validated by the same ``convoy.config.job_config`` as ``convoy train`` and the processes, so
 a bad value gets the same message everywhere: the field, what was given and the allowed range. Bodies forbid
 unknown fields (a typo is an error, not a silently ignored setting), take a count only as a JSON number (``true`` or
 ``"5"`` is not a count; ``5.0`` is 5, as JSON Schema says) and bound every count, so one request cannot

@@ -1,8 +1,8 @@
 """Inference time per env step against the number of agents N, for every algorithm (the paper's section 6.2).
 
-What is measured. For every algorithm in ``learner.registry.ALGORITHMS`` and N ∈ {2, 4, 8, 16, 32, 64} agents on the
+What is measured. For every algorithm in ``algos.registry.ALGORITHMS`` and N ∈ {2, 4, 8, 16, 32, 64} agents on the
 treadmill (one adversary, the default 100 × 100 road, which has 625 spawn cells), at the paper's network sizes
-(``protocol.config.resolve_algo``: treadmill hidden (4096, 12), 16 message bits, 5 IMS rounds, shared weights), the
+(``convoy.config.resolve_algo``: treadmill hidden (4096, 12), 16 message bits, 5 IMS rounds, shared weights), the
 wall time of one ``algo.act(obs, 0.0, state)`` call for B = 1 env (``--batch``), i.e. the decision of all N agents
 for one env step, including the numpy ↔ torch conversions and ε-greedy bookkeeping an actor pays. Recurrent state
 (DIAL's messages from t−1) is carried from call to call as an actor would. The table also gives the parameter count
@@ -113,7 +113,7 @@ def build_algorithm(
 
 
 def add_device_arg(p: argparse.ArgumentParser, default: str, role: str) -> None:
-    """``--device`` with the config's choices (``protocol.config.DEVICES``)."""
+    """``--device`` with the config's choices (``convoy.config.DEVICES``)."""
     p.add_argument(
         "--device",
         choices=DEVICES,

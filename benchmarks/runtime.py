@@ -191,7 +191,7 @@ def stop_group(proc: subprocess.Popen, timeout: float = 20.0) -> None:
 # ======================================================================================================= part 1
 def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[bytes], dict[str, Any], int]:
     """``count`` real treadmill chunks ``[steps, num_envs, …]`` (MA-MeSN acting with ε = 1, as an actor builds them:
-    ``learner.stepping.EnvStepper`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
+    ``actors.stepping.EnvStepper`` per step, returns of finished episodes) encoded by ``protocol.wire``; also the
     learner's transition schema (field → dtype, per-step shape) and the transitions per chunk."""
 
     from convoy.actors.stepping import EnvStepper
@@ -1032,7 +1032,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{info['cpus_usable']} CPU core(s) usable of {info['cpu_count']} ({info['cpu_model']}), Python "
         f"{info['python']}, torch {info['torch']}, eclipse-zenoh {info['eclipse-zenoh']}, numpy {info['numpy']}; "
         f"load average at start {', '.join(f'{x:.1f}' for x in info['loadavg_start'] or [])} (shared machine: "
-        f"figures are one run's, not a controlled lab's). Zenoh in peer mode on 127.0.0.1, processes spawned."
+        f"figures are one run's, not a controlled lab's). Zenoh on 127.0.0.1: a router per job and its clients, "
+        "processes forked from a forkserver."
     )
     print(heading + "\n", flush=True)
     sections, payload = [heading], {"machine": info, "quick": args.quick, "parts": args.parts}

@@ -22,7 +22,7 @@ Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a disc
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
 
 MessageSource = Literal["sent", "predicted", "noise"]
-MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (learner.listening)
+MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (algos/listening.py)
 
 
 class AlgoConfig(BaseModel):

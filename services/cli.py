@@ -205,8 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
         default="scripted",
         metavar="POLICY",
         help="who drives the agents: random; constant-0 … constant-8 (one action throughout); scripted (private "
-        "observations); full-information (knows every car and which are adversaries); all but random are "
-        "treadmill-only (default: %(default)s)",
+        "observations); team-information (also told of every adversary some agent observes); full-information "
+        "(knows every car and which are adversaries); all but random are treadmill-only (default: %(default)s)",
     )
     ro.add_argument(
         "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"
