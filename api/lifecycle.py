@@ -76,7 +76,7 @@ class UnknownJob(StoreError):
 
     def __init__(self, job_id: str) -> None:
         self.job_id = job_id
-        super().__init__(f"job {job_id!r} not found; list jobs with GET /jobs")
+        super().__init__(f"job {job_id!r} not found")
 
 
 class InvalidTransition(StoreError):

@@ -13,6 +13,7 @@ import argparse
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -53,6 +54,26 @@ class Unreachable(CliError):
         super().__init__("", f"cannot reach {url} (is `convoy serve` running?)")
 
 
+# The API's fixes name REST routes; at the command line the same step is a convoy command.
+CLI_FOR_ROUTE: tuple[tuple[str, str], ...] = (
+    (r'POST /jobs/([\w.-]+)/resume \{"actors": (\d+)\}', r"`convoy jobs resume \1 --actors \2`"),
+    (r"POST /jobs/([\w.-]+)/resume", r"`convoy jobs resume \1`"),
+    (r"GET /jobs/([\w.-]+)/logs", r"`convoy jobs logs \1`"),
+    (r"GET /jobs/([\w.-]+)/metrics", r"`convoy jobs metrics \1`"),
+    (r"GET /jobs/(\{id\}|[\w.-]+)/checkpoints", r"`convoy jobs status \1` (its last_checkpoint)"),
+    (r"GET /jobs/(\{id\}|[\w.-]+)(?![\w/])", r"`convoy jobs status \1`"),
+    (r"GET /jobs(?![\w/])", "`convoy jobs list`"),
+)
+
+
+def cli_words(text: str) -> str:
+    """``text`` with every REST route it names replaced by the convoy command that does the same."""
+    for route, command in CLI_FOR_ROUTE:
+        text = re.sub(route, command, text)
+    text = re.sub(r"`([^`]+)` or (convoy [\w .-]+)", lambda m: f"`{m[1]}`" if m[1] == m[2].strip() else m[0], text)
+    return text.replace("{id}", "ID")
+
+
 def api_error(resp: httpx.Response) -> CliError:
     """The API's ``{"field", "problem", "fix"}`` body as a CliError; anything else still as one line."""
     try:
@@ -60,7 +81,7 @@ def api_error(resp: httpx.Response) -> CliError:
     except ValueError:
         body = None
     if isinstance(body, dict) and {"field", "problem"} <= body.keys():
-        return CliError(str(body["field"]), str(body["problem"]), str(body.get("fix") or ""))
+        return CliError(str(body["field"]), cli_words(str(body["problem"])), cli_words(str(body.get("fix") or "")))
     text = " ".join(resp.text.split())[:200] or resp.reason_phrase
     problem = f"{resp.status_code} {resp.reason_phrase} from {resp.request.url}: {text}"
     return CliError("http", problem, "is --url the address of `convoy serve`? (its API docs are at URL/docs)")

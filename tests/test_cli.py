@@ -96,3 +96,17 @@ def test_building_the_cli_imports_no_torch() -> None:
     code = "import sys, services.cli; services.cli.build_parser(); print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_api_fixes_become_convoy_commands_at_the_command_line() -> None:
+    from convoy.services.jobs_cmd import cli_words
+
+    cases = {
+        'scale it by resuming: POST /jobs/ma-1/resume {"actors": 4}': "`convoy jobs resume ma-1 --actors 4`",
+        "list the jobs with GET /jobs": "list the jobs with `convoy jobs list`",
+        "check the job's state with GET /jobs/{id}": "check the job's state with `convoy jobs status ID`",
+        "the whole log: GET /jobs/ab-12/logs or convoy jobs logs ab-12": "the whole log: `convoy jobs logs ab-12`",
+    }
+    for api_text, cli_text in cases.items():
+        assert cli_words(api_text).endswith(cli_text), (api_text, cli_words(api_text))
+    assert cli_words("nothing to translate") == "nothing to translate"

@@ -152,7 +152,8 @@ def test_scale_of_a_completed_job(capsys: pytest.CaptureFixture[str], service: S
     service.wait(job_id, lambda v: v["state"] == "completed", timeout=240, what="the job to complete")
     code, out, err = jobs(capsys, service.url, "scale", job_id, "2")
     assert code == 2 and not out
-    one_line_error(err, "completed", "resume", "—")
+    one_line_error(err, "completed", f"`convoy jobs resume {job_id} --actors 2`", "—")
+    assert "POST /jobs" not in err  # at the command line the fix is a command, not a REST route
     code, _, err = jobs(capsys, service.url, "stop", job_id)
     assert code == 2
     one_line_error(err, "error: state:", "completed")
@@ -174,7 +175,8 @@ def test_unknown_job(capsys: pytest.CaptureFixture[str], service: Service) -> No
     for argv in (*missing, ["stop", "nope"]):
         code, out, err = jobs(capsys, service.url, *argv)
         assert code == 2 and not out, argv
-        one_line_error(err, "error: id:", "not found", "—")
+        one_line_error(err, "error: id:", "not found", "— list the jobs with `convoy jobs list`")
+        assert "GET /jobs" not in err and err.count("jobs list") == 1, err  # says it once, as a command
 
 
 def test_wrong_and_missing_token(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
