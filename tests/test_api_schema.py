@@ -18,6 +18,7 @@ rejected, valid data accepted) except valid-data acceptance on ``POST /jobs`` (s
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import time
@@ -375,6 +376,23 @@ def test_events_of_a_queued_job_close_after_the_timeout(service: Service, queued
     assert resp.status_code == 200 and "event: state" in resp.text and '"queued"' in resp.text
     assert time.monotonic() - t0 < 10
     assert_error(service.client.get(f"/jobs/{queued_job}/events", params={"timeout": 0}), 422, "timeout")
+
+
+def test_events_carry_ids_so_a_browser_resumes_after_the_last_one(service: Service) -> None:
+    """``retry:`` first, every event's ``id`` = the last env step sent; ``Last-Event-ID`` resumes after it."""
+    from convoy.services.store import JobStore
+
+    job = submit(service, name="sse").json()["id"]  # queued behind the blocker: only the rows written here
+    with JobStore(service.data / "jobs.sqlite") as store:
+        store.append_metrics(job, [{"env_steps": s, "return": float(s)} for s in (100, 200, 300)])
+    first = service.client.get(f"/jobs/{job}/events", params={"timeout": 1}).text
+    assert first.startswith("retry: ") and "id: 300\nevent: metrics\ndata: " in first, first
+    resumed = service.client.get(f"/jobs/{job}/events", params={"timeout": 1}, headers={"Last-Event-ID": "200"})
+    data = [line for line in resumed.text.splitlines() if line.startswith("data: [")]
+    assert [r["env_steps"] for r in json.loads(data[0][6:])] == [300], resumed.text
+    bad = service.client.get(f"/jobs/{job}/events", headers={"Last-Event-ID": "yesterday"})
+    assert_error(bad, 422, "Last-Event-ID")
+    assert service.client.delete(f"/jobs/{job}", headers=AUTH).status_code == 204
 
 
 def test_docs_health_and_prometheus(service: Service) -> None:
