@@ -397,8 +397,9 @@ def cmd_metrics(api: Api, args: argparse.Namespace, out: Console) -> int:
 def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
     """Follow a job live until it finishes.
 
-    Show a live progress bar of a job with its return, env-steps/s, actors alive and policy lag, polling GET
-    /jobs/ID and its new metric rows, until the job completes, stops or fails; then print a one-line summary.
+    Show a live progress bar of a job with its return, env-steps/s, actors alive and policy lag (in a pipe or a
+    file: one line whenever they change), polling GET /jobs/ID and its new metric rows, until the job completes,
+    stops or fails; then print a one-line summary.
     Exit code 0 when it completed or stopped, 1 when it failed. Ctrl-C stops watching, not the job.
     """
     t0 = time.monotonic()
@@ -417,7 +418,9 @@ def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
         TextColumn("lag {task.fields[lag]}"),
         TimeElapsedColumn(),
     )
-    with Progress(*columns, console=out, auto_refresh=False) as bar:
+    live = out.is_terminal  # a bar in a terminal; in a pipe or a file, one plain line per change
+    printed = ""
+    with Progress(*columns, console=out, auto_refresh=False, disable=not live) as bar:
         task = bar.add_task(job["id"], total=job["steps"], state="", ret="–", speed="–", alive="–", lag="–")
         while True:
             params = {"since": cursor} if cursor is not None else {}
@@ -428,17 +431,25 @@ def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
             elif cursor is not None and (page["last_step"] or 0) < cursor:
                 cursor, last = page["last_step"], {}  # a resume cut the history back to its checkpoint: rewind
             prog = job["progress"]
-            bar.update(
-                task,
-                total=job["steps"],
-                completed=min(prog["env_steps"], job["steps"]),
-                state=state_text(job),
-                ret=fmt(first(last.get("return"), prog.get("return"))),
-                speed=fmt(first(last.get("env_steps_per_s"), prog.get("env_steps_per_s")), 3),
-                alive=alive_of(job),
-                lag=fmt(first(last.get("policy_lag"), prog.get("policy_lag")), 3),
-            )
-            bar.refresh()
+            done = min(prog["env_steps"], job["steps"])
+            fields = {
+                "state": state_text(job),
+                "ret": fmt(first(last.get("return"), prog.get("return"))),
+                "speed": fmt(first(last.get("env_steps_per_s"), prog.get("env_steps_per_s")), 3),
+                "alive": alive_of(job),
+                "lag": fmt(first(last.get("policy_lag"), prog.get("policy_lag")), 3),
+            }
+            if live:
+                bar.update(task, total=job["steps"], completed=done, **fields)
+                bar.refresh()
+            else:
+                text = (
+                    f"{job['id']} {fields['state']}: {done:,}/{job['steps']:,} env steps · return {fields['ret']} · "
+                    f"{fields['speed']} env-steps/s · actors {fields['alive']} · lag {fields['lag']}"
+                )
+                if text != printed:
+                    plain(out, text)
+                    printed = text
             if job["state"] in FINAL_STATES:
                 break
             if args.timeout is not None and time.monotonic() - t0 > args.timeout:

@@ -166,6 +166,9 @@ def test_resume_and_watch_again(capsys: pytest.CaptureFixture[str], service: Ser
     code, out, err = jobs(capsys, service.url, "watch", job_id, "--interval", "0.5", "--timeout", "150")
     assert code == 0, err
     assert re.search(rf"job {job_id} completed: 30,\d{{3}}/30,000 env steps", out), out
+    # captured output is not a terminal: progress comes as plain lines, whole (never cut to a terminal's width)
+    progress = [line for line in out.splitlines() if re.match(rf"{job_id} .*: [\d,]+/30,000 env steps · return ", line)]
+    assert len(progress) >= 2 and all(line.endswith(tuple("0123456789–")) for line in progress), out
     code, out, _ = jobs(capsys, service.url, "status", job_id, "--json")
     assert code == 0 and json.loads(out)["actors"] == 2
 
