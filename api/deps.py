@@ -15,7 +15,7 @@ from fastapi import Request
 
 from convoy.api.errors import ApiError
 from convoy.api.lifecycle import JobReader, JobRecord, JobState
-from convoy.api.models import EvalRequest, JobView, Progress
+from convoy.api.models import EvalRequest, FinalEvaluation, JobView, Progress
 from convoy.config import JobConfig
 
 PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
@@ -96,4 +96,5 @@ def view(rec: JobRecord, control: JobControl) -> JobView:
         last_checkpoint=rec.last_checkpoint,
         queue_position=control.store.queue_position(rec.id),
         config=finite(cfg),
+        final=FinalEvaluation(**finite(prog["final"])) if isinstance(prog.get("final"), dict) else None,
     )

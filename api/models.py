@@ -128,6 +128,19 @@ class Progress(BaseModel):
     model_config = ConfigDict(populate_by_name=True)
 
 
+class FinalEvaluation(BaseModel):
+    """The finished job's greedy evaluation (its ``summary.json``), beside the references on the same episodes."""
+
+    eval_return: float | None = Field(None, description="Mean greedy return of the last policy.")
+    eval_ci95: float | None = Field(None, description="Half-width of its 95 % confidence interval.")
+    random_return: float | None = None
+    references: dict[str, list[float | None]] = Field(
+        default_factory=dict, description="Reference policy → [mean return, 95 % CI] (random, best constant, scripted)."
+    )
+    best_eval_return: float | None = Field(None, description="The best point of the greedy curve (best.pt).")
+    best_eval_step: int | None = None
+
+
 class JobView(BaseModel):
     """A job as ``GET /jobs/{id}`` shows it."""
 
@@ -145,6 +158,7 @@ class JobView(BaseModel):
     last_checkpoint: str | None = Field(None, description="Path of the newest checkpoint on the service's host.")
     queue_position: int | None = Field(None, description="Place in the queue of a queued job (0 = next).")
     config: dict[str, Any] = Field(description="The job's full configuration, defaults filled in.")
+    final: FinalEvaluation | None = Field(None, description="The greedy evaluation of a completed job.")
 
 
 class JobList(BaseModel):

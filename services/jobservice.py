@@ -326,6 +326,8 @@ class JobService:
         elif done and code in (0, -1):
             result = json.loads(summary.read_text())
             keep = {k: result[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in result}
+            final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
+            keep["final"] = {k: result[k] for k in final if k in result}
             self.store.update(rec.id, progress=keep)
             self.store.transition(rec.id, JobState.completed, "the learner has all its steps")
         else:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import itertools
 import json
+import math
 import time
 import zipfile
 from pathlib import Path
@@ -57,6 +58,8 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
         done = svc.wait(job, lambda v: v["state"] in ("completed", "failed"), timeout=120, what="completed")
         assert done["state"] == "completed", done["error"]
         assert done["progress"]["env_steps"] >= at_stop + 20_000
+        final = done["final"]  # the job's greedy evaluation beside the references, as its summary.json has it
+        assert math.isfinite(final["eval_return"]) and final["eval_ci95"] >= 0 and "random" in final["references"]
 
         steps = steps_of(svc, job)
         assert steps == sorted(set(steps)), "metric history has duplicates or is out of order"

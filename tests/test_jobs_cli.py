@@ -138,6 +138,7 @@ def test_status_shows_completed(capsys: pytest.CaptureFixture[str], service: Ser
     code, out, err = jobs(capsys, service.url, "status", job_id)
     assert code == 0, err
     assert "completed" in out and "20,000" in out and '"n_agents": 2' in out and "dropped messages" in out
+    assert re.search(r"final greedy return\W+[-\d.]+ ± [\d.]+ .*random [-\d.]+", out), out  # the summary's figures
 
 
 def test_dropped_messages_read_by_role_and_reason() -> None:
