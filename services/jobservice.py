@@ -74,6 +74,11 @@ def pid_alive(pid: int | None) -> bool:
         return True
 
 
+def say(line: str) -> None:
+    """One line of the service's own log (its stdout): job submissions and every state change, with the reason."""
+    print(f"{time.strftime('%H:%M:%S')} {line}", flush=True)
+
+
 class Tracked:
     """A job this service is watching: its host process, Zenoh subscriptions and what it last reported."""
 
@@ -133,7 +138,10 @@ class JobService:
             )
         job_id = f"{name or job.algo}-{secrets.token_hex(3)}"
         out = self.data_dir / "jobs" / job_id
-        return self.store.create(job_id, job.model_dump(mode="json"), actors, out_dir=str(out))
+        rec = self.store.create(job_id, job.model_dump(mode="json"), actors, out_dir=str(out))
+        plural = "" if actors == 1 else "s"
+        say(f"job {job_id}: submitted ({job.algo} on {job.env}, {job.steps:,} env steps, {actors} actor{plural}), queued")
+        return rec
 
     def scale(self, job_id: str, actors: int) -> JobRecord:
         with self._lock:
@@ -155,9 +163,9 @@ class JobService:
         with self._lock:
             rec = self.store.get(job_id)
             if rec.state == JobState.queued:
-                return self.store.transition(job_id, JobState.stopped, "stopped before it started")
+                return self._move(job_id, JobState.stopped, "stopped before it started")
             starting = rec.state == JobState.starting
-            rec = self.store.transition(job_id, JobState.stopping, "stop requested")
+            rec = self._move(job_id, JobState.stopping, "stop requested")
             if job_id in self.tracked:
                 tracked = self.tracked[job_id]
                 tracked.stop_asked = time.monotonic()
@@ -179,7 +187,7 @@ class JobService:
             if n + 2 > self.max_processes:
                 raise ConfigError("actors", f"{n} actors need {n + 2} processes; the limit is {self.max_processes}")
             self.store.update(job_id, actors=n, config=config)
-            return self.store.transition(job_id, JobState.queued, "resume requested")
+            return self._move(job_id, JobState.queued, "resume requested")
 
     def delete(self, job_id: str) -> None:
         with self._lock:
@@ -265,7 +273,7 @@ class JobService:
             self._ingest(job_id, tracked)
             rec = self.store.get(job_id)
             if rec.state == JobState.starting and tracked.alive.count("learner"):
-                rec = self.store.transition(job_id, JobState.running, "learner alive")
+                rec = self._move(job_id, JobState.running, "learner alive")
             self._note_checkpoint(rec, tracked)
             code = tracked.exited()
             if code is not None:
@@ -315,6 +323,13 @@ class JobService:
             tracked.ckpt_mtime = mtime
             self.store.update(rec.id, last_checkpoint=str(path))
 
+    def _move(self, job_id: str, to: JobState, reason: str) -> JobRecord:
+        """A state change in the store, and one line of it in the service's log."""
+        before = self.store.get(job_id).state
+        rec = self.store.transition(job_id, to, reason)
+        say(f"job {job_id}: {before} → {to} ({reason})")
+        return rec
+
     def _finished(self, rec: JobRecord, tracked: Tracked, code: int) -> None:
         self._ingest(rec.id, tracked)
         self._backfill(rec.id)
@@ -322,16 +337,16 @@ class JobService:
         started = float(rec.progress.get("started_at", 0.0))
         done = summary.is_file() and summary.stat().st_mtime >= started
         if rec.state == JobState.stopping:
-            self.store.transition(rec.id, JobState.stopped, f"host exited ({code})")
+            self._move(rec.id, JobState.stopped, f"host exited ({code})")
         elif done and code in (0, -1):
             result = json.loads(summary.read_text())
             keep = {k: result[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in result}
             final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
             keep["final"] = {k: result[k] for k in final if k in result}
             self.store.update(rec.id, progress=keep)
-            self.store.transition(rec.id, JobState.completed, "the learner has all its steps")
+            self._move(rec.id, JobState.completed, "the learner has all its steps")
         else:
-            self.store.transition(rec.id, JobState.failed, f"host exited with code {code}: {self._log_tail(rec.id)}")
+            self._move(rec.id, JobState.failed, f"host exited with code {code}: {self._log_tail(rec.id)}")
         tracked.close()
         self.tracked.pop(rec.id, None)
 
@@ -377,7 +392,7 @@ class JobService:
         finally:
             log.close()
         self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": time.time(), "zenoh": endpoint})
-        rec = self.store.transition(rec.id, JobState.starting, f"host pid {proc.pid}")
+        rec = self._move(rec.id, JobState.starting, f"host pid {proc.pid}")
         self.tracked[rec.id] = Tracked(rec, session, proc)
 
     def _job_session(self, job_id: str, endpoint: str) -> Any:
@@ -401,10 +416,10 @@ class JobService:
                 if rec.state == JobState.stopping:
                     self.tracked[rec.id].stop_asked = time.monotonic()
             elif rec.state == JobState.stopping:
-                self.store.transition(rec.id, JobState.stopped, "its processes ended while the service was down")
+                self._move(rec.id, JobState.stopped, "its processes ended while the service was down")
             else:
-                self.store.transition(rec.id, JobState.failed, "its processes ended while the service was down")
-                self.store.transition(rec.id, JobState.queued, "resuming from its last checkpoint")
+                self._move(rec.id, JobState.failed, "its processes ended while the service was down")
+                self._move(rec.id, JobState.queued, "resuming from its last checkpoint")
 
     def _backfill(self, job_id: str) -> None:
         """Rows the learner wrote while nobody listened (service down, messages lost) from its metrics.jsonl."""

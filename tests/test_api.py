@@ -60,6 +60,15 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
         assert done["progress"]["env_steps"] >= at_stop + 20_000
         final = done["final"]  # the job's greedy evaluation beside the references, as its summary.json has it
         assert math.isfinite(final["eval_return"]) and final["eval_ci95"] >= 0 and "random" in final["references"]
+        log = (svc.data.parent / f"serve-{svc.port}.log").read_text()  # convoy serve says what its jobs do
+        for said in (
+            f"job {job}: submitted",
+            f"job {job}: queued → starting",
+            f"job {job}: running → stopping",
+            f"job {job}: stopped → queued (resume requested)",
+            "→ completed (the learner has all its steps)",
+        ):
+            assert said in log, (said, log[-2000:])
 
         steps = steps_of(svc, job)
         assert steps == sorted(set(steps)), "metric history has duplicates or is out of order"
