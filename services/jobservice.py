@@ -139,8 +139,8 @@ class JobService:
         job_id = f"{name or job.algo}-{secrets.token_hex(3)}"
         out = self.data_dir / "jobs" / job_id
         rec = self.store.create(job_id, job.model_dump(mode="json"), actors, out_dir=str(out))
-        plural = "" if actors == 1 else "s"
-        say(f"job {job_id}: submitted ({job.algo} on {job.env}, {job.steps:,} env steps, {actors} actor{plural}), queued")
+        what = f"{job.algo} on {job.env}, {job.steps:,} env steps, {actors} actor{'' if actors == 1 else 's'}"
+        say(f"job {job_id}: submitted ({what}), queued")
         return rec
 
     def scale(self, job_id: str, actors: int) -> JobRecord:
