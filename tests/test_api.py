@@ -162,11 +162,13 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
 
 
 def test_a_failed_jobs_status_carries_the_cause_from_its_process_log(tmp_path: Path) -> None:
-    """A real failure: the learner gives up waiting for data at once (data_timeout_s 0.01 s, no restart allowed).
+    """A real failure: the learner gives up waiting for data at once (data_timeout_s 0.01 s, no restart allowed;
+    the actor's first chunk is 4,096 steps × the job's envs away, so no machine is fast enough to beat the timeout).
     The job's error is not only "learner crashed 1 times": it carries the learner's own last line, the cause."""
     svc = Service(tmp_path / "svc").start()
     try:
-        job = submit(svc, steps=100_000, actors=1, runtime={"max_restarts": 0, "data_timeout_s": 0.01})
+        runtime = {"max_restarts": 0, "data_timeout_s": 0.01, "publish_steps": 4096}
+        job = submit(svc, steps=100_000, actors=1, runtime=runtime)
         view = svc.wait(job, lambda v: v["state"] in ("failed", "completed"), timeout=120, what="the job to end")
         assert view["state"] == "failed", view
         assert "learner crashed 1 times" in view["error"] and "cause: learner: no chunk from any actor" in view["error"]
