@@ -193,8 +193,9 @@ class NetworkAgent(ABC):
     config_model: ClassVar[type[AlgoConfig]]
     chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
     uses_messages: ClassVar[bool] = False
-    has_target: ClassVar[bool] = True  # behaviour cloning has no bootstrap target to sync
-    syncs_by_updates: ClassVar[bool] = True  # DIAL syncs its targets by finished episodes instead
+    # ``update`` syncs the targets every target_update updates; DIAL syncs by finished episodes instead and
+    # behaviour cloning has no bootstrap target at all
+    syncs_by_updates: ClassVar[bool] = True
 
     def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
         if not isinstance(cfg, self.config_model):
@@ -315,7 +316,7 @@ class NetworkAgent(ABC):
         self._nonfinite_in_a_row = 0
         self.optimizer.step()
         self.updates += 1
-        if self.has_target and self.syncs_by_updates:
+        if self.syncs_by_updates:
             update_target(self.target, self.online, self.updates, self.cfg)
         return {"loss": loss_value, "grad_norm": norm, **out.stats}
 

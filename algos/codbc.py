@@ -41,7 +41,7 @@ class CoDBC(ReplayAgent):
 
     name = "codbc"
     config_model = CoDBCConfig
-    has_target = False  # no bootstrapping: nothing to sync
+    syncs_by_updates = False  # no bootstrapping: no target to sync
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents

@@ -123,8 +123,11 @@ class TrainingCore:
     def checkpoint(self, name: str = "checkpoint.pt") -> None:
         """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point."""
         assert self.out_dir is not None
-        counters: dict[str, Any] = {"env_steps": self.env_steps, "episodes": self.episodes}
-        counters["updates"] = self.algo.updates
+        counters: dict[str, Any] = {
+            "env_steps": self.env_steps,
+            "episodes": self.episodes,
+            "updates": self.algo.updates,
+        }
         if self.evaluator.best > -math.inf:
             counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
         if name == "checkpoint.pt" and self.replay_bytes:  # replay first: a crash between leaves no mismatched pair

@@ -67,7 +67,6 @@ class Trainer:
         self.make_eval_env = make_eval_env
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.show_progress = progress
-        self.cfg = job.algo_config()
 
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
@@ -85,8 +84,7 @@ class Trainer:
                     core.update()
                 core.row(self.on_row)
                 core.maybe_checkpoint()
-        except BaseException:
-            core.close()
-            raise
+        finally:
+            core.close()  # the metric files, whichever way the loop ends
         summary = core.finish(f"{job.algo} on {job.env}")
         return TrainResult(**summary, out_dir=str(self.out_dir) if self.out_dir else None, rows=core.log.rows)

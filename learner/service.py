@@ -101,7 +101,6 @@ class Learner:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.stopping = False
         self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
-        self.core: TrainingCore | None = None
 
     def stop(self, *_: Any) -> None:
         self.stopping = True
@@ -180,7 +179,7 @@ class Learner:
 
     def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
         job, rt = self.job, self.job.runtime
-        self.core = core = TrainingCore(
+        core = TrainingCore(
             job,
             algo,
             self.out_dir,
@@ -227,7 +226,6 @@ class Learner:
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
                     if now - max(t_chunk, t_start) > rt.data_timeout_s:
-                        core.close()
                         core.checkpoint()
                         print(
                             f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
@@ -260,19 +258,21 @@ class Learner:
                     lags = []
                 core.maybe_checkpoint()
             if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
-                core.close()
                 core.checkpoint()
                 return STOPPED
             self._publish_budget(job.steps, core.env_steps, algo.updates)  # tells actors the job has its data
-        except BaseException:
-            core.close()
-            raise
+        finally:
+            core.close()  # the metric files, whichever way the loop ends
         dropped = self.dropped_by_reason(inbox)
         summary = core.finish(
             f"{job.algo} on {job.env} (distributed)", dropped=sum(dropped.values()), dropped_by_reason=dropped
         )
-        done = {"done": 1.0, "eval_return": summary["eval_return"], "env_steps": core.env_steps}
-        done["updates"] = algo.updates
+        done = {
+            "done": 1.0,
+            "eval_return": summary["eval_return"],
+            "env_steps": core.env_steps,
+            "updates": algo.updates,
+        }
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
         return 0
 
