@@ -5,7 +5,7 @@ The app only validates, authorises, reads the store and asks the control to act;
 (``services.jobservice`` does, the composition root passes it in — ``api`` imports nothing but ``protocol``). Every
 error is JSON ``{"field", "problem", "fix"}`` with a 4xx status (``api/errors.py``); mutating routes need
 ``Authorization: Bearer <token>`` (``api/deps.py``); request bodies are capped at 64 KiB. The routes are
-``api/routes/``: jobs, metrics, service. Reads are cheap indexed queries of the SQLite store, so polling metrics
+``api/routes/``: jobs, metrics, service, sweeps. Reads are cheap indexed queries of the SQLite store, so polling metrics
 never touches, let alone stalls, the training processes.
 """
 
@@ -18,7 +18,7 @@ from fastapi.staticfiles import StaticFiles
 
 from convoy.api.deps import JobControl
 from convoy.api.errors import ERROR_RESPONSES, install_error_handlers
-from convoy.api.routes import jobs, metrics, service
+from convoy.api.routes import jobs, metrics, service, sweeps
 from convoy.api.routes.service import STATIC
 
 
@@ -32,7 +32,7 @@ def create_app(control: JobControl, token: str) -> FastAPI:
     )
     app.state.control, app.state.token = control, token
     install_error_handlers(app)
-    for module in (service, jobs, metrics):
+    for module in (service, jobs, metrics, sweeps):
         app.include_router(module.router)
     if STATIC.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC), name="static")

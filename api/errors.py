@@ -16,7 +16,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from convoy.api.lifecycle import StoreError, UnknownJob
+from convoy.api.lifecycle import StoreError, UnknownJob, UnknownSweep
 from convoy.api.models import ErrorBody
 from convoy.config import ConfigError
 
@@ -117,6 +117,9 @@ def install_error_handlers(app: FastAPI) -> None:
         if err.get("type") == "json_invalid":
             return error_response(400, "body", "the body is not valid JSON", "send a JSON object")
         ctx = err.get("ctx") or {}
+        if isinstance(ctx.get("error"), ConfigError):  # a model's own check: it names the field and the fix
+            cause = ctx["error"]
+            return error_response(422, cause.field, str(cause).split(": ", 1)[-1], "change this field")
         words = {"ge": "≥", "gt": ">", "le": "≤", "lt": "<", "pattern": "matching", "expected": "one of"}
         bound = " and ".join(f"{words[k]} {v}" for k, v in ctx.items() if k in words)
         fix = f"give {field} {bound}" if bound else "see the schema at /docs"
@@ -150,6 +153,7 @@ def install_error_handlers(app: FastAPI) -> None:
     # StoreError for every other refusal, InvalidTransition included)
     for exc_type, (status, field, fix) in {
         UnknownJob: (404, "id", "list the jobs with GET /jobs"),
+        UnknownSweep: (404, "id", "list the sweeps with GET /sweeps"),
         StoreError: (409, "state", "check the job's state with GET /jobs/{id}"),
         FileNotFoundError: (404, "name", "list the files with GET /jobs/{id}/checkpoints"),
     }.items():

@@ -79,6 +79,24 @@ class UnknownJob(StoreError):
         super().__init__(f"job {job_id!r} not found")
 
 
+class UnknownSweep(StoreError):
+    """The sweep id is not in the store (the API maps this to 404)."""
+
+    def __init__(self, sweep_id: str) -> None:
+        self.sweep_id = sweep_id
+        super().__init__(f"sweep {sweep_id!r} not found")
+
+
+@dataclass(frozen=True)
+class SweepRecord:
+    """One sweep as stored: its request (``spec``) and its jobs in grid order, each ``{"id", "point"}``."""
+
+    id: str
+    created_at: float
+    spec: dict[str, Any]
+    jobs: list[dict[str, Any]]
+
+
 class InvalidTransition(StoreError):
     """A state change the transition table does not allow (the API maps this to 409)."""
 
@@ -137,3 +155,5 @@ class JobReader(Protocol):
         self, job_id: str, since: int | None = None, names: list[str] | None = None, limit: int | None = None
     ) -> list[dict[str, Any]]: ...
     def last_step(self, job_id: str) -> int | None: ...
+    def sweep(self, sweep_id: str) -> SweepRecord: ...
+    def sweeps(self) -> list[SweepRecord]: ...

@@ -85,6 +85,65 @@ class JobSubmit(JsonBody):
         return job_config(**values, runtime={**self.runtime, "actors": self.actors})
 
 
+GRID_FIELDS = ("algo", "env", "hierarchical", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every")
+GRID_TABLES = ("env_params", "algo_params", "runtime")
+MAX_SWEEP_JOBS = 1_000
+
+
+class SweepSubmit(JsonBody):
+    """``POST /sweeps``: one base job and a grid; every combination of the grid's values is one job.
+
+    A grid axis is a job field (``algo``, ``seed``, ``steps``, …) or one parameter of its tables
+    (``env_params.n_agents``, ``algo_params.lr``, ``runtime.publish_steps``). Jobs that differ only in ``seed``
+    form one group of the summary."""
+
+    name: str = Field(
+        ..., pattern=r"^[A-Za-z0-9_.-]{1,32}$", description="Prefix of the sweep id (letters, digits, _ . -)."
+    )
+    base: dict[str, Any] = Field(
+        default_factory=dict,
+        description="The fields every job shares, as in POST /jobs (without name and actors), e.g. "
+        '{"env": "referential", "steps": 20000}.',
+    )
+    grid: dict[str, list[Any]] = Field(
+        ...,
+        description='Axis → its values, e.g. {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2, 3, 4]}.',
+    )
+    actors: int = Field(1, ge=1, le=MAX_ACTORS, description="Actor processes of each job.")
+    threshold: float | None = Field(
+        None, description="The return whose first crossing the summary times (env steps and seconds); none = no timing."
+    )
+
+    @field_validator("grid")
+    @classmethod
+    def _axes(cls, grid: dict[str, list[Any]]) -> dict[str, list[Any]]:
+        if not grid:
+            raise ConfigError("grid", 'needs at least one axis, e.g. {"seed": [0, 1, 2]}')
+        for axis, values in grid.items():
+            table, _, key = axis.partition(".")
+            if not (axis in GRID_FIELDS or (table in GRID_TABLES and key.isidentifier())):
+                fields = ", ".join((*GRID_FIELDS, *(f"{t}.NAME" for t in GRID_TABLES)))
+                raise ConfigError(f"grid.{axis}", f"is not a job field a sweep can vary; axes: {fields}")
+            if not values:
+                raise ConfigError(f"grid.{axis}", "has no values; give at least one")
+            if len({repr(v) for v in values}) < len(values):
+                raise ConfigError(f"grid.{axis}", f"repeats a value ({values!r}); each value once")
+        size = 1
+        for values in grid.values():
+            size *= len(values)
+        if size > MAX_SWEEP_JOBS:
+            raise ConfigError("grid", f"makes {size:,} jobs; a sweep has at most {MAX_SWEEP_JOBS:,} — split it")
+        return grid
+
+    @field_validator("base")
+    @classmethod
+    def _base(cls, base: dict[str, Any]) -> dict[str, Any]:
+        for owned in ("name", "actors"):
+            if owned in base:
+                raise ConfigError(f"base.{owned}", "is the sweep's own: give it at the top of the sweep")
+        return base
+
+
 class JobPatch(JsonBody):
     """``PATCH /jobs/{id}``: scale the actor count of a job, live when it runs."""
 
@@ -171,6 +230,43 @@ class MetricsPage(BaseModel):
     job: str
     rows: list[dict[str, Any]]
     last_step: int | None
+
+
+class SweepMember(BaseModel):
+    id: str
+    point: dict[str, Any] = Field(description="The job's values of the grid's axes.")
+    group: str = Field(description="Its group: the point without the seed.")
+    state: str = Field(description="The job's state (deleted when it no longer exists).")
+    env_steps: int = 0
+    steps: int = 0
+
+
+class SweepView(BaseModel):
+    """A sweep as ``GET /sweeps/{id}`` shows it: its jobs and how far they are."""
+
+    id: str
+    state: str = Field(
+        description="running while a job is queued or runs; then completed (all), failed (any failed) or stopped."
+    )
+    created_at: float
+    jobs: list[SweepMember]
+    states: dict[str, int] = Field(description="How many of its jobs are in each state.")
+    fraction: float = Field(description="Env steps done over env steps asked, all jobs together.")
+    spec: dict[str, Any] = Field(description="The sweep as submitted.")
+
+
+class SweepList(BaseModel):
+    sweeps: list[SweepView]
+
+
+class SweepSummary(BaseModel):
+    """Per group: the mean greedy curve ± 95 % CI over seeds at common env steps, the final greedy return and the
+    time to the threshold (env steps and seconds of the seeds that reached it)."""
+
+    id: str
+    state: str
+    threshold: float | None
+    groups: list[dict[str, Any]]
 
 
 class ErrorBody(BaseModel):

@@ -52,6 +52,7 @@ from convoy.config import JobConfig, job_config  # noqa: E402
 from convoy.learner.inprocess import Trainer  # noqa: E402
 from convoy.learner.runtime import configure_learner  # noqa: E402
 from convoy.services.training import make_env  # noqa: E402
+from convoy.stats import ci95_half  # noqa: E402
 
 TREADMILL = {"n_agents": 3, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 HP = {"hidden": (64,), "learning_starts": 500, "replay_ratio": 4.0, "target_update": 100, "gamma": 0.95, "lr": 1e-3}
@@ -68,12 +69,7 @@ DROPS = (0.0, 0.5, 1.0)
 
 def t_ci95(values: np.ndarray) -> float:
     """Half-width of the 95 % Student-t interval of the mean (0 for one value)."""
-    from scipy import stats
-
-    n = len(values)
-    if n < 2:
-        return 0.0
-    return float(stats.t.ppf(0.975, n - 1) * values.std(ddof=1) / np.sqrt(n))
+    return ci95_half(values, single=0.0)
 
 
 def train(job: JobConfig, out_dir: Path, eval_episodes: int, messages: str) -> tuple[list[tuple[int, float]], Any]:

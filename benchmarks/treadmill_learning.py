@@ -43,11 +43,11 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
-from scipy import stats  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
 from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.references import best_constant, evaluate_references  # noqa: E402
+from convoy.stats import ci95_half  # noqa: E402
 
 HELD_OUT_SEED = 50_000  # best.pt is chosen on seed + 10,000 (learner.runlog.EVAL_SEED_OFFSET); scored here
 
@@ -55,9 +55,7 @@ HELD_OUT_SEED = 50_000  # best.pt is chosen on seed + 10,000 (learner.runlog.EVA
 def ci_over_seeds(values: list[float]) -> tuple[float, float]:
     """Mean and the half-width of its 95 % t-interval over seeds (0 for one seed)."""
     x = np.asarray(values, dtype=np.float64)
-    if len(x) < 2:
-        return float(x.mean()), 0.0
-    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
+    return float(x.mean()), ci95_half(x, single=0.0)
 
 
 VARIANTS = {

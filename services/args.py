@@ -47,7 +47,8 @@ def add_command(sub: argparse._SubParsersAction, name: str, func: Callable[..., 
     """A subcommand whose ``--help`` is ``func``'s docstring (its first line is the short help of the command list,
     the rest the description) and which runs ``func``."""
     short, _, long = inspect.cleandoc(func.__doc__ or name).partition("\n\n")
-    p = sub.add_parser(name, help=short[:1].lower() + short[1:].rstrip("."), description=long or short, **kwargs)
+    short_help = (short[:1].lower() + short[1:].rstrip(".")).replace("%", "%%")  # argparse %-formats help
+    p = sub.add_parser(name, help=short_help, description=long or short, **kwargs)
     p.set_defaults(func=func)
     return p
 

@@ -220,12 +220,14 @@ def build_parser() -> argparse.ArgumentParser:
     from convoy.services.jobs_cmd import add_jobs_parser
     from convoy.services.roles_cmd import add_role_parsers
     from convoy.services.serve_cmd import add_serve_parser
+    from convoy.services.sweep_cmd import add_sweep_parser
     from convoy.services.train_cmd import add_train_parser
 
     add_train_parser(sub)
     add_eval_parsers(sub)
     add_serve_parser(sub)
     add_jobs_parser(sub)
+    add_sweep_parser(sub)
     add_role_parsers(sub)
     return parser
 

@@ -500,12 +500,17 @@ def cmd_jobs(args: argparse.Namespace) -> int:
     no token; submit, scale, stop, resume and delete send 'Authorization: Bearer TOKEN'. API errors are printed
     as 'error: FIELD: PROBLEM — FIX' with exit code 2.
     """
+    return run_client(args, COMMANDS[args.jobs_command])
+
+
+def run_client(args: argparse.Namespace, command: Callable[[Api, argparse.Namespace, Console], int]) -> int:
+    """Connect to ``--url`` with ``--token`` and run ``command``; a ``CliError`` is one ``error:`` line."""
     out, err = Console(), Console(stderr=True)
     url = args.url or os.environ.get("CONVOY_API_URL", "").strip() or DEFAULT_URL
     token = args.token if args.token is not None else os.environ.get("CONVOY_API_TOKEN", "").strip() or None
     try:
         with Api(url, token) as api:
-            return COMMANDS[args.jobs_command](api, args, out)
+            return command(api, args, out)
     except CliError as exc:
         err.print(Text.assemble(("error:", "bold red"), " ", exc.line()), soft_wrap=True)
         return exc.code
@@ -514,7 +519,7 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------------------------
 
 
-def _connection_options(p: argparse.ArgumentParser, default: Any) -> None:
+def connection_options(p: argparse.ArgumentParser, default: Any) -> None:
     p.add_argument(
         "--url",
         default=default,
@@ -527,7 +532,7 @@ def _connection_options(p: argparse.ArgumentParser, default: Any) -> None:
     )
 
 
-def _positive(text: str) -> float:
+def positive(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
@@ -552,10 +557,10 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
         "  convoy jobs resume ma-mesn-1a2b3c --steps 400000",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    _connection_options(jobs, None)
+    connection_options(jobs, None)
     jsub = jobs.add_subparsers(dest="jobs_command", required=True, metavar="JOBS_COMMAND")
     common = argparse.ArgumentParser(add_help=False)
-    _connection_options(common, argparse.SUPPRESS)  # also accepted after the subcommand
+    connection_options(common, argparse.SUPPRESS)  # also accepted after the subcommand
 
     def add(name: str) -> argparse.ArgumentParser:
         p = add_command(jsub, name, COMMANDS[name], parents=[common])
@@ -607,8 +612,8 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     p = add("watch")
     p.add_argument("id", help="job id")
     p.add_argument(
-        "--interval", type=_positive, default=1.0, metavar="S", help="seconds between polls (default: %(default)s)"
+        "--interval", type=positive, default=1.0, metavar="S", help="seconds between polls (default: %(default)s)"
     )
     p.add_argument(
-        "--timeout", type=_positive, metavar="S", help="give up (exit 2) after S seconds (default: wait for the end)"
+        "--timeout", type=positive, metavar="S", help="give up (exit 2) after S seconds (default: wait for the end)"
     )

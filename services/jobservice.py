@@ -36,8 +36,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from convoy.api.lifecycle import ACTIVE_STATES, JobRecord, JobState, StoreError
-from convoy.api.models import EvalRequest
+from convoy.api.lifecycle import ACTIVE_STATES, JobRecord, JobState, StoreError, SweepRecord
+from convoy.api.models import EvalRequest, SweepSubmit
+from convoy.api.sweeps import expand, group_name
 from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
 from convoy.protocol import keys, wire
@@ -142,6 +143,53 @@ class JobService:
         what = f"{job.algo} on {job.env}, {job.steps:,} env steps, {actors} actor{'' if actors == 1 else 's'}"
         say(f"job {job_id}: submitted ({what}), queued")
         return rec
+
+    def submit_sweep(self, spec: SweepSubmit) -> SweepRecord:
+        """Every job of the grid, queued at once in one transaction (so a restart finds all or none of them)."""
+        jobs = expand(spec)
+        for job in jobs:
+            self.limits.check(job.config, "convoy serve")
+        if spec.actors + 2 > self.max_processes:
+            raise ConfigError("actors", f"{spec.actors} actors need {spec.actors + 2} processes; this service runs "
+                              f"at most {self.max_processes} (convoy serve --max-processes)")  # fmt: skip
+        sweep_id = f"{spec.name}-{secrets.token_hex(3)}"
+        rows = [
+            (f"{sweep_id}-{i:03d}", job.config.model_dump(mode="json"), spec.actors,
+             str(self.data_dir / "jobs" / f"{sweep_id}-{i:03d}"), job.point)
+            for i, job in enumerate(jobs)
+        ]  # fmt: skip
+        sweep = self.store.create_sweep(sweep_id, spec.model_dump(mode="json"), rows)
+        groups = len({group_name(job.point) for job in jobs})
+        say(f"sweep {sweep_id}: submitted ({len(jobs)} jobs in {groups} group{'' if groups == 1 else 's'}), queued")
+        return sweep
+
+    def stop_sweep(self, sweep_id: str) -> SweepRecord:
+        """Stop every job of the sweep that is still queued or running (each checkpoints first)."""
+        sweep = self.store.sweep(sweep_id)
+        for member in sweep.jobs:
+            if self.store.exists(member["id"]) and self.store.get(member["id"]).state in ACTIVE_STATES - {
+                JobState.stopping
+            }:
+                self.stop(member["id"])
+        return sweep
+
+    def resume_sweep(self, sweep_id: str) -> SweepRecord:
+        """Queue again every stopped or failed job of the sweep (each from its last checkpoint)."""
+        sweep = self.store.sweep(sweep_id)
+        for member in sweep.jobs:
+            if self.store.exists(member["id"]) and self.store.get(member["id"]).state in (
+                JobState.stopped, JobState.failed
+            ):  # fmt: skip
+                self.resume(member["id"], None, None)
+        return sweep
+
+    def delete_sweep(self, sweep_id: str) -> None:
+        """Delete the sweep with every job of it (processes, history, files)."""
+        sweep = self.store.sweep(sweep_id)
+        for member in sweep.jobs:
+            if self.store.exists(member["id"]):
+                self.delete(member["id"])
+        self.store.delete_sweep(sweep_id)
 
     def scale(self, job_id: str, actors: int) -> JobRecord:
         with self._lock:

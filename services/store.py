@@ -61,12 +61,14 @@ from convoy.api.lifecycle import (
     JobRecord,
     JobState,
     StoreError,
+    SweepRecord,
     UnknownJob,
+    UnknownSweep,
 )
 
 __all__ = ["SCHEMA_VERSION", "JobStore"]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """Written to ``PRAGMA user_version``; bump it (and add a migration) whenever the tables change."""
 
 
@@ -100,6 +102,13 @@ _SCHEMA: tuple[str, ...] = (
         row TEXT NOT NULL,
         PRIMARY KEY (job_id, step)
     ) WITHOUT ROWID""",
+    # version 2: sweeps, each a request and its jobs in grid order ({"id", "point"}); the jobs are ordinary rows
+    """CREATE TABLE IF NOT EXISTS sweeps (
+        id TEXT PRIMARY KEY,
+        created_at REAL NOT NULL,
+        spec TEXT NOT NULL,
+        jobs TEXT NOT NULL
+    )""",
 )
 
 _JOB_COLUMNS = "id, state, config, actors, created_at, updated_at, out_dir, error, last_checkpoint, progress"
@@ -293,25 +302,76 @@ class JobStore:
         state: JobState | str = JobState.queued,
     ) -> JobRecord:
         """Add a job (normally queued) and the first entry of its transition history; a taken id is refused."""
+        row = self._job_row(job_id, config, actors, out_dir, state)
+        with self._write() as conn:
+            self._insert_job(conn, row)
+            return self._get(conn, job_id)
+
+    @staticmethod
+    def _job_row(
+        job_id: str, config: dict[str, Any], actors: int, out_dir: str | None, state: JobState | str
+    ) -> tuple[Any, ...]:
         if not isinstance(job_id, str) or not job_id:
             raise StoreError(f"job id must be a non-empty str, got {job_id!r}")
         config_json = _dumps(_as_dict(config, "config"), f"config of job {job_id!r}")
-        actors = _as_int(actors, "actors", minimum=0)
-        out_dir = _as_opt_str(out_dir, "out_dir")
-        state = _coerce_state(state)
+        return (job_id, _coerce_state(state).value, config_json, _as_int(actors, "actors", minimum=0),
+                _as_opt_str(out_dir, "out_dir"))  # fmt: skip
+
+    @staticmethod
+    def _insert_job(conn: sqlite3.Connection, row: tuple[Any, ...]) -> None:
+        job_id, state, config_json, actors, out_dir = row
         now = time.time()
+        if conn.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone() is not None:
+            raise StoreError(f"job {job_id!r} already exists; pick another id or delete it first")
+        conn.execute(
+            f"INSERT INTO jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, '{{}}')",
+            (job_id, state, config_json, actors, now, now, out_dir),
+        )
+        conn.execute(
+            "INSERT INTO transitions (job_id, at, from_state, to_state, reason) VALUES (?, ?, NULL, ?, 'created')",
+            (job_id, now, state),
+        )
+
+    # -- sweeps ----------------------------------------------------------------------------------------------------
+
+    def create_sweep(
+        self, sweep_id: str, spec: dict[str, Any], jobs: list[tuple[str, dict[str, Any], int, str, dict[str, Any]]]
+    ) -> SweepRecord:
+        """Add a sweep and all its jobs (``(id, config, actors, out_dir, point)``, queued) in one transaction: a
+        crash leaves either the whole sweep or nothing."""
+        rows = [self._job_row(job_id, config, actors, out_dir, JobState.queued) for job_id, config, actors, out_dir, _
+                in jobs]  # fmt: skip
+        members = _dumps([{"id": j[0], "point": j[4]} for j in jobs], f"jobs of sweep {sweep_id!r}")
         with self._write() as conn:
-            if conn.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone() is not None:
-                raise StoreError(f"job {job_id!r} already exists; pick another id or delete it first")
+            if conn.execute("SELECT 1 FROM sweeps WHERE id = ?", (sweep_id,)).fetchone() is not None:
+                raise StoreError(f"sweep {sweep_id!r} already exists")
+            for row in rows:
+                self._insert_job(conn, row)
             conn.execute(
-                f"INSERT INTO jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, '{{}}')",
-                (job_id, state.value, config_json, actors, now, now, out_dir),
+                "INSERT INTO sweeps (id, created_at, spec, jobs) VALUES (?, ?, ?, ?)",
+                (sweep_id, time.time(), _dumps(spec, f"spec of sweep {sweep_id!r}"), members),
             )
-            conn.execute(
-                "INSERT INTO transitions (job_id, at, from_state, to_state, reason) VALUES (?, ?, NULL, ?, 'created')",
-                (job_id, now, state.value),
-            )
-            return self._get(conn, job_id)
+        return self.sweep(sweep_id)
+
+    def sweep(self, sweep_id: str) -> SweepRecord:
+        """The sweep's record; ``UnknownSweep`` if there is none."""
+        with self._read() as conn:
+            row = conn.execute("SELECT id, created_at, spec, jobs FROM sweeps WHERE id = ?", (sweep_id,)).fetchone()
+        if row is None:
+            raise UnknownSweep(sweep_id)
+        return SweepRecord(row[0], float(row[1]), json.loads(row[2]), json.loads(row[3]))
+
+    def sweeps(self) -> list[SweepRecord]:
+        """Every sweep, oldest first."""
+        with self._read() as conn:
+            rows = conn.execute("SELECT id, created_at, spec, jobs FROM sweeps ORDER BY created_at, id").fetchall()
+        return [SweepRecord(r[0], float(r[1]), json.loads(r[2]), json.loads(r[3])) for r in rows]
+
+    def delete_sweep(self, sweep_id: str) -> None:
+        """Remove the sweep's record (its jobs are deleted one by one by the service, files and all)."""
+        with self._write() as conn:
+            if conn.execute("DELETE FROM sweeps WHERE id = ?", (sweep_id,)).rowcount == 0:
+                raise UnknownSweep(sweep_id)
 
     def get(self, job_id: str) -> JobRecord:
         """The job's current record; ``UnknownJob`` if there is none."""

@@ -1,0 +1,49 @@
+"""Learning curves of sweep groups: the mean over seeds with its 95 % CI band, one colour per group."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+
+def plot_groups(
+    groups: list[dict[str, Any]],
+    path: str | Path,
+    title: str,
+    references: dict[str, float] | None = None,
+    xlabel: str = "env steps",
+    ylabel: str = "greedy return",
+) -> Path:
+    """A PNG of each group's ``curve`` (``env_steps``, ``mean``, ``ci95``) as a line with a shaded band, and each
+    reference return as a dashed horizontal line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for group in groups:
+        curve = group["curve"]
+        keep = [i for i, m in enumerate(curve["mean"]) if m is not None]
+        if not keep:
+            continue
+        x = np.array([curve["env_steps"][i] for i in keep], dtype=float)
+        y = np.array([curve["mean"][i] for i in keep], dtype=float)
+        ci = np.array([curve["ci95"][i] or 0.0 for i in keep], dtype=float)
+        n = max(curve["n"][i] for i in keep)
+        (line,) = ax.plot(x, y, label=f"{group['group']} (n={n})")
+        ax.fill_between(x, y - ci, y + ci, color=line.get_color(), alpha=0.2, linewidth=0)
+    for i, (name, value) in enumerate((references or {}).items()):
+        ax.axhline(value, color=f"C{7 + i % 3}", linestyle="--", linewidth=1, label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

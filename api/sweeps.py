@@ -1,0 +1,181 @@
+"""Sweeps: a grid of jobs (``expand``) and what their greedy-evaluation curves say together (``summarize``).
+
+A sweep is a base job and a grid of axis values; each combination is one ordinary job of the service (queued,
+scaled, stopped, resumed, reattached after a restart like any other). Jobs whose grid points differ only in
+``seed`` form a *group*; the summary reports, per group, the mean and 95 % Student-t interval over seeds of the
+greedy curve at common env-step points, of the final greedy return, and of the env steps and seconds each seed took
+to reach a threshold return.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
+from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
+from convoy.config import ConfigError, JobConfig
+from convoy.stats import ci95_half
+from convoy.validation import build_config
+
+
+@dataclass(frozen=True)
+class SweepJob:
+    """One grid point of a sweep and the job it runs."""
+
+    point: dict[str, Any]
+    config: JobConfig
+
+
+def group_name(point: dict[str, Any]) -> str:
+    """The group a grid point belongs to: its values but the seed, e.g. ``algo=idqn env_params.n_agents=4``."""
+    return " ".join(f"{k}={v}" for k, v in point.items() if k != "seed") or "all"
+
+
+def expand(spec: SweepSubmit) -> list[SweepJob]:
+    """Every job of the grid, validated; seeds outermost, so that each group's first seed runs first."""
+    axes = sorted(spec.grid, key=lambda axis: axis != "seed")
+    jobs = []
+    for values in itertools.product(*(spec.grid[axis] for axis in axes)):
+        point = dict(zip(axes, values, strict=True))
+        body = copy.deepcopy(spec.base)
+        for axis, value in point.items():
+            table, _, key = axis.partition(".")
+            if key:
+                body.setdefault(table, {})
+                if not isinstance(body[table], dict):
+                    raise ConfigError(f"base.{table}", f"must be an object to vary {axis}")
+                body[table][key] = value
+            else:
+                body[axis] = value
+        try:
+            config = build_config(JobSubmit, **body, actors=spec.actors).job_config()
+        except ConfigError as exc:
+            where = next((t for t in GRID_TABLES if isinstance(body.get(t), dict) and exc.field in body[t]), None)
+            qualified = f"{where}.{exc.field}" if where else exc.field  # an algorithm's or env's own parameter
+            varied = next((a for a in point if qualified == a or qualified.startswith(f"{a}.")), None)
+            field = f"grid.{varied}" if varied else f"base.{qualified}"
+            problem = str(exc).split(": ", 1)[-1]
+            raise ConfigError(field, f"{problem} (in the job {point})") from None
+        jobs.append(SweepJob(point, config))
+    return jobs
+
+
+def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
+    """The sweep's jobs with their states and progress, and the sweep's state from theirs."""
+    members, done, asked = [], 0, 0
+    for member in sweep.jobs:
+        try:
+            rec = reader.get(member["id"])
+        except UnknownJob:
+            members.append(SweepMember(id=member["id"], point=member["point"], group=group_name(member["point"]),
+                                       state="deleted"))  # fmt: skip
+            continue
+        steps, env_steps = int(rec.config.get("steps", 0)), int(rec.progress.get("env_steps", 0) or 0)
+        done, asked = done + min(env_steps, steps), asked + steps
+        members.append(SweepMember(id=rec.id, point=member["point"], group=group_name(member["point"]),
+                                   state=rec.state.value, env_steps=env_steps, steps=steps))  # fmt: skip
+    states: dict[str, int] = {}
+    for m in members:
+        states[m.state] = states.get(m.state, 0) + 1
+    active = {s.value for s in ACTIVE_STATES}
+    if any(s in active for s in states):
+        state = "running"
+    elif states.get("failed"):
+        state = "failed"
+    elif states.get("stopped"):
+        state = "stopped"
+    else:
+        state = "completed"
+    return SweepView(id=sweep.id, state=state, created_at=sweep.created_at, jobs=members, states=states,
+                     fraction=done / asked if asked else 0.0, spec=sweep.spec)  # fmt: skip
+
+
+def _curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:
+    """A job's greedy curve: (env steps, return, wall seconds) of its evaluation rows, then its final evaluation."""
+    points = [
+        (int(r["env_steps"]), float(r["eval_return"]), float(r.get("wall_s", math.nan)))
+        for r in rows
+        if isinstance(r.get("eval_return"), int | float) and math.isfinite(r["eval_return"])
+    ]
+    last = final.get("eval_return") if final else None
+    if isinstance(last, int | float) and math.isfinite(last) and (not points or end_step > points[-1][0]):
+        wall = float(rows[-1].get("wall_s", math.nan)) if rows else math.nan
+        points.append((end_step, float(last), wall))
+    if not points:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    steps, values, wall = zip(*points, strict=True)
+    return np.array(steps, np.int64), np.array(values), np.array(wall)
+
+
+def _mean_ci(values: list[float]) -> dict[str, Any]:
+    x = np.asarray(values, dtype=np.float64)
+    if not len(x):
+        return {"mean": None, "ci95": None, "n": 0, "values": []}
+    return {"mean": float(x.mean()), "ci95": ci95_half(x, single=0.0), "n": len(x), "values": x.tolist()}
+
+
+def summarize_group(
+    name: str, members: list[tuple[str, dict[str, Any]]], reader: JobReader, threshold: float | None
+) -> dict[str, Any]:
+    """One group: its jobs' states, the mean greedy curve ± CI at common steps, the final return, the threshold."""
+    states: dict[str, int] = {}
+    curves, finals, reached_steps, reached_wall, jobs = [], [], [], [], []
+    for job_id, _ in members:
+        try:
+            rec = reader.get(job_id)
+        except UnknownJob:
+            continue  # deleted: the summary is of the jobs that remain
+        jobs.append(job_id)
+        states[rec.state.value] = states.get(rec.state.value, 0) + 1
+        final = rec.progress.get("final") if rec.state == JobState.completed else None
+        rows = reader.metrics(job_id, names=["eval_return", "wall_s"])
+        steps, values, wall = _curve(rows, final, int(rec.progress.get("env_steps", 0) or 0))
+        if len(steps):
+            curves.append((steps, values))
+        if final and isinstance(final.get("eval_return"), int | float) and math.isfinite(final["eval_return"]):
+            finals.append(float(final["eval_return"]))
+        if threshold is not None and len(steps):
+            hit = np.flatnonzero(values >= threshold)
+            if len(hit):
+                reached_steps.append(float(steps[hit[0]]))
+                reached_wall.append(float(wall[hit[0]]))
+    # the common points: the evaluation steps of the longest curve; a seed counts at a point its curve spans
+    grid = max((s for s, _ in curves), key=len, default=np.zeros(0, np.int64))
+    mean, ci, count = [], [], []
+    for x in grid:
+        at = [float(np.interp(x, s, v)) for s, v in curves if s[0] <= x <= s[-1]]
+        stats = _mean_ci(at)
+        mean.append(stats["mean"])
+        ci.append(stats["ci95"])
+        count.append(stats["n"])
+    out: dict[str, Any] = {
+        "group": name,
+        "point": {k: v for k, v in members[0][1].items() if k != "seed"} if members else {},
+        "jobs": jobs,
+        "states": states,
+        "curve": {"env_steps": [int(x) for x in grid], "mean": mean, "ci95": ci, "n": count},
+        "final": _mean_ci(finals),
+    }
+    if threshold is not None:
+        out["threshold"] = {
+            "value": threshold,
+            "reached": len(reached_steps),
+            "of": len(jobs),
+            "env_steps": _mean_ci(reached_steps),
+            "wall_s": _mean_ci([w for w in reached_wall if math.isfinite(w)]),
+        }
+    return out
+
+
+def summarize(members: list[dict[str, Any]], reader: JobReader, threshold: float | None) -> list[dict[str, Any]]:
+    """Every group of a sweep's jobs (``members``: ``{"id", "point"}`` in grid order), in order of appearance."""
+    groups: dict[str, list[tuple[str, dict[str, Any]]]] = {}
+    for member in members:
+        groups.setdefault(group_name(member["point"]), []).append((member["id"], member["point"]))
+    return [summarize_group(name, jobs, reader, threshold) for name, jobs in groups.items()]

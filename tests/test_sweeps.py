@@ -1,0 +1,191 @@
+"""Sweeps through the job service: a grid of real jobs, its summary with CIs over seeds, a restart in the middle,
+and clear errors for malformed sweep bodies and files."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from convoy.services.cli import main
+from convoy.services.sweep_file import load_sweep
+from convoy.validation import ConfigError
+from tests.service_fixture import AUTH, TOKEN, Service
+
+pytestmark = pytest.mark.timeout(600)
+
+TINY = {
+    "name": "tiny",
+    "base": {
+        "env": "referential",
+        "steps": 3_000,
+        "num_envs": 8,
+        "eval_every": 1_000,
+        "eval_episodes": 16,
+        "log_every": 500,
+        "checkpoint_every": 1_000,
+        "algo_params": {"hidden": [32], "learning_starts": 200},
+    },
+    "grid": {"algo": ["ma-mesn", "idqn"], "seed": [0, 1]},
+    "threshold": 0.0,
+}
+
+
+def wait_sweep(svc: Service, sweep_id: str, pred: Any, timeout: float, what: str) -> dict[str, Any]:
+    t_end = time.monotonic() + timeout
+    view: dict[str, Any] = {}
+    while time.monotonic() < t_end:
+        view = svc.client.get(f"/sweeps/{sweep_id}").json()
+        if pred(view):
+            return view
+        time.sleep(0.5)
+    raise AssertionError(f"timed out waiting for {what}: {view}")
+
+
+def test_a_sweep_runs_through_a_service_restart_and_summarises_its_groups(tmp_path: Path) -> None:
+    data = tmp_path / "svc"
+    svc = Service(data, max_processes=3).start()  # one job at a time: the others wait in the queue
+    again: Service | None = None
+    try:
+        resp = svc.client.post("/sweeps", json=TINY, headers=AUTH)
+        assert resp.status_code == 201, resp.text
+        sweep = resp.json()
+        sid = sweep["id"]
+        assert [m["point"] for m in sweep["jobs"]] == [
+            {"seed": 0, "algo": "ma-mesn"}, {"seed": 0, "algo": "idqn"},
+            {"seed": 1, "algo": "ma-mesn"}, {"seed": 1, "algo": "idqn"},
+        ]  # fmt: skip
+        assert sweep["state"] == "running" and sweep["states"] == {"queued": 4}
+        wait_sweep(svc, sid, lambda v: v["states"].get("running"), 90, "a job running")
+        svc.kill()  # SIGKILL: the queued jobs and the sweep must be found again
+        again = Service(data, port=svc.port, max_processes=3).start()
+        assert again.client.get(f"/sweeps/{sid}").json()["id"] == sid
+        done = wait_sweep(again, sid, lambda v: v["state"] != "running", 420, "the sweep to end")
+        assert done["state"] == "completed" and done["states"] == {"completed": 4}, done
+
+        summary = again.client.get(f"/sweeps/{sid}/summary").json()
+        assert summary["state"] == "completed" and summary["threshold"] == 0.0
+        groups = {g["group"]: g for g in summary["groups"]}
+        assert list(groups) == ["algo=ma-mesn", "algo=idqn"]
+        for name, group in groups.items():
+            assert len(group["jobs"]) == 2 and group["states"] == {"completed": 2}, group
+            final = group["final"]
+            assert final["n"] == 2, final
+            x = np.array(final["values"])
+            for job_id, value in zip(group["jobs"], x, strict=True):  # each seed's value is its job's final return
+                job = again.client.get(f"/jobs/{job_id}").json()
+                assert job["final"]["eval_return"] == pytest.approx(value), (name, job_id)
+            assert final["mean"] == pytest.approx(x.mean())
+            assert final["ci95"] == pytest.approx(stats.t.ppf(0.975, 1) * x.std(ddof=1) / np.sqrt(2))  # t, not 1.96
+            curve = group["curve"]
+            assert curve["env_steps"] == sorted(curve["env_steps"]) and len(curve["env_steps"]) >= 3, curve
+            assert curve["n"][-1] == 2 and all(1 <= n <= 2 for n in curve["n"]), curve
+            th = group["threshold"]  # returns of the referential game are ≥ 0: every seed is at 0 at its first point
+            assert th["reached"] == 2 and th["of"] == 2 and th["env_steps"]["n"] == 2, th
+        # the CLI reads the same summary and draws it
+        png = tmp_path / "sweep.png"
+        code = main(["sweep", "summary", sid, "--url", again.url, "--plot", str(png)])
+        assert code == 0 and png.stat().st_size > 10_000
+        log = (data.parent / f"serve-{svc.port}.log").read_text()
+        assert f"sweep {sid}: submitted (4 jobs in 2 groups), queued" in log
+    finally:
+        if again is not None:
+            again.stop()
+        svc.stop()
+
+
+BAD_BODIES = [
+    ({k: v for k, v in TINY.items() if k != "name"}, "name"),
+    ({**TINY, "grid": {}}, "grid"),
+    ({**TINY, "grid": {"colour": ["red"]}}, "grid.colour"),
+    ({**TINY, "grid": {"seed": []}}, "grid.seed"),
+    ({**TINY, "grid": {"seed": [1, 1]}}, "grid.seed"),
+    ({**TINY, "grid": {"algo": ["ma-mesn", "nope"]}}, "grid.algo"),
+    ({**TINY, "grid": {"algo_params.lr": [0.001, -1.0]}}, "grid.algo_params.lr"),
+    ({**TINY, "base": {**TINY["base"], "algo_params": {"lr": 7}}}, "base.algo_params.lr"),
+    ({**TINY, "base": {**TINY["base"], "steps": 2}}, "base.steps"),
+    ({**TINY, "base": {**TINY["base"], "actors": 3}}, "base.actors"),
+    ({**TINY, "base": {**TINY["base"], "colour": 3}}, "base.colour"),
+    ({**TINY, "grid": {"seed": list(range(40)), "algo_params.lr": [i / 1000 for i in range(1, 40)]}}, "grid"),
+    ({**TINY, "actors": 0}, "actors"),
+]
+
+
+@pytest.fixture(scope="module")
+def quiet_service(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    svc = Service(tmp_path_factory.mktemp("sweeps") / "svc", max_processes=3).start()
+    try:
+        yield svc
+    finally:
+        svc.stop()
+
+
+@pytest.mark.parametrize(("body", "field"), BAD_BODIES, ids=[f for _, f in BAD_BODIES])
+def test_a_malformed_sweep_body_is_a_4xx_naming_the_field(quiet_service: Service, body: Any, field: str) -> None:
+    resp = quiet_service.client.post("/sweeps", json=body, headers=AUTH)
+    assert resp.status_code == 422, resp.text
+    error = resp.json()
+    assert error["field"] == field and error["problem"] and error["fix"], error
+    assert quiet_service.client.get("/sweeps").json() == {"sweeps": []}  # nothing half-submitted
+    assert quiet_service.client.get("/jobs").json() == {"jobs": []}
+
+
+def test_an_unknown_sweep_is_a_404(quiet_service: Service) -> None:
+    for path in ("/sweeps/nope", "/sweeps/nope/summary"):
+        resp = quiet_service.client.get(path)
+        assert resp.status_code == 404 and resp.json()["field"] == "id", resp.text
+    assert "GET /sweeps" in quiet_service.client.get("/sweeps/nope").json()["fix"]
+
+
+SWEEP_FILE = """
+name = "tiny"
+threshold = 0.5
+[base]
+env = "referential"
+steps = 3000
+[base.algo_params]
+hidden = [32]
+[grid]
+algo = ["ma-mesn", "idqn"]
+seed = [0, 1]
+[scales.quick.base]
+steps = 1000
+[scales.quick.grid]
+seed = [0, 1, 2]
+[scales.bad.base]
+steps = -5
+[figure]
+title = "not part of the sweep"
+"""
+
+
+def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "tiny.toml"
+    path.write_text(SWEEP_FILE)
+    plain = load_sweep(path)
+    assert plain["base"]["steps"] == 3000 and plain["grid"]["seed"] == [0, 1] and "figure" not in plain
+    quick = load_sweep(path, "quick")
+    assert quick["base"]["steps"] == 1000 and quick["base"]["algo_params"] == {"hidden": [32]}
+    assert quick["grid"] == {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2]}
+    with pytest.raises(ConfigError, match="no scale 'paper'.*quick, bad"):
+        load_sweep(path, "paper")
+    with pytest.raises(ConfigError) as bad:
+        load_sweep(path, "bad")
+    assert bad.value.field == "scales.bad.base.steps"
+    broken = tmp_path / "broken.toml"
+    broken.write_text(SWEEP_FILE.replace('algo = ["ma-mesn", "idqn"]', 'algo = ["ma-mesn", '))
+    json_file = tmp_path / "sweep.json"
+    json_file.write_text(json.dumps({"name": "x", "grid": {"seed": [0]}, "actors": "two"}))
+    # the CLI checks a file before it sends anything: no service needed for these errors
+    for file, scale, field in ((broken, None, str(broken)), (path, "bad", "scales.bad.base.steps"),
+                               (json_file, None, "actors"), (tmp_path / "missing.toml", None, "missing.toml")):  # fmt: skip
+        argv = ["sweep", "submit", str(file), "--url", "http://127.0.0.1:9", "--token", TOKEN]
+        assert main([*argv, *(("--scale", scale) if scale else ())]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {field}" in err or (field in err and "cannot read" in err), err
+        assert "cannot reach" not in err, err
