@@ -172,7 +172,7 @@ def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: 
     quick = load_sweep(path, "quick")
     assert quick["base"]["steps"] == 1000 and quick["base"]["algo_params"] == {"hidden": [32]}
     assert quick["grid"] == {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2]}
-    with pytest.raises(ConfigError, match="no scale 'paper'.*quick, bad"):
+    with pytest.raises(ConfigError, match=r"no scale 'paper'.*quick, bad"):
         load_sweep(path, "paper")
     with pytest.raises(ConfigError) as bad:
         load_sweep(path, "bad")
@@ -182,8 +182,9 @@ def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: 
     json_file = tmp_path / "sweep.json"
     json_file.write_text(json.dumps({"name": "x", "grid": {"seed": [0]}, "actors": "two"}))
     # the CLI checks a file before it sends anything: no service needed for these errors
-    for file, scale, field in ((broken, None, str(broken)), (path, "bad", "scales.bad.base.steps"),
-                               (json_file, None, "actors"), (tmp_path / "missing.toml", None, "missing.toml")):  # fmt: skip
+    cases = [(broken, None, str(broken)), (path, "bad", "scales.bad.base.steps"), (json_file, None, "actors"),
+             (tmp_path / "missing.toml", None, "missing.toml")]  # fmt: skip
+    for file, scale, field in cases:
         argv = ["sweep", "submit", str(file), "--url", "http://127.0.0.1:9", "--token", TOKEN]
         assert main([*argv, *(("--scale", scale) if scale else ())]) == 2
         err = capsys.readouterr().err
