@@ -63,6 +63,7 @@ class JobSubmit(JsonBody):
     num_envs: int = job_field("num_envs")
     seed: int = job_field("seed")
     eval_episodes: int = job_field("eval_episodes")
+    eval_messages: MessageSource = job_field("eval_messages")
     eval_every: int = job_field("eval_every")
     log_every: int = job_field("log_every")
     checkpoint_every: int = job_field("checkpoint_every")
@@ -85,7 +86,10 @@ class JobSubmit(JsonBody):
         return job_config(**values, runtime={**self.runtime, "actors": self.actors})
 
 
-GRID_FIELDS = ("algo", "env", "hierarchical", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every")
+GRID_FIELDS = (
+    "algo", "env", "hierarchical", "steps", "num_envs", "seed", "eval_episodes", "eval_messages", "eval_every",
+    "log_every",
+)  # fmt: skip
 GRID_TABLES = ("env_params", "algo_params", "runtime")
 MAX_SWEEP_JOBS = 1_000
 

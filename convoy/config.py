@@ -479,6 +479,12 @@ class JobConfig(BaseModel):
         le=10_000,
         description="Greedy episodes per evaluation (fixed seeds): each learning-curve point and the final one.",
     )
+    eval_messages: MessageSource = Field(
+        "sent",
+        description="What the agents hear in the greedy evaluations (curve and final): sent = centralised execution; "
+        "predicted = decentralised, each agent's memory module predicts the messages (ma-mesn-mm, ma-bon-mm; "
+        "algorithms without messages are decentralised already); noise = white noise instead of messages.",
+    )
     eval_every: int = Field(
         10_000,
         ge=0,
@@ -507,6 +513,15 @@ class JobConfig(BaseModel):
                 "steps",
                 f"{self.steps:,} is less than one step of the {self.num_envs:,} envs stepped together "
                 f"({self.num_envs:,} env steps); raise steps or lower num_envs",
+            )
+        hears = {"ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm"}  # algorithms whose messages a probe can replace
+        if self.eval_messages == "noise" and self.algo not in hears:
+            raise ConfigError("eval_messages", f"{self.algo} has no message channel to fill with noise; use sent")
+        if self.eval_messages == "predicted" and self.algo in {"dial", "ims", "ma-mesn", "ma-bon"}:
+            raise ConfigError(
+                "eval_messages",
+                f"{self.algo} cannot act without its teammates' messages; train ma-mesn-mm or ma-bon-mm to predict "
+                "them, or use sent",
             )
         if self.hierarchical and self.env != "treadmill":
             raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")

@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from convoy.analysis.evaluation import evaluate
+from convoy.algos.listening import HearsMessages
+from convoy.analysis.evaluation import evaluate, listening, listening_for
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.metrics import MetricsWriter, plot_curves
 from convoy.stats import ci95_half
@@ -130,6 +131,7 @@ class Evaluator:
         self.episodes, self.every = int(job.eval_episodes), int(job.eval_every)
         self.seed = int(job.seed) + EVAL_SEED_OFFSET
         self.env_name, self.env_params = str(job.env), dict(job.env_params)
+        self.messages = job.eval_messages
         self.make_env, self.save_best = make_env, save_best
         self.best, self.best_step = best, -1
         self.next = (first_step // self.every + 1) * self.every if self.every else 0
@@ -150,8 +152,10 @@ class Evaluator:
             self._env = self.make_env(min(self.episodes, 256))
         training = algo.progress
         algo.progress = dataclasses.replace(training, training=False)
+        hearing = self.messages if epsilon < 1.0 and isinstance(algo, HearsMessages) else "sent"
         try:
-            return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)
+            with listening(algo, listening_for(algo, hearing, seed=self.seed)):
+                return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)
         finally:
             algo.progress = training
 

@@ -218,6 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from convoy.services.eval_cmd import add_eval_parsers
     from convoy.services.jobs_cmd import add_jobs_parser
+    from convoy.services.reproduce_cmd import add_reproduce_parser
     from convoy.services.roles_cmd import add_role_parsers
     from convoy.services.serve_cmd import add_serve_parser
     from convoy.services.sweep_cmd import add_sweep_parser
@@ -228,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_serve_parser(sub)
     add_jobs_parser(sub)
     add_sweep_parser(sub)
+    add_reproduce_parser(sub)
     add_role_parsers(sub)
     return parser
 

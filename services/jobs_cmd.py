@@ -186,7 +186,8 @@ def summary_line(job: dict[str, Any], elapsed: float | None = None) -> str:
 
 def submit_body(args: argparse.Namespace) -> dict[str, Any]:
     """The ``POST /jobs`` body from the flags; flags not given are left to the service's defaults."""
-    names = ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "eval_every", "log_every", "name")
+    names = ("algo", "env", "steps", "num_envs", "seed", "actors", "eval_episodes", "eval_messages", "eval_every",
+             "log_every", "name")  # fmt: skip
     body: dict[str, Any] = given(args, (*names, "checkpoint_every", "hierarchical"))
     params = env_params(args)
     if params:

@@ -2,8 +2,8 @@
 
 A file holds the sweep's fields at its top (``name``, ``actors``, ``threshold``, ``[base]``, ``[grid]``); a
 ``[scales.NAME]`` table overrides them for ``--scale NAME`` (its ``base`` merged key by key, its ``grid`` axes
-replacing those of the same name). ``[figure]`` describes the paper's figure the file reproduces (``convoy
-reproduce``) and is not part of the sweep.
+replacing those of the same name; its ``note`` says how the scale departs from the paper). ``[figure]``
+describes the paper's figure the file reproduces (``convoy reproduce``) and is not part of the sweep.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def sweep_body(data: dict[str, Any], scale: str | None = None, where: str = "swe
             have = ", ".join(scales) or "none"
             raise ConfigError("--scale", f"{where} has no scale {scale!r} (its scales: {have})")
         over = scales[scale]
-        body = merged(body, {k: v for k, v in over.items() if k != "grid"})
+        body = merged(body, {k: v for k, v in over.items() if k not in ("grid", "note")})
         body["grid"] = {**body.get("grid", {}), **over.get("grid", {})}
     try:
         expand(build_config(SweepSubmit, **body))  # every job of the grid, as the service will check it

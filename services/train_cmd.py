@@ -168,7 +168,10 @@ def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
 
-JOB_FLAGS = ("algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_every", "log_every")
+JOB_FLAGS = (
+    "algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_messages", "eval_every",
+    "log_every",
+)  # fmt: skip
 
 
 def add_job_flags(tr: argparse.ArgumentParser) -> None:

@@ -60,11 +60,12 @@ def best_constant(results: dict[str, RolloutResult]) -> str:
 
 
 def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[str, tuple[float, float]]:
-    """What a trained policy's summary shows beside it: random, the best constant action (named) and the scripted
-    driver, each as (mean, 95 % CI half-width) over ``episodes`` episodes."""
-    results = evaluate_references(cfg, episodes, seed, names=("random", *CONSTANTS, "scripted"))
+    """What a trained policy's summary shows beside it: random, the best constant action (named), the scripted
+    driver and the full-information driver (what knowing every car is worth), each as (mean, 95 % CI half-width)
+    over ``episodes`` episodes."""
+    results = evaluate_references(cfg, episodes, seed, names=("random", *CONSTANTS, "scripted", "full-information"))
     best = best_constant(results)
-    return {name: results[name].ci95() for name in ("random", best, "scripted")}
+    return {name: results[name].ci95() for name in ("random", best, "scripted", "full-information")}
 
 
 def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256, seed: int = 0) -> dict[str, float]:

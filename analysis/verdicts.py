@@ -1,0 +1,157 @@
+"""Claims of the paper checked against our measurements: each claim of a figure file gets a verdict.
+
+A claim is one table of a figure file's ``[[figure.claims]]``; its keys say what kind it is:
+
+* ``better = G``, ``than = H``: group G's final greedy return is above H's. Welch's one-sided t-test over seeds:
+  *reproduced* at p < 0.05, *partly* when G's mean is higher but not significantly, *not reproduced* otherwise.
+* ``group = G``, ``above_reference = R``: G's final return is above reference policy R's (one-sample t-test of
+  the seeds' returns against R's mean, the same verdicts).
+* ``group = G``, ``paper = x``: the paper's number beside ours; with ``comparable = false`` (another reward scale)
+  the verdict is *not comparable*, else *reproduced* when x lies in our 95 % CI, *partly* within twice it.
+* ``exponent = ALGO``, ``between = [lo, hi]``: the fitted exponent k of inference time ∝ N^k lies in [lo, hi].
+* ``metric = KEY`` (an analysis figure, Table 1) with ``above = "shuffled"`` (the figure beats its shuffled-pairs
+  baseline), ``above = 0``, or ``below = OTHER_KEY`` (e.g. the return with noise below the return with messages):
+  one-sided t-tests over the analysed checkpoints.
+
+The figure's verdict: *reproduced* when every claim is, *not reproduced* when none is even partly, else *partly*.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from convoy.stats import ci95_half
+
+REPRODUCED, PARTLY, NOT, NOT_COMPARABLE = "reproduced", "partly", "not reproduced", "not comparable"
+ALPHA = 0.05
+
+
+@dataclass
+class Verdict:
+    claim: str
+    paper: str
+    ours: str
+    verdict: str
+    why: str = ""
+
+
+def mean_ci(values: list[float]) -> str:
+    """``41.2 ± 3.1 (n=5)``."""
+    if not values:
+        return "–"
+    x = np.asarray(values, dtype=np.float64)
+    return f"{x.mean():.3g} ± {ci95_half(x, single=0.0):.2g} (n={len(x)})"
+
+
+def _finals(groups: dict[str, dict[str, Any]], name: str) -> list[float]:
+    group = groups.get(name)
+    if group is None:
+        raise KeyError(f"no group {name!r}; the sweep's groups: {', '.join(groups)}")
+    return [float(v) for v in group["final"]["values"]]
+
+
+def _one_sided(a: list[float], b: list[float] | float) -> tuple[float, float]:
+    """(difference of means, p-value) of ``mean(a) > mean(b)`` (Welch; one-sample against a number)."""
+    x = np.asarray(a, dtype=np.float64)
+    if isinstance(b, float | int):
+        diff = float(x.mean() - b)
+        if len(x) < 2 or x.std(ddof=1) == 0:
+            return diff, 0.0 if diff > 0 else 1.0
+        return diff, float(stats.ttest_1samp(x, b, alternative="greater").pvalue)
+    y = np.asarray(b, dtype=np.float64)
+    diff = float(x.mean() - y.mean())
+    if len(x) < 2 or len(y) < 2 or (x.std(ddof=1) == 0 and y.std(ddof=1) == 0):
+        return diff, 0.0 if diff > 0 else 1.0
+    return diff, float(stats.ttest_ind(x, y, equal_var=False, alternative="greater").pvalue)
+
+
+def _by_test(diff: float, p: float) -> tuple[str, str]:
+    if diff > 0 and p < ALPHA:
+        return REPRODUCED, f"p = {p:.3g} (one-sided t-test)"
+    if diff > 0:
+        return PARTLY, f"higher but not significantly: p = {p:.2g}"
+    return NOT, f"lower: difference {diff:.3g}, p = {p:.2g}"
+
+
+def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[str, Any]) -> Verdict:
+    """One claim's verdict from the summary's ``groups`` (by name) and ``extra`` (references, exponents, analysis
+    figures by key: lists of values over seeds)."""
+    text, paper = str(claim["text"]), str(claim.get("paper_says", claim.get("paper", "")))
+    try:
+        if "better" in claim:
+            a, b = _finals(groups, claim["better"]), _finals(groups, claim["than"])
+            if not a or not b:
+                return Verdict(text, paper, "no final returns yet", NOT, "a group has no completed job")
+            verdict, why = _by_test(*_one_sided(a, b))
+            return Verdict(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", verdict, why)
+        if "above_reference" in claim:
+            a = _finals(groups, claim["group"])
+            ref = extra.get("references", {}).get(claim["above_reference"])
+            if ref is None or not a:
+                return Verdict(text, paper, "no reference or no final returns", NOT, "nothing to compare")
+            verdict, why = _by_test(*_one_sided(a, float(ref)))
+            return Verdict(text, paper, f"{mean_ci(a)} vs {claim['above_reference']} {ref:.3g}", verdict, why)
+        if "group" in claim and "paper" in claim:
+            a = _finals(groups, claim["group"])
+            ours = mean_ci(a)
+            if not claim.get("comparable", True):
+                return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "another reward scale")))
+            x = np.asarray(a, dtype=np.float64)
+            gap, ci = abs(float(x.mean()) - float(claim["paper"])), ci95_half(x, single=0.0)
+            verdict = REPRODUCED if gap <= ci else PARTLY if gap <= 2 * ci else NOT
+            return Verdict(text, paper, ours, verdict, f"|ours − paper| = {gap:.3g}, CI {ci:.2g}")
+        if "exponent" in claim:
+            k = extra.get("exponents", {}).get(claim["exponent"])
+            lo, hi = (float(v) for v in claim["between"])
+            if k is None or not math.isfinite(k):
+                return Verdict(text, paper, "not measured", NOT, "no timing for this algorithm")
+            verdict = REPRODUCED if lo <= k <= hi else NOT
+            return Verdict(text, paper, f"k = {k:.2f}", verdict, f"expected {lo:g} ≤ k ≤ {hi:g}")
+        if "metric" in claim:
+            return _judge_metric(claim, text, paper, extra.get("analysis", {}))
+    except KeyError as exc:
+        return Verdict(text, paper, "–", NOT, str(exc.args[0]))
+    raise ValueError(f"claim {text!r}: no kind recognised (better/than, above_reference, paper, exponent, metric)")
+
+
+def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[str, dict[str, list[float]]]) -> Verdict:
+    key = claim["metric"]
+    if key not in figures or not figures[key]["value"]:
+        return Verdict(text, paper, "not measured", NOT, f"no analysis figure {key!r}")
+    values = figures[key]["value"]
+    ours = mean_ci(values)
+    above, below = claim.get("above"), claim.get("below")
+    if above == "shuffled":
+        base = [v for v in figures[key].get("shuffled", []) if v is not None]
+        if not base:
+            return Verdict(text, paper, ours, NOT, "no shuffled baseline")
+        diff = [v - s for v, s in zip(values, base, strict=False)]
+        verdict, why = _by_test(*_one_sided(diff, 0.0))
+        return Verdict(text, paper, f"{ours}; shuffled {mean_ci(base)}", verdict, why)
+    if above is not None:
+        verdict, why = _by_test(*_one_sided(values, float(above)))
+        return Verdict(text, paper, ours, verdict, why)
+    if below is not None:
+        other = figures.get(below, {}).get("value", [])
+        diff = [o - v for v, o in zip(values, other, strict=False)]
+        if not diff:
+            return Verdict(text, paper, ours, NOT, f"no figure {below!r}")
+        verdict, why = _by_test(*_one_sided(diff, 0.0))
+        return Verdict(text, paper, f"{ours} vs {mean_ci(other)}", verdict, why)
+    return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "a number only")))
+
+
+def figure_verdict(verdicts: list[Verdict]) -> str:
+    judged = [v.verdict for v in verdicts if v.verdict != NOT_COMPARABLE]
+    if not judged:
+        return NOT_COMPARABLE
+    if all(v == REPRODUCED for v in judged):
+        return REPRODUCED
+    if all(v == NOT for v in judged):
+        return NOT
+    return PARTLY

@@ -1,0 +1,450 @@
+"""``convoy reproduce``: run the paper's figures as sweeps through a job service and write ``docs/reproduction.md``.
+
+Each figure is one or more files in ``experiments/`` whose ``[figure]`` table says which figure (``id``), what the
+paper shows and which claims to check (``analysis/verdicts.py``). A sweep figure is submitted to the service (a
+local ``convoy serve`` on this machine unless ``--service URL``), followed until its jobs end and summarised; a
+benchmark figure (Fig. 4b, inference time) runs its benchmark script here; an analysis figure (Table 1) analyses
+the checkpoints of another figure's sweep. A sweep already in the service with the same request is reused (resumed
+when it was stopped), so running the command again continues where it stopped. Each figure's figures go to
+``docs/reproduction/ID.json`` and ``ID.png``; ``docs/reproduction.md`` is rendered from every JSON there, so figures
+measured in separate runs share one page.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import secrets
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from convoy.analysis.verdicts import figure_verdict, judge, mean_ci
+from convoy.api.models import SweepSubmit
+from convoy.services.args import add_command
+from convoy.services.jobs_cmd import Api, CliError, plain
+from convoy.services.sweep_file import read_file, sweep_body
+from convoy.validation import ConfigError, build_config
+
+FIGURES = ("fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1")
+SCALES = ("quick", "paper")
+POLL_S = 5.0
+PRINT_EVERY_S = 60.0
+out = Console()
+
+
+# --- figure files ------------------------------------------------------------------------------------------------
+
+
+def figure_files(folder: Path) -> dict[str, list[tuple[Path, dict[str, Any]]]]:
+    """The experiment files by figure id, in each figure's ``order``."""
+    figures: dict[str, list[tuple[int, Path, dict[str, Any]]]] = {}
+    for path in sorted(folder.glob("*.toml")):
+        data = read_file(path)
+        fig = data.get("figure") or {}
+        if "id" not in fig:
+            raise ConfigError(f"{path}: figure.id", "every experiment file names its figure, e.g. id = 'fig3'")
+        figures.setdefault(str(fig["id"]), []).append((int(fig.get("order", 0)), path, data))
+    return {k: [(p, d) for _, p, d in sorted(v, key=lambda t: t[0])] for k, v in figures.items()}
+
+
+# --- the service -------------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def local_service(data: Path, max_processes: int) -> Iterator[tuple[str, str]]:
+    """A ``convoy serve`` on a free loopback port over ``data`` for the length of the block: (url, token)."""
+    from convoy.protocol.session import free_port
+
+    port, token = free_port(), secrets.token_urlsafe(16)
+    data.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "convoy.services.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
+           "--data", str(data), "--max-processes", str(max_processes)]  # fmt: skip
+    with open(data / "serve.log", "ab") as log:
+        proc = subprocess.Popen(cmd, env={**os.environ, "CONVOY_API_TOKEN": token}, stdout=log, stderr=log)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        with Api(url, token, timeout=5) as api:
+            t_end = time.monotonic() + 60
+            while True:
+                if proc.poll() is not None:
+                    raise CliError("--service", f"the local service exited ({proc.returncode})", f"see {log.name}")
+                with contextlib.suppress(CliError):
+                    api.call("GET", "/healthz")
+                    break
+                if time.monotonic() > t_end:
+                    raise CliError("--service", "the local service did not start in 60 s", f"see {log.name}")
+                time.sleep(0.3)
+        plain(out, f"local job service at {url} (data {data}, log {log.name})")
+        yield url, token
+    finally:
+        proc.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(20)
+        if proc.poll() is None:
+            proc.kill()
+
+
+def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
+    """The summary of ``body``'s sweep once no job of it is queued or running: an existing sweep with the same
+    request is reused (resumed if stopped or failed), else it is submitted."""
+    spec = build_config(SweepSubmit, **body).model_dump(mode="json")
+    same = [s for s in api.call("GET", "/sweeps")["sweeps"] if s["spec"] == spec]
+    if same:
+        sweep = same[-1]
+        if sweep["state"] in ("stopped", "failed"):
+            sweep = api.call("POST", f"/sweeps/{sweep['id']}/resume")
+        plain(out, f"{label}: continuing sweep {sweep['id']} ({sweep['state']})")
+    else:
+        sweep = api.call("POST", "/sweeps", json=body)
+        plain(out, f"{label}: submitted sweep {sweep['id']} ({len(sweep['jobs'])} jobs)")
+    t0, said, last = time.monotonic(), "", 0.0
+    try:
+        while sweep["state"] == "running":
+            states = ", ".join(f"{n} {s}" for s, n in sorted(sweep["states"].items()))
+            text = f"{label}: {sweep['fraction']:.0%} of its env steps · {states}"
+            if text != said and time.monotonic() - last >= PRINT_EVERY_S:
+                plain(out, f"{text} · {(time.monotonic() - t0) / 60:.1f} min")
+                said, last = text, time.monotonic()
+            time.sleep(POLL_S)
+            sweep = api.call("GET", f"/sweeps/{sweep['id']}")
+    except KeyboardInterrupt:
+        api.call("POST", f"/sweeps/{sweep['id']}/stop")
+        plain(out, f"{label}: stopped sweep {sweep['id']}; the same command continues it")
+        raise
+    summary = api.call("GET", f"/sweeps/{sweep['id']}/summary")
+    summary["spec"] = spec
+    plain(out, f"{label}: sweep {sweep['id']} {sweep['state']} after {(time.monotonic() - t0) / 60:.1f} min")
+    return summary
+
+
+def references(api: Api, groups: list[dict[str, Any]]) -> dict[str, float]:
+    """The reference policies' returns the sweep's first completed job measured (the same env for every group)."""
+    for group in groups:
+        for job_id in group["jobs"]:
+            final = api.call("GET", f"/jobs/{job_id}").get("final") or {}
+            refs = final.get("references") or {}
+            if refs:
+                return {name: float(pair[0]) for name, pair in refs.items() if pair and pair[0] is not None}
+    return {}
+
+
+def resolve_links(node: Any, ctx: Context) -> Any:
+    """``"@fig3:algo=ma-mesn"`` → the checkpoint of that figure's group's best seed (on the service's host)."""
+    if isinstance(node, dict):
+        return {k: resolve_links(v, ctx) for k, v in node.items()}
+    if isinstance(node, list):
+        return [resolve_links(v, ctx) for v in node]
+    if isinstance(node, str) and node.startswith("@"):
+        fig, _, group = node[1:].partition(":")
+        plain(out, f"{ctx.current} needs {fig}'s {group} checkpoints: running {fig}'s sweep first (or reusing it)")
+        summary = ctx.sweep_summaries(fig)
+        members = next((g for g in summary if g["group"] == group), None)
+        if members is None or not members["final"]["values"]:
+            raise CliError(node, f"{fig} has no completed job in group {group!r}", f"run convoy reproduce {fig}")
+        best = members["jobs"][max(range(len(members["final"]["values"])), key=members["final"]["values"].__getitem__)]
+        path = ctx.api.call("GET", f"/jobs/{best}").get("last_checkpoint")
+        if not path:
+            raise CliError(node, f"job {best} has no checkpoint", f"see convoy jobs status {best}")
+        return path
+    return node
+
+
+# --- figures -----------------------------------------------------------------------------------------------------
+
+
+class Context:
+    """What every figure needs: the service, the scale, where results go, and the figure files."""
+
+    def __init__(self, api: Api, scale: str, files: dict[str, Any], docs: Path, work: Path) -> None:
+        self.api, self.scale, self.files, self.docs, self.work = api, scale, files, docs, work
+        self.current = ""
+        self._summaries: dict[str, list[dict[str, Any]]] = {}
+
+    def sweep_summaries(self, fig: str) -> list[dict[str, Any]]:
+        """Every group of figure ``fig``'s sweeps (run or reused), in file order."""
+        if fig not in self._summaries:
+            groups: list[dict[str, Any]] = []
+            for path, data in self.files[fig]:
+                if data["figure"].get("kind", "sweep") != "sweep":
+                    continue
+                body = resolve_links(sweep_body(data, self.scale, where=str(path)), self)
+                summary = run_sweep(self.api, body, f"{fig} [{self.scale}] {path.name}")
+                groups += [{**g, "sweep": summary["id"]} for g in summary["groups"]]
+            self._summaries[fig] = groups
+        return self._summaries[fig]
+
+
+def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
+    from convoy.analysis.curves import plot_groups
+
+    groups = ctx.sweep_summaries(fig)
+    refs = references(ctx.api, groups)
+    png = ctx.docs / f"{fig}.png"
+    if meta.get("plot") == "final_by":
+        plot_final_by(groups, meta, png)
+    else:
+        shown = {k: v for k, v in refs.items() if k != "random" or len(refs) == 1} if refs else {}
+        plot_groups(groups, png, f"{meta['title']} ({ctx.scale})", references=shown or refs,
+                    xlabel=meta.get("xlabel", "env steps"), ylabel=meta.get("ylabel", "greedy return"))  # fmt: skip
+    return {"groups": groups, "references": refs, "png": png.name, "extra": {"references": refs}}
+
+
+def plot_final_by(groups: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> None:
+    """Final return against one grid axis (``x``), one line per value of another (``lines``): Fig. 4a."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines: dict[str, list[tuple[float, float, float]]] = {}
+    for g in groups:
+        point, final = g["point"], g["final"]
+        if final["mean"] is None:
+            continue
+        lines.setdefault(str(point.get(meta["lines"])), []).append((point[meta["x"]], final["mean"], final["ci95"]))
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, pts in lines.items():
+        pts.sort()
+        xs, ys, cs = zip(*pts, strict=True)
+        ax.errorbar(xs, ys, yerr=cs, marker="o", capsize=3, label=name)
+    ax.set_xlabel(meta.get("xlabel", meta["x"]))
+    ax.set_ylabel(meta.get("ylabel", "final greedy return"))
+    ax.set_xscale("log", base=2)
+    ax.set_title(meta["title"])
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+
+
+def benchmark_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
+    """Run the figure's benchmark script here (``command`` at the scale) and read its fitted exponents."""
+    args = [str(a) for a in meta["scales"][ctx.scale]["command"]]
+    result, png = ctx.work / f"{fig}.json", ctx.docs / f"{fig}.png"
+    cmd = [sys.executable, *args, "--json", str(result), "--plot", str(png)]
+    plain(out, f"{fig} [{ctx.scale}]: {' '.join(cmd[1:])}")
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    data = json.loads(result.read_text())
+    exponents = {name: f.get("exponent_upper") for name, f in data["fits"].items()}
+    return {"groups": [], "references": {}, "png": png.name, "extra": {"exponents": exponents}, "benchmark": data}
+
+
+def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
+    """Table 1: analyse every checkpoint of another figure's group (``source``, ``group``) and collect each metric
+    over seeds."""
+    from convoy.algos.checkpoint import load_checkpoint
+    from convoy.analysis.comm_metrics import plot_figures
+    from convoy.analysis.recording import analyze
+    from convoy.services.training import make_env
+
+    opts = meta["scales"][ctx.scale]
+    group = next((g for g in ctx.sweep_summaries(meta["source"]) if g["group"] == meta["group"]), None)
+    if group is None:
+        raise CliError("figure.group", f"{meta['source']} has no group {meta['group']!r}", "fix the table1 file")
+    figures: dict[str, dict[str, list[Any]]] = {}
+    names: dict[str, str] = {}
+    last = None
+    for job_id in group["jobs"]:
+        path = ctx.work / "checkpoints" / f"{job_id}.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        resp = ctx.api.client.get(f"/jobs/{job_id}/checkpoints/checkpoint.pt")
+        if resp.status_code != 200:
+            continue
+        path.write_bytes(resp.content)
+        algo, job, _ = load_checkpoint(path, device="cpu")
+        env = make_env(job, int(opts.get("num_envs", 256)))
+        try:
+            steps = -(-int(opts["samples"]) // env.num_envs)
+            plain(out, f"{fig} [{ctx.scale}]: analysing {job_id} ({steps * env.num_envs:,} samples)")
+            last = analyze(algo, env, job.env, steps, int(opts["episodes"]), int(opts.get("seed", 12345)))
+        finally:
+            env.close()
+        for f in last.figures:
+            names[f.key] = f.name
+            entry = figures.setdefault(f.key, {"value": [], "shuffled": []})
+            entry["value"].append(f.value)
+            entry["shuffled"].append(f.shuffled)
+    png = ctx.docs / f"{fig}.png"
+    if last is not None:
+        plot_figures(last.figures, png, title=f"{last.title} (last seed analysed)")
+    return {"groups": [group], "references": {}, "png": png.name if last else None,
+            "extra": {"analysis": figures}, "analysis_names": names}  # fmt: skip
+
+
+def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
+    ctx.current = fig
+    meta = ctx.files[fig][0][1]["figure"]
+    kind = meta.get("kind", "sweep")
+    t0 = time.monotonic()
+    result = {"sweep": sweep_figure, "benchmark": benchmark_figure, "analysis": analysis_figure}[kind](ctx, fig, meta)
+    groups = result["groups"]
+    named = {g["group"]: g for g in groups}
+    verdicts = [judge(c, named, result["extra"]) for c in meta.get("claims", [])]
+    scales = [d.get("scales") or d["figure"].get("scales") or {} for _, d in ctx.files[fig]]
+    scale_notes = [s.get(ctx.scale, {}).get("note", "") for s in scales]
+    record = {
+        "id": fig,
+        "title": meta["title"],
+        "paper": meta.get("paper", ""),
+        "scale": ctx.scale,
+        "note": " ".join(n for n in scale_notes if n) or meta.get("note", ""),
+        "files": [str(p) for p, _ in ctx.files[fig]],
+        "command": f"convoy reproduce {fig} --scale {ctx.scale}",
+        "minutes": round((time.monotonic() - t0) / 60, 1),
+        "groups": [
+            {k: g[k] for k in ("group", "jobs", "states", "final", "sweep") if k in g} for g in result["groups"]
+        ],
+        "references": result["references"],
+        "verdicts": [v.__dict__ for v in verdicts],
+        "verdict": figure_verdict(verdicts),
+        "png": result["png"],
+    }
+    if "analysis_names" in result:
+        record["analysis"] = {
+            k: {"name": result["analysis_names"][k], **v} for k, v in result["extra"]["analysis"].items()
+        }
+    if "benchmark" in result:
+        record["exponents"] = result["extra"]["exponents"]
+    ctx.docs.mkdir(parents=True, exist_ok=True)
+    (ctx.docs / f"{fig}.json").write_text(json.dumps(record, indent=2) + "\n")
+    plain(out, f"{fig} [{ctx.scale}]: {record['verdict']} — wrote {ctx.docs / (fig + '.json')}")
+    return record
+
+
+# --- the page ----------------------------------------------------------------------------------------------------
+
+
+def render(docs: Path, page: Path) -> None:
+    """``page`` from every figure's JSON in ``docs``: an overview table, then one section per figure."""
+    records = {r["id"]: r for r in (json.loads(p.read_text()) for p in sorted(docs.glob("*.json")))}
+    rel = os.path.relpath(docs, page.parent)
+    lines = [
+        "# Reproducing the paper",
+        "",
+        "Each figure of the paper as a sweep through the job service, regenerated by the command under its heading",
+        "(`convoy reproduce FIGURE --scale quick|paper`; the sweep files are in `experiments/`). Returns are greedy",
+        "evaluations on fixed seeds; ± is the 95 % Student-t confidence interval over training seeds. Verdicts:",
+        "*reproduced* (every claim holds, one-sided t-tests at p < 0.05), *partly*, *not reproduced*; a number the",
+        "paper measured on another reward scale is *not comparable*. The `quick` scale is far below the paper's",
+        "budgets (each section says how far): a *not reproduced* there says what this budget shows, not that the",
+        "paper is wrong.",
+        "",
+        "| figure | what the paper claims | scale | verdict |",
+        "|---|---|---|---|",
+    ]
+    for fig in FIGURES:
+        if fig in records:
+            r = records[fig]
+            anchor = r["title"].lower().replace(" ", "-")
+            lines.append(f"| [{r['title']}](#{''.join(c for c in anchor if c.isalnum() or c == '-')}) | "
+                         f"{r['paper']} | {r['scale']} | **{r['verdict']}** |")  # fmt: skip
+        else:
+            lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
+    for fig in FIGURES:
+        if fig not in records:
+            continue
+        r = records[fig]
+        lines += ["", f"## {r['title']}", "", f"**Paper:** {r['paper']}", ""]
+        if r.get("note"):
+            lines += [f"**Ours ({r['scale']}):** {r['note']}", ""]
+        lines += [f"Regenerate: `{r['command']}` ({r['minutes']} min here; files: "
+                  f"{', '.join(f'`{f}`' for f in r['files'])})", ""]  # fmt: skip
+        if r.get("png"):
+            lines += [f"![{r['title']}]({rel}/{r['png']})", ""]
+        if r["groups"] and "analysis" not in r:
+            lines += ["| group | final greedy return | jobs |", "|---|---|---|"]
+            for g in r["groups"]:
+                states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
+                lines.append(f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |")
+            lines.append("")
+        if r.get("references"):
+            refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
+            lines += [f"References on the same evaluation episodes: {refs}.", ""]
+        if r.get("analysis"):
+            lines += ["| figure | ours, over seeds | shuffled baseline |", "|---|---|---|"]
+            for a in r["analysis"].values():
+                base = [v for v in a["shuffled"] if v is not None]
+                lines.append(f"| {a['name']} | {mean_ci(a['value'])} | {mean_ci(base) if base else '–'} |")
+            lines.append("")
+        if r.get("exponents"):
+            ks = ", ".join(f"{k} {v:.2f}" for k, v in r["exponents"].items() if v is not None)
+            lines += [f"Fitted exponent k of inference time ∝ N^k (upper half of N): {ks}.", ""]
+        lines += ["| claim | paper | ours | verdict |", "|---|---|---|---|"]
+        for v in r["verdicts"]:
+            why = f" ({v['why']})" if v.get("why") else ""
+            lines.append(f"| {v['claim']} | {v['paper']} | {v['ours']} | {v['verdict']}{why} |")
+        lines += ["", f"**Verdict: {r['verdict']}.**"]
+    page.write_text("\n".join(lines) + "\n")
+
+
+# --- the command -------------------------------------------------------------------------------------------------
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    """Run the paper's figures as sweeps and write docs/reproduction.md.
+
+    Run each FIGURE (default: all, in the order fig3 fig4a fig4b fig5 fig6 fig7 fig8 table1) at --scale through a
+    job service: a local `convoy serve` on --data unless --service URL, follow its sweeps to the end, check the
+    paper's claims (one-sided t-tests over seeds) and write --docs/FIGURE.json and .png, then render --page from
+    every figure there. A sweep already in the service with the same request is reused, so the command continues
+    after an interruption (Ctrl-C stops the running sweep; the same command resumes it).
+    """
+    folder = Path(args.experiments)
+    if not folder.is_dir():
+        raise ConfigError("--experiments", f"{folder} is not a folder; run from the repository root or name it")
+    files = figure_files(folder)
+    wanted = args.figures or [f for f in FIGURES if f in files]
+    for fig in wanted:
+        if fig not in files:
+            raise ConfigError("FIGURE", f"no experiment file for {fig!r}; known: {', '.join(sorted(files))}")
+    docs, page, work = Path(args.docs), Path(args.page), Path(args.data) / args.scale
+    with contextlib.ExitStack() as stack:
+        if args.service:
+            url, token = args.service, args.token or os.environ.get("CONVOY_API_TOKEN")
+        else:
+            url, token = stack.enter_context(local_service(work / "service", args.max_processes))
+        api = stack.enter_context(Api(url, token))
+        ctx = Context(api, args.scale, files, docs, work)
+        try:
+            for fig in wanted:
+                run_figure(ctx, fig)
+        except CliError as exc:
+            Console(stderr=True).print(f"[bold red]error:[/] {exc.line()}", highlight=False, soft_wrap=True)
+            return exc.code
+        finally:
+            render(docs, page)
+            plain(out, f"wrote {page}")
+    return 0
+
+
+def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "reproduce", cmd_reproduce)
+    p.add_argument("figures", nargs="*", metavar="FIGURE", help=f"figures to run: {', '.join(FIGURES)} (default all)")
+    p.add_argument("--scale", choices=SCALES, default="quick", help="quick (2 CPU cores) or paper (default: quick)")
+    p.add_argument("--service", metavar="URL", help="a running `convoy serve` (default: start a local one)")
+    p.add_argument("--token", help="its bearer token (default: $CONVOY_API_TOKEN)")
+    p.add_argument(
+        "--max-processes",
+        type=int,
+        default=max(3, (os.cpu_count() or 2) + 1),
+        metavar="N",
+        help="process budget of the local service (a job takes actors + 2; default: CPU count + 1, at least 3)",
+    )
+    p.add_argument(
+        "--experiments", default="experiments", metavar="DIR", help="the figure files (default: %(default)s)"
+    )
+    p.add_argument("--data", default="runs/reproduce", metavar="DIR", help="the local service's data and checkpoints "
+                   "analysed, per scale (default: %(default)s)")  # fmt: skip
+    p.add_argument("--docs", default="docs/reproduction", metavar="DIR", help="per-figure JSON and PNG "
+                   "(default: %(default)s)")  # fmt: skip
+    p.add_argument("--page", default="docs/reproduction.md", metavar="PATH", help="the page (default: %(default)s)")

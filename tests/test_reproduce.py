@@ -1,0 +1,86 @@
+"""``convoy reproduce`` end to end on a tiny figure file: a local service, the sweep, the claims' verdicts, the page;
+run again, it reuses the finished sweep instead of training anew."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from convoy.analysis.verdicts import NOT, NOT_COMPARABLE, PARTLY, REPRODUCED, Verdict, figure_verdict, judge
+from convoy.services.cli import main
+
+pytestmark = pytest.mark.timeout(600)
+
+FIGURE = """
+name = "tiny"
+[base]
+env = "referential"
+steps = 2000
+num_envs = 8
+eval_every = 1000
+eval_episodes = 16
+log_every = 500
+algo_params = { hidden = [32], learning_starts = 200 }
+[grid]
+algo = ["ma-mesn", "idqn"]
+seed = [0, 1]
+[scales.quick]
+note = "two seeds of 2,000 steps"
+[figure]
+id = "fig8"
+title = "Fig. 8: a tiny stand-in"
+paper = "messages help"
+claims = [
+  { text = "MA-MeSN above independent DQN", better = "algo=ma-mesn", than = "algo=idqn", paper_says = "yes" },
+  { text = "a number", group = "algo=idqn", paper = 0.5, comparable = false, paper_says = "0.5" },
+]
+"""
+
+
+def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp_path: Path) -> None:
+    (tmp_path / "exp").mkdir()
+    (tmp_path / "exp" / "fig8.toml").write_text(FIGURE)
+    argv = ["reproduce", "fig8", "--scale", "quick", "--experiments", str(tmp_path / "exp"), "--data",
+            str(tmp_path / "data"), "--docs", str(tmp_path / "docs" / "r"), "--page", str(tmp_path / "docs" / "r.md"),
+            "--max-processes", "3"]  # fmt: skip
+    assert main(argv) == 0
+    record = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
+    assert [g["group"] for g in record["groups"]] == ["algo=ma-mesn", "algo=idqn"]
+    assert all(g["final"]["n"] == 2 for g in record["groups"])
+    assert [v["verdict"] for v in record["verdicts"]][1] == NOT_COMPARABLE
+    assert record["verdict"] in (REPRODUCED, PARTLY, NOT)
+    assert (tmp_path / "docs" / "r" / "fig8.png").stat().st_size > 10_000
+    page = (tmp_path / "docs" / "r.md").read_text()
+    assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
+    assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
+    sweep = record["groups"][0]["sweep"]
+    # again: the same request is found in the service's store and reused, not trained anew
+    assert main(argv) == 0
+    again = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
+    assert again["groups"][0]["sweep"] == sweep and again["groups"] == record["groups"]
+
+
+def test_claims_get_verdicts_from_one_sided_tests() -> None:
+    groups = {
+        "a": {"final": {"values": [10.0, 11.0, 12.0, 10.5, 11.5]}},
+        "b": {"final": {"values": [5.0, 6.0, 5.5, 6.5, 5.0]}},
+        "c": {"final": {"values": [2.0, 13.0, 4.0, 9.0, 3.0]}},
+    }
+    assert judge({"text": "", "better": "a", "than": "b"}, groups, {}).verdict == REPRODUCED
+    assert judge({"text": "", "better": "c", "than": "b"}, groups, {}).verdict == PARTLY  # higher, not significant
+    assert judge({"text": "", "better": "b", "than": "a"}, groups, {}).verdict == NOT
+    refs = {"references": {"scripted": 8.0}}
+    assert judge({"text": "", "group": "a", "above_reference": "scripted"}, groups, refs).verdict == REPRODUCED
+    assert judge({"text": "", "group": "a", "paper": 11.0}, groups, {}).verdict == REPRODUCED
+    assert judge({"text": "", "group": "a", "paper": 30.0}, groups, {}).verdict == NOT
+    assert judge({"text": "", "exponent": "x", "between": [0.5, 1.5]}, groups, {"exponents": {"x": 1.1}}).verdict == (
+        REPRODUCED
+    )
+    missing = judge({"text": "", "better": "a", "than": "nope"}, groups, {})
+    assert missing.verdict == NOT and "no group 'nope'" in missing.why
+    figures = {"analysis": {"sc": {"value": [0.3, 0.32, 0.29], "shuffled": [0.1, 0.11, 0.09]}}}
+    assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, figures).verdict == REPRODUCED
+    v = [Verdict("", "", "", REPRODUCED), Verdict("", "", "", NOT), Verdict("", "", "", NOT_COMPARABLE)]
+    assert figure_verdict(v) == PARTLY and figure_verdict(v[:1]) == REPRODUCED and figure_verdict(v[1:]) == NOT
