@@ -16,7 +16,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from convoy.api.lifecycle import StoreError, UnknownJob, UnknownSweep
+from convoy.api.lifecycle import StoreError, UnknownEvaluation, UnknownJob, UnknownSweep
 from convoy.api.models import ErrorBody
 from convoy.config import ConfigError
 
@@ -155,6 +155,7 @@ def install_error_handlers(app: FastAPI) -> None:
         UnknownJob: (404, "id", "list the jobs with GET /jobs"),
         UnknownSweep: (404, "id", "list the sweeps with GET /sweeps"),
         StoreError: (409, "state", "check the job's state with GET /jobs/{id}"),
+        UnknownEvaluation: (404, "eval_id", "list the evaluations with GET /jobs/{id}/evaluations"),
         FileNotFoundError: (404, "name", "list the files with GET /jobs/{id}/checkpoints"),
     }.items():
         app.add_exception_handler(exc_type, _handler(status, field, fix))

@@ -87,6 +87,10 @@ class UnknownSweep(StoreError):
         super().__init__(f"sweep {sweep_id!r} not found")
 
 
+class UnknownEvaluation(FileNotFoundError):
+    """No evaluation of that id for the job (the API maps this to 404)."""
+
+
 @dataclass(frozen=True)
 class SweepRecord:
     """One sweep as stored: its request (``spec``) and its jobs in grid order, each ``{"id", "point"}``."""

@@ -165,12 +165,37 @@ class JobResume(JsonBody):
 
 
 class EvalRequest(JsonBody):
-    """``POST /jobs/{id}/evaluate``: greedy episodes of the job's last checkpoint (``convoy eval``)."""
+    """``POST /jobs/{id}/evaluate``: greedy episodes of a checkpoint of the job (``convoy eval``), in the
+    background."""
 
     episodes: int = Field(100, ge=1, le=5_000, description="Greedy episodes.")
     messages: MessageSource = Field("sent", description="What the agents hear.")
     channel: str | None = Field(None, max_length=200, description="Lossy channel, e.g. drop=0.3,flip=0.01.")
     seed: int = Field(12345, ge=0, le=2**31 - 1, description="Seed of the evaluation envs.")
+    checkpoint: str = Field(
+        "checkpoint.pt",
+        pattern=r"^[A-Za-z0-9_.-]{1,128}\.pt$",
+        description="Which checkpoint: checkpoint.pt (the last) or best.pt (the best greedy point).",
+    )
+
+
+class EvaluationView(BaseModel):
+    """An evaluation of a job's checkpoint, run in the background (``POST /jobs/{id}/evaluate``)."""
+
+    id: str
+    job: str
+    state: str = Field(description="running, completed or failed.")
+    request: dict[str, Any]
+    created_at: float
+    finished_at: float | None = None
+    result: dict[str, Any] | None = Field(
+        None, description="mean_return and its ci95 over the episodes, random_return beside them."
+    )
+    error: str | None = Field(None, description="Why it failed: the last line of its log.")
+
+
+class EvaluationList(BaseModel):
+    evaluations: list[EvaluationView]
 
 
 class Progress(BaseModel):

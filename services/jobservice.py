@@ -51,7 +51,9 @@ from convoy.protocol.session import (
     read_credentials,
     write_credentials,
 )
+from convoy.services import evaluations
 from convoy.services.jobrunner import AliveSet, MetricReports
+from convoy.services.procs import pid_alive
 from convoy.services.store import JobStore
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
@@ -59,20 +61,6 @@ SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # ev
 PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 STOP_GRACE_S = 20.0
 CREDENTIALS_FILE = "zenoh-credentials"  # in the job's directory: its usrpwd dictionary (0600)
-
-
-def pid_alive(pid: int | None) -> bool:
-    """Whether ``pid`` is a live (not zombie) process."""
-    if not pid:
-        return False
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, PermissionError):
-        return False
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except (OSError, IndexError):
-        return True
 
 
 def say(line: str) -> None:
@@ -270,30 +258,22 @@ class JobService:
         return path
 
     def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]:
-        from convoy.algos.checkpoint import load_checkpoint
-        from convoy.algos.errors import CheckpointError
-        from convoy.analysis.evaluation import evaluate_policy
-        from convoy.services.training import make_env
+        """Start ``convoy eval`` of the job's checkpoint as its own process (``services/evaluations.py``)."""
+        with self._lock:
+            running = sum(
+                e["state"] == "running"
+                for rec in self.store.list()
+                for e in evaluations.listing(self._out(rec.id), rec.id)
+            )
+            started = evaluations.start(self._out(job_id), job_id, request, running, self.python)
+        say(f"job {job_id}: evaluation {started['id']} started ({request.episodes} episodes, {request.messages})")
+        return started
 
-        path = self._out(job_id) / "checkpoint.pt"
-        try:
-            algo, job, counters = load_checkpoint(path, device="cpu")
-        except CheckpointError as exc:
-            raise ConfigError("checkpoint", f"{exc}") from None
-        env = make_env(job, min(request.episodes, 256))
-        try:
-            res = evaluate_policy(algo, env, request.episodes, request.seed, request.messages, request.channel)
-        finally:
-            env.close()
-        return {
-            "job": job_id,
-            "checkpoint_env_steps": counters.get("env_steps"),
-            "episodes": request.episodes,
-            "messages": request.messages,
-            "channel": request.channel,
-            "mean_return": res.mean,
-            "ci95": res.ci95,
-        }
+    def evaluations(self, job_id: str) -> list[dict[str, Any]]:
+        return evaluations.listing(self._out(job_id), job_id)
+
+    def evaluation(self, job_id: str, eval_id: str) -> dict[str, Any]:
+        return evaluations.find(self._out(job_id), job_id, eval_id)
 
     def close(self) -> None:
         """Stop watching (the jobs keep running; a restarted service reattaches them)."""

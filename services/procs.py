@@ -23,6 +23,7 @@ import time
 import zlib
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from convoy.config import JobConfig
@@ -35,6 +36,20 @@ from convoy.protocol.session import ZenohSettings
 PRELOAD = ["convoy.actors.actor", "convoy.algos.agent", "convoy.learner.service", "torch._dynamo"]
 SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
 MAX_BACKOFF_S = 30.0
+
+
+def pid_alive(pid: int | None) -> bool:
+    """Whether ``pid`` is a live (not zombie) process."""
+    if not pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def _context() -> Any:

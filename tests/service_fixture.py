@@ -95,10 +95,16 @@ class Service:
 
     def wait(self, job_id: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3) -> dict[str, Any]:
         """Poll GET /jobs/{id} until ``pred(view)``; the last view otherwise (with a clear assertion)."""
+        return self.wait_for(f"/jobs/{job_id}", pred, timeout, what, every)
+
+    def wait_for(
+        self, url: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3
+    ) -> dict[str, Any]:
+        """Poll GET ``url`` until ``pred(answer)``; a clear assertion with the last answer otherwise."""
         t_end = time.monotonic() + timeout
         view: dict[str, Any] = {}
         while time.monotonic() < t_end:
-            view = self.client.get(f"/jobs/{job_id}").json()
+            view = self.client.get(url).json()
             if pred(view):
                 return view
             time.sleep(every)

@@ -79,8 +79,15 @@ def test_submit_scale_stop_resume_and_fetch_a_checkpoint(tmp_path: Path) -> None
         blob = svc.client.get(f"/jobs/{job}/checkpoints/checkpoint.pt")
         assert blob.status_code == 200 and zipfile.is_zipfile(io.BytesIO(blob.content))  # a torch.save archive
 
-        ev = svc.client.post(f"/jobs/{job}/evaluate", json={"episodes": 8}, headers=AUTH)
-        assert ev.status_code == 200 and ev.json()["episodes"] == 8 and ev.json()["checkpoint_env_steps"] > at_stop
+        t0 = time.monotonic()  # an evaluation answers at once and runs in its own process
+        ev = svc.client.post(f"/jobs/{job}/evaluate", json={"episodes": 8, "checkpoint": "best.pt"}, headers=AUTH)
+        assert ev.status_code == 202 and ev.json()["state"] == "running" and time.monotonic() - t0 < 5, ev.text
+        url = f"/jobs/{job}/evaluations/{ev.json()['id']}"
+        done = svc.wait_for(url, lambda v: v["state"] != "running", what="the evaluation")
+        assert done["state"] == "completed" and done["result"]["episodes"] == 8, done
+        assert done["result"]["checkpoint"].endswith("best.pt") and done["request"]["checkpoint"] == "best.pt"
+        assert svc.client.get(f"/jobs/{job}/evaluations").json()["evaluations"] == [done]
+        assert svc.client.get(f"/jobs/{job}/evaluations/abcdef").status_code == 404
 
         assert svc.client.get("/jobs", params={"state": "completed"}).json()["jobs"][0]["id"] == job
         output = svc.client.get(f"/jobs/{job}/logs", params={"lines": 50}).json()["lines"]

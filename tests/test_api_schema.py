@@ -39,7 +39,7 @@ pytestmark = pytest.mark.timeout(240)
 
 MAX_EXAMPLES = 100
 MIN_CASES = 1000
-N_OPERATIONS = 22  # every route in /openapi.json (the dashboard and /static are not in the schema)
+N_OPERATIONS = 24  # every route in /openapi.json (the dashboard and /static are not in the schema)
 CASES: Counter[str] = Counter()
 
 
@@ -281,6 +281,8 @@ def test_wrong_token(service: Service, queued_job: str, header: str) -> None:
         ("GET", "/jobs/{id}/checkpoints", None),
         ("GET", "/jobs/{id}/checkpoints/checkpoint.pt", None),
         ("POST", "/jobs/{id}/evaluate", {"episodes": 2}),
+        ("GET", "/jobs/{id}/evaluations", None),
+        ("GET", "/jobs/{id}/evaluations/abcdef", None),
         ("GET", "/jobs/{id}/logs", None),
     ],
 )
@@ -369,6 +371,7 @@ def test_evaluate_without_a_checkpoint(service: Service, queued_job: str) -> Non
     assert_error(service.client.post(path, json={"episodes": 2}, headers=AUTH), 422, "checkpoint")
     assert_error(service.client.post(path, json={"episodes": 0}, headers=AUTH), 422, "episodes")
     assert_error(service.client.post(path, json={"messages": "shouted"}, headers=AUTH), 422, "messages")
+    assert_error(service.client.post(path, json={"checkpoint": "../x.pt"}, headers=AUTH), 422, "checkpoint")
 
 
 def test_events_of_a_queued_job_close_after_the_timeout(service: Service, queued_job: str) -> None:

@@ -10,7 +10,16 @@ from fastapi.responses import FileResponse, Response
 
 from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
 from convoy.api.lifecycle import JobState
-from convoy.api.models import EvalRequest, JobList, JobPatch, JobResume, JobSubmit, JobView
+from convoy.api.models import (
+    EvalRequest,
+    EvaluationList,
+    EvaluationView,
+    JobList,
+    JobPatch,
+    JobResume,
+    JobSubmit,
+    JobView,
+)
 
 router = APIRouter(tags=["jobs"])
 CONTROL = Depends(control_of)
@@ -84,9 +93,27 @@ def download(
     return FileResponse(path, media_type="application/octet-stream", filename=name)
 
 
-@router.post("/jobs/{job_id}/evaluate", tags=["jobs"], dependencies=AUTH)
+@router.post("/jobs/{job_id}/evaluate", status_code=202, response_model=EvaluationView, tags=["jobs"],
+             dependencies=AUTH)  # fmt: skip
 def evaluate(
     body: EvalRequest, job_id: str = PathParam(..., pattern=JOB_ID), control: JobControl = CONTROL
-) -> dict[str, Any]:
+) -> EvaluationView:
+    """Start greedy episodes of the job's checkpoint in their own process; follow them at the evaluation's URL."""
     control.store.get(job_id)
-    return finite(control.evaluate(job_id, body))
+    return EvaluationView(**finite(control.evaluate(job_id, body)))
+
+
+@router.get("/jobs/{job_id}/evaluations", response_model=EvaluationList, tags=["jobs"])
+def evaluations(job_id: str = PathParam(..., pattern=JOB_ID), control: JobControl = CONTROL) -> EvaluationList:
+    control.store.get(job_id)
+    return EvaluationList(evaluations=[EvaluationView(**finite(e)) for e in control.evaluations(job_id)])
+
+
+@router.get("/jobs/{job_id}/evaluations/{eval_id}", response_model=EvaluationView, tags=["jobs"])
+def evaluation(
+    job_id: str = PathParam(..., pattern=JOB_ID),
+    eval_id: str = PathParam(..., pattern=r"^[0-9a-f]{6}$"),
+    control: JobControl = CONTROL,
+) -> EvaluationView:
+    control.store.get(job_id)
+    return EvaluationView(**finite(control.evaluation(job_id, eval_id)))
