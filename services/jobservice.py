@@ -57,6 +57,7 @@ from convoy.services.procs import pid_alive
 from convoy.services.store import JobStore
 
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
+HOST_EVENT = re.compile(r"^\[h-[^\]]+\] ((?:crashed|respawned|backoff|failed) .*)")  # services/host.py's events
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
 PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 STOP_GRACE_S = 20.0
@@ -80,6 +81,21 @@ class Tracked:
         self.stop_asked: float | None = None
         self.ckpt_mtime = 0.0
         self.reports = MetricReports()
+        log = Path(rec.out_dir or "") / "host.log"
+        self.log, self.log_offset = log, log.stat().st_size if log.is_file() else 0  # only what happens from now
+
+    def process_events(self) -> list[str]:
+        """The host's new crash, respawn, back-off and failure lines (``[h-ID] crashed actor-3 exit code -9``)."""
+        try:
+            with self.log.open("rb") as fh:
+                fh.seek(self.log_offset)
+                data = fh.read()
+        except OSError:
+            return []
+        end = data.rfind(b"\n") + 1  # whole lines only; the rest next time
+        self.log_offset += end
+        lines = data[:end].decode(errors="replace").splitlines()
+        return [m[1] for m in map(HOST_EVENT.match, lines) if m]
 
     def exited(self) -> int | None:
         """The host's exit code once it has exited (−1 when it was not our child), else None."""
@@ -299,6 +315,8 @@ class JobService:
             if not self.store.exists(job_id):
                 continue
             self._ingest(job_id, tracked)
+            for event in tracked.process_events():
+                say(f"job {job_id}: {event}")
             rec = self.store.get(job_id)
             if rec.state == JobState.starting and tracked.alive.count("learner"):
                 rec = self._move(job_id, JobState.running, "learner alive")

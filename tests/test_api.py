@@ -12,6 +12,9 @@ import io
 import itertools
 import json
 import math
+import os
+import re
+import signal
 import time
 import zipfile
 from pathlib import Path
@@ -273,5 +276,40 @@ def test_a_process_without_the_jobs_credential_cannot_command_it(tmp_path: Path)
         time.sleep(3.0)
         view = svc.client.get(f"/jobs/{job}").json()
         assert view["actors"] == 2 and view["actors_alive"] == 2, view
+    finally:
+        svc.stop()
+
+
+def role_pids(host_pid: int) -> list[int]:
+    """The job's learner and actors: forkserver children in the host's process group."""
+    procs: dict[int, tuple[int, int, str]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+                cmd = (entry / "cmdline").read_bytes().decode(errors="replace")
+            except OSError:
+                continue
+            procs[int(entry.name)] = (int(stat[1]), int(stat[2]), cmd)  # ppid, pgid, command line
+    forked = [p for p, (ppid, pgid, cmd) in procs.items() if pgid == host_pid and "forkserver" in cmd]
+    return [p for p in forked if "forkserver" in procs.get(procs[p][0], (0, 0, ""))[2]]
+
+
+def test_the_service_log_tells_of_a_crash_and_the_respawn(tmp_path: Path) -> None:
+    svc = Service(tmp_path / "svc").start()
+    try:
+        job = submit(svc, steps=2_000_000, actors=1)
+        view = svc.wait(job, lambda v: v["state"] == "running" and v["actors_alive"] == 1, what="running")
+        roles = role_pids(int(svc.host_pids()[0]))
+        assert len(roles) == 2, roles  # the learner and one actor
+        os.kill(max(roles), signal.SIGKILL)
+        log = tmp_path / f"serve-{svc.port}.log"
+        t_end = time.monotonic() + 60
+        while not re.search(rf"job {job}: respawned h-{job}\.", log.read_text()):
+            assert time.monotonic() < t_end, log.read_text()
+            time.sleep(0.3)
+        text = log.read_text()
+        assert re.search(rf"\d\d:\d\d:\d\d job {job}: crashed h-{job}\.\w+-\d+ exit code -9", text), text
+        assert view["state"] == "running"
     finally:
         svc.stop()
