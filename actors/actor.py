@@ -96,7 +96,7 @@ class Actor:
         # the actor's own seed for exploration too (make_agent seeds the ε-greedy generator with the job's seed)
         algo = make_agent(job.model_copy(update={"seed": self.seed}), env.spec, device=rt.actor_device)
         cfg = job.algo_config()
-        t_len = algo.chunk_len if algo.chunk_len > 1 else rt.publish_steps
+        t_len = rt.chunk_len(algo.chunk_len)
         version = -1
         budget: wire.Message | None = None
         sent_since_budget = 0

@@ -447,10 +447,16 @@ class RuntimeConfig(BaseModel):
     )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 
-    def slack(self, num_envs: int) -> int:
+    def chunk_len(self, algo_chunk_len: int) -> int:
+        """Env steps per published chunk: the algorithm's own sequence length where it has one (DIAL's unroll),
+        else ``publish_steps``."""
+        return algo_chunk_len if algo_chunk_len > 1 else self.publish_steps
+
+    def slack(self, num_envs: int, chunk_len: int) -> int:
         """``slack_steps``, or two chunks per actor: enough to keep actors busy while the learner takes in a chunk,
-        small enough that queued data does not age into policy lag (4096 steps gave ~70 updates of lag)."""
-        return self.slack_steps or 2 * self.actors * self.publish_steps * num_envs
+        small enough that queued data does not age into policy lag (4096 steps gave ~70 updates of lag). Never less
+        than one chunk, which an actor sends whole: a smaller slack would never let it send."""
+        return max(self.slack_steps or 2 * self.actors * chunk_len * num_envs, chunk_len * num_envs)
 
 
 class JobConfig(BaseModel):

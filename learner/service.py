@@ -192,8 +192,8 @@ class Learner:
         last_weights_version = -1
         lags: list[float] = []
         ingested_chunks = 0
-        chunk_steps = job.num_envs * rt.publish_steps
-        slack = rt.slack(job.num_envs)
+        chunk_steps = job.num_envs * rt.chunk_len(algo.chunk_len)
+        slack = rt.slack(job.num_envs, rt.chunk_len(algo.chunk_len))
 
         def allowance() -> int:
             """Steps actors may have sent: chunks still queued count as taken, so actors wait while the learner

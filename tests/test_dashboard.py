@@ -62,3 +62,71 @@ def test_dashboard_shows_a_growing_curve_and_scales_a_job(tmp_path: Path) -> Non
         assert shot.stat().st_size > 10_000
     finally:
         svc.stop()
+
+
+SWEEP = {
+    "name": "dash",
+    "base": {"env": "referential", "steps": 3_000, "num_envs": 8, "eval_every": 1_000, "eval_episodes": 16,
+             "log_every": 500, "checkpoint_every": 1_000, "algo_params": {"hidden": [32], "learning_starts": 200}},
+    "grid": {"algo": ["ma-mesn", "idqn"], "seed": [0, 1]},
+}  # fmt: skip
+
+
+def test_dashboard_draws_a_sweep_with_ci_bands_and_acts_on_a_finished_job(tmp_path: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    svc = Service(tmp_path / "svc", max_processes=3).start()
+    try:
+        sweep = svc.client.post("/sweeps", json=SWEEP, headers=AUTH).json()
+        sid, first = sweep["id"], sweep["jobs"][0]["id"]
+        svc.wait_for(f"/sweeps/{sid}", lambda v: v["state"] == "completed", timeout=240, what="the sweep")
+        errors: list[str] = []
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 1100})
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.on("dialog", lambda dialog: dialog.accept())  # the Delete button asks first
+            page.goto(svc.url + "/")
+            page.fill("#token", TOKEN)
+
+            # the sweep: two groups, each a mean curve with its CI band; a ticked job overlays its own curve
+            page.click(f'#sweeps [data-sweep-id="{sid}"]')
+            page.wait_for_function("window.convoy.sweep.groups === 2 && window.convoy.sweep.bands === 2")
+            legend = page.inner_text("#sweep-legend")
+            assert "algo=ma-mesn (n=2)" in legend and "algo=idqn (n=2)" in legend, legend
+            page.click(f'#jobs [data-job-id="{first}"] input[type=checkbox]')
+            page.wait_for_function("window.convoy.sweep.overlays === 1")
+            shot = (
+                DOCS / "dashboard-sweep.png"
+                if os.environ.get("CONVOY_UPDATE_SCREENSHOT") == "1"
+                else tmp_path / "s.png"
+            )
+            page.locator("#sweeps-card").screenshot(path=str(shot))
+
+            # a finished job: its final evaluation, its checkpoints to download, its log, a new evaluation
+            page.click(f'#jobs [data-job-id="{first}"] td.id')
+            page.wait_for_function(f"window.convoy.selected === {first!r}")
+            page.wait_for_selector("#job-final:not([hidden])")
+            assert "final greedy return" in page.inner_text("#job-final")
+            page.wait_for_selector('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
+            page.click("#logs-box summary")
+            page.wait_for_function("window.convoy.logs > 0")
+            page.fill("#eval-episodes", "8")
+            page.click("#eval-btn")
+            page.wait_for_function("window.convoy.evaluation && window.convoy.evaluation.state === 'completed'",
+                                   timeout=60_000)  # fmt: skip
+            assert "over 8 episodes" in page.inner_text("#eval-status")
+
+            # resume it (a completed job continues past its budget: at once complete again), then delete it
+            page.click("#resume-btn")
+            page.wait_for_function("document.querySelector('#message').textContent.includes('resumed')")
+            svc.wait(first, lambda v: v["state"] == "completed", timeout=120, what="the resumed job")
+            page.wait_for_function("document.querySelector('#job-state').textContent === 'completed'")
+            page.click("#delete-btn")
+            page.wait_for_selector(f'#jobs [data-job-id="{first}"]', state="detached")
+            browser.close()
+        assert svc.client.get(f"/jobs/{first}").status_code == 404
+        assert not errors, errors
+        assert shot.stat().st_size > 10_000
+    finally:
+        svc.stop()

@@ -112,6 +112,18 @@ def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) ->
     assert dist["dropped"] == 0
 
 
+@pytest.mark.parametrize("slack", [None, 1])
+def test_dial_runs_distributed_with_chunks_of_its_unroll(tmp_path: Path, slack: int | None) -> None:
+    """DIAL's chunk is its unroll (32 steps × 32 envs here), longer than the default slack of 2 × 8-step chunks
+    implies: the flow control must let one whole chunk through, with the default slack and with a tiny one."""
+    runtime = {"actors": 1, "slack_steps": slack}
+    job = job_config(algo="dial", steps=4_000, seed=0, runtime=runtime, **{**REFERENTIAL, "eval_episodes": 0})
+    assert job.runtime.slack(job.num_envs, job.runtime.chunk_len(32)) >= 32 * job.num_envs
+    with Background(JobRunner("dial", job, tmp_path / "dial", progress=False)) as bg:
+        result = bg.join(120)
+    assert result["env_steps"] >= 4_000 and result["updates"] > 0, result
+
+
 def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Path) -> None:
     job = job_config(algo="idqn", steps=200_000, seed=1, runtime={"actors": 2}, **TREADMILL)
     runner = JobRunner("killactor", job, tmp_path, progress=False)

@@ -7,6 +7,8 @@ const TERMINAL = new Set(["stopped", "completed", "failed"]);
 const TOKEN_KEY = "convoy-token";
 const JOBS_EVERY_MS = 2000;
 const METRICS_EVERY_MS = 1000;
+const SWEEPS_EVERY_MS = 3000;
+const LOGS_EVERY_MS = 5000;
 
 const $ = (id) => document.getElementById(id);
 
@@ -21,9 +23,22 @@ const state = {
   metricsDrained: false, // terminal job and nothing new came back
   requestedShown: null,  // requested actors last written into #actors-input
   offline: false,
+  sweeps: [],
+  sweep: null,           // selected sweep id
+  summary: null,         // its latest summary
+  compare: new Set(),    // job ids ticked for the comparison chart
+  compareSeries: {},     // job id -> [[env_steps, eval_return], ...]
+  evaluation: null,      // [job id, evaluation id] being followed
+  checkpointShown: null, // last_checkpoint the download links were made for
 };
 
-window.convoy = { points: Object.fromEntries(METRICS.map((m) => [m, 0])), selected: null };
+window.convoy = {
+  points: Object.fromEntries(METRICS.map((m) => [m, 0])),
+  selected: null,
+  sweep: { id: null, groups: 0, bands: 0, overlays: 0 },
+  evaluation: null,
+  logs: 0,
+};
 
 // ---------------------------------------------------------------- formatting
 
@@ -262,7 +277,13 @@ function renderJobs() {
     tr.dataset.jobId = job.id;
     if (job.id === state.selected) tr.className = "selected";
     const p = job.progress || {};
+    const box = document.createElement("input");
+    box.type = "checkbox";
+    box.checked = state.compare.has(job.id);
+    box.title = "overlay this job's greedy curve on the sweep chart";
+    box.addEventListener("click", (e) => { e.stopPropagation(); toggleCompare(job.id, box.checked); });
     tr.append(
+      cell(box),
       cell(job.id, "id"),
       cell(`${job.algo} on ${job.env}`),
       cell(badge(job)),
@@ -278,7 +299,7 @@ function renderJobs() {
     const tr = document.createElement("tr");
     tr.className = "empty";
     tr.appendChild(cell("no jobs yet"));
-    tr.firstChild.colSpan = 7;
+    tr.firstChild.colSpan = 8;
     rows.push(tr);
   }
   tbody.replaceChildren(...rows);
@@ -336,9 +357,62 @@ function updatePanel(job) {
   const active = ACTIVE.has(job.state);
   $("scale-btn").disabled = !active;
   $("stop-btn").disabled = !active;
+  $("resume-btn").disabled = !TERMINAL.has(job.state);
+  $("delete-btn").disabled = false;
+  $("eval-btn").disabled = !job.last_checkpoint;
+  if (job.error) errEl.textContent = `${job.error}\n→ read the process log below; Resume continues from the last checkpoint.`;
+  const final = job.final;
+  $("job-final").hidden = !final;
+  if (final) {
+    const refs = Object.entries(final.references || {}).map(([k, v]) => `${k} ${fmtValue(v && v[0])}`).join(", ");
+    $("job-final").textContent = `final greedy return ${fmtValue(final.eval_return)} ± ${fmtValue(final.eval_ci95)}` +
+      (final.best_eval_return != null ? ` (best ${fmtValue(final.best_eval_return)} at ${fmtCount(final.best_eval_step)})` : "") +
+      (refs ? `; ${refs}` : "");
+  }
+  if (job.last_checkpoint !== state.checkpointShown) {
+    state.checkpointShown = job.last_checkpoint;
+    refreshDownloads(job.id);
+  }
+}
+
+async function refreshDownloads(id) {
+  try {
+    const data = await api(`${jobPath(id)}/checkpoints`);
+    if (id !== state.selected) return;
+    const links = (data.checkpoints || []).map((c) => {
+      const a = document.createElement("a");
+      a.href = `${jobPath(id)}/checkpoints/${encodeURIComponent(c.name)}`;
+      a.download = `${id}-${c.name}`;
+      a.textContent = `${c.name} (${fmtCount(c.bytes)} B)`;
+      return a;
+    });
+    $("job-downloads").replaceChildren(...(links.length ? links : [document.createTextNode("no checkpoint yet")]));
+  } catch (err) {
+    if (!(err instanceof ApiError)) setOffline(true, err);
+  }
+}
+
+async function refreshLogs() {
+  const id = state.selected;
+  if (id == null || !$("logs-box").open) return;
+  try {
+    const data = await api(`${jobPath(id)}/logs?lines=200`);
+    if (id !== state.selected) return;
+    const pre = $("job-logs");
+    const atBottom = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+    pre.textContent = (data.lines || []).join("\n") || "(nothing logged yet)";
+    if (atBottom) pre.scrollTop = pre.scrollHeight;
+    window.convoy.logs = (data.lines || []).length;
+  } catch (err) {
+    if (!(err instanceof ApiError)) setOffline(true, err);
+  }
 }
 
 function resetPanel() {
+  state.checkpointShown = undefined;
+  $("job-downloads").textContent = "–";
+  $("job-logs").textContent = "–";
+  $("eval-status").textContent = "";
   state.series = Object.fromEntries(METRICS.map((m) => [m, []]));
   state.lastStep = null;
   state.metricsDrained = false;
@@ -358,6 +432,7 @@ function selectJob(id) {
   redrawCharts();
   api(jobPath(id)).then(updatePanel).catch((err) => showMessage(`Could not load job ${id}: ${err.message}`));
   pollMetrics();
+  refreshLogs();
 }
 
 // ---------------------------------------------------------------- metrics polling (incremental)
@@ -430,6 +505,214 @@ async function stopJob() {
   }
 }
 
+async function resumeJob() {
+  const id = state.selected;
+  if (id == null) return;
+  try {
+    const job = await api(`${jobPath(id)}/resume`, { method: "POST", body: {}, auth: true });
+    replaceJob(job);
+    showMessage(`Job ${id}: resumed from its last checkpoint (${job.state}).`, "info");
+  } catch (err) {
+    showMessage(`Resume failed — ${err.message}`);
+  }
+}
+
+async function deleteJob() {
+  const id = state.selected;
+  if (id == null || !window.confirm(`Delete job ${id} with its history, metrics and files?`)) return;
+  try {
+    await api(jobPath(id), { method: "DELETE", auth: true });
+    state.jobs = state.jobs.filter((j) => j.id !== id);
+    state.compare.delete(id);
+    state.selected = null;
+    state.gen += 1;
+    resetPanel();
+    $("job-title").textContent = "no job selected";
+    $("job-state").textContent = "";
+    renderJobs();
+    redrawCharts();
+    showMessage(`Deleted job ${id}.`, "info");
+  } catch (err) {
+    showMessage(`Delete failed — ${err.message}`);
+  }
+}
+
+async function evaluateJob() {
+  const id = state.selected;
+  if (id == null) return;
+  const body = {
+    episodes: Number($("eval-episodes").value),
+    messages: $("eval-messages").value,
+    checkpoint: $("eval-checkpoint").value,
+  };
+  try {
+    const ev = await api(`${jobPath(id)}/evaluate`, { method: "POST", body, auth: true });
+    state.evaluation = [id, ev.id];
+    $("eval-status").textContent = `evaluation ${ev.id}: running ${body.episodes} episodes…`;
+  } catch (err) {
+    showMessage(`Evaluate failed — ${err.message}`);
+  }
+}
+
+async function pollEvaluation() {
+  if (!state.evaluation) return;
+  const [id, evalId] = state.evaluation;
+  try {
+    const ev = await api(`${jobPath(id)}/evaluations/${evalId}`);
+    if (ev.state === "running") return;
+    state.evaluation = null;
+    window.convoy.evaluation = ev;
+    const text = ev.state === "completed"
+      ? `evaluation ${ev.id}: ${fmtValue(ev.result.mean_return)} ± ${fmtValue(ev.result.ci95)} over ${ev.result.episodes} episodes ` +
+        `(${ev.result.messages}; random ${fmtValue(ev.result.random_return)})`
+      : `evaluation ${ev.id} failed: ${ev.error}`;
+    if (id === state.selected) $("eval-status").textContent = text;
+    showMessage(`Job ${id}: ${text}`, ev.state === "completed" ? "info" : "error");
+  } catch (err) {
+    if (!(err instanceof ApiError)) setOffline(true, err);
+  }
+}
+
+// ---------------------------------------------------------------- sweeps and comparisons
+
+const PALETTE = ["#1d3f8f", "#d9822b", "#2e9d5b", "#c93c3c", "#8b5cf6", "#0f8b8d", "#b5651d", "#6b7785"];
+
+function renderSweeps() {
+  const rows = state.sweeps.map((sw) => {
+    const tr = document.createElement("tr");
+    tr.dataset.sweepId = sw.id;
+    if (sw.id === state.sweep) tr.className = "selected";
+    const counts = Object.entries(sw.states).map(([k, n]) => `${n} ${k}`).join(", ");
+    const done = sw.jobs.reduce((a, m) => a + Math.min(m.env_steps, m.steps), 0);
+    const total = sw.jobs.reduce((a, m) => a + m.steps, 0);
+    const progress = progressCell({ state: sw.state, progress: { fraction: sw.fraction, env_steps: done }, steps: total });
+    tr.append(cell(sw.id, "id"), cell(badge(sw)), cell(progress), cell(counts));
+    tr.addEventListener("click", () => selectSweep(sw.id));
+    return tr;
+  });
+  if (rows.length === 0) {
+    const tr = document.createElement("tr");
+    tr.className = "empty";
+    tr.appendChild(cell("no sweeps yet (convoy sweep submit FILE)"));
+    tr.firstChild.colSpan = 4;
+    rows.push(tr);
+  }
+  $("sweeps").replaceChildren(...rows);
+}
+
+async function refreshSweeps() {
+  try {
+    state.sweeps = ((await api("sweeps")).sweeps || []).slice().sort((a, b) => b.created_at - a.created_at);
+    renderSweeps();
+    if (state.sweep) await refreshSummary();
+  } catch (err) {
+    if (!(err instanceof ApiError)) setOffline(true, err);
+  }
+}
+
+async function refreshSummary() {
+  const id = state.sweep;
+  try {
+    const summary = await api(`sweeps/${encodeURIComponent(id)}/summary`);
+    if (id !== state.sweep) return;
+    state.summary = summary;
+    drawSweep();
+  } catch (err) {
+    if (!(err instanceof ApiError)) setOffline(true, err);
+  }
+}
+
+function selectSweep(id) {
+  state.sweep = id;
+  state.summary = null;
+  renderSweeps();
+  refreshSummary();
+}
+
+async function toggleCompare(id, on) {
+  if (on) {
+    state.compare.add(id);
+    try {
+      const data = await api(`${jobPath(id)}/metrics?names=eval_return`);
+      state.compareSeries[id] = (data.rows || []).filter((r) => Number.isFinite(r.eval_return)).map((r) => [r.env_steps, r.eval_return]);
+    } catch (err) {
+      showMessage(`Could not load job ${id}'s curve: ${err.message}`);
+    }
+  } else {
+    state.compare.delete(id);
+    delete state.compareSeries[id];
+  }
+  drawSweep();
+}
+
+// The sweep chart: each group's mean curve with its CI band, and every ticked job's greedy curve dashed.
+function drawSweep() {
+  const canvas = $("chart-sweep");
+  const groups = [];
+  for (const [i, g] of ((state.summary && state.summary.groups) || []).entries()) {
+    const pts = g.curve.env_steps.map((x, j) => [x, g.curve.mean[j], g.curve.ci95[j] ?? 0]).filter((p) => p[1] != null);
+    if (pts.length) groups.push({ label: `${g.group} (n=${Math.max(...g.curve.n)})`, pts, color: PALETTE[i % PALETTE.length] });
+  }
+  const overlays = [...state.compare].filter((id) => (state.compareSeries[id] || []).length)
+    .map((id, i) => ({ label: id, pts: state.compareSeries[id], color: PALETTE[(groups.length + i) % PALETTE.length] }));
+  $("sweep-figure").hidden = !(state.sweep || overlays.length);
+  const dpr = window.devicePixelRatio || 1;
+  const w = canvas.clientWidth || 600, h = canvas.clientHeight || 260;
+  canvas.width = Math.round(w * dpr);
+  canvas.height = Math.round(h * dpr);
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+  ctx.clearRect(0, 0, w, h);
+  ctx.font = "11px system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif";
+  let bands = 0;
+  const all = [...groups.flatMap((g) => g.pts.flatMap(([x, m, c]) => [[x, m - c], [x, m + c]])), ...overlays.flatMap((o) => o.pts)];
+  if (all.length === 0) {
+    ctx.fillStyle = "#9aa5b1";
+    ctx.textAlign = "center";
+    ctx.fillText("no curve yet: select a sweep, or tick jobs in the compare column", w / 2, h / 2);
+  } else {
+    const xs = all.map((p) => p[0]), ys = all.map((p) => p[1]);
+    const yt = niceTicks(Math.min(...ys), Math.max(...ys), 5), xt = niceTicks(Math.min(...xs), Math.max(...xs), Math.max(2, Math.floor(w / 110)));
+    const left = 46, right = 12, top = 8, bottom = 22, pw = w - left - right, ph = h - top - bottom;
+    const sx = (x) => left + ((x - xt.lo) / (xt.hi - xt.lo)) * pw;
+    const sy = (y) => top + ph - ((y - yt.lo) / (yt.hi - yt.lo)) * ph;
+    ctx.strokeStyle = "#edf0f4"; ctx.fillStyle = "#6b7785"; ctx.textAlign = "right"; ctx.textBaseline = "middle";
+    for (const v of yt.ticks) { const y = sy(v); ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + pw, y); ctx.stroke(); ctx.fillText(tickLabel(v, yt.step), left - 6, y); }
+    ctx.textAlign = "center"; ctx.textBaseline = "top";
+    for (const v of xt.ticks) ctx.fillText(tickLabel(v, xt.step), sx(v), top + ph + 6);
+    for (const g of groups) {
+      ctx.beginPath();
+      g.pts.forEach(([x, m, c], i) => (i ? ctx.lineTo(sx(x), sy(m + c)) : ctx.moveTo(sx(x), sy(m + c))));
+      [...g.pts].reverse().forEach(([x, m, c]) => ctx.lineTo(sx(x), sy(m - c)));
+      ctx.closePath();
+      ctx.globalAlpha = 0.18; ctx.fillStyle = g.color; ctx.fill(); ctx.globalAlpha = 1;
+      bands += 1;
+      ctx.beginPath();
+      g.pts.forEach(([x, m], i) => (i ? ctx.lineTo(sx(x), sy(m)) : ctx.moveTo(sx(x), sy(m))));
+      ctx.lineWidth = 2; ctx.strokeStyle = g.color; ctx.setLineDash([]); ctx.stroke();
+    }
+    for (const o of overlays) {
+      ctx.beginPath();
+      o.pts.forEach(([x, y], i) => (i ? ctx.lineTo(sx(x), sy(y)) : ctx.moveTo(sx(x), sy(y))));
+      ctx.lineWidth = 1.5; ctx.strokeStyle = o.color; ctx.setLineDash([5, 4]); ctx.stroke(); ctx.setLineDash([]);
+    }
+  }
+  const legend = [...groups, ...overlays].map((s, i) => {
+    const span = document.createElement("span");
+    const sw = document.createElement("span");
+    sw.className = "swatch";
+    sw.style.background = s.color;
+    if (i >= groups.length) sw.style.background = `repeating-linear-gradient(90deg, ${s.color} 0 5px, transparent 5px 8px)`;
+    span.append(sw, document.createTextNode(s.label));
+    return span;
+  });
+  $("sweep-legend").replaceChildren(...legend);
+  $("sweep-caption").textContent = state.sweep
+    ? `sweep ${state.sweep}: mean greedy return over seeds, shaded 95 % CI` + (overlays.length ? `; ${overlays.length} job(s) dashed` : "")
+    : "greedy return by group (select a sweep, or tick jobs to compare)";
+  window.convoy.sweep = { id: state.sweep, groups: groups.length, bands, overlays: overlays.length };
+}
+
 function replaceJob(job) {
   if (!job || !job.id) return;
   const i = state.jobs.findIndex((j) => j.id === job.id);
@@ -448,16 +731,26 @@ function boot() {
   });
   $("scale-btn").addEventListener("click", scaleJob);
   $("stop-btn").addEventListener("click", stopJob);
+  $("resume-btn").addEventListener("click", resumeJob);
+  $("delete-btn").addEventListener("click", deleteJob);
+  $("eval-btn").addEventListener("click", evaluateJob);
+  $("logs-box").addEventListener("toggle", refreshLogs);
+  for (const id of ["resume-btn", "delete-btn", "eval-btn"]) $(id).disabled = true;
   $("actors-input").addEventListener("keydown", (e) => { if (e.key === "Enter") scaleJob(); });
   $("scale-btn").disabled = true;
   $("stop-btn").disabled = true;
   resetPanel();
   redrawCharts();
   let resizeTimer = null;
-  window.addEventListener("resize", () => { clearTimeout(resizeTimer); resizeTimer = setTimeout(redrawCharts, 100); });
+  window.addEventListener("resize", () => { clearTimeout(resizeTimer); resizeTimer = setTimeout(() => { redrawCharts(); drawSweep(); }, 100); });
   refreshJobs();
+  refreshSweeps();
+  drawSweep();
   setInterval(refreshJobs, JOBS_EVERY_MS);
   setInterval(pollMetrics, METRICS_EVERY_MS);
+  setInterval(refreshSweeps, SWEEPS_EVERY_MS);
+  setInterval(refreshLogs, LOGS_EVERY_MS);
+  setInterval(pollEvaluation, METRICS_EVERY_MS);
 }
 
 if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", boot);
