@@ -48,9 +48,11 @@ def figure_files(folder: Path) -> dict[str, list[tuple[Path, dict[str, Any]]]]:
     figures: dict[str, list[tuple[int, Path, dict[str, Any]]]] = {}
     for path in sorted(folder.glob("*.toml")):
         data = read_file(path)
-        fig = data.get("figure") or {}
+        fig = data.get("figure")
+        if fig is None:
+            continue  # a plain sweep file (convoy sweep submit), no figure of the paper
         if "id" not in fig:
-            raise ConfigError(f"{path}: figure.id", "every experiment file names its figure, e.g. id = 'fig3'")
+            raise ConfigError(f"{path}: figure.id", "a figure file names its figure, e.g. id = 'fig3'")
         figures.setdefault(str(fig["id"]), []).append((int(fig.get("order", 0)), path, data))
     return {k: [(p, d) for _, p, d in sorted(v, key=lambda t: t[0])] for k, v in figures.items()}
 

@@ -396,3 +396,32 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     monkeypatch.setattr("convoy.algos.algorithm.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
     with pytest.raises(FloatingPointError, match="non-finite loss"):
         run_inprocess(job, out_dir=tmp_path / "always", progress=False)
+
+
+@pytest.mark.parametrize("heard", ["noise", "predicted"])
+def test_the_greedy_curve_hears_what_eval_messages_says(heard: str) -> None:
+    """eval_messages=predicted/noise: every curve point is played as `convoy eval --messages` plays it."""
+    from convoy.algos.agent import make_agent
+    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.learner.runlog import Evaluator
+
+    job = job_config(algo="ma-mesn-mm", env="referential", steps=64, eval_episodes=64, eval_messages=heard,
+                     algo_params={"hidden": [16]})  # fmt: skip
+    env = make_batched("referential", 64)
+    algo = make_agent(job, env.spec)
+    evaluator = Evaluator(job, lambda n: make_batched("referential", n))
+    curve = evaluator.returns(algo)
+    probe = evaluate_policy(algo, env, 64, seed=evaluator.seed, messages=heard)  # type: ignore[arg-type]
+    sent = evaluate_policy(algo, env, 64, seed=evaluator.seed)
+    assert np.array_equal(curve, probe.returns)
+    assert heard == "predicted" or not np.array_equal(curve, sent.returns)  # noise changes what they do
+    evaluator.close()
+
+
+def test_eval_messages_the_algorithm_cannot_hear_are_refused() -> None:
+    with pytest.raises(ConfigError) as err:
+        job_config(algo="ma-mesn", eval_messages="predicted")
+    assert err.value.field == "eval_messages" and "ma-mesn-mm" in str(err.value)
+    with pytest.raises(ConfigError, match="no message channel"):
+        job_config(algo="idqn", eval_messages="noise")
+    assert job_config(algo="idqn", eval_messages="predicted").eval_messages == "predicted"  # decentralised already
