@@ -1,9 +1,10 @@
 """``convoy jobs``: the command-line client of the job service (``convoy serve``), one subcommand per API route.
 
-``submit``, ``list``, ``status``, ``scale``, ``stop``, ``resume``, ``delete``, ``logs`` and ``watch`` speak HTTP to
-``--url`` (``CONVOY_API_URL``, default http://127.0.0.1:8000) with ``--token`` (``CONVOY_API_TOKEN``) as the bearer
-token of the mutating routes. Every error the API answers is printed as one line ``error: <field>: <problem> —
-<fix>`` with exit code 2; a service that does not answer is ``error: cannot reach <url> (...)``, also exit 2.
+``submit``, ``list``, ``status``, ``scale``, ``stop``, ``resume``, ``delete``, ``logs``, ``evaluate`` and
+``watch`` speak HTTP to ``--url`` (``CONVOY_API_URL``, default http://127.0.0.1:8000) with ``--token``
+(``CONVOY_API_TOKEN``) as the bearer token of the mutating routes. Every error the API answers is printed as one
+line ``error: <field>: <problem> — <fix>`` with exit code 2; a service that does not answer is ``error: cannot
+reach <url> (...)``, also exit 2.
 ``watch`` exits 0 when the job completes or is stopped and 1 when it fails.
 """
 
@@ -25,6 +26,7 @@ from rich.table import Table
 from rich.text import Text
 
 from convoy.api.models import MAX_ACTORS, JobSubmit
+from convoy.config import MESSAGE_SOURCES
 from convoy.services.args import add_command, add_model_flags, env_params, given, parse_pairs
 from convoy.services.train_cmd import add_job_flags
 
@@ -480,6 +482,31 @@ def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
     return 0
 
 
+def cmd_evaluate(api: Api, args: argparse.Namespace, out: Console) -> int:
+    """Evaluate a job's checkpoint on the service, in the background.
+
+    Start greedy episodes of the job's checkpoint.pt (or best.pt) on the service (POST /jobs/ID/evaluate: its
+    own process, the API answers at once), then wait for the result (GET /jobs/ID/evaluations/EID) and print
+    it; --no-wait prints the evaluation's id and returns.
+    """
+    body = {"episodes": args.episodes, "messages": args.messages, "checkpoint": args.checkpoint}
+    if args.channel:
+        body["channel"] = args.channel
+    ev = api.call("POST", f"/jobs/{args.id}/evaluate", json=body)
+    plain(out, f"evaluation {ev['id']} of {args.id}: {args.episodes} episodes of {args.checkpoint}, running")
+    if args.no_wait:
+        return 0
+    while ev["state"] == "running":
+        time.sleep(1.0)
+        ev = api.call("GET", f"/jobs/{args.id}/evaluations/{ev['id']}")
+    if ev["state"] == "failed":
+        raise CliError("evaluation", f"{ev['id']} failed: {ev['error']}", f"see `convoy jobs logs {args.id}`", 1)
+    r = ev["result"]
+    plain(out, f"greedy return {fmt(r['mean_return'])} ± {fmt(r['ci95'])} over {r['episodes']} episodes "
+               f"(messages {r['messages']}); random policy {fmt(r['random_return'])}")  # fmt: skip
+    return 0
+
+
 COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
     "submit": cmd_submit,
     "list": cmd_list,
@@ -491,6 +518,7 @@ COMMANDS: dict[str, Callable[[Api, argparse.Namespace, Console], int]] = {
     "metrics": cmd_metrics,
     "logs": cmd_logs,
     "watch": cmd_watch,
+    "evaluate": cmd_evaluate,
 }
 
 
@@ -609,6 +637,15 @@ def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--lines", type=int, default=200, metavar="N", help="how many of the last lines (default: %(default)s)"
     )
+
+    p = add("evaluate")
+    p.add_argument("id", help="job id")
+    p.add_argument("--episodes", type=int, default=100, metavar="N", help="greedy episodes (default: %(default)s)")
+    p.add_argument("--messages", choices=MESSAGE_SOURCES, default="sent", help="what the agents hear (default: sent)")
+    p.add_argument("--channel", metavar="SPEC", help="a lossy channel, e.g. drop=0.3,flip=0.01")
+    p.add_argument("--checkpoint", default="checkpoint.pt", choices=("checkpoint.pt", "best.pt"),
+                   help="the last checkpoint or the best greedy point (default: %(default)s)")  # fmt: skip
+    p.add_argument("--no-wait", action="store_true", help="print the evaluation's id and return")
 
     p = add("watch")
     p.add_argument("id", help="job id")

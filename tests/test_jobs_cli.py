@@ -21,7 +21,7 @@ SMALL = [
     "--set", "width=12", "--set", "max_steps=50", "--hp", "hidden=32", "--hp", "learning_starts=200",
     "--eval-episodes", "4", "--log-every", "1000",
 ]  # fmt: skip
-SUBCOMMANDS = ("submit", "list", "status", "scale", "stop", "resume", "delete", "metrics", "logs", "watch")
+SUBCOMMANDS = ("submit", "list", "status", "scale", "stop", "resume", "delete", "metrics", "logs", "evaluate", "watch")
 
 
 @pytest.fixture(scope="module")
@@ -139,6 +139,15 @@ def test_status_shows_completed(capsys: pytest.CaptureFixture[str], service: Ser
     assert code == 0, err
     assert "completed" in out and "20,000" in out and '"n_agents": 2' in out and "dropped messages" in out
     assert re.search(r"final greedy return\W+[-\d.]+ ± [\d.]+ .*random [-\d.]+", out), out  # the summary's figures
+
+
+def test_evaluate_waits_for_the_background_evaluation(
+    capsys: pytest.CaptureFixture[str], service: Service, job_id: str
+) -> None:
+    service.wait(job_id, lambda v: v["state"] == "completed", timeout=240, what="the job to complete")
+    code, out, err = jobs(capsys, service.url, "evaluate", job_id, "--episodes", "8", "--checkpoint", "best.pt")
+    assert code == 0, err
+    assert re.search(r"evaluation [0-9a-f]{6} of .*running\ngreedy return [-\d.]+ ± [\d.]+ over 8 episodes", out), out
 
 
 def test_dropped_messages_read_by_role_and_reason() -> None:
