@@ -281,6 +281,8 @@ class SweepView(BaseModel):
     jobs: list[SweepMember]
     states: dict[str, int] = Field(description="How many of its jobs are in each state.")
     fraction: float = Field(description="Env steps done over env steps asked, all jobs together.")
+    started_at: float | None = Field(None, description="Unix time its first job started.")
+    ended_at: float | None = Field(None, description="Unix time its last job ended, once none is queued or running.")
     spec: dict[str, Any] = Field(description="The sweep as submitted.")
 
 

@@ -68,7 +68,7 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
 
 def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     """The sweep's jobs with their states and progress, and the sweep's state from theirs."""
-    members, done, asked = [], 0, 0
+    members, done, asked, starts, ends = [], 0, 0, [], []
     for member in sweep.jobs:
         try:
             rec = reader.get(member["id"])
@@ -77,6 +77,9 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
                                        state="deleted"))  # fmt: skip
             continue
         steps, env_steps = int(rec.config.get("steps", 0)), int(rec.progress.get("env_steps", 0) or 0)
+        if rec.progress.get("started_at"):
+            starts.append(float(rec.progress["started_at"]))
+            ends.append(rec.updated_at)
         done, asked = done + min(env_steps, steps), asked + steps
         members.append(SweepMember(id=rec.id, point=member["point"], group=group_name(member["point"]),
                                    state=rec.state.value, env_steps=env_steps, steps=steps))  # fmt: skip
@@ -93,7 +96,8 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     else:
         state = "completed"
     return SweepView(id=sweep.id, state=state, created_at=sweep.created_at, jobs=members, states=states,
-                     fraction=done / asked if asked else 0.0, spec=sweep.spec)  # fmt: skip
+                     fraction=done / asked if asked else 0.0, started_at=min(starts, default=None),
+                     ended_at=max(ends, default=None) if state != "running" else None, spec=sweep.spec)  # fmt: skip
 
 
 def _curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:
