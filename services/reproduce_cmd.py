@@ -412,7 +412,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     for fig in wanted:
         if fig not in files:
             raise ConfigError("FIGURE", f"no experiment file for {fig!r}; known: {', '.join(sorted(files))}")
-    docs, page, work = Path(args.docs), Path(args.page), Path(args.data) / args.scale
+    docs, page, work = Path(args.docs), Path(args.page), Path(args.data).resolve() / args.scale
     with contextlib.ExitStack() as stack:
         if args.service:
             url, token = args.service, args.token or os.environ.get("CONVOY_API_TOKEN")
