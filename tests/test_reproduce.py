@@ -11,6 +11,8 @@ import pytest
 from convoy.analysis.verdicts import NOT, NOT_COMPARABLE, PARTLY, REPRODUCED, Verdict, figure_verdict, judge
 from convoy.services.cli import main
 
+ROOT = Path(__file__).resolve().parents[1]
+
 pytestmark = pytest.mark.timeout(600)
 
 FIGURE = """
@@ -39,12 +41,38 @@ claims = [
 """
 
 
+TABLE = """
+[figure]
+id = "table1"
+kind = "analysis"
+source = "fig8"
+group = "algo=ma-mesn"
+title = "Table 1: a tiny stand-in"
+claims = [{ text = "noise lowers the return", metric = "return_noise", below = "return_sent" }]
+[figure.scales.quick]
+samples = 2048
+episodes = 32
+"""
+BENCHMARK = f"""
+[figure]
+id = "fig4b"
+kind = "benchmark"
+title = "Fig. 4b: a tiny stand-in"
+claims = [{{ text = "idqn grows", exponent = "idqn", between = [-5, 5] }}]
+[figure.scales.quick]
+command = ["{ROOT / "benchmarks" / "inference_scaling.py"}", "--quick", "--algos", "idqn", "--repeats", "1"]
+"""
+
+
 def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp_path: Path) -> None:
     (tmp_path / "exp").mkdir()
     (tmp_path / "exp" / "fig8.toml").write_text(FIGURE)
-    argv = ["reproduce", "fig8", "--scale", "quick", "--experiments", str(tmp_path / "exp"), "--data",
-            str(tmp_path / "data"), "--docs", str(tmp_path / "docs" / "r"), "--page", str(tmp_path / "docs" / "r.md"),
-            "--max-processes", "3"]  # fmt: skip
+    (tmp_path / "exp" / "table1.toml").write_text(TABLE)
+    (tmp_path / "exp" / "fig4b.toml").write_text(BENCHMARK)
+    (tmp_path / "exp" / "plain.toml").write_text('name = "plain"\n[grid]\nseed = [0]\n')  # a sweep, no figure
+    argv = ["reproduce", "fig8", "table1", "fig4b", "--scale", "quick", "--experiments", str(tmp_path / "exp"),
+            "--data", str(tmp_path / "data"), "--docs", str(tmp_path / "docs" / "r"), "--page",
+            str(tmp_path / "docs" / "r.md"), "--max-processes", "3"]  # fmt: skip
     assert main(argv) == 0
     record = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
     assert [g["group"] for g in record["groups"]] == ["algo=ma-mesn", "algo=idqn"]
@@ -55,6 +83,12 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     page = (tmp_path / "docs" / "r.md").read_text()
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
     assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
+    table = json.loads((tmp_path / "docs" / "r" / "table1.json").read_text())  # fig8's MA-MeSN checkpoints
+    assert table["groups"][0]["jobs"] == record["groups"][0]["jobs"]
+    assert len(table["analysis"]["return_noise"]["value"]) == 2 and table["verdicts"][0]["verdict"] != NOT_COMPARABLE
+    bench = json.loads((tmp_path / "docs" / "r" / "fig4b.json").read_text())
+    assert bench["verdict"] == REPRODUCED and "idqn" in bench["exponents"]
+    assert "## Table 1: a tiny stand-in" in page and "Fitted exponent k" in page
     sweep = record["groups"][0]["sweep"]
     # again: the same request is found in the service's store and reused, not trained anew
     assert main(argv) == 0
