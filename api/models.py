@@ -113,6 +113,11 @@ class SweepSubmit(JsonBody):
         ...,
         description='Axis → its values, e.g. {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2, 3, 4]}.',
     )
+    algos: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Hyper-parameters of one algorithm only, merged into base.algo_params for its jobs (a grid "
+        'axis algo_params.NAME still wins), e.g. {"dial": {"replay": true}}.',
+    )
     actors: int = Field(1, ge=1, le=MAX_ACTORS, description="Actor processes of each job.")
     threshold: float | None = Field(
         None, description="The return whose first crossing the summary times (env steps and seconds); none = no timing."
@@ -138,6 +143,20 @@ class SweepSubmit(JsonBody):
         if size > MAX_SWEEP_JOBS:
             raise ConfigError("grid", f"makes {size:,} jobs; a sweep has at most {MAX_SWEEP_JOBS:,} — split it")
         return grid
+
+    @field_validator("algos")
+    @classmethod
+    def _algos(cls, algos: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        from convoy.config import ALGO_CONFIGS, algo_name
+
+        for name in algos:
+            try:
+                canonical = algo_name(name)
+            except ConfigError as exc:
+                raise ConfigError(f"algos.{name}", str(exc).split(": ", 1)[-1]) from None
+            if canonical != name or name not in ALGO_CONFIGS:
+                raise ConfigError(f"algos.{name}", f"name the algorithm as the grid does: {canonical}")
+        return algos
 
     @field_validator("base")
     @classmethod

@@ -19,7 +19,7 @@ import numpy as np
 
 from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
-from convoy.config import ConfigError, JobConfig
+from convoy.config import ConfigError, JobConfig, algo_name
 from convoy.stats import ci95_half
 from convoy.validation import build_config
 
@@ -37,6 +37,13 @@ def group_name(point: dict[str, Any]) -> str:
     return " ".join(f"{k}={v}" for k, v in point.items() if k != "seed") or "all"
 
 
+def _canonical(algo: Any) -> str | None:
+    try:
+        return algo_name(str(algo))
+    except ConfigError:
+        return None  # the job's own validation names it
+
+
 def expand(spec: SweepSubmit) -> list[SweepJob]:
     """Every job of the grid, validated; seeds outermost, so that each group's first seed runs first."""
     axes = sorted(spec.grid, key=lambda axis: axis != "seed")
@@ -44,6 +51,9 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
     for values in itertools.product(*(spec.grid[axis] for axis in axes)):
         point = dict(zip(axes, values, strict=True))
         body = copy.deepcopy(spec.base)
+        own = spec.algos.get(_canonical(point.get("algo", body.get("algo", JobConfig.model_fields["algo"].default))))
+        if own:  # this algorithm's own hyper-parameters, under the grid's
+            body["algo_params"] = {**body.get("algo_params", {}), **own}
         for axis, value in point.items():
             table, _, key = axis.partition(".")
             if key:
@@ -60,6 +70,8 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
             qualified = f"{where}.{exc.field}" if where else exc.field  # an algorithm's or env's own parameter
             varied = next((a for a in point if qualified == a or qualified.startswith(f"{a}.")), None)
             field = f"grid.{varied}" if varied else f"base.{qualified}"
+            if not varied and own and where == "algo_params" and exc.field in own:
+                field = f"algos.{point.get('algo', body.get('algo'))}.{exc.field}"
             problem = str(exc).split(": ", 1)[-1]
             raise ConfigError(field, f"{problem} (in the job {point})") from None
         jobs.append(SweepJob(point, config))

@@ -17,6 +17,7 @@ import contextlib
 import json
 import os
 import secrets
+import signal
 import subprocess
 import sys
 import time
@@ -121,6 +122,9 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
         api.call("POST", f"/sweeps/{sweep['id']}/stop")
         plain(out, f"{label}: stopped sweep {sweep['id']}; the same command continues it")
         raise
+    if sweep["state"] == "stopped":  # by someone else: its groups are not the figure's
+        raise CliError(label, f"sweep {sweep['id']} was stopped before its jobs finished",
+                       f"resume it (`convoy sweep resume {sweep['id']}`) or run the same command again")  # fmt: skip
     summary = api.call("GET", f"/sweeps/{sweep['id']}/summary")
     summary["spec"] = spec
     summary["minutes"] = ((sweep["ended_at"] or time.time()) - (sweep["started_at"] or time.time())) / 60
@@ -395,6 +399,10 @@ def render(docs: Path, page: Path) -> None:
 # --- the command -------------------------------------------------------------------------------------------------
 
 
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def cmd_reproduce(args: argparse.Namespace) -> int:
     """Run the paper's figures as sweeps and write docs/reproduction.md.
 
@@ -404,6 +412,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     every figure there. A sweep already in the service with the same request is reused, so the command continues
     after an interruption (Ctrl-C stops the running sweep; the same command resumes it).
     """
+    signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops the running sweep as Ctrl-C does
     folder = Path(args.experiments)
     if not folder.is_dir():
         raise ConfigError("--experiments", f"{folder} is not a folder; run from the repository root or name it")

@@ -113,6 +113,8 @@ BAD_BODIES = [
     ({**TINY, "base": {**TINY["base"], "colour": 3}}, "base.colour"),
     ({**TINY, "grid": {"seed": list(range(40)), "algo_params.lr": [i / 1000 for i in range(1, 40)]}}, "grid"),
     ({**TINY, "actors": 0}, "actors"),
+    ({**TINY, "algos": {"ppo": {"lr": 0.1}}}, "algos.ppo"),
+    ({**TINY, "algos": {"ma-mesn": {"replay": True}}}, "algos.ma-mesn.replay"),
 ]
 
 
@@ -190,3 +192,14 @@ def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: 
         err = capsys.readouterr().err
         assert f"error: {field}" in err or (field in err and "cannot read" in err), err
         assert "cannot reach" not in err, err
+
+
+def test_an_algorithms_own_parameters_reach_its_jobs_only() -> None:
+    from convoy.api.models import SweepSubmit
+    from convoy.api.sweeps import expand
+
+    spec = SweepSubmit(**{**TINY, "grid": {"algo": ["dial", "idqn"], "algo_params.lr": [0.01]},
+                          "algos": {"dial": {"replay": True, "lr": 0.5}}})  # fmt: skip
+    jobs = {job.config.algo: job.config.algo_params for job in expand(spec)}
+    assert jobs["dial"]["replay"] is True and jobs["dial"]["lr"] == 0.01  # the grid's axis wins
+    assert "replay" not in jobs["idqn"] and jobs["idqn"]["hidden"] == [32]
