@@ -632,7 +632,9 @@ def test_curve_points_measure_the_student_alone(tmp_path: Path) -> None:
     from convoy.learner.runlog import Evaluator
 
     student, _ = make_student(tmp_path / "never-loaded.pt", teacher_fraction=0.6)
-    job = SimpleNamespace(eval_episodes=8, eval_every=1_000, seed=0, env="treadmill", env_params=SMALL_TREADMILL)
+    job = SimpleNamespace(
+        eval_episodes=8, eval_every=1_000, seed=0, env="treadmill", env_params=SMALL_TREADMILL, eval_messages="sent"
+    )
     evaluator = Evaluator(job, lambda n: make_batched("treadmill", n, **SMALL_TREADMILL))
     try:
         point = evaluator.point(student, 1_000)
