@@ -95,11 +95,20 @@ def local_service(data: Path, max_processes: int) -> Iterator[tuple[str, str]]:
             proc.kill()
 
 
+def normal(body: dict[str, Any]) -> dict[str, Any] | None:
+    """A sweep request with every default filled in, so that requests stored by an older Convoy (without a field
+    added since) still match the file they came from; None for one this Convoy cannot read."""
+    try:
+        return build_config(SweepSubmit, **body).model_dump(mode="json")
+    except ConfigError:
+        return None
+
+
 def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
     """The summary of ``body``'s sweep once no job of it is queued or running: an existing sweep with the same
     request is reused (resumed if stopped or failed), else it is submitted."""
-    spec = build_config(SweepSubmit, **body).model_dump(mode="json")
-    same = [s for s in api.call("GET", "/sweeps")["sweeps"] if s["spec"] == spec]
+    spec = normal(body)
+    same = [s for s in api.call("GET", "/sweeps")["sweeps"] if normal(s["spec"]) == spec]
     if same:
         sweep = same[-1]
         if sweep["state"] in ("stopped", "failed"):
