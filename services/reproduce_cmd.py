@@ -109,8 +109,9 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
     request is reused (resumed if stopped or failed), else it is submitted."""
     spec = normal(body)
     same = [s for s in api.call("GET", "/sweeps")["sweeps"] if normal(s["spec"]) == spec]
-    if same:
-        sweep = same[-1]
+    if same:  # a finished one first, then one that runs, else the newest (resumed)
+        rank = {"completed": 0, "running": 1}
+        sweep = min(reversed(same), key=lambda s: rank.get(s["state"], 2))
         if sweep["state"] in ("stopped", "failed"):
             sweep = api.call("POST", f"/sweeps/{sweep['id']}/resume")
         plain(out, f"{label}: continuing sweep {sweep['id']} ({sweep['state']})")
