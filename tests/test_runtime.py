@@ -229,7 +229,12 @@ def test_actor_count_scales_live_and_every_actor_delivers(tmp_path: Path) -> Non
     def rates(ids: int) -> list[float]:
         wait_for(lambda: runner.alive.count("actor") == ids, 60, f"{ids} actors alive")
         live = runner.alive.ids("actor")
-        wait_for(lambda: live <= set(runner.reports.actors), 60, f"metrics from all {ids} live actors")
+
+        def delivering() -> bool:  # a new actor's first report may come before its first chunk got through
+            reports = runner.reports.actors
+            return live <= set(reports) and all(reports[i]["env_steps_per_s"] > 0 for i in live)
+
+        wait_for(delivering, 60, f"steps from all {ids} live actors")
         return [runner.reports.actors[i]["env_steps_per_s"] for i in live]
 
     with Background(runner):
