@@ -1,4 +1,5 @@
-"""Learning curves of sweep groups: the mean over seeds with its 95 % CI band, one colour per group."""
+"""Plots of sweep groups: learning curves (the mean over seeds with its 95 % CI band, one colour per group) and
+final returns against a grid axis."""
 
 from __future__ import annotations
 
@@ -41,6 +42,46 @@ def plot_groups(
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
+    return _save(fig, path)
+
+
+def plot_final_by(
+    groups: list[dict[str, Any]],
+    path: str | Path,
+    title: str,
+    x: str,
+    lines: str,
+    xlabel: str,
+    ylabel: str = "final greedy return",
+) -> Path:
+    """A PNG of each group's final return (mean ± 95 % CI) against one grid axis ``x`` (log₂), one line per value
+    of another axis ``lines`` (Fig. 4a: return against the number of agents, one line per algorithm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    series: dict[str, list[tuple[float, float, float]]] = {}
+    for group in groups:
+        point, final = group["point"], group["final"]
+        if final["mean"] is not None:
+            series.setdefault(str(point.get(lines)), []).append((point[x], final["mean"], final["ci95"]))
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, pts in series.items():
+        xs, ys, cs = zip(*sorted(pts), strict=True)
+        ax.errorbar(xs, ys, yerr=cs, marker="o", capsize=3, label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_xscale("log", base=2)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def _save(fig: Any, path: str | Path) -> Path:
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

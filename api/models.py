@@ -13,7 +13,7 @@ from typing import Any, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from convoy.config import ConfigError, JobConfig, MessageSource, RuntimeConfig, job_config
+from convoy.config import ALGO_CONFIGS, ConfigError, JobConfig, MessageSource, RuntimeConfig, algo_name, job_config
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 ACTORS_DEFAULT: int = RuntimeConfig.model_fields["actors"].default
@@ -147,8 +147,6 @@ class SweepSubmit(JsonBody):
     @field_validator("algos")
     @classmethod
     def _algos(cls, algos: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-        from convoy.config import ALGO_CONFIGS, algo_name
-
         for name in algos:
             try:
                 canonical = algo_name(name)

@@ -78,6 +78,14 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
     return jobs
 
 
+def sweep_state(states: dict[str, int]) -> str:
+    """A sweep's state from how many of its jobs are in each state: running while one is queued or runs, then
+    failed if one failed, stopped if one stopped, else completed."""
+    if any(s.value in states for s in ACTIVE_STATES):
+        return "running"
+    return "failed" if states.get("failed") else "stopped" if states.get("stopped") else "completed"
+
+
 def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     """The sweep's jobs with their states and progress, and the sweep's state from theirs."""
     members, done, asked, starts, ends = [], 0, 0, [], []
@@ -98,15 +106,7 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     states: dict[str, int] = {}
     for m in members:
         states[m.state] = states.get(m.state, 0) + 1
-    active = {s.value for s in ACTIVE_STATES}
-    if any(s in active for s in states):
-        state = "running"
-    elif states.get("failed"):
-        state = "failed"
-    elif states.get("stopped"):
-        state = "stopped"
-    else:
-        state = "completed"
+    state = sweep_state(states)
     return SweepView(id=sweep.id, state=state, created_at=sweep.created_at, jobs=members, states=states,
                      fraction=done / asked if asked else 0.0, started_at=min(starts, default=None),
                      ended_at=max(ends, default=None) if state != "running" else None, spec=sweep.spec)  # fmt: skip

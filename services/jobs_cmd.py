@@ -571,30 +571,45 @@ def positive(text: str) -> float:
     return value
 
 
-def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
-    """``convoy jobs …``: the subcommands, each with a complete ``--help``."""
-    jobs = add_command(
+def add_client(
+    sub: argparse._SubParsersAction,
+    name: str,
+    func: Callable[[argparse.Namespace], int],
+    commands: dict[str, Callable[[Api, argparse.Namespace, Console], int]],
+    examples: tuple[str, ...],
+) -> Callable[[str], argparse.ArgumentParser]:
+    """``convoy NAME …``, a client of the service: ``--url``/``--token`` before or after its subcommand, which lands
+    in ``args.NAME_command``. Returns the function that adds one subcommand of ``commands``, run through ``func``."""
+    top = add_command(
         sub,
-        "jobs",
-        cmd_jobs,
-        epilog="examples:\n"
-        "  convoy jobs submit --algo ma-mesn --steps 200000 --actors 2 --set n_agents=3 --hp lr=0.001\n"
-        "  convoy jobs list --state running\n"
-        "  convoy jobs watch ma-mesn-1a2b3c\n"
-        "  convoy jobs metrics ma-mesn-1a2b3c --names return,loss --since 10000\n"
-        "  convoy jobs scale ma-mesn-1a2b3c 4\n"
-        "  convoy jobs resume ma-mesn-1a2b3c --steps 400000",
+        name,
+        func,
+        epilog="examples:\n" + "\n".join(f"  {line}" for line in examples),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    connection_options(jobs, None)
-    jsub = jobs.add_subparsers(dest="jobs_command", required=True, metavar="JOBS_COMMAND")
+    connection_options(top, None)
+    subs = top.add_subparsers(dest=f"{name}_command", required=True, metavar=f"{name.upper()}_COMMAND")
     common = argparse.ArgumentParser(add_help=False)
     connection_options(common, argparse.SUPPRESS)  # also accepted after the subcommand
 
-    def add(name: str) -> argparse.ArgumentParser:
-        p = add_command(jsub, name, COMMANDS[name], parents=[common])
-        p.set_defaults(func=cmd_jobs)  # one entry point: connects to the service, then runs COMMANDS[name]
+    def add(command: str) -> argparse.ArgumentParser:
+        p = add_command(subs, command, commands[command], parents=[common])
+        p.set_defaults(func=func)  # one entry point: connects to the service, then runs commands[command]
         return p
+
+    return add
+
+
+def add_jobs_parser(sub: argparse._SubParsersAction) -> None:
+    """``convoy jobs …``: the subcommands, each with a complete ``--help``."""
+    add = add_client(sub, "jobs", cmd_jobs, COMMANDS, (
+        "convoy jobs submit --algo ma-mesn --steps 200000 --actors 2 --set n_agents=3 --hp lr=0.001",
+        "convoy jobs list --state running",
+        "convoy jobs watch ma-mesn-1a2b3c",
+        "convoy jobs metrics ma-mesn-1a2b3c --names return,loss --since 10000",
+        "convoy jobs scale ma-mesn-1a2b3c 4",
+        "convoy jobs resume ma-mesn-1a2b3c --steps 400000",
+    ))  # fmt: skip
 
     p = add("submit")
     add_job_flags(p)

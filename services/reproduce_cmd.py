@@ -202,48 +202,19 @@ class Context:
 
 
 def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
-    from convoy.analysis.curves import plot_groups
+    from convoy.analysis.curves import plot_final_by, plot_groups
 
     groups = ctx.sweep_summaries(fig)
     refs = references(ctx.api, groups)
     png = ctx.docs / f"{fig}.png"
     if meta.get("plot") == "final_by":
-        plot_final_by(groups, meta, png)
+        plot_final_by(groups, png, meta["title"], meta["x"], meta["lines"], xlabel=meta.get("xlabel", meta["x"]),
+                      ylabel=meta.get("ylabel", "final greedy return"))  # fmt: skip
     else:
         shown = {k: v for k, v in refs.items() if k != "random" or len(refs) == 1} if refs else {}
         plot_groups(groups, png, f"{meta['title']} ({ctx.scale})", references=shown or refs,
                     xlabel=meta.get("xlabel", "env steps"), ylabel=meta.get("ylabel", "greedy return"))  # fmt: skip
     return {"groups": groups, "references": refs, "png": png.name, "extra": {"references": refs}}
-
-
-def plot_final_by(groups: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> None:
-    """Final return against one grid axis (``x``), one line per value of another (``lines``): Fig. 4a."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    lines: dict[str, list[tuple[float, float, float]]] = {}
-    for g in groups:
-        point, final = g["point"], g["final"]
-        if final["mean"] is None:
-            continue
-        lines.setdefault(str(point.get(meta["lines"])), []).append((point[meta["x"]], final["mean"], final["ci95"]))
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for name, pts in lines.items():
-        pts.sort()
-        xs, ys, cs = zip(*pts, strict=True)
-        ax.errorbar(xs, ys, yerr=cs, marker="o", capsize=3, label=name)
-    ax.set_xlabel(meta.get("xlabel", meta["x"]))
-    ax.set_ylabel(meta.get("ylabel", "final greedy return"))
-    ax.set_xscale("log", base=2)
-    ax.set_title(meta["title"])
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
 
 
 def benchmark_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:

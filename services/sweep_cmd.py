@@ -17,8 +17,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from convoy.services.args import add_command
-from convoy.services.jobs_cmd import Api, CliError, connection_options, fmt, plain, positive, print_json, run_client
+from convoy.services.jobs_cmd import Api, CliError, add_client, fmt, plain, positive, print_json, run_client
 from convoy.services.sweep_file import load_sweep
 from convoy.validation import ConfigError
 
@@ -230,24 +229,14 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def add_sweep_parser(sub: argparse._SubParsersAction) -> None:
     """``convoy sweep …``, each subcommand with a complete ``--help``."""
-    sweep = add_command(
-        sub,
-        "sweep",
-        cmd_sweep,
-        epilog="examples:\n"
-        "  convoy sweep submit experiments/fig8_speaker_listener.toml --scale quick\n"
-        "  convoy sweep watch fig8-1a2b3c\n"
-        "  convoy sweep summary fig8-1a2b3c --plot fig8.png",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    connection_options(sweep, None)
-    ssub = sweep.add_subparsers(dest="sweep_command", required=True, metavar="SWEEP_COMMAND")
-    common = argparse.ArgumentParser(add_help=False)
-    connection_options(common, argparse.SUPPRESS)
+    add_sub = add_client(sub, "sweep", cmd_sweep, COMMANDS, (
+        "convoy sweep submit experiments/fig8_speaker_listener.toml --scale quick",
+        "convoy sweep watch fig8-1a2b3c",
+        "convoy sweep summary fig8-1a2b3c --plot fig8.png",
+    ))  # fmt: skip
 
     def add(name: str, with_id: bool = True) -> argparse.ArgumentParser:
-        p = add_command(ssub, name, COMMANDS[name], parents=[common])
-        p.set_defaults(func=cmd_sweep)
+        p = add_sub(name)
         if with_id:
             p.add_argument("id", help="sweep id (see `convoy sweep list`)")
         return p

@@ -244,6 +244,16 @@ function cell(text, cls) {
   return td;
 }
 
+// The one row of an empty table: what would be there, across all its columns.
+function emptyRow(text, columns) {
+  const tr = document.createElement("tr");
+  tr.className = "empty";
+  const td = cell(text);
+  td.colSpan = columns;
+  tr.appendChild(td);
+  return tr;
+}
+
 function badge(job) {
   const span = document.createElement("span");
   span.className = `badge ${job.state}`;
@@ -295,13 +305,7 @@ function renderJobs() {
     tr.addEventListener("click", () => selectJob(job.id));
     return tr;
   });
-  if (rows.length === 0) {
-    const tr = document.createElement("tr");
-    tr.className = "empty";
-    tr.appendChild(cell("no jobs yet"));
-    tr.firstChild.colSpan = 8;
-    rows.push(tr);
-  }
+  if (rows.length === 0) rows.push(emptyRow("no jobs yet", 8));
   tbody.replaceChildren(...rows);
   $("jobs-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
 }
@@ -590,13 +594,7 @@ function renderSweeps() {
     tr.addEventListener("click", () => selectSweep(sw.id));
     return tr;
   });
-  if (rows.length === 0) {
-    const tr = document.createElement("tr");
-    tr.className = "empty";
-    tr.appendChild(cell("no sweeps yet (convoy sweep submit FILE)"));
-    tr.firstChild.colSpan = 4;
-    rows.push(tr);
-  }
+  if (rows.length === 0) rows.push(emptyRow("no sweeps yet (convoy sweep submit FILE)", 4));
   $("sweeps").replaceChildren(...rows);
 }
 
