@@ -300,6 +300,7 @@ class SweepView(BaseModel):
     fraction: float = Field(description="Env steps done over env steps asked, all jobs together.")
     started_at: float | None = Field(None, description="Unix time its first job started.")
     ended_at: float | None = Field(None, description="Unix time its last job ended, once none is queued or running.")
+    busy_s: float = Field(0.0, description="Seconds during which at least one of its jobs ran (pauses not counted).")
     spec: dict[str, Any] = Field(description="The sweep as submitted.")
 
 

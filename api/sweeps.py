@@ -86,9 +86,20 @@ def sweep_state(states: dict[str, int]) -> str:
     return "failed" if states.get("failed") else "stopped" if states.get("stopped") else "completed"
 
 
+def busy_seconds(spans: list[tuple[float, float]]) -> float:
+    """How long at least one of the spans ran: their union's length, so a sweep stopped overnight and resumed
+    counts only the time its jobs ran."""
+    total, reach = 0.0, -math.inf
+    for start, end in sorted(spans):
+        if end > reach:
+            total += end - max(start, reach)
+            reach = end
+    return total
+
+
 def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     """The sweep's jobs with their states and progress, and the sweep's state from theirs."""
-    members, done, asked, starts, ends = [], 0, 0, [], []
+    members, done, asked, spans = [], 0, 0, []
     for member in sweep.jobs:
         try:
             rec = reader.get(member["id"])
@@ -97,9 +108,8 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
                                        state="deleted"))  # fmt: skip
             continue
         steps, env_steps = int(rec.config.get("steps", 0)), int(rec.progress.get("env_steps", 0) or 0)
-        if rec.progress.get("started_at"):
-            starts.append(float(rec.progress["started_at"]))
-            ends.append(rec.updated_at)
+        if rec.progress.get("started_at") and rec.state != JobState.queued:  # a queued one's last run ended long ago
+            spans.append((float(rec.progress["started_at"]), float(rec.updated_at)))
         done, asked = done + min(env_steps, steps), asked + steps
         members.append(SweepMember(id=rec.id, point=member["point"], group=group_name(member["point"]),
                                    state=rec.state.value, env_steps=env_steps, steps=steps))  # fmt: skip
@@ -108,8 +118,9 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
         states[m.state] = states.get(m.state, 0) + 1
     state = sweep_state(states)
     return SweepView(id=sweep.id, state=state, created_at=sweep.created_at, jobs=members, states=states,
-                     fraction=done / asked if asked else 0.0, started_at=min(starts, default=None),
-                     ended_at=max(ends, default=None) if state != "running" else None, spec=sweep.spec)  # fmt: skip
+                     fraction=done / asked if asked else 0.0, started_at=min((a for a, _ in spans), default=None),
+                     ended_at=max((b for _, b in spans), default=None) if state != "running" else None,
+                     busy_s=busy_seconds(spans), spec=sweep.spec)  # fmt: skip
 
 
 def _curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:

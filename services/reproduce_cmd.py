@@ -137,7 +137,7 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
                        f"resume it (`convoy sweep resume {sweep['id']}`) or run the same command again")  # fmt: skip
     summary = api.call("GET", f"/sweeps/{sweep['id']}/summary")
     summary["spec"] = spec
-    summary["minutes"] = ((sweep["ended_at"] or time.time()) - (sweep["started_at"] or time.time())) / 60
+    summary["minutes"] = sweep["busy_s"] / 60
     plain(out, f"{label}: sweep {sweep['id']} {sweep['state']} after {(time.monotonic() - t0) / 60:.1f} min")
     return summary
 

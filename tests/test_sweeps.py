@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from convoy.api.sweeps import busy_seconds
 from convoy.services.cli import main
 from convoy.services.sweep_file import load_sweep
 from convoy.validation import ConfigError
@@ -67,6 +68,7 @@ def test_a_sweep_runs_through_a_service_restart_and_summarises_its_groups(tmp_pa
         assert again.client.get(f"/sweeps/{sid}").json()["id"] == sid
         done = wait_sweep(again, sid, lambda v: v["state"] != "running", 420, "the sweep to end")
         assert done["state"] == "completed" and done["states"] == {"completed": 4}, done
+        assert 0 < done["busy_s"] <= done["ended_at"] - done["started_at"] + 1e-6, done
 
         summary = again.client.get(f"/sweeps/{sid}/summary").json()
         assert summary["state"] == "completed" and summary["threshold"] == 0.0
@@ -192,6 +194,12 @@ def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: 
         err = capsys.readouterr().err
         assert f"error: {field}" in err or (field in err and "cannot read" in err), err
         assert "cannot reach" not in err, err
+
+
+def test_a_sweeps_busy_time_leaves_out_its_pauses() -> None:
+    # two overlapping jobs (0-10, 5-12), a night stopped, then one more (100-130): 12 + 30 seconds of work
+    assert busy_seconds([(100.0, 130.0), (0.0, 10.0), (5.0, 12.0), (6.0, 8.0)]) == pytest.approx(42.0)
+    assert busy_seconds([]) == 0.0
 
 
 def test_an_algorithms_own_parameters_reach_its_jobs_only() -> None:
