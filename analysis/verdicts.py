@@ -13,6 +13,10 @@ A claim is one table of a figure file's ``[[figure.claims]]``; its keys say what
   baseline), ``above = 0``, or ``below = OTHER_KEY`` (e.g. the return with noise below the return with messages):
   one-sided t-tests over the analysed checkpoints.
 
+A figure tests several claims at once, so ``judge_figure`` holds its family-wise error at 5 %: a tested claim is
+*reproduced* only when its p-value stays below 0.05 after Holm's step-down correction over the figure's tested
+claims (a claim significant alone but not after it is *partly*).
+
 The figure's verdict: *reproduced* when every claim is, *not reproduced* when none is even partly, else *partly*.
 """
 
@@ -39,6 +43,7 @@ class Verdict:
     ours: str
     verdict: str
     why: str = ""
+    p: float | None = None  # the one-sided test's p-value, for claims decided by one
 
 
 def mean_ci(values: list[float]) -> str:
@@ -77,12 +82,35 @@ def _t_test(a: list[float], b: list[float] | float) -> tuple[float, float]:
     return diff, float(stats.ttest_ind(x, y, equal_var=False, alternative="greater").pvalue)
 
 
-def _by_test(diff: float, p: float) -> tuple[str, str]:
+def _tested(text: str, paper: str, ours: str, diff: float, p: float) -> Verdict:
     if diff > 0 and p < ALPHA:
-        return REPRODUCED, f"p = {p:.3g} (one-sided t-test)"
+        return Verdict(text, paper, ours, REPRODUCED, f"p = {p:.3g} (one-sided t-test)", p)
     if diff > 0:
-        return PARTLY, f"higher but not significantly: p = {p:.2g}"
-    return NOT, f"lower: difference {diff:.3g}, p = {p:.2g}"
+        return Verdict(text, paper, ours, PARTLY, f"higher but not significantly: p = {p:.2g}", p)
+    return Verdict(text, paper, ours, NOT, f"lower: difference {diff:.3g}, p = {p:.2g}", p)
+
+
+def holm(verdicts: list[Verdict]) -> list[Verdict]:
+    """Holm's correction over the tested claims: each *reproduced* one keeps its verdict only if its adjusted
+    p-value is below ``ALPHA``; the others are unchanged."""
+    tested = sorted((v for v in verdicts if v.p is not None), key=lambda v: v.p)
+    m, running = len(tested), 0.0
+    for rank, v in enumerate(tested):
+        running = max(running, min(1.0, (m - rank) * v.p))
+        if v.verdict != REPRODUCED or m == 1:
+            continue
+        if running < ALPHA:
+            v.why = f"p = {v.p:.3g}, {running:.3g} after Holm's correction over {m} tests"
+        else:
+            v.verdict, v.why = PARTLY, f"p = {v.p:.3g} alone, {running:.2g} after Holm's correction over {m} tests"
+    return verdicts
+
+
+def judge_figure(
+    claims: list[dict[str, Any]], groups: dict[str, dict[str, Any]], extra: dict[str, Any]
+) -> list[Verdict]:
+    """Every claim of a figure, Holm-corrected together."""
+    return holm([judge(c, groups, extra) for c in claims])
 
 
 def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[str, Any]) -> Verdict:
@@ -94,15 +122,14 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
             a, b = _finals(groups, claim["better"]), _finals(groups, claim["than"])
             if not a or not b:
                 return Verdict(text, paper, "no final returns yet", NOT, "a group has no completed job")
-            verdict, why = _by_test(*_one_sided(a, b))
-            return Verdict(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", verdict, why)
+            return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *_one_sided(a, b))
         if "above_reference" in claim:
             a = _finals(groups, claim["group"])
             ref = extra.get("references", {}).get(claim["above_reference"])
             if ref is None or not a:
                 return Verdict(text, paper, "no reference or no final returns", NOT, "nothing to compare")
-            verdict, why = _by_test(*_one_sided(a, float(ref)))
-            return Verdict(text, paper, f"{mean_ci(a)} vs {claim['above_reference']} {ref:.3g}", verdict, why)
+            ours = f"{mean_ci(a)} vs {claim['above_reference']} {ref:.3g}"
+            return _tested(text, paper, ours, *_one_sided(a, float(ref)))
         if "group" in claim and "paper" in claim:
             a = _finals(groups, claim["group"])
             ours = mean_ci(a)
@@ -138,18 +165,15 @@ def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[st
         if not base:
             return Verdict(text, paper, ours, NOT, "no shuffled baseline")
         diff = [v - s for v, s in zip(values, base, strict=False)]
-        verdict, why = _by_test(*_one_sided(diff, 0.0))
-        return Verdict(text, paper, f"{ours}; shuffled {mean_ci(base)}", verdict, why)
+        return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *_one_sided(diff, 0.0))
     if above is not None:
-        verdict, why = _by_test(*_one_sided(values, float(above)))
-        return Verdict(text, paper, ours, verdict, why)
+        return _tested(text, paper, ours, *_one_sided(values, float(above)))
     if below is not None:
         other = figures.get(below, {}).get("value", [])
         diff = [o - v for v, o in zip(values, other, strict=False)]
         if not diff:
             return Verdict(text, paper, ours, NOT, f"no figure {below!r}")
-        verdict, why = _by_test(*_one_sided(diff, 0.0))
-        return Verdict(text, paper, f"{ours} vs {mean_ci(other)}", verdict, why)
+        return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *_one_sided(diff, 0.0))
     return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "a number only")))
 
 

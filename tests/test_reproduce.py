@@ -8,7 +8,17 @@ from pathlib import Path
 
 import pytest
 
-from convoy.analysis.verdicts import NOT, NOT_COMPARABLE, PARTLY, REPRODUCED, Verdict, figure_verdict, judge
+from convoy.analysis.verdicts import (
+    NOT,
+    NOT_COMPARABLE,
+    PARTLY,
+    REPRODUCED,
+    Verdict,
+    figure_verdict,
+    holm,
+    judge,
+    judge_figure,
+)
 from convoy.services.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -118,3 +128,18 @@ def test_claims_get_verdicts_from_one_sided_tests() -> None:
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, figures).verdict == REPRODUCED
     v = [Verdict("", "", "", REPRODUCED), Verdict("", "", "", NOT), Verdict("", "", "", NOT_COMPARABLE)]
     assert figure_verdict(v) == PARTLY and figure_verdict(v[:1]) == REPRODUCED and figure_verdict(v[1:]) == NOT
+
+
+def test_a_figures_claims_are_holm_corrected_together() -> None:
+    # p = 0.04 alone is significant; beside two other tests Holm multiplies it by 3 (0.12): no longer reproduced
+    v = holm([Verdict("a", "", "", REPRODUCED, p=0.04), Verdict("b", "", "", PARTLY, p=0.09),
+              Verdict("c", "", "", NOT, p=0.8), Verdict("d", "", "", NOT_COMPARABLE)])  # fmt: skip
+    assert [x.verdict for x in v] == [PARTLY, PARTLY, NOT, NOT_COMPARABLE] and "0.12 after Holm" in v[0].why
+    # a strong effect survives: 0.001 × 3 = 0.003; the next one is adjusted by 2 but never below the previous
+    v = holm([Verdict("a", "", "", REPRODUCED, p=0.001), Verdict("b", "", "", REPRODUCED, p=0.02),
+              Verdict("c", "", "", NOT, p=0.6)])  # fmt: skip
+    assert [x.verdict for x in v] == [REPRODUCED, REPRODUCED, NOT] and "0.04 after Holm" in v[1].why
+    assert holm([Verdict("a", "", "", REPRODUCED, p=0.04)])[0].verdict == REPRODUCED  # one test: nothing to correct
+    groups = {"a": {"final": {"values": [10.0, 11.0, 12.0]}}, "b": {"final": {"values": [5.0, 6.0, 5.5]}}}
+    claims = [{"text": "", "better": "a", "than": "b"}, {"text": "", "better": "b", "than": "a"}]
+    assert [x.verdict for x in judge_figure(claims, groups, {})] == [REPRODUCED, NOT]
