@@ -61,7 +61,7 @@ def _finals(groups: dict[str, dict[str, Any]], name: str) -> list[float]:
     return [float(v) for v in group["final"]["values"]]
 
 
-def _one_sided(a: list[float], b: list[float] | float) -> tuple[float, float]:
+def p_above(a: list[float], b: list[float] | float) -> tuple[float, float]:
     """(difference of means, p-value) of ``mean(a) > mean(b)`` (Welch; one-sample against a number)."""
     with warnings.catch_warnings():  # nearly equal values: scipy warns of precision loss, the p-value stands
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -122,14 +122,14 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
             a, b = _finals(groups, claim["better"]), _finals(groups, claim["than"])
             if not a or not b:
                 return Verdict(text, paper, "no final returns yet", NOT, "a group has no completed job")
-            return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *_one_sided(a, b))
+            return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *p_above(a, b))
         if "above_reference" in claim:
             a = _finals(groups, claim["group"])
             ref = extra.get("references", {}).get(claim["above_reference"])
             if ref is None or not a:
                 return Verdict(text, paper, "no reference or no final returns", NOT, "nothing to compare")
             ours = f"{mean_ci(a)} vs {claim['above_reference']} {ref:.3g}"
-            return _tested(text, paper, ours, *_one_sided(a, float(ref)))
+            return _tested(text, paper, ours, *p_above(a, float(ref)))
         if "group" in claim and "paper" in claim:
             a = _finals(groups, claim["group"])
             ours = mean_ci(a)
@@ -165,15 +165,15 @@ def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[st
         if not base:
             return Verdict(text, paper, ours, NOT, "no shuffled baseline")
         diff = [v - s for v, s in zip(values, base, strict=False)]
-        return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *_one_sided(diff, 0.0))
+        return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *p_above(diff, 0.0))
     if above is not None:
-        return _tested(text, paper, ours, *_one_sided(values, float(above)))
+        return _tested(text, paper, ours, *p_above(values, float(above)))
     if below is not None:
         other = figures.get(below, {}).get("value", [])
         diff = [o - v for v, o in zip(values, other, strict=False)]
         if not diff:
             return Verdict(text, paper, ours, NOT, f"no figure {below!r}")
-        return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *_one_sided(diff, 0.0))
+        return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *p_above(diff, 0.0))
     return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "a number only")))
 
 

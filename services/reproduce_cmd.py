@@ -27,7 +27,7 @@ from typing import Any
 
 from rich.console import Console
 
-from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci
+from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above
 from convoy.api.models import SweepSubmit
 from convoy.services.args import add_command
 from convoy.services.jobs_cmd import Api, CliError, plain
@@ -352,10 +352,16 @@ def render(docs: Path, page: Path) -> None:
         if r.get("png"):
             lines += [f"![{r['title']}]({rel}/{r['png']})", ""]
         if r["groups"] and "analysis" not in r:
-            lines += ["| group | final greedy return | jobs |", "|---|---|---|"]
+            rand = (r.get("references") or {}).get("random")
+            head = " above random? |" if rand is not None else ""
+            lines += [f"| group | final greedy return | jobs |{head}", "|---|---|---|" + "---|" * bool(head)]
             for g in r["groups"]:
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
-                lines.append(f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |")
+                row = f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |"
+                if rand is not None:
+                    diff, p = p_above(g["final"]["values"], float(rand))
+                    row += f" {'yes' if diff > 0 and p < 0.05 else 'no'} (p = {p:.2g}) |"
+                lines.append(row)
             lines.append("")
         if r.get("references"):
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())

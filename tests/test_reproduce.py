@@ -93,6 +93,9 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     page = (tmp_path / "docs" / "r.md").read_text()
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
     assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
+    assert "random" in record["references"]  # each group's final return is tested against the random policy's
+    assert "| group | final greedy return | jobs | above random? |" in page
+    assert page.count("completed | yes (p = ") + page.count("completed | no (p = ") == 2
     table = json.loads((tmp_path / "docs" / "r" / "table1.json").read_text())  # fig8's MA-MeSN checkpoints
     assert table["groups"][0]["jobs"] == record["groups"][0]["jobs"]
     assert len(table["analysis"]["return_noise"]["value"]) == 2 and table["verdicts"][0]["verdict"] != NOT_COMPARABLE
