@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -329,6 +330,14 @@ def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
     bad_dtype = {**chunk(), "reward": np.zeros((2, 4, 3), dtype=np.float64)}
     assert chunk_problem(bad_dtype, schema, n_actions) == "schema"
     assert chunk_problem({k: v for k, v in chunk().items() if k != "mu"}, schema, n_actions) == "schema"
+    # MA-MeSN-MM's history travels as float16: its check must not overflow the bound into a warning per chunk
+    half = {"action": schema["action"], "history": ("<f2", (3, 4))}
+    action = np.zeros((2, 4, 3), np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for value, problem in ((60000.0, None), (np.inf, "non-finite")):
+            history = np.full((2, 4, 3, 4), value, np.float16)
+            assert chunk_problem({"action": action, "history": history}, half, n_actions) == problem
 
 
 def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) -> None:
