@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -19,7 +20,11 @@ from convoy.analysis.verdicts import (
     judge,
     judge_figure,
 )
+from convoy.api.models import SweepSubmit
+from convoy.api.sweeps import expand, group_name
 from convoy.services.cli import main
+from convoy.services.reproduce_cmd import figure_files
+from convoy.services.sweep_file import sweep_body
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -107,6 +112,38 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert main(argv) == 0
     again = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
     assert again["groups"][0]["sweep"] == sweep and again["groups"] == record["groups"]
+
+
+def _links_as_paths(node: Any) -> Any:
+    """``"@fig3:algo=ma-mesn"`` (resolved by `convoy reproduce` at run time) as a stand-in checkpoint path."""
+    if isinstance(node, dict):
+        return {k: _links_as_paths(v) for k, v in node.items()}
+    return "teacher.pt" if isinstance(node, str) and node.startswith("@") else node
+
+
+@pytest.mark.parametrize("scale", ["quick", "paper"])
+def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) -> None:
+    figures = figure_files(ROOT / "experiments")
+    assert {"fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1"} <= set(figures)
+    groups: dict[str, set[str]] = {}
+    for fig, files in figures.items():
+        groups[fig] = set()
+        for path, data in files:
+            if data["figure"].get("kind", "sweep") != "sweep":
+                continue
+            body = _links_as_paths(sweep_body(data, scale, where=path.name))
+            jobs = expand(SweepSubmit(**body))  # every job of the grid validates at this scale
+            assert len({j.point.get("seed") for j in jobs}) >= 5, (path.name, "five seeds at least")
+            groups[fig] |= {group_name(j.point) for j in jobs}
+    for fig, files in figures.items():
+        meta = files[0][1]["figure"]
+        known = groups[meta["source"]] if meta.get("kind") == "analysis" else groups[fig]
+        if meta.get("kind") == "analysis":
+            assert meta["group"] in known, (fig, meta["group"], known)
+        for claim in meta.get("claims", []):
+            for key in ("better", "than", "group"):
+                if key in claim and "metric" not in claim:
+                    assert claim[key] in known, (fig, claim["text"], claim[key], sorted(known))
 
 
 def test_claims_get_verdicts_from_one_sided_tests() -> None:
