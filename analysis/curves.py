@@ -53,23 +53,32 @@ def plot_final_by(
     lines: str,
     xlabel: str,
     ylabel: str = "final greedy return",
+    references: tuple[str, ...] = ("random", "scripted"),
 ) -> Path:
     """A PNG of each group's final return (mean ± 95 % CI) against one grid axis ``x`` (log₂), one line per value
-    of another axis ``lines`` (Fig. 4a: return against the number of agents, one line per algorithm)."""
+    of another axis ``lines`` (Fig. 4a: return against the number of agents, one line per algorithm), and the
+    named reference policies' returns (each group's own ``references``: its env changes along ``x``) dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     series: dict[str, list[tuple[float, float, float]]] = {}
+    refs: dict[str, dict[float, float]] = {}  # each reference policy's return at each x (its own env)
     for group in groups:
         point, final = group["point"], group["final"]
         if final["mean"] is not None:
             series.setdefault(str(point.get(lines)), []).append((point[x], final["mean"], final["ci95"]))
+        for name, value in (group.get("references") or {}).items():
+            if name in references:
+                refs.setdefault(name, {})[point[x]] = value
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for name, pts in series.items():
         xs, ys, cs = zip(*sorted(pts), strict=True)
         ax.errorbar(xs, ys, yerr=cs, marker="o", capsize=3, label=name)
+    for i, (name, by_x) in enumerate(refs.items()):
+        xs = sorted(by_x)
+        ax.plot(xs, [by_x[v] for v in xs], linestyle="--", color=f"C{7 + i % 3}", linewidth=1, label=name)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_xscale("log", base=2)

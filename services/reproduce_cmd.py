@@ -143,7 +143,8 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
 
 
 def references(api: Api, groups: list[dict[str, Any]]) -> dict[str, float]:
-    """The reference policies' returns the sweep's first completed job measured (the same env for every group)."""
+    """The reference policies' returns the first completed job of ``groups`` measured (on its env: pass one group
+    when the groups' envs differ, e.g. in the number of agents)."""
     for group in groups:
         for job_id in group["jobs"]:
             final = api.call("GET", f"/jobs/{job_id}").get("final") or {}
@@ -204,7 +205,7 @@ class Context:
 def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
     from convoy.analysis.curves import plot_final_by, plot_groups
 
-    groups = ctx.sweep_summaries(fig)
+    groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
     refs = references(ctx.api, groups)
     png = ctx.docs / f"{fig}.png"
     if meta.get("plot") == "final_by":
@@ -292,7 +293,8 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "command": f"convoy reproduce {fig} --scale {ctx.scale}",
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
         "groups": [
-            {k: g[k] for k in ("group", "jobs", "states", "final", "sweep") if k in g} for g in result["groups"]
+            {k: g[k] for k in ("group", "jobs", "states", "final", "sweep", "references") if k in g}
+            for g in result["groups"]
         ],
         "references": result["references"],
         "verdicts": [v.__dict__ for v in verdicts],
@@ -351,19 +353,21 @@ def render(docs: Path, page: Path) -> None:
                   f"{', '.join(f'`{f}`' for f in r['files'])})", ""]  # fmt: skip
         if r.get("png"):
             lines += [f"![{r['title']}]({rel}/{r['png']})", ""]
+        own_refs = {json.dumps(g.get("references", r["references"]), sort_keys=True) for g in r["groups"]}
         if r["groups"] and "analysis" not in r:
-            rand = (r.get("references") or {}).get("random")
-            head = " above random? |" if rand is not None else ""
+            rand = [(g.get("references") or r["references"] or {}).get("random") for g in r["groups"]]
+            head = " above random? |" if None not in rand else ""
             lines += [f"| group | final greedy return | jobs |{head}", "|---|---|---|" + "---|" * bool(head)]
-            for g in r["groups"]:
+            for g, ref in zip(r["groups"], rand, strict=True):
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
                 row = f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |"
-                if rand is not None:
-                    diff, p = p_above(g["final"]["values"], float(rand))
-                    row += f" {'yes' if diff > 0 and p < 0.05 else 'no'} (p = {p:.2g}) |"
+                if head:
+                    diff, p = p_above(g["final"]["values"], float(ref))
+                    mean = f"{ref:.3g}, " if len(own_refs) > 1 else ""  # each group's own random when envs differ
+                    row += f" {'yes' if diff > 0 and p < 0.05 else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)
             lines.append("")
-        if r.get("references"):
+        if r.get("references") and len(own_refs) == 1:
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
             lines += [f"References on the same evaluation episodes: {refs}.", ""]
         if r.get("analysis"):

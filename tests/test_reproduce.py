@@ -183,3 +183,19 @@ def test_a_figures_claims_are_holm_corrected_together() -> None:
     groups = {"a": {"final": {"values": [10.0, 11.0, 12.0]}}, "b": {"final": {"values": [5.0, 6.0, 5.5]}}}
     claims = [{"text": "", "better": "a", "than": "b"}, {"text": "", "better": "b", "than": "a"}]
     assert [x.verdict for x in judge_figure(claims, groups, {})] == [REPRODUCED, NOT]
+
+
+def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from convoy.analysis import curves
+
+    drawn: list[Any] = []
+    monkeypatch.setattr(curves, "_save", lambda fig, path: drawn.append(fig) or Path(path))
+    groups = [
+        {"point": {"algo": a, "n": n}, "final": {"mean": 10.0 * n, "ci95": 1.0},
+         "references": {"random": float(n), "scripted": 5.0 * n, "full-information": 99.0}}
+        for a in ("x", "y") for n in (2, 4, 8)
+    ]  # fmt: skip
+    curves.plot_final_by(groups, tmp_path / "f.png", "t", x="n", lines="algo", xlabel="N")
+    lines = {line.get_label(): list(line.get_ydata()) for line in drawn[0].axes[0].get_lines()}
+    assert lines["random"] == [2.0, 4.0, 8.0] and lines["scripted"] == [10.0, 20.0, 40.0]  # the return at each N
+    assert "full-information" not in lines  # only the named references
