@@ -82,8 +82,13 @@ def _t_test(a: list[float], b: list[float] | float) -> tuple[float, float]:
     return diff, float(stats.ttest_ind(x, y, equal_var=False, alternative="greater").pvalue)
 
 
+def significant(diff: float, p: float) -> bool:
+    """Whether a one-sided test's (difference, p-value) says "above" at ``ALPHA``."""
+    return diff > 0 and p < ALPHA
+
+
 def _tested(text: str, paper: str, ours: str, diff: float, p: float) -> Verdict:
-    if diff > 0 and p < ALPHA:
+    if significant(diff, p):
         return Verdict(text, paper, ours, REPRODUCED, f"p = {p:.3g} (one-sided t-test)", p)
     if diff > 0:
         return Verdict(text, paper, ours, PARTLY, f"higher but not significantly: p = {p:.2g}", p)

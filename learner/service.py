@@ -89,9 +89,8 @@ def chunk_problem(
     for name, a in arrays.items():
         if a.dtype.kind != "f" or not a.size:
             continue
-        if (
-            not np.isfinite(a).all() or float(np.abs(a).max()) > MAX_ABS_VALUE
-        ):  # as a Python float: 1e6 overflows float16
+        # the max as a Python float: compared in the array's dtype, 1e6 overflows float16
+        if not np.isfinite(a).all() or float(np.abs(a).max()) > MAX_ABS_VALUE:
             return "non-finite"
         if name in UNIT_INTERVAL_FIELDS and (a.min() < 0.0 or a.max() > 1.0):
             return "out-of-range"

@@ -27,7 +27,7 @@ from typing import Any
 
 from rich.console import Console
 
-from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above
+from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
 from convoy.services.args import add_command
 from convoy.services.jobs_cmd import Api, CliError, plain
@@ -206,7 +206,7 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
     from convoy.analysis.curves import plot_final_by, plot_groups
 
     groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
-    refs = references(ctx.api, groups)
+    refs = next((g["references"] for g in groups if g["references"]), {})  # the first group that measured them
     png = ctx.docs / f"{fig}.png"
     if meta.get("plot") == "final_by":
         plot_final_by(groups, png, meta["title"], meta["x"], meta["lines"], xlabel=meta.get("xlabel", meta["x"]),
@@ -354,9 +354,10 @@ def render(docs: Path, page: Path) -> None:
                   f"{', '.join(f'`{f}`' for f in r['files'])})", ""]  # fmt: skip
         if r.get("png"):
             lines += [f"![{r['title']}]({rel}/{r['png']})", ""]
-        own_refs = {json.dumps(g.get("references", r["references"]), sort_keys=True) for g in r["groups"]}
+        group_refs = [g.get("references") or r["references"] or {} for g in r["groups"]]  # older records: none
+        one_env = len({json.dumps(refs, sort_keys=True) for refs in group_refs}) <= 1
         if r["groups"] and "analysis" not in r:
-            rand = [(g.get("references") or r["references"] or {}).get("random") for g in r["groups"]]
+            rand = [refs.get("random") for refs in group_refs]
             head = " above random? |" if None not in rand else ""
             lines += [f"| group | final greedy return | jobs |{head}", "|---|---|---|" + "---|" * bool(head)]
             for g, ref in zip(r["groups"], rand, strict=True):
@@ -364,11 +365,11 @@ def render(docs: Path, page: Path) -> None:
                 row = f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |"
                 if head:
                     diff, p = p_above(g["final"]["values"], float(ref))
-                    mean = f"{ref:.3g}, " if len(own_refs) > 1 else ""  # each group's own random when envs differ
-                    row += f" {'yes' if diff > 0 and p < 0.05 else 'no'} ({mean}p = {p:.2g}) |"
+                    mean = "" if one_env else f"{ref:.3g}, "  # each group's own random when envs differ
+                    row += f" {'yes' if significant(diff, p) else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)
             lines.append("")
-        if r.get("references") and len(own_refs) == 1:
+        if r.get("references") and one_env:
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
             lines += [f"References on the same evaluation episodes: {refs}.", ""]
         if r.get("analysis"):
