@@ -3,6 +3,10 @@ and the agent as a policy for the one evaluation loop, ``envs.rollout`` (greedy 
 
 :class:`EnvStepper` acts, steps every env, appends the joint transition to a chunk ``[T, B, …]`` and keeps each
 env's running return and the episode stamp that stabilised experience replay weighs samples by.
+
+For a population of R runs (``algo.runs``) the env holds R·B envs, run k's B envs seeded as the single run of
+``algo.seeds[k]`` seeds its own; the agent sees ``[R, B, …]``, chunks are ``[T, R, B, …]``, and episode stamps count
+each run's own episodes.
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from convoy.algos.algorithm import ActOutput, Agent
-from convoy.envs.batched import BatchedEnv, StepResult
+from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
 
 
 def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:
@@ -27,6 +31,9 @@ def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.nda
     }
 
 
+SPLIT = ("obs", "reward", "next_obs", "terminated", "truncated", "episode")  # env-major fields; the act's are [R, B]
+
+
 class EnvStepper:
     """``algo`` acting in ``env`` (reset with ``seed``); ``step`` records into the chunk ``take_chunk`` returns
     (unless ``record`` is off) and keeps its act's output as ``last``."""
@@ -35,29 +42,47 @@ class EnvStepper:
         self.env, self.algo, self.record = env, algo, record
         self.last: ActOutput | None = None
         b, n = env.num_envs, env.spec.n_agents
-        self.obs = env.reset(seed=seed)
+        self.runs: int | None = getattr(algo, "runs", None)
+        if self.runs is None:
+            self.obs = env.reset(seed=seed)
+        else:
+            if b % self.runs:
+                raise ValueError(f"num_envs: {b} envs do not split evenly among the population's {self.runs} runs")
+            per_run = [env_seeds(s, b // self.runs) for s in algo.seeds]  # type: ignore[attr-defined]
+            self.obs = env.reset(seed=np.concatenate(per_run))
+        self.run_of_env = np.repeat(np.arange(self.runs or 1), b // (self.runs or 1))
         self.state = algo.initial_state(b)
         self.ep_ret = np.zeros((b, n))
-        self.episode_id = np.zeros(b, dtype=np.int64)  # episodes finished when each env's episode began
-        self.episodes = 0
+        self.episode_id = np.zeros(b, dtype=np.int64)  # episodes of its run finished when each env's episode began
+        self.episodes_by_run = np.zeros(self.runs or 1, dtype=np.int64)
+        self.ended_runs = np.zeros(0, dtype=np.int64)  # the run of each return the last step reported
         self._chunk: dict[str, list[np.ndarray]] = {}
+
+    @property
+    def episodes(self) -> int:
+        return int(self.episodes_by_run.sum())
+
+    def _split(self, x: np.ndarray) -> np.ndarray:
+        """``[R·B, …]`` → ``[R, B, …]`` for a population; unchanged for a single run."""
+        return x if self.runs is None else x.reshape(self.runs, -1, *x.shape[1:])
 
     def step(self, epsilon: float) -> list[float]:
         """One ε-greedy step of every env; the returns (mean over agents) of the episodes that just ended."""
-        out = self.algo.act(self.obs, epsilon, self.state)
-        res = self.env.step(out.actions)
+        out = self.algo.act(self._split(self.obs), epsilon, self.state)
+        res = self.env.step(out.actions.reshape(self.env.num_envs, -1))
         self.last = out
         if self.record:
             for k, v in transition(self.obs, out, res, self.episode_id).items():
-                self._chunk.setdefault(k, []).append(v)
+                self._chunk.setdefault(k, []).append(self._split(v) if k in SPLIT else v)
         self.ep_ret += res.reward
         done = res.done
         returns: list[float] = []
+        self.ended_runs = self.run_of_env[done]
         if done.any():
             returns = self.ep_ret[done].mean(axis=1).tolist()
             self.ep_ret[done] = 0.0
-            self.episodes += len(returns)
-            self.episode_id[done] = self.episodes
+            self.episodes_by_run += np.bincount(self.ended_runs, minlength=len(self.episodes_by_run))
+            self.episode_id[done] = self.episodes_by_run[self.ended_runs]
         self.state = self.algo.reset_state(out.state, done)
         self.obs = res.obs
         return returns

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NamedTuple, Protocol
 
@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.nets import pick_device
+from convoy.algos.nets import pick_device, run_state, stack_runs
 from convoy.algos.replay import JointReplay
 from convoy.config import AlgoConfig
 from convoy.envs.batched import EnvSpec
@@ -59,9 +59,9 @@ class Loss(NamedTuple):
     """What one batch costs: each agent's loss ``[N]`` (their sum is minimised), an auxiliary term trained on the
     same batch (positive signalling, a memory module's message prediction) and figures to report."""
 
-    agents: Tensor
-    extra: Tensor | None = None
-    stats: dict[str, float] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
+    agents: Tensor  # [N], or [R, N] for a population of R runs
+    extra: Tensor | None = None  # a scalar, or [R]
+    stats: dict[str, float | Tensor] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
 
     def plus(self, extra: Tensor | None, stats: dict[str, float]) -> Loss:
         """This loss with one more auxiliary term and its figures."""
@@ -112,7 +112,13 @@ def epsilon_greedy(
     """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
     agent's own action count (``mask`` ``[N, A]``). At ε = 0 no random number is drawn: greedy acting (an
     evaluation in the middle of training) leaves the exploration stream, and so the training run, as it was."""
-    greedy = q.masked_fill(~mask, NEG).argmax(dim=-1).cpu().numpy()
+    return explore(q.masked_fill(~mask, NEG).argmax(dim=-1).cpu().numpy(), epsilon, n_actions, rng)
+
+
+def explore(
+    greedy: np.ndarray, epsilon: float | np.ndarray, n_actions: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``epsilon_greedy`` from the greedy actions ``[B, N]``."""
     b, n = greedy.shape
     eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, n))
     if not eps.any():
@@ -193,11 +199,21 @@ class NetworkAgent(ABC):
     config_model: ClassVar[type[AlgoConfig]]
     chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
     uses_messages: ClassVar[bool] = False
+    # whether R runs of it train as one population (``seed`` a sequence): every layer a GroupLinear, losses reduced
+    # over the batch dim −2, per-run state only where ``member`` carries it
+    population: ClassVar[bool] = False
     # ``update`` syncs the targets every target_update updates; DIAL syncs by finished episodes instead and
     # behaviour cloning has no bootstrap target at all
     syncs_by_updates: ClassVar[bool] = True
 
-    def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
+    def __init__(
+        self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
+    ) -> None:
+        """One run of ``seed``; or, given a sequence of seeds, a population: R runs whose weights, optimizer state,
+        replay and random streams carry a leading run axis, run k being the run of ``seed[k]`` (its initial
+        weights, replay draws, exploration and message noise are that single run's), all updated by one batched
+        step. A population acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` returns one
+        dict of figures per run."""
         if not isinstance(cfg, self.config_model):
             raise TypeError(f"{self.name} needs a {self.config_model.__name__}, got {type(cfg).__name__}")
         if cfg.hidden is None or cfg.share_params is None:
@@ -206,23 +222,35 @@ class NetworkAgent(ABC):
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)
-        self.rng = np.random.default_rng(seed)
+        population = not isinstance(seed, int | np.integer)
+        self.seeds: tuple[int, ...] = tuple(int(s) for s in seed) if population else (int(seed),)  # type: ignore[union-attr]
+        self.runs: int | None = len(self.seeds) if population else None
+        if self.runs == 0:
+            raise ValueError("seed: a population needs at least one seed")
+        # explicit streams per run: replay draws and exploration (numpy), message noise (torch) — never global state
+        self.rngs = [np.random.default_rng(s) for s in self.seeds]
+        self.rng = self.rngs[0]
+        self.torch_rngs = [torch.Generator(device=self.device).manual_seed(s) for s in self.seeds]
         self.n_actions_np = np.asarray(spec.n_actions, dtype=np.int64)
         mask = torch.arange(self.n_act)[None, :] < torch.as_tensor(spec.n_actions)[:, None]
         self.action_mask = mask.to(self.device)  # [N, A]
         self.progress = Progress()
         self.updates = 0
         self.skipped_updates = 0  # updates whose loss or gradient was not finite: no step taken
-        self._nonfinite_in_a_row = 0
+        self._nonfinite_in_a_row = np.zeros(len(self.seeds), dtype=np.int64)
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            networks = self.build()
-        self.online: nn.ModuleDict = nn.ModuleDict(networks).to(self.device)
+        per_run = []
+        for s in self.seeds:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(s)
+                per_run.append(nn.ModuleDict(self.build()))
+        online = per_run[0] if self.runs is None else stack_runs(per_run)
+        self.online: nn.ModuleDict = online.to(self.device)  # type: ignore[assignment]
         self.target: nn.ModuleDict = copy.deepcopy(self.online)
         self.target.requires_grad_(False)
         self._optimizer: torch.optim.Optimizer | None = None
+        self._members: dict[int, NetworkAgent] = {}
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
@@ -274,12 +302,27 @@ class NetworkAgent(ABC):
         observations and the recurrent state after this act; none by default."""
         return {}
 
+    def rand_like(self, x: Tensor) -> Tensor:
+        """Uniform noise shaped like ``x`` from each run's own generator (``x``'s first dim is the run axis in a
+        population): run k draws exactly what the single run of its seed draws."""
+        if self.runs is None:
+            return torch.rand(x.shape, generator=self.torch_rngs[0], device=x.device, dtype=x.dtype)
+        shape = x.shape[1:]
+        return torch.stack([torch.rand(shape, generator=g, device=x.device, dtype=x.dtype) for g in self.torch_rngs])
+
     @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
-        """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style)."""
+        """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style). A
+        population acts on ``[R, B, N, D]`` with ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, msgs, new_state = self.greedy_q(obs_t, state)
-        actions, _, _ = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
+        if self.runs is None:
+            actions, _, _ = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
+        else:  # one greedy pass for every run; each run's exploration draws from its own stream
+            greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
+            eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (self.runs, greedy.shape[1]))
+            runs = zip(greedy, eps, self.rngs, strict=True)
+            actions = np.stack([explore(g, e, self.n_actions_np, rng)[0] for g, e, rng in runs])
         return ActOutput(
             actions=actions,
             messages=None if msgs is None else msgs.cpu().numpy(),
@@ -292,33 +335,85 @@ class NetworkAgent(ABC):
         """Each agent's loss ``[N]`` on ``batch`` (tests back-propagate one to see which weights it reaches)."""
         return self.loss(batch).agents
 
-    def update(self) -> dict[str, float]:
+    def update(self) -> dict[str, float] | list[dict[str, float]]:
         """One gradient step on a sampled batch (the agents' losses summed, plus any auxiliary term), then the
-        target sync. A non-finite loss or gradient never reaches the weights; many in a row end the run."""
+        target sync. A non-finite loss or gradient never reaches the weights; many in a row end the run.
+
+        A population takes one step for all runs: their losses are summed (no weight is shared between runs, so
+        each run's gradient is its own loss's), each run's gradient is clipped to its own norm, and a run whose
+        loss or gradient is not finite keeps its weights and optimizer state. Figures come back per run."""
         out = self.loss(self.sample())
-        loss = out.agents.sum()
-        total = loss if out.extra is None else loss + out.extra
+        loss = out.agents.sum(dim=-1)  # [] or [R]
+        total = loss.sum() if out.extra is None else loss.sum() + out.extra.sum()
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        loss_value, norm = float(loss.detach()), float(grad_norm)
-        if not (np.isfinite(loss_value) and np.isfinite(norm)):
+        if self.runs is None:
+            grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
+        else:
+            grad_norm = clip_grad_norm_per_run(list(self.online.parameters()), self.cfg.grad_clip)
+        names = ["loss", "grad_norm", *out.stats]
+        figures = torch.stack([loss.detach(), grad_norm, *(torch.as_tensor(v) for v in out.stats.values())])
+        table = np.asarray(figures.float().cpu(), dtype=np.float64).reshape(len(names), -1)  # one host sync
+        ok = np.isfinite(table[0]) & np.isfinite(table[1])
+        self._nonfinite_in_a_row = np.where(ok, 0, self._nonfinite_in_a_row + 1)
+        if not ok.all():
+            self._refuse_nonfinite(ok, table)
+        if ok.any():
+            kept = None if ok.all() else self._snapshot(~ok)
+            self.optimizer.step()
+            if kept is not None:
+                self._restore(~ok, kept)
+            self.updates += 1
+            if self.syncs_by_updates:
+                update_target(self.target, self.online, self.updates, self.cfg)
+        rows = [dict(zip(names, col, strict=True)) for col in table.T.tolist()]
+        for row, good in zip(rows, ok, strict=True):
+            if not good:
+                row.update(loss=float("nan"), grad_norm=float("nan"))
+        return rows[0] if self.runs is None else rows
+
+    def _refuse_nonfinite(self, ok: np.ndarray, table: np.ndarray) -> None:
+        """Count a skipped update; fail the run once a run had ``MAX_NONFINITE_IN_A_ROW`` in a row."""
+        self.skipped_updates += 1
+        worst = int(np.argmax(self._nonfinite_in_a_row))
+        if self._nonfinite_in_a_row[worst] >= MAX_NONFINITE_IN_A_ROW:
+            run = "" if self.runs is None else f" (run of seed {self.seeds[worst]})"
+            raise FloatingPointError(
+                f"{self.name}{run}: {self._nonfinite_in_a_row[worst]} updates in a row had a non-finite loss "
+                f"({table[0, worst]}) or gradient norm ({table[1, worst]}); the weights were kept as they were. "
+                "Check the env's rewards and observations for NaN/inf, or lower lr"
+            )
+        if self.runs is None:
             self.optimizer.zero_grad(set_to_none=True)
-            self.skipped_updates += 1
-            self._nonfinite_in_a_row += 1
-            if self._nonfinite_in_a_row >= MAX_NONFINITE_IN_A_ROW:
-                raise FloatingPointError(
-                    f"{self.name}: {self._nonfinite_in_a_row} updates in a row had a non-finite loss ({loss_value}) "
-                    f"or gradient norm ({norm}); the weights were kept as they were. Check the env's rewards and "
-                    "observations for NaN/inf, or lower lr"
-                )
-            return {"loss": float("nan"), "grad_norm": float("nan")}
-        self._nonfinite_in_a_row = 0
-        self.optimizer.step()
-        self.updates += 1
-        if self.syncs_by_updates:
-            update_target(self.target, self.online, self.updates, self.cfg)
-        return {"loss": loss_value, "grad_norm": norm, **out.stats}
+
+    def _snapshot(self, bad: np.ndarray) -> tuple[list[Tensor], list[Tensor]]:
+        """The weights and optimizer moments of the runs ``bad`` (a population), to put back after the step."""
+        idx = torch.as_tensor(np.flatnonzero(bad), device=self.device)
+        for p in self.online.parameters():  # a non-finite gradient must not reach the fused step's arithmetic
+            if p.grad is not None:
+                p.grad.index_fill_(0, idx, 0.0)
+        return [p.detach().index_select(0, idx) for p in self.online.parameters()], [
+            m.index_select(0, idx) for m in self._moments()
+        ]
+
+    def _restore(self, bad: np.ndarray, kept: tuple[list[Tensor], list[Tensor]]) -> None:
+        idx = torch.as_tensor(np.flatnonzero(bad), device=self.device)
+        params, moments = kept
+        with torch.no_grad():
+            for p, old in zip(self.online.parameters(), params, strict=True):
+                p.index_copy_(0, idx, old)
+            now = self._moments()
+            if moments:
+                for m, old in zip(now, moments, strict=True):
+                    m.index_copy_(0, idx, old)
+            else:  # the optimizer's first step made them: the skipped runs' moments stay zero
+                for m in now:
+                    m.index_fill_(0, idx, 0.0)
+
+    def _moments(self) -> list[Tensor]:
+        """The optimizer's per-element state tensors (Adam's two moments) in parameter order."""
+        states = [self.optimizer.state.get(p, {}) for p in self.online.parameters()]
+        return [v for st in states for k, v in sorted(st.items()) if k != "step" and v.dim() > 0]
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
@@ -333,35 +428,113 @@ class NetworkAgent(ABC):
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume learning exactly: networks, targets, optimizer, counters, RNG."""
+        if self.runs is not None:
+            raise TypeError("a population's state is saved per run: member(k).state_dict()")
         return {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
             "rng": self.rng.bit_generator.state,
+            "torch_rng": self.torch_rngs[0].get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.runs is not None:
+            raise TypeError("a population loads per run: load_member_state(k, state)")
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
         self.rng.bit_generator.state = state["rng"]
+        if "torch_rng" in state:  # written since message noise has its own generator
+            self.torch_rngs[0].set_state(state["torch_rng"])
+
+    # --- a population's runs as single runs ------------------------------------------------------------------------
+    def member(self, k: int) -> NetworkAgent:
+        """Run k of a population as a single-run agent of its seed holding the run's current state (weights,
+        targets, optimizer, counters, random streams): what evaluation and checkpoints of that run use. The
+        replay stays with the population."""
+        if self.runs is None:
+            return self
+        agent = self._members.get(k)
+        if agent is None:
+            agent = self._members[k] = type(self)(self.spec, self.cfg, device=self.device, seed=self.seeds[k])
+        opt = self.optimizer.state_dict()
+        moments = {i: {n: v if n == "step" else v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}
+        agent.load_state_dict(
+            {
+                "online": run_state(self.online, k),
+                "target": run_state(self.target, k),
+                "optimizer": {"param_groups": opt["param_groups"], "state": moments},
+                "updates": self.updates,
+                "rng": self.rngs[k].bit_generator.state,
+                "torch_rng": self.torch_rngs[k].get_state(),
+            }
+        )
+        agent.progress = self.progress
+        agent.skipped_updates = self.skipped_updates
+        return agent
+
+    def load_member_state(self, k: int, state: dict[str, Any]) -> None:
+        """Put a single run's state (``member(k).state_dict()``, a checkpoint's) into run k of a population."""
+        if self.runs is None:
+            raise TypeError("load_member_state is for populations; use load_state_dict")
+        opt = self.optimizer  # made before its state is written into
+        with torch.no_grad():
+            for module, key in ((self.online, "online"), (self.target, "target")):
+                for name, value in module.state_dict().items():
+                    value[k].copy_(state[key][name])
+            if state["optimizer"]["state"]:
+                if not opt.state:  # a fresh optimizer: take the first step's structure from the file
+                    stacked = {i: {n: v if n == "step" else torch.zeros(self.runs, *v.shape) for n, v in st.items()}
+                               for i, st in state["optimizer"]["state"].items()}  # fmt: skip
+                    opt.load_state_dict({"param_groups": opt.state_dict()["param_groups"], "state": stacked})
+                saved = sorted(state["optimizer"]["state"].items())
+                for p, (_, st) in zip(self.online.parameters(), saved, strict=True):
+                    for n, v in st.items():
+                        if n == "step":
+                            opt.state[p][n].copy_(v)
+                        else:
+                            opt.state[p][n][k].copy_(v)
+        self.updates = int(state["updates"])
+        self.rngs[k].bit_generator.state = state["rng"]
+        if "torch_rng" in state:
+            self.torch_rngs[k].set_state(state["torch_rng"])
 
     def n_parameters(self) -> int:
-        return sum(p.numel() for p in self.online.parameters())
+        """Parameters of one run."""
+        return sum(p.numel() for p in self.online.parameters()) // len(self.seeds)
+
+
+def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:
+    """Each run's gradient clipped to its own global norm (``clip_grad_norm_`` per run); the norms ``[R]``."""
+    grads = [p.grad for p in params if p.grad is not None]
+    norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
+    total = torch.linalg.vector_norm(norms, dim=0)  # [R]
+    coef = (max_norm / (total + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(coef.reshape(-1, *([1] * (g.dim() - 1))))
+    return total
 
 
 class ReplayAgent(NetworkAgent):
     """A step-based learner: chunks are flattened into the joint replay; ``batch_size`` transitions per update,
     ``replay_ratio`` sampled per inserted transition."""
 
-    def __init__(self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
-        self.replay = JointReplay(cfg.replay_capacity)
+    def __init__(
+        self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
+    ) -> None:
+        runs = None if isinstance(seed, int | np.integer) else len(seed)  # type: ignore[arg-type]
+        self.replay = JointReplay(cfg.replay_capacity, runs=runs)
         super().__init__(spec, cfg, device=device, seed=seed)
 
     def observe(self, chunk: dict[str, np.ndarray]) -> None:
-        self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
+        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run."""
+        if self.runs is None:
+            self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
+        else:
+            self.replay.add({k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()})
 
     def can_update(self) -> bool:
         return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
@@ -370,5 +543,5 @@ class ReplayAgent(NetworkAgent):
         return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
 
     def sample(self) -> Batch:
-        batch = self.replay.sample(self.cfg.batch_size, self.rng)
+        batch = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
         return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}

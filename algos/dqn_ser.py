@@ -31,6 +31,7 @@ class DQNSER(IndependentDQN):
     """Independent DQN whose sampled losses are weighted by sample age (and optionally fingerprinted)."""
 
     name = "dqn-ser"
+    population = False  # its age weights read each run's own episode clock: not yet per run
     config_model = SERConfig
     FP_DIM = 2
 

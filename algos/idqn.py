@@ -15,6 +15,7 @@ class IndependentDQN(ReplayAgent):
     """N independent (double) DQNs, evaluated in one batched pass; shared weights when ``share_params``."""
 
     name = "idqn"
+    population = True
     config_model = IDQNConfig
 
     def input_width(self) -> int:
@@ -39,4 +40,4 @@ class IndependentDQN(ReplayAgent):
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""
-        return Loss(td_loss(*self.q_and_y(batch), self.cfg).mean(dim=0))
+        return Loss(td_loss(*self.q_and_y(batch), self.cfg).mean(dim=-2))

@@ -24,8 +24,10 @@ Choices made where the paper and CommNet leave room:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
@@ -50,14 +52,21 @@ class CommStep(nn.Module):
         self.recur = GroupLinear(groups, width, width)  # W_h
         self.listen = GroupLinear(groups, bits, width)  # W_c
 
-    def emit(self, h: Tensor, train: bool) -> Tensor:
+    def emit(self, h: Tensor, train: bool, rand: Callable[[Tensor], Tensor] = torch.rand_like) -> Tensor:
         """Every agent's message ``[..., N, bits]`` from its hidden state."""
         out = self.speak(h)
-        return gumbel_bits(out, self.bits, train, self.cfg) if self.discrete else out
+        return gumbel_bits(out, self.bits, train, self.cfg, rand) if self.discrete else out
 
-    def forward(self, h: Tensor, h0: Tensor, train: bool, received: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(
+        self,
+        h: Tensor,
+        h0: Tensor,
+        train: bool,
+        received: Tensor | None = None,
+        rand: Callable[[Tensor], Tensor] = torch.rand_like,
+    ) -> tuple[Tensor, Tensor]:
         """Next hidden state and the messages sent this round; ``received`` replaces the averaged message."""
-        sent = self.emit(h, train)
+        sent = self.emit(h, train, rand)
         heard = mean_of_others(sent) if received is None else received
         return F.relu(self.recur(h) + self.listen(heard) + h0), sent
 
@@ -66,6 +75,7 @@ class IMS(ReplayAgent):
     """CommNet with P rounds of averaged messages; every round is one batched pass over all agents."""
 
     name = "ims"
+    population = True
     config_model = IMSConfig
     uses_messages = True
 
@@ -91,7 +101,7 @@ class IMS(ReplayAgent):
         h0 = F.relu(nets["encoder"](with_agent_id(obs, self.shared)))
         h, first = h0, None
         for _ in range(self.rounds):  # P rounds; agents and batch stay vectorised inside each
-            h, sent = nets["comm"](h, h0, train, received)
+            h, sent = nets["comm"](h, h0, train, received, self.rand_like)
             first = sent if first is None else first
         return nets["head"](h), first
 
@@ -108,11 +118,11 @@ class IMS(ReplayAgent):
         q = taken(self.forward(self.online, batch["obs"], train=True)[0], batch["action"])
         # double-Q target from the target copy of the whole stack
         y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
-        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))
+        return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
 
-    def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, float]]:
+    def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, Tensor]]:
         """The positive-signalling term (``signalling_coef``) on the first round's discrete messages."""
         if not (self.cfg.discrete and self.cfg.signalling_coef):
             return None, {}
         h0 = F.relu(self.online["encoder"](with_agent_id(batch["obs"], self.shared)))
-        return signalling_loss(self.online["comm"].speak(h0), self.bits, self.cfg)
+        return signalling_loss(self.online["comm"].speak(h0), self.bits, self.cfg, self.runs)

@@ -39,6 +39,7 @@ class MABoN(HearsMessages, ReplayAgent):
     """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
 
     name = "ma-bon"
+    population = True
     config_model = BoNConfig
     uses_messages = True
 
@@ -66,7 +67,7 @@ class MABoN(HearsMessages, ReplayAgent):
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""
         x = with_agent_id(obs, self.use_id)
-        bm = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg)
+        bm = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg, self.rand_like)
         sent = bm.expand(*x.shape[:-1], self.bits)
         return x, sent, sent
 

@@ -25,6 +25,7 @@ class MAMeSN(HearsMessages, ReplayAgent):
     """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
 
     name = "ma-mesn"
+    population = True
     config_model = MeSNConfig
     uses_messages = True
 
@@ -46,7 +47,7 @@ class MAMeSN(HearsMessages, ReplayAgent):
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
-        sent = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg)
+        sent = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg, self.rand_like)
         return with_agent_id(obs, self.shared), sent, gather_others(sent, self.peers)
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
@@ -76,4 +77,4 @@ class MAMeSN(HearsMessages, ReplayAgent):
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
         y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
         # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
-        return Loss(td_loss(q, y, self.cfg).mean(dim=0), *self.signalling(batch))
+        return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))

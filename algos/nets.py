@@ -8,8 +8,10 @@ keeps the learner's matmuls big and lets the inference-scaling benchmark measure
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
@@ -28,26 +30,80 @@ def pick_device(name: str = "auto") -> torch.device:
 
 
 class GroupLinear(nn.Module):
-    """A linear layer per agent group: input ``[..., N, in]`` → ``[..., N, out]``."""
+    """A linear layer per agent group: input ``[..., N, in]`` → ``[..., N, out]``.
+
+    With ``runs`` = R (a population of R independent runs, see :func:`stack_runs`) every weight carries a leading run
+    axis, ``[R, G, in, out]``, inputs are ``[R, ..., N, in]`` and each run's rows meet only its own weights: one
+    ``baddbmm`` over runs (and agent groups) instead of a Python loop.
+    """
 
     def __init__(self, groups: int, in_features: int, out_features: int) -> None:
         super().__init__()
         self.groups, self.in_features, self.out_features = groups, in_features, out_features
+        self.runs: int | None = None
         bound = 1.0 / math.sqrt(max(in_features, 1))
         self.weight = nn.Parameter(torch.empty(groups, in_features, out_features).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(groups, out_features).uniform_(-bound, bound))
 
     def forward(self, x: Tensor) -> Tensor:
+        if self.runs is not None:
+            return self._forward_runs(x)
         if self.groups == 1:  # one 2-D matmul over every row of every agent (3-D matmuls backprop slowly)
             flat = x.reshape(-1, self.in_features)
             return torch.addmm(self.bias[0], flat, self.weight[0]).reshape(*x.shape[:-1], self.out_features)
-        n = x.shape[-2]
-        if n != self.groups:
-            raise ValueError(f"GroupLinear expected {self.groups} agents on dim -2, got {n}")
+        n = self._agents(x)
         lead = x.shape[:-2]
         flat = x.reshape(-1, n, self.in_features).transpose(0, 1)  # [N, M, in]
         out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight)  # [N, M, out]
         return out.transpose(0, 1).reshape(*lead, n, self.out_features)
+
+    def _forward_runs(self, x: Tensor) -> Tensor:
+        """``[R, ..., N, in]`` → ``[R, ..., N, out]``: R·G independent matmuls in one ``baddbmm``."""
+        r, out_f = x.shape[0], self.out_features
+        if self.groups == 1:
+            flat = x.reshape(r, -1, self.in_features)
+            out = torch.baddbmm(self.bias[:, :1], flat, self.weight[:, 0])  # [R, M·N, out]
+            return out.reshape(*x.shape[:-1], out_f)
+        n = self._agents(x)
+        flat = x.reshape(r, -1, n, self.in_features).transpose(1, 2).reshape(r * n, -1, self.in_features)
+        w = self.weight.reshape(r * n, self.in_features, out_f)
+        out = torch.baddbmm(self.bias.reshape(r * n, 1, out_f), flat, w)  # [R·N, M, out]
+        return out.reshape(r, n, -1, out_f).transpose(1, 2).reshape(*x.shape[:-1], out_f)
+
+    def _agents(self, x: Tensor) -> int:
+        n = x.shape[-2]
+        if n != self.groups:
+            raise ValueError(f"GroupLinear expected {self.groups} agents on dim -2, got {n}")
+        return n
+
+
+def stack_runs(modules: list[nn.Module]) -> nn.Module:
+    """One module holding R = len(modules) runs of the same architecture: every ``GroupLinear``'s weights stacked on
+    a leading run axis, so run k computes exactly what ``modules[k]`` computes, all runs in one batched call.
+
+    Only ``GroupLinear`` layers can carry the run axis; any other layer with weights (``nn.LSTM``) is refused.
+    """
+    stacked = copy.deepcopy(modules[0])
+    named = [dict(m.named_modules()) for m in modules]
+    for name, layer in stacked.named_modules():
+        own = list(layer.parameters(recurse=False))
+        if not own:
+            continue
+        if not isinstance(layer, GroupLinear):
+            raise NotImplementedError(
+                f"population training: layer {name or 'root'} ({type(layer).__name__}) has no run axis; "
+                "train this algorithm one seed per process"
+            )
+        layer.runs = len(modules)
+        for pname in ("weight", "bias"):
+            value = torch.stack([getattr(n[name], pname).detach() for n in named])
+            setattr(layer, pname, nn.Parameter(value))
+    return stacked
+
+
+def run_state(stacked: nn.Module, run: int) -> dict[str, Tensor]:
+    """Run ``run``'s weights of a :func:`stack_runs` module as the state dict of a single-run module."""
+    return {k: v[run].detach().clone() for k, v in stacked.state_dict().items()}
 
 
 class GroupMLP(nn.Module):
@@ -79,7 +135,13 @@ def id_width(n_agents: int, shared: bool) -> int:
 
 
 def message_bits(
-    logits: Tensor, bits: int, train: bool, tau: float = 1.0, noise: float = 1.0, bound: float | None = None
+    logits: Tensor,
+    bits: int,
+    train: bool,
+    tau: float = 1.0,
+    noise: float = 1.0,
+    bound: float | None = None,
+    rand: Callable[[Tensor], Tensor] = torch.rand_like,
 ) -> Tensor:
     """Discrete binary messages from logits ``[..., bits·2]`` → ``[..., bits]`` in {0, 1}.
 
@@ -87,7 +149,8 @@ def message_bits(
     ``argmax(logits + noise·g)`` (g Gumbel), the gradient that of ``softmax((logits + noise·g) / tau)``. ``noise = 1``
     is the standard estimator (a message is *sampled*, so the listener trains on the speaker's uncertainty);
     ``noise = 0`` is the deterministic straight-through estimator. Execution takes the argmax, so what travels is
-    exactly ``bits`` bits.
+    exactly ``bits`` bits. ``rand`` draws the uniforms behind the noise (an agent passes its own generators, so a
+    run's message noise depends on its seed alone).
 
     ``bound`` keeps each bit's logit difference in (−bound, bound) with ``bound · tanh(d / bound)``. Unbounded, the TD
     gradient drives the differences to |10–22|: every bit then takes one value on every observation and the
@@ -98,7 +161,7 @@ def message_bits(
         return (bit_logits(logits, bits) > 0).to(logits.dtype)
     diff = bit_logits(logits, bits, bound)
     if noise > 0:  # the difference of two Gumbel draws is logistic: one draw per bit
-        u = torch.rand_like(diff).clamp_(1e-7, 1.0 - 1e-7)
+        u = rand(diff).clamp_(1e-7, 1.0 - 1e-7)
         diff = diff + noise * (torch.log(u) - torch.log1p(-u))
     soft = torch.sigmoid(diff / tau)  # = softmax(pairs / tau)[..., 1]; softmax over a last dim of 2 is ~10× slower
     hard = (diff > 0).to(logits.dtype)
@@ -112,7 +175,7 @@ def bit_logits(logits: Tensor, bits: int, bound: float | None = None) -> Tensor:
     return diff if bound is None else bound * torch.tanh(diff / bound)
 
 
-def channel_information(diff: Tensor) -> Tensor:
+def channel_information(diff: Tensor, runs: int | None = None) -> Tensor:
     """A batch estimate of I(observation; message) in nats per sender: H(message) − H(message | observation).
 
     ``diff [..., S, bits]`` are the senders' bit logits over a batch of M observations (all leading dims). H(message |
@@ -121,27 +184,36 @@ def channel_information(diff: Tensor) -> Tensor:
     positive-signalling objective of Eccles et al. (2019), which keeps a message informative while the TD gradient
     alone lets it collapse onto one codeword. Estimated bit by bit instead, it counts a bit copied 16 times as 16
     bits, and long runs ended with 16 copies of one split (message entropy ≈ ln 2).
+
+    With ``runs`` = R the first dim is the run axis and each run gets its own estimate ``[R]``.
     """
-    d = diff.reshape(-1, *diff.shape[-2:]).transpose(0, 1)  # [S, M, bits]
+    lead = runs or 1
+    d = diff.reshape(lead, -1, *diff.shape[-2:]).transpose(1, 2)  # [R, S, M, bits]
     log_p, log_q = F.logsigmoid(d), F.logsigmoid(-d)  # log P(bit = 1), log P(bit = 0)
-    cond = (-(log_p.exp() * log_p + log_q.exp() * log_q)).sum(dim=-1).mean(dim=-1)  # [S]
+    cond = (-(log_p.exp() * log_p + log_q.exp() * log_q)).sum(dim=-1).mean(dim=-1)  # [R, S]
     code = (d > 0).to(d.dtype)  # each observation's most likely codeword
-    log_lik = code @ log_p.transpose(1, 2) + (1 - code) @ log_q.transpose(1, 2)  # [S, n, m]: log P(c_n | o_m)
-    marginal = -(torch.logsumexp(log_lik, dim=-1) - math.log(d.shape[1])).mean(dim=-1)  # [S]
-    return (marginal - cond).mean()
+    log_lik = code @ log_p.transpose(-1, -2) + (1 - code) @ log_q.transpose(-1, -2)  # [R, S, n, m]: log P(c_n | o_m)
+    marginal = -(torch.logsumexp(log_lik, dim=-1) - math.log(d.shape[2])).mean(dim=-1)  # [R, S]
+    info = (marginal - cond).mean(dim=-1)
+    return info if runs else info[0]
 
 
-def signalling_loss(logits: Tensor, bits: int, cfg: GumbelConfig) -> tuple[Tensor | None, dict[str, float]]:
-    """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off)."""
+def signalling_loss(
+    logits: Tensor, bits: int, cfg: GumbelConfig, runs: int | None = None
+) -> tuple[Tensor | None, dict[str, Tensor]]:
+    """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off); per
+    run ``[R]`` with ``runs``."""
     if not cfg.signalling_coef:
         return None, {}
-    info = channel_information(bit_logits(logits, bits, cfg.message_logit_bound))
-    return -cfg.signalling_coef * info, {"message_info": float(info.detach())}
+    info = channel_information(bit_logits(logits, bits, cfg.message_logit_bound), runs)
+    return -cfg.signalling_coef * info, {"message_info": info.detach()}
 
 
-def gumbel_bits(logits: Tensor, bits: int, train: bool, cfg: GumbelConfig) -> Tensor:
+def gumbel_bits(
+    logits: Tensor, bits: int, train: bool, cfg: GumbelConfig, rand: Callable[[Tensor], Tensor] = torch.rand_like
+) -> Tensor:
     """``message_bits`` with the temperature, noise and logit bound of an algorithm's (resolved) config."""
-    return message_bits(logits, bits, train, cfg.gumbel_tau, cfg.gumbel_noise, cfg.message_logit_bound)
+    return message_bits(logits, bits, train, cfg.gumbel_tau, cfg.gumbel_noise, cfg.message_logit_bound, rand)
 
 
 def others_index(n_agents: int) -> Tensor:

@@ -114,8 +114,12 @@ class TrainingCore:
                 figures.update(extra(self.env_steps))
         return self.log.maybe_row(self.env_steps, self.episodes, self.algo.updates, self.epsilon, **figures)
 
+    @property
+    def checkpoint_due(self) -> bool:
+        return self.out_dir is not None and self.env_steps >= self.next_checkpoint
+
     def maybe_checkpoint(self) -> None:
-        if self.out_dir is not None and self.env_steps >= self.next_checkpoint:
+        if self.checkpoint_due:
             self.checkpoint()
             while self.next_checkpoint <= self.env_steps:
                 self.next_checkpoint += self.job.checkpoint_every

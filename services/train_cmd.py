@@ -71,13 +71,63 @@ def cmd_train(args: argparse.Namespace) -> int:
     --out.
     """
     job = job_from_args(args)
+    jobs = population_jobs(args, job) if args.seeds else [job]
     limits_from_args(args).check(job, "convoy train")
     out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
     run_dir = claim(out, overwrite=args.overwrite)
     try:
-        return _train(args, job, out)
+        return _train_population(args, jobs, out) if args.seeds else _train(args, job, out)
     finally:
         run_dir.release()
+
+
+def population_jobs(args: argparse.Namespace, job: JobConfig) -> list[JobConfig]:
+    """One job per ``--seeds`` value, checked for what population training can do."""
+    from convoy.algos.registry import algorithm_class
+
+    seeds = list(args.seeds)
+    if args.seed is not None:
+        raise ConfigError("--seeds", "give either --seed (one run) or --seeds (a population), not both")
+    if len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ConfigError("--seeds", f"expected distinct non-negative seeds, got {seeds}")
+    if not args.inprocess:
+        raise ConfigError("--seeds", "population runs train in one process: add --inprocess")
+    if job.hierarchical or not algorithm_class(job.algo).population:
+        able = ", ".join(n for n in ALGO_CONFIGS if algorithm_class(n).population)
+        what = "hierarchical DQN" if job.hierarchical else job.algo
+        raise ConfigError("--seeds", f"{what} trains one seed per process; populations: {able}")
+    return [job_config(**{**job.model_dump(), "seed": s}) for s in seeds]
+
+
+def _train_population(args: argparse.Namespace, jobs: list[JobConfig], out: Path) -> int:
+    from convoy.services.training import run_population
+    from convoy.stats import ci95_half
+
+    job = jobs[0]
+    seeds = [j.seed for j in jobs]
+    console.print(
+        f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
+        f"{len(jobs)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, {job.num_envs} envs each, "
+        f"hidden {job.algo_config().hidden}, one population in this process → {out}/seed-N/",
+        highlight=False,
+        soft_wrap=True,
+    )
+    dirs = [out / f"seed-{s}" for s in seeds]
+    results = run_population(jobs, dirs, progress=not args.no_progress)
+    table = Table(title=f"{job.algo} on {job.env}: {len(jobs)} runs")
+    for col in ("seed", "greedy return (95 % CI)", "best greedy point (step)", "ε-greedy return (last 10 %)"):
+        table.add_column(col, justify="right")
+    for s, r in zip(seeds, results, strict=True):
+        best = f"{r.best_eval_return:.3f} ({r.best_eval_step:,})" if r.best_eval_step >= 0 else "–"
+        table.add_row(str(s), f"{r.eval_return:.3f} ± {r.eval_ci95:.3f}", best, f"{r.final_return:.3f}")
+    finals = [r.eval_return for r in results]
+    table.add_row("[bold]mean over seeds[/]", f"{sum(finals) / len(finals):.3f} ± {ci95_half(finals):.3f}", "", "")
+    console.print(table)
+    wall = results[0].wall_s
+    steps = sum(r.env_steps for r in results)
+    console.print(f"{steps:,} env steps in {wall:.1f} s: {steps / max(wall, 1e-9):,.0f} env steps/s over all runs")
+    console.print(f"wrote {', '.join(str(d) for d in dirs)} (metrics, curve.png, checkpoint.pt, summary.json each)")
+    return 0
 
 
 def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
@@ -151,6 +201,14 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     )
     tr.add_argument("--job-id", help="Zenoh job id (default: the --out directory's name + a random suffix)")
     add_job_arguments(tr)
+    tr.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="train one run per seed as one population (in-process: one batched update for all; each run writes "
+        "DIR/seed-N as a single run of that seed would); instead of --seed",
+    )
     tr.add_argument(
         "--out",
         metavar="DIR",

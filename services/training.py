@@ -34,6 +34,24 @@ def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: b
         env.close()
 
 
+def run_population(jobs: list[JobConfig], out_dirs: list[Path], progress: bool = True) -> list[TrainResult]:
+    """Train the jobs (one algorithm, one per seed) as one population in this process; run k writes ``out_dirs[k]``
+    as a single run of its seed would."""
+    from convoy.algos.registry import make_algorithm
+    from convoy.learner.population import PopulationTrainer
+    from convoy.learner.runtime import configure_learner
+
+    job = jobs[0]
+    configure_learner(job.torch_threads)
+    env = make_env(job, job.num_envs * len(jobs))
+    try:
+        agent = make_algorithm(job.algo, env.spec, job.algo_config(), device=job.device, seed=[j.seed for j in jobs])
+        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress)
+        return trainer.run()
+    finally:
+        env.close()
+
+
 def default_job_id(out_dir: str | Path) -> str:
     """A key-safe job id from the output directory's name plus a short random suffix (two runs never collide)."""
     import re

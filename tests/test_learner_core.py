@@ -69,11 +69,11 @@ def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     batch = random_batch(SPEC)
     grads = []
     for i in range(SPEC.n_agents):
-        torch.manual_seed(1)  # same Gumbel noise in every pass
+        algo.torch_rngs[0].manual_seed(1)  # same Gumbel noise in every pass (the agent's own generator)
         algo.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(batch)[i].backward()
         grads.append(algo.online["message"].layers[0].weight.grad.clone())
-    torch.manual_seed(1)
+    algo.torch_rngs[0].manual_seed(1)
     algo.optimizer.zero_grad(set_to_none=True)
     algo.agent_losses(batch).sum().backward()
     torch.testing.assert_close(algo.online["message"].layers[0].weight.grad, sum(grads), rtol=1e-4, atol=1e-6)
