@@ -1,0 +1,194 @@
+"""Population training: run k of a population is the single run of its seed.
+
+Member k and a single run of seed k start from identical weights, draw identical replay batches, exploration and
+message noise, and stay equal up to float32 rounding. Why a tolerance and not bit equality: a population evaluates
+its runs with batched kernels (``baddbmm`` over runs where a single run calls ``addmm``) and clips each run's
+gradient with its own norm computed per run, so sums are taken in another order; measured on these sizes the
+weights then differ by ≤ 2e-7 after 300 updates. A hard message bit, though, is a threshold: once the rounding
+moves one logit-plus-noise across 0 (for message algorithms after ~150-250 updates here) the two runs take
+different discrete messages and drift apart as any two chaotic trajectories do. So message algorithms are compared
+over 100 updates, idqn over 300, both to 1e-5; the noise streams themselves are compared exactly.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from convoy.algos.nets import GroupLinear, run_state, stack_runs
+from convoy.algos.registry import algorithm_class, make_algorithm
+from convoy.config import ALGO_CONFIGS, resolve_algo
+from convoy.envs.batched import EnvSpec
+
+SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
+SEEDS = [3, 7, 11]
+POPULATION_ALGOS = [n for n in ALGO_CONFIGS if algorithm_class(n).population]
+T, B = 8, 4
+
+
+def config(name: str, share: bool, **extra: object):
+    hp = {"hidden": (32, 32), "batch_size": 16, "learning_starts": 0, "replay_capacity": 500, "lr": 1e-3,
+          "target_update": 20, "share_params": share}  # fmt: skip
+    if name != "idqn":
+        hp["gumbel_noise"] = 1.0  # the paper's sampled messages: the noise streams must match too
+    if name in ("ma-mesn", "ma-bon"):
+        hp["signalling_coef"] = 0.05  # a per-run auxiliary term
+    return resolve_algo(name, "treadmill", {**hp, **extra})
+
+
+def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
+    """Random joint transitions ``[T, R, B, …]`` (the data need not come from an env to test the updates)."""
+    n, d = SPEC.n_agents, SPEC.obs_dim
+    return {
+        "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
+        "next_obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
+        "action": g.integers(0, SPEC.max_actions, size=(T, runs, B, n)),
+        "reward": g.normal(size=(T, runs, B, n)).astype(np.float32),
+        "terminated": g.random((T, runs, B)) < 0.1,
+        "truncated": np.zeros((T, runs, B), bool),
+        "episode": np.zeros((T, runs, B), np.int64),
+    }
+
+
+def max_weight_gap(pop, singles) -> float:
+    return max(
+        float((a.online.state_dict()[n] - w).abs().max())
+        for k, a in enumerate(singles)
+        for n, w in run_state(pop.online, k).items()
+    )
+
+
+@pytest.mark.parametrize("share", [False, True], ids=["per-agent", "shared"])
+@pytest.mark.parametrize("name", POPULATION_ALGOS)
+def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool) -> None:
+    torch.set_num_threads(1)
+    cfg = config(name, share)
+    pop = make_algorithm(name, SPEC, cfg, device="cpu", seed=SEEDS)
+    singles = [make_algorithm(name, SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
+    # identical initial weights, bit for bit
+    for k, single in enumerate(singles):
+        for n, w in single.online.state_dict().items():
+            assert torch.equal(run_state(pop.online, k)[n], w), f"{name}: run {k}'s initial {n}"
+    # the same data in, the same first batch out
+    g = np.random.default_rng(0)
+    for _ in range(4):
+        c = chunk(g, len(SEEDS))
+        pop.observe(c)
+        for k, single in enumerate(singles):
+            single.observe({f: v[:, k] for f, v in c.items()})
+    first = pop.sample()
+    for k, single in enumerate(singles):
+        for f, v in single.sample().items():
+            assert torch.equal(first[f][k], v), f"{name}: run {k}'s first batch differs in {f}"
+    # the same exploration: ε-greedy actions from each run's own stream
+    obs = g.normal(size=(len(SEEDS), B, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
+    acted = pop.act(obs, np.array([0.0, 0.3, 1.0])).actions
+    for k, (single, eps) in enumerate(zip(singles, (0.0, 0.3, 1.0), strict=True)):
+        np.testing.assert_array_equal(acted[k], single.act(obs[k], eps).actions)
+    # the same message noise, exactly
+    x = torch.zeros(len(SEEDS), 5, 4)
+    noise = pop.rand_like(x)
+    for k, single in enumerate(singles):
+        assert torch.equal(noise[k], single.rand_like(x[k]))
+    # updates: equal up to float32 rounding (module docstring)
+    updates = 300 if name == "idqn" else 100
+    for _ in range(updates):
+        rows = pop.update()
+        single_rows = [s.update() for s in singles]
+    assert max_weight_gap(pop, singles) < 1e-5
+    for row, single_row in zip(rows, single_rows, strict=True):
+        assert row.keys() == single_row.keys()
+        assert row["loss"] == pytest.approx(single_row["loss"], rel=1e-4)
+    # a run as a single-run agent: its weights, counters and optimizer state
+    member = pop.member(1)
+    assert member.updates == singles[1].updates == updates
+    for n, w in member.online.state_dict().items():
+        torch.testing.assert_close(w, singles[1].online.state_dict()[n], rtol=0, atol=1e-5)
+    moments = member.optimizer.state_dict()["state"][0]["exp_avg"]
+    torch.testing.assert_close(moments, singles[1].optimizer.state_dict()["state"][0]["exp_avg"], rtol=0, atol=1e-5)
+
+
+def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> None:
+    """A huge loss in one run neither shrinks another run's step (per-run clipping) nor, when not finite, moves
+    its own weights or optimizer state, while the other runs step as usual."""
+    cfg = config("idqn", False, huber=False)  # the squared TD error: a huge reward makes a huge gradient
+    pop = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS)
+    single = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS[0])
+    g = np.random.default_rng(0)
+    c = chunk(g, len(SEEDS))
+    c["reward"][:, 1] *= 1e6  # run 1: enormous TD errors, clipped hard
+    c["reward"][:, 2] = np.nan  # run 2: not finite
+    pop.observe(c)
+    single.observe({f: v[:, 0] for f, v in c.items()})
+    before = run_state(pop.online, 2)
+    rows = pop.update()
+    single_row = single.update()
+    assert rows[0]["grad_norm"] == pytest.approx(single_row["grad_norm"], rel=1e-5)
+    assert rows[1]["grad_norm"] > 1e3 * cfg.grad_clip
+    assert np.isnan(rows[2]["loss"]) and pop.skipped_updates == 1
+    for n, w in run_state(pop.online, 2).items():
+        assert torch.equal(w, before[n]), "the non-finite run's weights moved"
+    assert not pop.optimizer.state_dict()["state"][0]["exp_avg"][2].any(), "its Adam moments moved"
+    for n, w in run_state(pop.online, 0).items():
+        torch.testing.assert_close(w, single.online.state_dict()[n], rtol=0, atol=1e-6)
+
+
+def test_stack_runs_refuses_a_layer_without_a_run_axis() -> None:
+    lstm = torch.nn.ModuleDict({"cell": torch.nn.LSTM(3, 4)})
+    with pytest.raises(NotImplementedError, match="no run axis"):
+        stack_runs([lstm, lstm])
+    layers = [GroupLinear(2, 3, 4) for _ in range(3)]
+    stacked = stack_runs(layers)
+    x = torch.randn(3, 5, 2, 3)
+    for k, layer in enumerate(layers):
+        torch.testing.assert_close(stacked(x)[k], layer(x[k]))
+
+
+def test_a_population_run_writes_each_seed_as_its_single_run(tmp_path: Path) -> None:
+    """``convoy train --inprocess --seeds`` = one run folder per seed with what a single run of that seed writes
+    (the same metric rows, curve and summary, up to float32 rounding; only timings differ)."""
+    from convoy.services.cli import main
+
+    common = ["train", "--inprocess", "--algo", "idqn", "--env", "referential", "--steps", "1200", "--num-envs", "8",
+              "--eval-every", "400", "--eval-episodes", "20", "--log-every", "400", "--no-progress",
+              "--hp", "hidden=32", "--hp", "learning_starts=100"]  # fmt: skip
+    seeds = [0, 1, 2, 3, 4]
+    assert main([*common, "--seeds", *map(str, seeds), "--out", str(tmp_path / "pop")]) == 0
+    timing = {"wall_s", "env_steps_per_s", "updates_per_s", "out_dir"}
+    for s in seeds:
+        assert main([*common, "--seed", str(s), "--out", str(tmp_path / f"single-{s}")]) == 0
+        run = tmp_path / "pop" / f"seed-{s}"
+        assert {"checkpoint.pt", "best.pt", "summary.json", "metrics.jsonl", "curve.png"} <= {
+            p.name for p in run.iterdir()
+        }
+        got = json.loads((run / "summary.json").read_text())
+        want = json.loads((tmp_path / f"single-{s}" / "summary.json").read_text())
+        assert got.keys() == want.keys()
+        for key in want.keys() - timing:
+            same = got[key] == want[key] if isinstance(want[key], dict) else got[key] == pytest.approx(want[key])
+            assert same, f"seed {s}: {key} {got[key]} vs {want[key]}"
+        rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+        single_rows = [
+            json.loads(line) for line in (tmp_path / f"single-{s}" / "metrics.jsonl").read_text().splitlines()
+        ]
+        assert [r["env_steps"] for r in rows] == [r["env_steps"] for r in single_rows]
+        assert [r.get("eval_return") for r in rows] == pytest.approx([r.get("eval_return") for r in single_rows])
+
+
+def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) -> None:
+    from convoy.services.cli import main
+
+    base = ["train", "--algo", "idqn", "--env", "referential", "--steps", "100"]
+    for extra, words in (
+        (["--seeds", "0", "1"], "add --inprocess"),
+        (["--inprocess", "--seeds", "0", "0"], "distinct"),
+        (["--inprocess", "--seeds", "0", "1", "--seed", "2"], "not both"),
+        (["--inprocess", "--seeds", "0", "1", "--algo", "dial"], "one seed per process"),
+    ):
+        assert main([*base, *extra]) == 2
+        err = " ".join(capsys.readouterr().err.split())
+        assert "--seeds" in err and words in err, err
