@@ -42,6 +42,8 @@ def run_population(jobs: list[JobConfig], out_dirs: list[Path], progress: bool =
     from convoy.learner.runtime import configure_learner
 
     job = jobs[0]
+    if len(jobs) == 1:  # a population of one is the single run of its seed, bit for bit
+        return [run_inprocess(job, out_dirs[0], progress=progress)]
     configure_learner(job.torch_threads)
     env = make_env(job, job.num_envs * len(jobs))
     try:

@@ -1,0 +1,192 @@
+"""Population training beside separate processes: aggregate env-steps/s and ms per update.
+
+For each algorithm at the treadmill defaults and each population size P, the same P runs (seeds 0…P−1, ``--steps``
+env steps each) trained two ways, measured in the same run of this script:
+
+* **population** — one ``convoy train --inprocess --seeds 0 … P−1 --threads C`` process (C = the cores this script
+  may use): one batched act and one batched update for all runs;
+* **separate** — P ``convoy train --inprocess --seed k --threads 1`` processes, C at a time (what a user does today).
+
+Aggregate env-steps/s = P × steps ÷ wall time, from the first process's start to the last one's end (start-up is a
+cost users pay too), and the ratio population ÷ separate. Then ms per ``update()`` in this process: a population
+of P against P single-run updates (the learner's share of the cost; 1 torch thread and C threads). With a CUDA
+device it also times P = 20 on the GPU against one single-run process on one CPU core, and the GPU update with and
+without a CUDA graph.
+
+Run from the repository root: ``python benchmarks/population.py`` (idqn and ma-mesn at P = 1, 2, 5: ~10 min on 2
+cores); ``--algos``, ``--sizes``, ``--steps`` to choose; ``--json`` to save the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from benchmarks.report import cpu_model, write_json  # noqa: E402
+from convoy.actors.stepping import EnvStepper  # noqa: E402
+from convoy.algos.registry import algorithm_class, make_algorithm  # noqa: E402
+from convoy.config import resolve_algo  # noqa: E402
+from convoy.envs import make_batched  # noqa: E402
+
+ALGOS = ("idqn", "ma-mesn", "ma-bon", "dial", "ims")
+CONVOY = [sys.executable, "-m", "convoy.services.cli"]
+
+
+def train_args(algo: str, steps: int, out: Path) -> list[str]:
+    """What every run of the comparison trains: the algorithm at the treadmill defaults, the final greedy
+    evaluation small (10 episodes) and no curve, so that the measurement is the training."""
+    return [*CONVOY, "train", "--inprocess", "--algo", algo, "--env", "treadmill", "--steps", str(steps),
+            "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
+
+
+def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
+    """Run ``commands``, as many at a time as there are ``slots`` (a command prefix each: a ``taskset`` pinning
+    or nothing); wall seconds for all of them."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    pending, running, free = list(commands), [], list(slots)
+    t0 = time.perf_counter()
+    while pending or running:
+        while pending and free:
+            slot = free.pop(0)
+            proc = subprocess.Popen(
+                [*slot, *pending.pop(0)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+            )
+            running.append((proc, slot))
+        time.sleep(0.05)
+        for proc, slot in list(running):
+            if proc.poll() is not None:
+                if proc.returncode:
+                    raise RuntimeError(f"{proc.args} failed:\n{proc.stderr.read().decode()[-2000:]}")
+                running.remove((proc, slot))
+                free.append(slot)
+    return time.perf_counter() - t0
+
+
+def pinned(core: int) -> list[str]:
+    return ["taskset", "-c", str(core)]
+
+
+def training_throughput(algo: str, p: int, steps: int, cores: list[int], work: Path) -> dict[str, float]:
+    """Aggregate env-steps/s of P runs as one population and as separate processes."""
+    seeds = [str(s) for s in range(p)]
+    c = len(cores)  # the population gets every core as torch threads; separate runs one core each
+    pop_cmd = [*train_args(algo, steps, work / f"{algo}-pop{p}"), "--seeds", *seeds, "--threads", str(c)]
+    t_pop = run_all([pop_cmd], [[]])
+    sep = [[*train_args(algo, steps, work / f"{algo}-{p}-{s}"), "--seed", s, "--threads", "1"] for s in seeds]
+    t_sep = run_all(sep, [pinned(core) for core in cores])
+    return {
+        "population_steps_per_s": p * steps / t_pop,
+        "separate_steps_per_s": p * steps / t_sep,
+        "ratio": t_sep / t_pop,
+        "population_wall_s": t_pop,
+        "separate_wall_s": t_sep,
+    }
+
+
+def filled(algo: str, seeds: int | list[int], device: str = "cpu"):
+    """``algo`` at the treadmill defaults (3 agents + 1 adversary) with 2,048 rows of random play per run."""
+    env = make_batched("treadmill", 16 * (len(seeds) if isinstance(seeds, list) else 1), n_agents=3, n_adversaries=1)
+    cfg = resolve_algo(algo, "treadmill", {"learning_starts": 0, "replay_capacity": 4096})
+    agent = make_algorithm(algo, env.spec, cfg, device=device, seed=seeds)
+    stepper = EnvStepper(env, agent, 0)
+    for _ in range(128):
+        stepper.step(1.0)
+    agent.observe(stepper.take_chunk())
+    return agent
+
+
+def ms_per_call(step, seconds: float = 2.0) -> float:
+    for _ in range(3):
+        step()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or n < 3:
+        step()
+        n += 1
+    return (time.perf_counter() - t0) / n * 1e3
+
+
+def update_cost(algo: str, p: int, threads: int) -> dict[str, float]:
+    """ms per population update of P runs beside P single-run updates, with ``threads`` torch threads."""
+    torch.set_num_threads(threads)
+    single = filled(algo, 0)
+    pop = filled(algo, list(range(p)))
+    one = ms_per_call(single.update)
+    many = ms_per_call(pop.update)
+    return {"single_ms": one, "population_ms": many, "per_run_ms": many / p, "ratio": p * one / many}
+
+
+def cuda_figures(algo: str, steps: int, work: Path) -> dict[str, float]:
+    """P = 20 on the GPU against one single-run process on one CPU core; GPU update ms at P = 1."""
+    seeds = [str(s) for s in range(20)]
+    t_gpu = run_all([[*train_args(algo, steps, work / f"{algo}-cuda"), "--seeds", *seeds, "--device", "cuda"]], [[]])
+    t_cpu = run_all([[*train_args(algo, steps, work / f"{algo}-core"), "--seed", "0", "--device", "cpu"]], [pinned(0)])
+    single = filled(algo, 0, device="cuda")
+
+    def synced() -> None:
+        single.update()
+        torch.cuda.synchronize()
+
+    return {"gpu_p20_steps_per_s": 20 * steps / t_gpu, "cpu_core_steps_per_s": steps / t_cpu,
+            "ratio": 20 * t_cpu / t_gpu, "gpu_update_ms_p1": ms_per_call(synced)}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--algos", nargs="+", default=["idqn", "ma-mesn"], choices=ALGOS)
+    p.add_argument("--sizes", nargs="+", type=int, default=[1, 2, 5], help="population sizes P (default 1 2 5)")
+    p.add_argument("--steps", type=int, default=6000, help="env steps per run (default %(default)s)")
+    p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    cores = sorted(os.sched_getaffinity(0))
+    console = Console()
+    console.print(f"{cpu_model()}, {len(cores)} cores; {args.steps:,} env steps per run, treadmill defaults")
+    figures: dict[str, dict] = {"cores": len(cores), "cpu": cpu_model(), "steps": args.steps, "algos": {}}
+    table = Table(title="P runs: one population process vs separate processes (aggregate env-steps/s)")
+    for col in ("algo", "P", "population", "separate", "ratio", "update ms: P singles", "population", "ratio"):
+        table.add_column(col, justify="right")
+    with tempfile.TemporaryDirectory() as tmp:
+        for algo in args.algos:
+            if not algorithm_class(algo).population:
+                table.add_row(algo, "–", "one seed per process", "", "", "", "", "")
+                continue
+            rows = figures["algos"][algo] = {}
+            for size in args.sizes:
+                run = training_throughput(algo, size, args.steps, cores, Path(tmp))
+                upd = update_cost(algo, size, len(cores))
+                rows[size] = {"training": run, "update": upd}
+                table.add_row(
+                    algo, str(size), f"{run['population_steps_per_s']:,.0f}", f"{run['separate_steps_per_s']:,.0f}",
+                    f"{run['ratio']:.2f}×", f"{size * upd['single_ms']:.1f}", f"{upd['population_ms']:.1f}",
+                    f"{upd['ratio']:.2f}×",
+                )  # fmt: skip
+            if torch.cuda.is_available():
+                figures["algos"][algo]["cuda"] = cuda_figures(algo, args.steps, Path(tmp))
+    console.print(table)
+    for algo, rows in figures["algos"].items():
+        if 5 in rows:
+            r = rows[5]["training"]["ratio"]
+            console.print(f"{algo}: P = 5 in one process {r:.2f}× the same runs as separate processes (goal ≥ 1.5×)")
+        if "cuda" in rows:
+            c = rows["cuda"]
+            console.print(
+                f"{algo} on CUDA: P = 20 {c['ratio']:.1f}× one CPU core's run; update {c['gpu_update_ms_p1']:.2f} ms"
+            )
+    if args.json:
+        write_json(args.json, figures)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
