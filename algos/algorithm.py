@@ -40,7 +40,7 @@ class Progress:
     """Where training stands; the trainer (or learner process) keeps it current for schedules and fingerprints."""
 
     env_steps: int = 0
-    episodes: int = 0
+    episodes: int | np.ndarray = 0  # a population's: one count per run [R]
     total_steps: int = 1
     training: bool = False  # set by the loops that collect training data (schedules that only apply to them)
 
@@ -472,7 +472,9 @@ class NetworkAgent(ABC):
                 "torch_rng": self.torch_rngs[k].get_state(),
             }
         )
-        agent.progress = self.progress
+        p = self.progress
+        agent.progress = Progress(p.env_steps, int(np.asarray(p.episodes).reshape(-1)[k % np.size(p.episodes)]),
+                                  p.total_steps, p.training)  # fmt: skip
         agent.skipped_updates = self.skipped_updates
         return agent
 

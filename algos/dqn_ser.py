@@ -21,7 +21,7 @@ from convoy.algos.idqn import IndependentDQN
 from convoy.config import SERConfig
 
 
-def age_weights(episode: Tensor, episodes: int, horizon: int) -> Tensor:
+def age_weights(episode: Tensor, episodes: int | Tensor, horizon: int) -> Tensor:
     """SER's ``max(0, 1 − age / horizon)`` per sample; age = episodes finished since its episode began."""
     age = (episodes - episode).clamp_min(0).float()
     return (1.0 - age / horizon).clamp_min(0.0)
@@ -31,7 +31,7 @@ class DQNSER(IndependentDQN):
     """Independent DQN whose sampled losses are weighted by sample age (and optionally fingerprinted)."""
 
     name = "dqn-ser"
-    population = False  # its age weights read each run's own episode clock: not yet per run
+    population = True
     config_model = SERConfig
     FP_DIM = 2
 
@@ -49,7 +49,7 @@ class DQNSER(IndependentDQN):
     def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
         if not self.cfg.fingerprint:
             return {}
-        return {"fingerprint": np.broadcast_to(self.fingerprint(), (obs.shape[0], self.FP_DIM)).copy()}
+        return {"fingerprint": np.broadcast_to(self.fingerprint(), (*obs.shape[:-2], self.FP_DIM)).copy()}
 
     def features(self, obs: Tensor, batch: Batch | None = None) -> Tensor:
         x = super().features(obs)
@@ -58,7 +58,7 @@ class DQNSER(IndependentDQN):
         if batch is not None:
             fp = batch["fingerprint"]  # [M, 2]: the stage the sample was collected at
         else:
-            fp = torch.as_tensor(self.fingerprint(), device=obs.device).expand(obs.shape[0], self.FP_DIM)
+            fp = torch.as_tensor(self.fingerprint(), device=obs.device).expand(*obs.shape[:-2], self.FP_DIM)
         fp = fp.to(x.dtype).unsqueeze(-2).expand(*x.shape[:-1], self.FP_DIM)
         return torch.cat([x, fp], dim=-1)
 
@@ -67,8 +67,11 @@ class DQNSER(IndependentDQN):
 
         Age = episodes finished since the sample's episode began: the trainer stamps every transition with
         ``episode`` = the number of episodes finished when its episode started, so ``progress.episodes − episode``
-        counts the episodes collected since.
+        counts the episodes collected since (in a population, each run's own episodes).
         """
         err = td_loss(*self.q_and_y(batch), self.cfg)
-        w = age_weights(batch["episode"], self.progress.episodes, self.cfg.ser_horizon)
-        return Loss((err * w.unsqueeze(-1)).sum(dim=0) / w.sum().clamp_min(1e-8))
+        now = self.progress.episodes
+        if self.runs is not None:
+            now = torch.as_tensor(now, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own clock
+        w = age_weights(batch["episode"], now, self.cfg.ser_horizon)
+        return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import NetworkAgent
+from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.core import TrainingCore
@@ -60,7 +60,8 @@ class PopulationTrainer:
             while not cores[0].done:
                 for core in cores:
                     core.set_progress()
-                algo.progress = cores[0].algo.progress
+                episodes = np.array([core.episodes for core in cores])
+                algo.progress = Progress(cores[0].env_steps, episodes, self.jobs[0].steps, training=True)
                 returns = np.asarray(stepper.step(np.array([core.epsilon for core in cores])))
                 for k, core in enumerate(cores):
                     core.stepped(per_run_envs, returns[stepper.ended_runs == k].tolist())

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 
+from convoy.algos.algorithm import Progress
 from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
 from convoy.config import ALGO_CONFIGS, resolve_algo
@@ -33,7 +34,9 @@ T, B = 8, 4
 def config(name: str, share: bool, **extra: object):
     hp = {"hidden": (32, 32), "batch_size": 16, "learning_starts": 0, "replay_capacity": 500, "lr": 1e-3,
           "target_update": 20, "share_params": share}  # fmt: skip
-    if name != "idqn":
+    if name == "dqn-ser":
+        hp.update(fingerprint=True, ser_horizon=8)  # ages matter within the test's episodes
+    if algorithm_class(name).uses_messages:
         hp["gumbel_noise"] = 1.0  # the paper's sampled messages: the noise streams must match too
     if name in ("ma-mesn", "ma-bon"):
         hp["signalling_coef"] = 0.05  # a per-run auxiliary term
@@ -44,13 +47,14 @@ def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
     """Random joint transitions ``[T, R, B, …]`` (the data need not come from an env to test the updates)."""
     n, d = SPEC.n_agents, SPEC.obs_dim
     return {
+        "fingerprint": g.random((T, runs, B, 2)).astype(np.float32),
         "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
         "next_obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
         "action": g.integers(0, SPEC.max_actions, size=(T, runs, B, n)),
         "reward": g.normal(size=(T, runs, B, n)).astype(np.float32),
         "terminated": g.random((T, runs, B)) < 0.1,
         "truncated": np.zeros((T, runs, B), bool),
-        "episode": np.zeros((T, runs, B), np.int64),
+        "episode": g.integers(0, 10, size=(T, runs, B)),
     }
 
 
@@ -74,6 +78,10 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool) -> None:
         for n, w in single.online.state_dict().items():
             assert torch.equal(run_state(pop.online, k)[n], w), f"{name}: run {k}'s initial {n}"
     # the same data in, the same first batch out
+    # each run its own episode clock (stabilised experience replay weighs samples by their age in episodes)
+    pop.progress = Progress(500, np.array([12, 9, 15]), 1000)
+    for single, episodes in zip(singles, (12, 9, 15), strict=True):
+        single.progress = Progress(500, episodes, 1000)
     g = np.random.default_rng(0)
     for _ in range(4):
         c = chunk(g, len(SEEDS))
