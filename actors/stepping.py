@@ -51,7 +51,7 @@ class EnvStepper:
             per_run = [env_seeds(s, b // self.runs) for s in algo.seeds]  # type: ignore[attr-defined]
             self.obs = env.reset(seed=np.concatenate(per_run))
         self.run_of_env = np.repeat(np.arange(self.runs or 1), b // (self.runs or 1))
-        self.state = algo.initial_state(b)
+        self.state = algo.initial_state(b // (self.runs or 1))
         self.ep_ret = np.zeros((b, n))
         self.episode_id = np.zeros(b, dtype=np.int64)  # episodes of its run finished when each env's episode began
         self.episodes_by_run = np.zeros(self.runs or 1, dtype=np.int64)
@@ -83,7 +83,7 @@ class EnvStepper:
             self.ep_ret[done] = 0.0
             self.episodes_by_run += np.bincount(self.ended_runs, minlength=len(self.episodes_by_run))
             self.episode_id[done] = self.episodes_by_run[self.ended_runs]
-        self.state = self.algo.reset_state(out.state, done)
+        self.state = self.algo.reset_state(out.state, self._split(done))
         self.obs = res.obs
         return returns
 

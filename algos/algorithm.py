@@ -290,7 +290,8 @@ class NetworkAgent(ABC):
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
-        """Recurrent state for a fresh batch of envs (None for feed-forward algorithms)."""
+        """Recurrent state for a fresh batch of envs (None for feed-forward algorithms); a population's for
+        ``num_envs`` envs per run, ``[R, B, …]``."""
         return None
 
     def reset_state(self, state: Any, done: np.ndarray) -> Any:
@@ -302,13 +303,32 @@ class NetworkAgent(ABC):
         observations and the recurrent state after this act; none by default."""
         return {}
 
-    def rand_like(self, x: Tensor) -> Tensor:
-        """Uniform noise shaped like ``x`` from each run's own generator (``x``'s first dim is the run axis in a
-        population): run k draws exactly what the single run of its seed draws."""
+    def rand_like(self, x: Tensor, draw: Callable[..., Tensor] = torch.rand) -> Tensor:
+        """Noise shaped like ``x`` (uniform; ``draw=torch.randn`` for normal) from each run's own generator (``x``'s
+        first dim is the run axis in a population): run k draws exactly what the single run of its seed draws."""
         if self.runs is None:
-            return torch.rand(x.shape, generator=self.torch_rngs[0], device=x.device, dtype=x.dtype)
+            return draw(x.shape, generator=self.torch_rngs[0], device=x.device, dtype=x.dtype)
         shape = x.shape[1:]
-        return torch.stack([torch.rand(shape, generator=g, device=x.device, dtype=x.dtype) for g in self.torch_rngs])
+        return torch.stack([draw(shape, generator=g, device=x.device, dtype=x.dtype) for g in self.torch_rngs])
+
+    def explore(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``epsilon_greedy`` for this agent: a population takes one greedy pass for every run and draws each run's
+        exploration from its own stream (ε a scalar, one per run ``[R]`` or per run and env ``[R, B]``)."""
+        if self.runs is None:
+            return epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
+        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
+        eps = np.asarray(epsilon, dtype=np.float64)
+        eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, greedy.shape[:2])
+        runs = [explore(g, e, self.n_actions_np, rng) for g, e, rng in zip(greedy, eps, self.rngs, strict=True)]
+        actions, greedy_a, eps_a = (np.stack(x) for x in zip(*runs, strict=True))
+        return actions, greedy_a, eps_a
+
+    def sync_runs(self, due: np.ndarray) -> None:
+        """Copy the online weights into the target of the runs ``due`` (a population whose runs sync apart)."""
+        idx = torch.as_tensor(np.flatnonzero(due), device=self.device)
+        with torch.no_grad():
+            for t, o in zip(self.target.parameters(), self.online.parameters(), strict=True):
+                t.index_copy_(0, idx, o.index_select(0, idx))
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
@@ -316,13 +336,7 @@ class NetworkAgent(ABC):
         population acts on ``[R, B, N, D]`` with ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, msgs, new_state = self.greedy_q(obs_t, state)
-        if self.runs is None:
-            actions, _, _ = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
-        else:  # one greedy pass for every run; each run's exploration draws from its own stream
-            greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
-            eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (self.runs, greedy.shape[1]))
-            runs = zip(greedy, eps, self.rngs, strict=True)
-            actions = np.stack([explore(g, e, self.n_actions_np, rng)[0] for g, e, rng in runs])
+        actions, _, _ = self.explore(q, epsilon)
         return ActOutput(
             actions=actions,
             messages=None if msgs is None else msgs.cpu().numpy(),
@@ -470,6 +484,7 @@ class NetworkAgent(ABC):
                 "updates": self.updates,
                 "rng": self.rngs[k].bit_generator.state,
                 "torch_rng": self.torch_rngs[k].get_state(),
+                **self.member_state(k),
             }
         )
         p = self.progress
@@ -477,6 +492,10 @@ class NetworkAgent(ABC):
                                   p.total_steps, p.training)  # fmt: skip
         agent.skipped_updates = self.skipped_updates
         return agent
+
+    def member_state(self, k: int) -> dict[str, Any]:
+        """What an algorithm adds to run k's ``state_dict`` beyond the networks, optimizer and streams."""
+        return {}
 
     def load_member_state(self, k: int, state: dict[str, Any]) -> None:
         """Put a single run's state (``member(k).state_dict()``, a checkpoint's) into run k of a population."""

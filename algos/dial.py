@@ -19,6 +19,7 @@ fixed-length sequences and every step's TD loss is weighted by a clipped importa
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -32,7 +33,6 @@ from convoy.algos.algorithm import (
     Loss,
     NetworkAgent,
     epsilon_at,
-    epsilon_greedy,
     td_loss,
     td_target,
 )
@@ -46,17 +46,16 @@ SEQ_KEYS: tuple[str, ...] = ("obs", "action", "reward", "next_obs", "terminated"
 MAX_PENDING = 8  # on-policy chunks waiting for their update; older ones are stale and dropped
 
 
-def dru(logits: Tensor, sigma: float, train: bool, generator: torch.Generator | None = None) -> Tensor:
+def dru(logits: Tensor, sigma: float, train: bool, randn: Callable[[Tensor], Tensor] = torch.randn_like) -> Tensor:
     """DIAL's discretise/regularise unit: noisy sigmoid in training (differentiable), hard 0/1 at execution.
 
     The noise makes only saturated logits carry information reliably, so the learned code survives the switch to
-    the hard threshold.
+    the hard threshold. ``randn`` draws it (the agent's own generators).
     """
     if not train:
         return (logits > 0).to(logits.dtype)
     if sigma > 0:
-        noise = torch.randn(logits.shape, generator=generator, device=logits.device, dtype=logits.dtype)
-        logits = logits + sigma * noise
+        logits = logits + sigma * randn(logits)
     return torch.sigmoid(logits)
 
 
@@ -66,22 +65,29 @@ class DIAL(NetworkAgent):
     name = "dial"
     config_model = DIALConfig
     uses_messages = True
-    syncs_by_updates = False  # targets follow finished episodes (``observe``)
+    syncs_by_updates = False  # targets follow finished episodes (``observe``), each run's own in a population
+    population = True
     cfg: DIALConfig
 
-    def __init__(self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int = 0) -> None:
+    def __init__(
+        self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
+    ) -> None:
         super().__init__(spec, cfg, device=device, seed=seed)
         self.chunk_len = int(cfg.unroll)
         self.seq_len = int(cfg.unroll)
-        self.noise = torch.Generator(device=self.device)
-        self.noise.manual_seed(seed)
+        self.noise = self.torch_rngs[0]  # the DRU's noise: the run's own generator
         self.n_actions_t = torch.as_tensor(spec.n_actions, dtype=torch.float32, device=self.device)  # [N]
         # Replay (when on) holds whole sequences: one row = ``unroll`` steps of one env.
-        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len))
+        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs)
         self.pending: deque[dict[str, np.ndarray]] = deque(maxlen=MAX_PENDING)
         self.last_chunk_rows = 0
-        self.episodes_done = 0  # finished episodes seen in observed chunks (drives target syncs)
-        self.synced_at = 0  # episodes_done at the last target sync
+        self.t_dim = 0 if self.runs is None else 1  # batches are time-major [T, B, …], a population's [R, T, B, …]
+        # finished episodes seen in observed chunks (drives target syncs) and their count at the last sync, per run
+        self.episodes_done: int | np.ndarray = 0 if self.runs is None else np.zeros(self.runs, dtype=np.int64)
+        self.synced_at: int | np.ndarray = 0 if self.runs is None else np.zeros(self.runs, dtype=np.int64)
+
+    def randn(self, x: Tensor) -> Tensor:
+        return self.rand_like(x, torch.randn)
 
     # --- networks ----------------------------------------------------------------------------------------------
     def build(self) -> dict[str, nn.Module]:
@@ -110,29 +116,30 @@ class DIAL(NetworkAgent):
         """
         keep = (~done).to(obs.dtype)[..., None, None]  # [T, B, 1, 1]
         heard, qs, sent_all = heard0, [], []
-        for t in range(obs.shape[0]):
-            q, logits = self.cnet(nets, obs[t], heard)
-            sent = dru(logits, self.cfg.dru_sigma, train, self.noise)
+        for t in range(obs.shape[self.t_dim]):
+            q, logits = self.cnet(nets, obs.select(self.t_dim, t), heard)
+            sent = dru(logits, self.cfg.dru_sigma, train, self.randn)
             qs.append(q)
             sent_all.append(sent)
-            heard = self.hear(sent) * keep[t]
-        return torch.stack(qs), torch.stack(sent_all)
+            heard = self.hear(sent) * keep.select(self.t_dim, t)
+        return torch.stack(qs, dim=self.t_dim), torch.stack(sent_all, dim=self.t_dim)
 
     # --- acting ------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Tensor:
         """No message has been sent before an episode's first step."""
-        return torch.zeros(num_envs, self.n_agents, self.bits, device=self.device)
+        runs = () if self.runs is None else (self.runs,)
+        return torch.zeros(*runs, num_envs, self.n_agents, self.bits, device=self.device)
 
     def reset_state(self, state: Any, done: np.ndarray) -> Any:
         if state is None:
             return None
         keep = torch.as_tensor(~np.asarray(done, dtype=bool), device=self.device).to(state.dtype)
-        return state * keep[:, None, None]
+        return state * keep[..., None, None]
 
     def execute(self, obs: Tensor, state: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """Execution-mode step: Q-values, hard messages sent now and the messages heard (from ``state``)."""
         if state is None:
-            state = self.initial_state(obs.shape[0])
+            state = self.initial_state(obs.shape[-3])
         heard = self.hear(state)
         q, logits = self.cnet(self.online, obs, heard)
         return q, dru(logits, self.cfg.dru_sigma, train=False), heard
@@ -147,7 +154,7 @@ class DIAL(NetworkAgent):
         ``[B, N, (N−1)·bits]``) and ``mu`` (behaviour probability of each taken action, ``[B, N]``, for replay)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, sent, heard = self.execute(obs_t, state)
-        actions, greedy, eps = epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
+        actions, greedy, eps = self.explore(q, epsilon)
         mu = (1.0 - eps) * (actions == greedy) + eps / self.n_actions_np
         extras = {**self.extras(obs), "msg_in": heard.cpu().numpy(), "mu": mu.astype(np.float32)}
         return ActOutput(actions=actions, messages=sent.cpu().numpy(), extras=extras, state=sent)
@@ -160,14 +167,18 @@ class DIAL(NetworkAgent):
         if missing:
             raise KeyError(f"DIAL chunk lacks {missing}: collect it with DIAL.act and stack out.extras into it")
         data = {k: np.asarray(chunk[k]) for k in keys}
-        t, b = data["terminated"].shape
-        self.episodes_done += int((data["terminated"] | data["truncated"]).sum())
-        if self.episodes_done - self.synced_at >= self.cfg.target_update_episodes:
+        ended = data["terminated"] | data["truncated"]  # [T, B] or a population's [T, R, B]
+        self.episodes_done += ended.sum(axis=(0, -1)) if self.runs else int(ended.sum())
+        due = self.episodes_done - self.synced_at >= self.cfg.target_update_episodes
+        if self.runs is None and due:
             self.sync_target()
             self.synced_at = self.episodes_done
-        self.last_chunk_rows = t * b
+        elif self.runs is not None and due.any():  # type: ignore[union-attr]
+            self.sync_runs(due)  # type: ignore[arg-type]
+            self.synced_at = np.where(due, self.episodes_done, self.synced_at)
+        self.last_chunk_rows = ended.shape[0] * ended.shape[-1]
         if self.cfg.replay:
-            self.replay.add(self.to_sequences(data))
+            self.replay.add(self.to_sequences(data) if self.runs is None else self.run_sequences(data))
         else:
             self.pending.append(data)
 
@@ -189,6 +200,14 @@ class DIAL(NetworkAgent):
         rows["valid"] = np.broadcast_to(valid, (pieces, b, length)).reshape(pieces * b, length)
         return rows
 
+    def run_sequences(self, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """A population's chunk ``[T, R, B, …]`` → each run's sequences ``[R, S, L, …]``, in a single run's order."""
+        t, r, b = data["terminated"].shape
+        rows = self.to_sequences({k: v.reshape(t, r * b, *v.shape[3:]) for k, v in data.items()})
+        return {
+            k: v.reshape(-1, r, b, *v.shape[1:]).swapaxes(0, 1).reshape(r, -1, *v.shape[1:]) for k, v in rows.items()
+        }
+
     def can_update(self) -> bool:
         if not self.cfg.replay:
             return bool(self.pending)
@@ -205,10 +224,12 @@ class DIAL(NetworkAgent):
         """The next sequence batch ``[T, B, …]``: the oldest queued chunk (on-policy) or ``batch_size`` sequences
         drawn uniformly from the ring."""
         if self.cfg.replay:
-            rows = self.replay.sample(self.cfg.batch_size, self.rng)
-            data = {k: v.swapaxes(0, 1) for k, v in rows.items()}
+            rows = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
+            data = {k: v.swapaxes(self.t_dim, self.t_dim + 1) for k, v in rows.items()}  # [(R,) L, n, …]
         else:
             data = self.pending.popleft()
+            if self.runs is not None:
+                data = {k: v.swapaxes(0, 1) for k, v in data.items()}  # [T, R, B, …] → [R, T, B, …]
         return {k: torch.as_tensor(np.ascontiguousarray(v), device=self.device) for k, v in data.items()}
 
     # --- learning ----------------------------------------------------------------------------------------------
@@ -222,7 +243,7 @@ class DIAL(NetworkAgent):
         as in Foerster et al.'s implementation, so the target sees the inputs the online net is trained on.
         """
         obs, done = batch["obs"], batch["terminated"] | batch["truncated"]
-        heard0 = batch["msg_in"][0].float()  # what was heard at the first step; detached data
+        heard0 = batch["msg_in"].select(self.t_dim, 0).float()  # what was heard at the first step; detached data
         q_all, sent = self.unroll(self.online, obs, heard0, done, train=True)
         q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
         with torch.no_grad():
@@ -255,13 +276,19 @@ class DIAL(NetworkAgent):
         err = td_loss(q, y, self.cfg)
         valid = batch["valid"].float() if "valid" in batch else torch.ones_like(err[..., 0])
         w = valid * self.is_weights(q_all, batch) if self.cfg.replay else valid
-        return Loss((err * w.unsqueeze(-1)).sum(dim=(0, 1)) / valid.sum().clamp_min(1.0))
+        steps = valid.sum(dim=(-2, -1)).clamp_min(1.0).unsqueeze(-1)  # per run
+        return Loss((err * w.unsqueeze(-1)).sum(dim=(-3, -2)) / steps)
 
     # --- persistence -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        state.update(episodes_done=self.episodes_done, synced_at=self.synced_at, dru_rng=self.noise.get_state())
+        state.update(self.member_state(0))
         return state
+
+    def member_state(self, k: int) -> dict[str, Any]:
+        done, synced = np.asarray(self.episodes_done).reshape(-1), np.asarray(self.synced_at).reshape(-1)
+        counts = {"episodes_done": int(done[k]), "synced_at": int(synced[k])}
+        return {**counts, "dru_rng": self.torch_rngs[k].get_state()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)

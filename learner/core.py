@@ -143,14 +143,15 @@ class TrainingCore:
             self._closed = True
             self.log.close()
 
-    def finish(self, title: str, **extra: Any) -> dict[str, Any]:
+    def finish(self, title: str, end: float | None = None, **extra: Any) -> dict[str, Any]:
         """Close the log, checkpoint, evaluate the final policy beside the references, write ``summary.json`` and
         ``curve.png``; the summary. ``final_return`` is the mean ε-greedy return of the last 10 % of this
-        process's episodes."""
+        process's episodes. ``end``: when training ended (``perf_counter``), if not now (a population's runs end
+        together, then evaluate one after another)."""
         self.close()
         if self.out_dir is not None:
             self.checkpoint()
-        wall = time.perf_counter() - self.t0
+        wall = (time.perf_counter() if end is None else end) - self.t0
         try:
             final = self.evaluator.final(self.algo)
         finally:

@@ -14,6 +14,7 @@ update of R runs in one batched call pays Python and dispatch once instead of R 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -82,10 +83,11 @@ class PopulationTrainer:
         finally:
             for core in cores:
                 core.close()
+        end = time.perf_counter()
         results = []
         for k, (core, job) in enumerate(zip(cores, self.jobs, strict=True)):
             algo.member(k)
-            summary = core.finish(f"{job.algo} on {job.env}, seed {job.seed}")
+            summary = core.finish(f"{job.algo} on {job.env}, seed {job.seed}", end=end)
             out = self.out_dirs[k]
             results.append(TrainResult(**summary, out_dir=str(out) if out else None, rows=core.log.rows))
         return results

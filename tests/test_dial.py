@@ -91,12 +91,13 @@ class Loop:
 
 def test_dru_is_noisy_in_training_and_a_hard_threshold_at_execution() -> None:
     g = torch.Generator().manual_seed(0)
+    randn = lambda x: torch.randn(x.shape, generator=g)  # noqa: E731
     logits = torch.linspace(-3, 3, 64).reshape(8, 8)
-    a, b = dru(logits, 2.0, train=True, generator=g), dru(logits, 2.0, train=True, generator=g)
+    a, b = dru(logits, 2.0, train=True, randn=randn), dru(logits, 2.0, train=True, randn=randn)
     assert not torch.equal(a, b)
     assert ((a > 0) & (a < 1)).all() and ((b > 0) & (b < 1)).all()
     torch.testing.assert_close(dru(logits, 0.0, train=True), torch.sigmoid(logits))  # σ = 0: plain sigmoid
-    hard = dru(logits, 2.0, train=False, generator=g)
+    hard = dru(logits, 2.0, train=False, randn=randn)
     assert torch.equal(hard, dru(logits, 2.0, train=False))  # deterministic
     assert set(hard.unique().tolist()) <= {0.0, 1.0}
     assert torch.equal(hard, (logits > 0).float())
@@ -241,7 +242,7 @@ def test_state_dict_round_trips() -> None:
     for a, b in zip(algo.target.parameters(), other.target.parameters(), strict=True):
         assert torch.equal(a, b)
     logits = torch.zeros(5, 4)
-    assert torch.equal(dru(logits, 2.0, True, algo.noise), dru(logits, 2.0, True, other.noise))  # same DRU noise
+    assert torch.equal(dru(logits, 2.0, True, algo.randn), dru(logits, 2.0, True, other.randn))  # same DRU noise
     obs = env.reset(seed=3)
     out_a, out_b = algo.act(obs, 0.5, algo.initial_state(4)), other.act(obs, 0.5, other.initial_state(4))
     np.testing.assert_array_equal(out_a.actions, out_b.actions)  # same exploration stream

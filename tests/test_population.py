@@ -34,9 +34,11 @@ T, B = 8, 4
 def config(name: str, share: bool, **extra: object):
     hp = {"hidden": (32, 32), "batch_size": 16, "learning_starts": 0, "replay_capacity": 500, "lr": 1e-3,
           "target_update": 20, "share_params": share}  # fmt: skip
+    if name == "dial":  # replayed sequences, so batches can be compared; targets sync by each run's episodes
+        hp.update(replay=True, unroll=4, target_update_episodes=3)
     if name == "dqn-ser":
         hp.update(fingerprint=True, ser_horizon=8)  # ages matter within the test's episodes
-    if algorithm_class(name).uses_messages:
+    if algorithm_class(name).uses_messages and name != "dial":
         hp["gumbel_noise"] = 1.0  # the paper's sampled messages: the noise streams must match too
     if name in ("ma-mesn", "ma-bon"):
         hp["signalling_coef"] = 0.05  # a per-run auxiliary term
@@ -48,6 +50,8 @@ def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
     n, d = SPEC.n_agents, SPEC.obs_dim
     return {
         "fingerprint": g.random((T, runs, B, 2)).astype(np.float32),
+        "msg_in": (g.random((T, runs, B, n, (n - 1) * 16)) < 0.5).astype(np.float32),  # DIAL's heard messages
+        "mu": g.uniform(0.2, 1.0, size=(T, runs, B, n)).astype(np.float32),  # and behaviour probabilities
         "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
         "next_obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
         "action": g.integers(0, SPEC.max_actions, size=(T, runs, B, n)),
@@ -195,7 +199,7 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
         (["--seeds", "0", "1"], "add --inprocess"),
         (["--inprocess", "--seeds", "0", "0"], "distinct"),
         (["--inprocess", "--seeds", "0", "1", "--seed", "2"], "not both"),
-        (["--inprocess", "--seeds", "0", "1", "--algo", "dial"], "one seed per process"),
+        (["--inprocess", "--seeds", "0", "1", "--algo", "ma-mesn-mm"], "one seed per process"),
     ):
         assert main([*base, *extra]) == 2
         err = " ".join(capsys.readouterr().err.split())
