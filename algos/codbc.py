@@ -42,6 +42,7 @@ class CoDBC(ReplayAgent):
     name = "codbc"
     config_model = CoDBCConfig
     syncs_by_updates = False  # no bootstrapping: no target to sync
+    population = True  # the runs share one frozen teacher
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
@@ -98,8 +99,11 @@ class CoDBC(ReplayAgent):
         """The student's ε-greedy actions, with the teacher driving a decaying share of the envs (DAgger's β)."""
         out = super().act(obs, epsilon, state)
         beta = self.teacher_share()
-        if beta > 0:
-            drive = self.rng.random(obs.shape[0]) < beta
+        if beta > 0:  # each run draws its envs from its own stream, after its exploration draws
+            if self.runs is None:
+                drive = self.rng.random(obs.shape[0]) < beta
+            else:
+                drive = np.stack([rng.random(obs.shape[1]) < beta for rng in self.rngs])
             if drive.any():
                 rows = torch.as_tensor(obs[drive], dtype=torch.float32, device=self.device)
                 out.actions[drive] = self.teacher_actions(rows).cpu().numpy()
@@ -107,9 +111,9 @@ class CoDBC(ReplayAgent):
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's cross-entropy to the teacher's greedy action in every visited state (DAgger's labels)."""
-        logits = self.logits(batch["obs"])  # [M, N, A]
+        logits = self.logits(batch["obs"])  # [M, N, A] (a population's [R, M, N, A])
         with torch.no_grad():
             labels = self.teacher_actions(batch["obs"])  # [M, N]
-            agreement = float((logits.argmax(dim=-1) == labels).float().mean())
-        ce = F.cross_entropy(logits.flatten(0, 1), labels.flatten(), reduction="none").view_as(labels)
-        return Loss(ce.mean(dim=0), None, {"teacher_agreement": agreement})
+            agreement = (logits.argmax(dim=-1) == labels).float().mean(dim=(-2, -1))
+        ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.flatten(), reduction="none").view_as(labels)
+        return Loss(ce.mean(dim=-2), None, {"teacher_agreement": agreement})

@@ -20,9 +20,10 @@ import pytest
 import torch
 
 from convoy.algos.algorithm import Progress
+from convoy.algos.checkpoint import save_checkpoint
 from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
-from convoy.config import ALGO_CONFIGS, resolve_algo
+from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
 from convoy.envs.batched import EnvSpec
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
@@ -31,11 +32,13 @@ POPULATION_ALGOS = [n for n in ALGO_CONFIGS if algorithm_class(n).population]
 T, B = 8, 4
 
 
-def config(name: str, share: bool, **extra: object):
+def config(name: str, share: bool, teacher: Path | None = None, **extra: object):
     hp = {"hidden": (32, 32), "batch_size": 16, "learning_starts": 0, "replay_capacity": 500, "lr": 1e-3,
           "target_update": 20, "share_params": share}  # fmt: skip
     if name == "dial":  # replayed sequences, so batches can be compared; targets sync by each run's episodes
         hp.update(replay=True, unroll=4, target_update_episodes=3)
+    if name == "codbc":  # clones an (untrained) MA-MeSN of the same env shape
+        hp.update(teacher=str(teacher), teacher_fraction=0.5)
     if name == "dqn-ser":
         hp.update(fingerprint=True, ser_horizon=8)  # ages matter within the test's episodes
     if algorithm_class(name).uses_messages and name != "dial":
@@ -62,6 +65,12 @@ def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
     }
 
 
+def save_teacher(path: Path) -> Path:
+    job = job_config(algo="ma-mesn", env="treadmill", algo_params={"hidden": (16,)}, device="cpu", seed=5)
+    agent = make_algorithm("ma-mesn", SPEC, job.algo_config(), device="cpu", seed=5)
+    return save_checkpoint(path, agent, job, {"env_steps": 0, "episodes": 0, "updates": 0})
+
+
 def max_weight_gap(pop, singles) -> float:
     return max(
         float((a.online.state_dict()[n] - w).abs().max())
@@ -72,9 +81,10 @@ def max_weight_gap(pop, singles) -> float:
 
 @pytest.mark.parametrize("share", [False, True], ids=["per-agent", "shared"])
 @pytest.mark.parametrize("name", POPULATION_ALGOS)
-def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool) -> None:
+def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: Path) -> None:
     torch.set_num_threads(1)
-    cfg = config(name, share)
+    teacher = save_teacher(tmp_path / "teacher.pt") if name == "codbc" else None
+    cfg = config(name, share, teacher)
     pop = make_algorithm(name, SPEC, cfg, device="cpu", seed=SEEDS)
     singles = [make_algorithm(name, SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
     # identical initial weights, bit for bit
@@ -83,9 +93,10 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool) -> None:
             assert torch.equal(run_state(pop.online, k)[n], w), f"{name}: run {k}'s initial {n}"
     # the same data in, the same first batch out
     # each run its own episode clock (stabilised experience replay weighs samples by their age in episodes)
-    pop.progress = Progress(500, np.array([12, 9, 15]), 1000)
+    # (CoDBC's teacher drives a share of the envs while training data is collected)
+    pop.progress = Progress(500, np.array([12, 9, 15]), 1000, training=True)
     for single, episodes in zip(singles, (12, 9, 15), strict=True):
-        single.progress = Progress(500, episodes, 1000)
+        single.progress = Progress(500, episodes, 1000, training=True)
     g = np.random.default_rng(0)
     for _ in range(4):
         c = chunk(g, len(SEEDS))
