@@ -12,6 +12,9 @@ built for (``docs/treadmill.md``):
 and who observes an adversary that is close to an agent: the agent, only a teammate (what messages can add), nobody.
 
 Run: ``python benchmarks/treadmill_references.py`` (a few seconds); ``--set KEY=VALUE`` tries other rules.
+``--search`` runs the searched and tuned references instead (``benchmarks/treadmill_search.py``: open-loop search,
+tuned private / team / 16-bit team drivers, paired ratios; the arguments after ``--search`` go to it, e.g.
+``--search --rules v3``).
 """
 
 from __future__ import annotations
@@ -34,11 +37,17 @@ from convoy.validation import build_config  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if "--search" in argv:
+        from benchmarks.treadmill_search import main as search
+
+        return search([a for a in argv if a != "--search"])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--episodes", type=int, default=500, help="episodes per policy (default %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="env seed (default %(default)s)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="treadmill parameter, repeatable")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    p.add_argument("--search", action="store_true", help="run benchmarks/treadmill_search.py with the other arguments")
     args = p.parse_args(argv)
     cfg = build_config(TreadmillConfig, **parse_pairs(args.set, "--set"))
     results = evaluate_references(cfg, args.episodes, args.seed)

@@ -172,12 +172,16 @@ def test_rewards_in_unit_interval_except_crash_penalty(seed, n_agents, n_adv, ma
     st.integers(0, 2),
     st.integers(1, 3),
     st.integers(0, 2**31),
+    st.booleans(),
 )
-def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k, action_seed) -> None:
+def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k, action_seed, v3) -> None:
     if n_agents + n_adv < 2:
         n_adv = 1
     observe_k = min(observe_k, n_agents + n_adv - 1)
     road = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
+    if v3:  # the v3 rules' own randomness (spawn headings, a varying belt) and a stealthy adversary
+        road |= {"spawn_heading_spread": 4, "treadmill_speed_max": 2, "treadmill_switch_prob": 0.3}
+        road |= {"adversary_stealth": True}
     cfg = TreadmillConfig(n_agents=n_agents, n_adversaries=n_adv, observe_k=observe_k, aggression=0.5, **road)
     b = len(seeds)
     batch = TreadmillEngine(cfg, b)
@@ -193,7 +197,7 @@ def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k,
             rs = s.step(acts[i : i + 1])
             for field in ("obs", "reward", "terminated", "truncated", "final_obs"):
                 assert np.array_equal(getattr(rs, field)[0], getattr(rb, field)[i]), field
-            for arr in ("x", "y", "heading", "speed", "t"):
+            for arr in ("x", "y", "heading", "speed", "t", "belt"):
                 assert np.array_equal(getattr(s, arr)[0], getattr(batch, arr)[i]), arr
 
 
@@ -327,3 +331,47 @@ def test_bad_actions_rejected() -> None:
         e.step(np.zeros((2, 2), np.int64))
     with pytest.raises(ValueError, match="actions"):
         e.step(np.full((2, 3), 9))
+
+
+def test_varying_belt_runs_between_its_speeds_and_carries_cars_by_its_speed() -> None:
+    cfg = TreadmillConfig(n_agents=1, n_adversaries=1, treadmill_speed_max=2, treadmill_switch_prob=0.1, aggression=0)
+    e = TreadmillEngine(cfg, 256, autoreset=False)
+    e.reset(0)
+    seen, changes = set(), 0
+    for _ in range(20):
+        e.x[:, 0], e.y[:, 0], e.heading[:, 0], e.speed[:, 0] = 50, 50, 0, 0
+        before = e.belt.copy()
+        e.step(np.full((256, 1), KEEP))
+        assert np.array_equal(e.x[:, 0], 50 - e.belt)  # a car at rest falls back by this step's belt speed
+        seen |= set(e.belt.tolist())
+        changes += int((e.belt != before).sum())
+    assert seen == {1, 2} and changes > 0
+    assert (TreadmillEngine(TreadmillConfig(), 8).belt == 1).all()  # unset: the belt's speed is constant
+
+
+def test_spawn_headings_spread_around_forward() -> None:
+    e = TreadmillEngine(TreadmillConfig(n_agents=4, spawn_heading_spread=4), 256)
+    e.reset(0)
+    assert set(e.heading[:, :4].ravel().tolist()) == set(range(8))
+    e = TreadmillEngine(TreadmillConfig(n_agents=4, spawn_heading_spread=1), 256)
+    e.reset(0)
+    assert set(e.heading[:, :4].ravel().tolist()) == {7, 0, 1}
+    e = TreadmillEngine(TreadmillConfig(n_agents=4), 16)
+    e.reset(0)
+    assert (e.heading == 0).all()
+
+
+def test_a_stealthy_adversary_is_seen_by_teammates_but_not_by_the_agent_it_chases() -> None:
+    kw = dict(n_agents=2, n_adversaries=1, sensor_fov=360.0, sensor_range=40.0)
+    x, y, heading, speed = [50, 60, 45], [50, 50, 50], [0, 0, 0], [1, 1, 1]  # the adversary is closest to agent 0
+    obs, _ = observe_placed(TreadmillConfig(**kw, adversary_stealth=True), x, y, heading, speed)
+    seen_dx = obs[0, :, OWN_FEATURES + 1] * 40.0
+    assert seen_dx[0] == pytest.approx(10.0)  # agent 0 sees only agent 1, not its chaser 5 cells behind
+    assert seen_dx[1] == pytest.approx(-10.0)  # agent 1 sees agent 0 (10 behind) — and the chaser, 15 behind
+    e = TreadmillEngine(TreadmillConfig(**kw, adversary_stealth=True, observe_k=2), 1)
+    e.reset(0)
+    place(e, x, y, heading, speed)
+    near, near_dist, _ = e.nearest()
+    assert 2 not in near[0, 0][np.isfinite(near_dist[0, 0])] and 2 in near[0, 1][np.isfinite(near_dist[0, 1])]
+    obs, _ = observe_placed(TreadmillConfig(**kw), x, y, heading, speed)
+    assert obs[0, 0, OWN_FEATURES + 1] * 40.0 == pytest.approx(-5.0)  # without stealth agent 0 sees it

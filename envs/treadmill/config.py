@@ -68,6 +68,33 @@ class TreadmillConfig(BaseModel):
     spawn_gap: int = Field(
         4, ge=1, le=1000, description="Agents spawn on a lattice of this pitch: no two start closer."
     )
+    spawn_heading_spread: int = Field(
+        0,
+        ge=0,
+        le=4,
+        description="Agents spawn facing a heading drawn uniformly from −spread … +spread steps of 45° around "
+        "forward (0: all face forward): no fixed action sequence can hold a place for every start, a car that "
+        "looks at its heading and place can.",
+    )
+    adversary_stealth: bool = Field(
+        False,
+        description="An adversary is invisible to the agent it chases (its closest agent), as a car coming up in "
+        "the blind spot: only teammates can see it, so knowledge of the danger sits with others than the one in it.",
+    )
+    treadmill_speed_max: Speed | None = Field(
+        None,
+        description="If set (≥ treadmill_speed), the belt's speed varies: each env's belt runs at a speed in "
+        "treadmill_speed … treadmill_speed_max, drawn anew with probability treadmill_switch_prob per step (the "
+        "traffic speeds up and slows down), so holding a place on the window needs feedback, not a fixed cycle.",
+    )
+    treadmill_switch_prob: Probability = Field(
+        0.0, description="Chance per step that a varying belt (treadmill_speed_max) draws a new speed."
+    )
+
+    @classmethod
+    def v3(cls, **overrides) -> TreadmillConfig:
+        """The rules where what teammates observe pays (issue 31; ``V3_RULES``, measured in ``docs/treadmill.md``)."""
+        return cls(**(V3_RULES | overrides))
 
     @property
     def n_cars(self) -> int:
@@ -109,6 +136,13 @@ class TreadmillConfig(BaseModel):
                 f"{self.length} × {self.width} road with spawn_gap {self.spawn_gap}: allowed range 1 ≤ n_agents ≤ "
                 f"{self.spawn_slots}; use fewer agents, a bigger road or a smaller spawn_gap",
             )
+        if self.treadmill_speed_max is not None and not (
+            self.treadmill_speed <= self.treadmill_speed_max <= self.max_speed
+        ):
+            raise ConfigError(
+                "treadmill_speed_max",
+                f"must lie in treadmill_speed … max_speed ({self.treadmill_speed} … {self.max_speed})",
+            )
         for name in ("treadmill_speed", "initial_speed"):
             if getattr(self, name) > self.max_speed:
                 raise ConfigError(name, f"must be ≤ max_speed ({self.max_speed}); allowed range 0 ≤ {name} ≤ max_speed")
@@ -122,6 +156,19 @@ class TreadmillConfig(BaseModel):
             raise ConfigError("spawn_gap", f"must be ≤ min(length, width) = {min(self.length, self.width)}")
         return self
 
+
+# The third rule set (issue 31): a long, forward-looking sensor over the 3 closest cars, agents that spawn facing any
+# way, traffic whose speed changes, a less single-minded adversary. Measured by ``benchmarks/treadmill_references.py
+# --rules v3``: the best open-loop policy found is far below a tuned private driver, and the same driver told what its
+# teammates observe (or a 16-bit code of it) beats it, paired CIs apart.
+V3_RULES: dict = {
+    "sensor_range": 60.0,
+    "observe_k": 3,
+    "spawn_heading_spread": 4,
+    "treadmill_speed_max": 2,
+    "treadmill_switch_prob": 0.03,
+    "aggression": 0.8,
+}
 
 N_HEADINGS = 8
 N_ACTIONS = 9  # (steer −45°, 0, +45°) × (decelerate, keep, accelerate)

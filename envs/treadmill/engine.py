@@ -53,6 +53,7 @@ DY = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 ACTION_STEER = np.arange(N_ACTIONS, dtype=np.int64) // 3 - 1  # −1 right, 0 straight, +1 left
 ACTION_ACCEL = np.arange(N_ACTIONS, dtype=np.int64) % 3 - 1  # −1 brake, 0 keep, +1 accelerate
 _ONE_HOT = np.eye(N_HEADINGS, dtype=np.float32)
+STREAM_BELT, STREAM_BELT_START, STREAM_HEADING = 5, 6, 7  # the varying belt's draws (envs.rng's named streams are 1…4)
 
 
 def distance(xa, ya, xb, yb) -> np.ndarray:
@@ -92,6 +93,8 @@ class TreadmillEngine:
         self.heading = np.zeros(shape, np.int64)
         self.speed = np.zeros(shape, np.int64)
         self.t = np.zeros(num_envs, np.int64)
+        self.belt = np.full(num_envs, cfg.treadmill_speed, np.int64)  # cells the belt carries cars back this step
+        self._varying_belt = cfg.treadmill_speed_max is not None and cfg.treadmill_speed_max > cfg.treadmill_speed
         self._streams = rng.EnvStreams(num_envs)
         self._ep_return = np.zeros((num_envs, n), np.float64)
 
@@ -119,9 +122,15 @@ class TreadmillEngine:
         self.x[envs, :n] = (first + cells // blocks_y) * cfg.spawn_gap + half
         self.y[envs, :n] = (cells % blocks_y) * cfg.spawn_gap + half
         self.heading[envs] = 0
+        if cfg.spawn_heading_spread:
+            k = cfg.spawn_heading_spread
+            u = self._streams.uniform(STREAM_HEADING, n, envs)
+            self.heading[envs, :n] = ((u * (2 * k + 1)).astype(np.int64) - k) % N_HEADINGS
         self.speed[envs] = cfg.initial_speed
         self.t[envs] = 0
         self._ep_return[envs] = 0.0
+        if self._varying_belt:
+            self.belt[envs] = self._belt_draw(self._streams.uniform(STREAM_BELT_START, 1, envs)[:, 0])
         if cfg.n_adversaries:
             everyone = np.zeros((self.num_envs, cfg.n_adversaries), bool)
             everyone[envs] = True
@@ -136,13 +145,16 @@ class TreadmillEngine:
         cfg = self.cfg
         n = cfg.n_agents
         acts = check_actions(actions, self.num_envs, self.spec.n_actions)
+        if self._varying_belt:
+            u = self._streams.uniform(STREAM_BELT, 2)
+            self.belt = np.where(u[:, 0] < cfg.treadmill_switch_prob, self._belt_draw(u[:, 1]), self.belt)
         if cfg.n_adversaries:
             acts = np.concatenate([acts, self._adversary_actions()], axis=1)
         self.heading = (self.heading + ACTION_STEER[acts]) % N_HEADINGS
         self.speed = np.clip(self.speed + ACTION_ACCEL[acts], 0, cfg.max_speed)
         crashed, bounced = self._move()
         self.heading[:, n:] = np.where(bounced, (N_HEADINGS - self.heading[:, n:]) % N_HEADINGS, self.heading[:, n:])
-        self.x = self.x - cfg.treadmill_speed
+        self.x = self.x - self.belt[:, None]
         outside = (self.x < 0) | (self.x >= cfg.length)
         crashed[:, :n] |= outside[:, :n]
         if cfg.n_adversaries:
@@ -180,13 +192,18 @@ class TreadmillEngine:
         ty = np.take_along_axis(self.y[:, :n], target, axis=1)[..., None]
         h = (ah[..., None] + ACTION_STEER) % N_HEADINGS  # [B, M, 9] outcome of each action
         v = np.clip(av[..., None] + ACTION_ACCEL, 0, cfg.max_speed)
-        cx = ax[..., None] + v * DX[h] - cfg.treadmill_speed
+        cx = ax[..., None] + v * DX[h] - self.belt[:, None, None]
         cy = np.clip(ay[..., None] + v * DY[h], 0, cfg.width - 1)
         greedy = np.argmin(distance(cx, cy, tx, ty), axis=-1)
         u = self._streams.uniform(rng.STREAM_ADVERSARY, 2 * cfg.n_adversaries)
         coin, pick = u[:, : cfg.n_adversaries], u[:, cfg.n_adversaries :]
         random_action = (pick * N_ACTIONS).astype(np.int64)
         return np.where(coin < cfg.aggression, greedy, random_action)
+
+    def _belt_draw(self, u: np.ndarray) -> np.ndarray:
+        """A belt speed in treadmill_speed … treadmill_speed_max, uniform, from uniforms ``u`` in [0, 1)."""
+        lo, hi = self.cfg.treadmill_speed, self.cfg.treadmill_speed_max
+        return lo + (u * (hi - lo + 1)).astype(np.int64)
 
     def _reenter(self, out: np.ndarray) -> None:
         """Adversaries ``out [B, M]`` that left at the front or back come back in: from the back at top speed or
@@ -251,6 +268,16 @@ class TreadmillEngine:
             ok &= along >= np.cos(np.radians(cfg.sensor_fov / 2)) * norm - 1e-9
         return ok
 
+    def sees(self, rel_x: np.ndarray, rel_y: np.ndarray, heading: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """``visible`` less, with ``adversary_stealth``, each adversary for the agent it chases (its closest agent:
+        ``dist [E, N, C]``, the agents' distances to every car)."""
+        ok = self.visible(rel_x, rel_y, heading)
+        if self.cfg.adversary_stealth and self.cfg.n_adversaries:
+            n = self.cfg.n_agents
+            target = np.argmin(dist[:, :, n:], axis=1)  # [E, M] the agent each adversary chases
+            ok[:, :, n:] &= target[:, None, :] != np.arange(n)[None, :, None]
+        return ok
+
     def nearest(self, envs: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(the ``observe_k`` cars each agent observes ``[E, N, k]``, their distances — inf for an empty slot —, and
         each agent's distance to its closest car, seen or not ``[E, N]``)."""
@@ -259,7 +286,7 @@ class TreadmillEngine:
         rel_x, rel_y = self.offsets(envs)
         dist = np.sqrt((rel_x * rel_x + rel_y * rel_y).astype(np.float64)) + self._self_mask
         closest = dist.min(axis=2)
-        dist = np.where(self.visible(rel_x, rel_y, self.heading[envs][:, :n]), dist, np.inf)
+        dist = np.where(self.sees(rel_x, rel_y, self.heading[envs][:, :n], dist), dist, np.inf)
         near = np.argmin(dist, axis=2)[..., None] if k == 1 else np.argsort(dist, axis=2, kind="stable")[..., :k]
         return near, np.take_along_axis(dist, near, axis=2), closest
 

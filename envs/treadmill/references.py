@@ -5,7 +5,11 @@
 * ``scripted`` — the hand-written driver on private observations (``envs.treadmill.scripted``);
 * ``team-information`` — the same driver told where every adversary is that some agent observes (in its
   ``observe_k`` slots), and that it is one: what perfectly decoded messages between agents could carry;
-* ``full-information`` — the same driver told every car's position and which cars are adversaries.
+* ``full-information`` — the same driver told every car's position and which cars are adversaries;
+* ``private-driver``, ``team-driver``, ``team16-driver`` — the reactive family of ``envs.treadmill.drivers`` with the
+  parameters tuned on the v3 rules (``V3_TUNED``): on its own sensor, told every teammate's observation, told a
+  16-bit code per teammate. ``benchmarks/treadmill_search.py`` tunes them afresh on any rules and searches the
+  open-loop policies (constants, cycles up to period 32, cross-entropy over whole sequences) beside them.
 
 ``full-information ÷ scripted`` is the value of information; ``team-information ÷ scripted`` the part of it
 that communication can reach.
@@ -24,7 +28,8 @@ from convoy.envs.treadmill.scripted import DANGER, full_information_actions, scr
 
 Policy = Callable[[np.ndarray], np.ndarray]
 CONSTANTS: tuple[str, ...] = tuple(f"constant-{a}" for a in range(N_ACTIONS))
-REFERENCES: tuple[str, ...] = ("random", *CONSTANTS, "scripted", "team-information", "full-information")
+DRIVERS: tuple[str, ...] = ("private-driver", "team-driver", "team16-driver")
+REFERENCES: tuple[str, ...] = ("random", *CONSTANTS, "scripted", "team-information", "full-information", *DRIVERS)
 
 
 def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None) -> Policy:
@@ -37,10 +42,33 @@ def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None
         return lambda obs: full_information_actions(engine)
     if name == "team-information":
         return lambda obs: full_information_actions(engine, team_only=True)
+    if name in DRIVERS:
+        return _driver_policy(name.split("-")[0], engine, V3_TUNED[name.split("-")[0]])
     if name in CONSTANTS:
         action = int(name.rsplit("-", 1)[1])
         return lambda obs: np.full(obs.shape[:2], action, np.int64)
     raise ValueError(f"unknown reference policy {name!r}; choose one of: {', '.join(REFERENCES)}")
+
+
+def _driver_policy(kind: str, engine: TreadmillEngine, params) -> Policy:
+    """The family driver ``kind`` (private | team | team16) with ``params``, counting its own steps (for weaving)."""
+    from convoy.envs.treadmill import drivers
+
+    cfg, t = engine.cfg, [0]
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        if kind == "private":
+            a = drivers.private_actions(obs, cfg, params, t[0])
+        elif kind == "team":
+            a = drivers.team_actions(engine, obs, params, t[0])
+        elif kind == "team16":
+            a = drivers.team16_actions(obs, cfg, params, t[0])
+        else:
+            raise ValueError(f"unknown driver kind {kind!r}: private | team | team16")
+        t[0] += 1
+        return a
+
+    return policy
 
 
 def evaluate_references(
@@ -88,3 +116,242 @@ def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256,
         obs = engine.step(scripted_actions(obs, cfg)).obs
     total = max(own + team + nobody, 1)
     return {"own": own / total, "only_teammate": team / total, "nobody": nobody / total}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# Searched and tuned references (issue 31): the strongest open-loop policy a search finds, and a family of reactive
+# drivers tuned on one set of episode seeds and scored on another, told their own sensor, their teammates' sensors, or
+# a 16-bit code per teammate. Every function below plays whole episodes, vectorised over envs.
+
+
+# The family's parameters chosen by ``benchmarks/treadmill_search.py --rules v3`` on 300 tuning episodes per grid point
+# (seed TUNING_SEED; 72 private and 144 team grid points): see docs/treadmill.md for the scores.
+def _v3_tuned() -> dict:
+    from convoy.envs.treadmill.drivers import DriverParams
+
+    return {
+        "private": DriverParams(danger=32.0, danger_adversary=32.0, hold="circle", flee_pace=3, brake=False),
+        "team": DriverParams(danger=24.0, danger_adversary=24.0, hold="straight", flee_pace=3, brake=True),
+        "team16": DriverParams(danger=16.0, danger_adversary=20.0, hold="straight", flee_pace=3, brake=True),
+    }
+
+
+TUNING_SEED = 1  # episode seeds the searches and grids choose on (env_seeds(1, ·) shares no env with seed 0)
+SCORING_SEED = 0  # episode seeds every reported figure is measured on
+
+
+def sequence_returns(
+    cfg: TreadmillConfig, seqs: np.ndarray, episodes: int, seed: int, chunk: int = 16384
+) -> np.ndarray:
+    """Per-episode return (mean over agents) ``[S, episodes]`` of open-loop action sequences ``seqs``: ``[S, T]``
+    (every agent plays the same sequence) or ``[S, N, T]`` (one per agent); step t plays column t mod T. Every
+    sequence is played on the same ``episodes`` env seeds (``env_seeds(seed, episodes)``)."""
+    from convoy.envs.batched import env_seeds
+
+    seqs = np.asarray(seqs, np.int64)
+    if seqs.ndim == 2:
+        seqs = np.repeat(seqs[:, None, :], cfg.n_agents, axis=1)
+    s_count, _, period = seqs.shape
+    seeds = env_seeds(seed, episodes)
+    out = np.zeros(s_count * episodes)
+    per = max(1, chunk // episodes)
+    for lo in range(0, s_count, per):
+        rows = np.repeat(np.arange(lo, min(lo + per, s_count)), episodes)
+        engine = TreadmillEngine(cfg, len(rows), autoreset=False)
+        engine.reset(np.tile(seeds, len(rows) // episodes))
+        ret = np.zeros(len(rows))
+        alive = np.ones(len(rows), bool)
+        for t in range(cfg.max_steps):
+            r = engine.step(seqs[rows, :, t % period])
+            ret[alive] += r.reward[alive].mean(axis=1)
+            alive &= ~r.done
+            if not alive.any():
+                break
+        out[lo * episodes : lo * episodes + len(rows)] = ret
+    return out.reshape(s_count, episodes)
+
+
+def cycle_family(max_period: int = 32) -> list[list[int]]:
+    """Every periodic open-loop cycle of the searched families, period ≤ ``max_period``: each constant action; every
+    block cycle "a × k then b × m" (a ≠ b, k + m ≤ max_period); every weave "s × k, l × m, s × k, r × m" (s a straight,
+    l a left and r a right action of one acceleration, 2k + 2m ≤ max_period) and the ones without the straight part."""
+    out = [[a] for a in range(N_ACTIONS)]
+    for a in range(N_ACTIONS):
+        for b in range(N_ACTIONS):
+            if a != b:
+                out += [[a] * k + [b] * m for k in range(1, max_period) for m in range(1, max_period - k + 1)]
+    for accel in range(3):
+        for straight_accel in range(3):
+            s, left, right = 3 + straight_accel, 6 + accel, accel
+            for k in range(0, max_period // 2):
+                for m in range(1, max_period // 2 - k + 1):
+                    out.append([s] * k + [left] * m + [s] * k + [right] * m)
+    return out
+
+
+def unroll(cycle: list[int], steps: int) -> np.ndarray:
+    return np.resize(np.asarray(cycle, np.int64), steps)
+
+
+def search_cycles(
+    cfg: TreadmillConfig,
+    max_period: int = 32,
+    screen: int = 4,
+    keep: int = 64,
+    episodes: int = 64,
+    seed: int = TUNING_SEED,
+) -> list[tuple[list[int], float]]:
+    """Every cycle of ``cycle_family`` on ``screen`` tuning episodes, the best ``keep`` again on ``episodes``:
+    ``(cycle, mean return)`` best first."""
+    fam = cycle_family(max_period)
+    width = max(len(c) for c in fam)
+    table = np.array([unroll(c, width) for c in fam])  # periods divide nothing in general: pad by repetition
+    periods = np.array([len(c) for c in fam])
+    first = np.zeros(len(fam))
+    for p in np.unique(periods):  # one batch per period, so t mod period is exact
+        idx = np.flatnonzero(periods == p)
+        first[idx] = sequence_returns(cfg, table[idx, :p], screen, seed + 7919).mean(axis=1)
+    top = np.argsort(-first, kind="stable")[:keep]
+    second = np.array([sequence_returns(cfg, [fam[i]], episodes, seed).mean() for i in top])
+    order = np.argsort(-second, kind="stable")
+    return [(fam[top[i]], float(second[i])) for i in order]
+
+
+def cem_sequences(
+    cfg: TreadmillConfig,
+    seeds: list[list[int]],
+    per_agent: bool,
+    iterations: int = 20,
+    population: int = 128,
+    elite: int = 16,
+    episodes: int = 16,
+    seed: int = TUNING_SEED,
+    rng_seed: int = 0,
+) -> tuple[np.ndarray, float]:
+    """Cross-entropy search over ``max_steps``-long action sequences (shared by the agents, or one per agent with
+    ``per_agent``), its categorical distribution started from the seed cycles ``seeds`` (unrolled, mixed with
+    uniform), which also join the first population. Returns (best sequence ``[N or 1, T]``, its tuning mean)."""
+    rng = np.random.default_rng(rng_seed)
+    t_len = cfg.max_steps
+    rows = cfg.n_agents if per_agent else 1
+    start = np.stack([unroll(c, t_len) for c in seeds])  # [K, T]
+    probs = np.full((rows, t_len, N_ACTIONS), 0.3 / N_ACTIONS)
+    probs += 0.7 * np.eye(N_ACTIONS)[start[0]][None]
+    best_seq, best_val = np.repeat(start[:1], rows, axis=0), -np.inf
+    for it in range(iterations):
+        u = rng.random((population, rows, t_len, 1))
+        pop = (u > np.cumsum(probs, axis=-1)[None]).sum(axis=-1).clip(0, N_ACTIONS - 1)
+        if it == 0:
+            k = min(len(start), population)
+            pop[:k] = start[:k, None, :]
+        pop[-1] = best_seq
+        full = pop if per_agent else pop[:, 0]
+        val = sequence_returns(cfg, full, episodes, seed).mean(axis=1)
+        order = np.argsort(-val, kind="stable")
+        if val[order[0]] > best_val:
+            best_val, best_seq = float(val[order[0]]), pop[order[0]].copy()
+        top = pop[order[:elite]]  # [E, rows, T]
+        freq = np.eye(N_ACTIONS)[top].mean(axis=0)
+        probs = 0.7 * freq + 0.3 * probs
+    return best_seq, best_val
+
+
+def open_loop_search(
+    cfg: TreadmillConfig, max_period: int = 32, cem_iterations: int = 20, quick: bool = False
+) -> dict[str, tuple[np.ndarray, float]]:
+    """The open-loop references, each chosen on tuning episodes: best constant, best cycle, best CEM sequence shared
+    by every agent and one per agent (``{name: (sequence [N, T] or [T], tuning mean)}``)."""
+    steps = cfg.max_steps
+    const = sequence_returns(cfg, np.arange(N_ACTIONS)[:, None], 32 if quick else 128, TUNING_SEED).mean(axis=1)
+    cycles = search_cycles(cfg, max_period, keep=16 if quick else 64, episodes=16 if quick else 64)
+    seeds = [c for c, _ in cycles[:8]]
+    kw = dict(iterations=4 if quick else cem_iterations, population=32 if quick else 128, episodes=8 if quick else 16)
+    shared, shared_val = cem_sequences(cfg, seeds, per_agent=False, **kw)
+    per_agent, per_val = cem_sequences(cfg, seeds, per_agent=True, **kw)
+    best_c = int(np.argmax(const))
+    return {
+        f"open-loop: constant-{best_c}": (np.full(steps, best_c), float(const[best_c])),
+        "open-loop: best cycle " + _cycle_name(cycles[0][0]): (unroll(cycles[0][0], steps), cycles[0][1]),
+        "open-loop: CEM shared": (shared[0], shared_val),
+        "open-loop: CEM per agent": (per_agent, per_val),
+    }
+
+
+def _cycle_name(cycle: list[int]) -> str:
+    blocks, prev, count = [], cycle[0], 0
+    for a in [*cycle, None]:
+        if a == prev:
+            count += 1
+        else:
+            blocks.append(f"{prev}×{count}")
+            prev, count = a, 1
+    return "(" + " ".join(blocks) + ")"
+
+
+# ---------------------------------------------------------------------------------------------------- tuned drivers
+def driver_grid(quick: bool = False) -> list:
+    """The family's parameter grid (``drivers.DriverParams``): flee distance, how to hold a place, flee pace,
+    braking for a car ahead (and, for team drivers, the flee distance of a known adversary)."""
+    from convoy.envs.treadmill.drivers import HOLDS, DriverParams
+
+    dangers = (8.0, 16.0, 32.0) if quick else (8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
+    holds = ("straight", "circle") if quick else HOLDS
+    return [
+        DriverParams(danger=d, danger_adversary=max(d, da), hold=h, flee_pace=fp, brake=b)
+        for d in dangers
+        for h in holds
+        for fp in ((3,) if quick else (2, 3))
+        for b in ((False,) if quick else (False, True))
+        for da in ((30.0,) if quick else (20.0, 40.0))
+    ]
+
+
+def driver_returns(cfg: TreadmillConfig, kind: str, params, episodes: int, seed: int) -> np.ndarray:
+    """Per-episode return (mean over agents) of the family driver ``kind`` (private | team | team16) with
+    ``params`` on ``episodes`` episodes seeded ``seed``."""
+    engine = TreadmillEngine(cfg, episodes, autoreset=False)
+    return rollout(engine, _driver_policy(kind, engine, params), seed=seed).mean_return
+
+
+def tune_driver(
+    cfg: TreadmillConfig, kind: str, grid: list | None = None, episodes: int = 300, seed: int = TUNING_SEED
+) -> tuple[object, float]:
+    """The grid point with the highest mean return on the tuning episodes: (params, tuning mean). A private
+    driver ignores ``danger_adversary``, so only one value of it is tried there."""
+    grid = grid if grid is not None else driver_grid()
+    if kind == "private":
+        seen, unique = set(), []
+        for p in grid:
+            key = (p.danger, p.hold, p.flee_pace, p.brake, p.band)
+            if key not in seen:
+                seen.add(key)
+                unique.append(p)
+        grid = unique
+    scores = [float(driver_returns(cfg, kind, p, episodes, seed).mean()) for p in grid]
+    i = int(np.argmax(scores))
+    return grid[i], scores[i]
+
+
+def paired_ratio(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    """mean(a) ÷ mean(b) and mean(a − b) over the same episodes, each with its 95 % CI (delta method for the ratio,
+    Student's t for the difference)."""
+    from convoy.stats import ci95_half
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    ratio = a.mean() / b.mean()
+    ratio_half = ci95_half((a - ratio * b) / b.mean())
+    diff = a - b
+    return {"ratio": float(ratio), "ratio_ci95": ratio_half, "diff": float(diff.mean()), "diff_ci95": ci95_half(diff)}
+
+
+def full_information_returns(cfg: TreadmillConfig, episodes: int, seed: int) -> np.ndarray:
+    engine = TreadmillEngine(cfg, episodes, autoreset=False)
+    return rollout(engine, reference_policy("full-information", engine), seed=seed).mean_return
+
+
+def random_returns(cfg: TreadmillConfig, episodes: int, seed: int) -> np.ndarray:
+    engine = TreadmillEngine(cfg, episodes, autoreset=False)
+    return rollout(engine, reference_policy("random", engine, seed), seed=seed).mean_return
+
+
+V3_TUNED = _v3_tuned()
