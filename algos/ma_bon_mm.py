@@ -15,5 +15,5 @@ class MABoNMM(MemoryModule, MABoN):
     """MA-BoN whose agents also learn to predict the broadcast message."""
 
     name = "ma-bon-mm"
-    population = False  # the memory module's fused LSTM has no run axis yet
+    population = True
     config_model = BoNMMConfig

@@ -17,5 +17,5 @@ class MAMeSNMM(MemoryModule, MAMeSN):
     """MA-MeSN whose agents also learn to predict their peers' messages."""
 
     name = "ma-mesn-mm"
-    population = False  # the memory module's fused LSTM has no run axis yet
+    population = True
     config_model = MeSNMMConfig

@@ -62,6 +62,8 @@ class GroupLSTM(nn.Module):
         self.head = GroupLinear(groups, hidden, out_features)
 
     def forward(self, seq: Tensor) -> Tensor:
+        if getattr(self.head, "runs", None) is not None:
+            return self._forward_runs(seq)
         m, steps, n, width = seq.shape
         if self.groups == 1:
             flat = seq.permute(0, 2, 1, 3).reshape(m * n, steps, width)  # every agent's window is a sequence
@@ -76,6 +78,33 @@ class GroupLSTM(nn.Module):
             h = torch.sigmoid(o) * torch.tanh(c)
         return self.head(h)
 
+    def _forward_runs(self, seq: Tensor) -> Tensor:
+        """A population's windows ``[R, M, L, N, in]`` → ``[R, M, N, out]``: the grouped cell stepped by hand; with
+        shared weights the stacked ``nn.LSTM`` parameters (gates i, f, g, o, as torch orders them) in batched
+        matmuls over runs."""
+        r, m, steps, n, width = seq.shape
+        if self.groups > 1:
+            gates_in = self.inp(seq)
+            h = seq.new_zeros(r, m, n, self.hidden)
+            rec = self.rec
+        else:
+            lstm = self.lstm
+            flat = seq.reshape(r, -1, width)  # [R, M·L·N, in]
+            gates_in = torch.baddbmm(lstm.bias_ih_l0.unsqueeze(1), flat, lstm.weight_ih_l0.transpose(1, 2))
+            gates_in = gates_in.reshape(r, m, steps, n, 4 * self.hidden)
+            h = seq.new_zeros(r, m, n, self.hidden)
+            w_hh, b_hh = lstm.weight_hh_l0.transpose(1, 2), lstm.bias_hh_l0.unsqueeze(1)
+
+            def rec(h: Tensor) -> Tensor:
+                return torch.baddbmm(b_hh, h.reshape(r, -1, self.hidden), w_hh).reshape(r, m, n, 4 * self.hidden)
+
+        c = torch.zeros_like(h)
+        for t in range(steps):
+            i, f, g, o = (gates_in[:, :, t] + rec(h)).chunk(4, dim=-1)
+            c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
+            h = torch.sigmoid(o) * torch.tanh(c)
+        return self.head(h)
+
 
 class MemoryModule:
     """Mixin: put it before a ``HearsMessages`` algorithm, e.g. ``class MAMeSNMM(MemoryModule, MAMeSN)``."""
@@ -85,6 +114,7 @@ class MemoryModule:
     online: nn.ModuleDict
     device: torch.device
     shared: bool
+    runs: int | None
     n_agents: int
     obs_dim: int
     senders: int
@@ -101,7 +131,8 @@ class MemoryModule:
 
     # --- acting: the window is the recurrent state -------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Tensor:
-        return torch.zeros(num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
+        runs = () if self.runs is None else (self.runs,)
+        return torch.zeros(*runs, num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
 
     def reset_state(self, state: Tensor, done: np.ndarray) -> Tensor:
         state = super().reset_state(state, done)  # type: ignore[misc]  # the channel's in-flight messages
@@ -114,9 +145,9 @@ class MemoryModule:
     def push(self, state: Tensor | None, obs: Tensor) -> Tensor:
         """The window after this step: the oldest observation out, ``obs`` (marked real) in."""
         if state is None:
-            state = self.initial_state(obs.shape[0])
-        step = torch.cat([obs, obs.new_ones(*obs.shape[:-1], 1)], dim=-1).unsqueeze(1)
-        return torch.cat([state[:, 1:], step], dim=1)
+            state = self.initial_state(obs.shape[-3])
+        step = torch.cat([obs, obs.new_ones(*obs.shape[:-1], 1)], dim=-1).unsqueeze(-3)
+        return torch.cat([state[..., 1:, :, :], step], dim=-3)
 
     def predict(self, nets: nn.ModuleDict, window: Tensor) -> Tensor:
         """Bit logits ``[M, N, senders·bits]`` of the messages each agent will hear, from its own window."""
@@ -143,7 +174,7 @@ class MemoryModule:
         hears from its own observation window (no gradient of it reaches the message or policy networks)."""
         return super().loss(batch).plus(*self.memory_loss(batch))  # type: ignore[misc]
 
-    def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+    def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """``memory_coef`` × the BCE of the predicted bits against the messages each agent truly hears, and the
         prediction's accuracy per bit and per whole message."""
         if HISTORY not in batch:
@@ -152,13 +183,14 @@ class MemoryModule:
         with torch.no_grad():
             _, _, heard = self.speak(self.online, batch["obs"], False)  # type: ignore[attr-defined]
             target = heard.reshape(logits.shape)
-        bce = F.binary_cross_entropy_with_logits(logits, target)
+        per_run = tuple(range(1 if self.runs else 0, logits.dim()))  # a population's figures are per run
+        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none").mean(dim=per_run)
         with torch.no_grad():
             right = (logits > 0) == (target > 0.5)
             msg_right = right.reshape(*right.shape[:-1], self.senders, self.bits).all(dim=-1)
         stats = {
-            "memory_loss": float(bce.detach()),
-            "memory_bit_acc": float(right.float().mean()),
-            "memory_msg_acc": float(msg_right.float().mean()),
+            "memory_loss": bce.detach(),
+            "memory_bit_acc": right.float().mean(dim=per_run),
+            "memory_msg_acc": msg_right.float().mean(dim=tuple(range(1 if self.runs else 0, msg_right.dim()))),
         }
         return self.cfg.memory_coef * bce, stats  # type: ignore[attr-defined]

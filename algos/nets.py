@@ -81,7 +81,8 @@ def stack_runs(modules: list[nn.Module]) -> nn.Module:
     """One module holding R = len(modules) runs of the same architecture: every ``GroupLinear``'s weights stacked on
     a leading run axis, so run k computes exactly what ``modules[k]`` computes, all runs in one batched call.
 
-    Only ``GroupLinear`` layers can carry the run axis; any other layer with weights (``nn.LSTM``) is refused.
+    Only ``GroupLinear`` layers, and the ``nn.LSTM`` inside a memory module's ``GroupLSTM`` (which then steps its
+    cell by hand), can carry the run axis; any other layer with weights is refused.
     """
     stacked = copy.deepcopy(modules[0])
     named = [dict(m.named_modules()) for m in modules]
@@ -89,13 +90,13 @@ def stack_runs(modules: list[nn.Module]) -> nn.Module:
         own = list(layer.parameters(recurse=False))
         if not own:
             continue
-        if not isinstance(layer, GroupLinear):
+        if not isinstance(layer, GroupLinear | nn.LSTM):
             raise NotImplementedError(
                 f"population training: layer {name or 'root'} ({type(layer).__name__}) has no run axis; "
                 "train this algorithm one seed per process"
             )
-        layer.runs = len(modules)
-        for pname in ("weight", "bias"):
+        layer.runs = len(modules)  # type: ignore[assignment]
+        for pname, _ in list(layer.named_parameters(recurse=False)):
             value = torch.stack([getattr(n[name], pname).detach() for n in named])
             setattr(layer, pname, nn.Parameter(value))
     return stacked

@@ -6,8 +6,9 @@ its runs with batched kernels (``baddbmm`` over runs where a single run calls ``
 gradient with its own norm computed per run, so sums are taken in another order; measured on these sizes the
 weights then differ by ≤ 2e-7 after 300 updates. A hard message bit, though, is a threshold: once the rounding
 moves one logit-plus-noise across 0 (for message algorithms after ~150-250 updates here) the two runs take
-different discrete messages and drift apart as any two chaotic trajectories do. So message algorithms are compared
-over 100 updates, idqn over 300, both to 1e-5; the noise streams themselves are compared exactly.
+different discrete messages and drift apart as any two chaotic trajectories do. So algorithms with messages are
+compared over 50 updates (weights then differ by ≤ 1e-7), the others over 300, both to 1e-5; the noise streams
+themselves are compared exactly.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_acti
 SEEDS = [3, 7, 11]
 POPULATION_ALGOS = [n for n in ALGO_CONFIGS if algorithm_class(n).population]
 T, B = 8, 4
+WINDOW = 4  # the -mm variants' observation window
 
 
 def config(name: str, share: bool, teacher: Path | None = None, **extra: object):
@@ -39,6 +41,8 @@ def config(name: str, share: bool, teacher: Path | None = None, **extra: object)
         hp.update(replay=True, unroll=4, target_update_episodes=3)
     if name == "codbc":  # clones an (untrained) MA-MeSN of the same env shape
         hp.update(teacher=str(teacher), teacher_fraction=0.5)
+    if name.endswith("-mm"):
+        hp.update(memory_window=WINDOW, memory_hidden=16)
     if name == "dqn-ser":
         hp.update(fingerprint=True, ser_horizon=8)  # ages matter within the test's episodes
     if algorithm_class(name).uses_messages and name != "dial":
@@ -53,6 +57,7 @@ def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
     n, d = SPEC.n_agents, SPEC.obs_dim
     return {
         "fingerprint": g.random((T, runs, B, 2)).astype(np.float32),
+        "history": g.normal(size=(T, runs, B, WINDOW, n, d + 1)).astype(np.float16),  # the memory module's input
         "msg_in": (g.random((T, runs, B, n, (n - 1) * 16)) < 0.5).astype(np.float32),  # DIAL's heard messages
         "mu": g.uniform(0.2, 1.0, size=(T, runs, B, n)).astype(np.float32),  # and behaviour probabilities
         "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
@@ -118,7 +123,7 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     for k, single in enumerate(singles):
         assert torch.equal(noise[k], single.rand_like(x[k]))
     # updates: equal up to float32 rounding (module docstring)
-    updates = 300 if name == "idqn" else 100
+    updates = 50 if algorithm_class(name).uses_messages else 300
     for _ in range(updates):
         rows = pop.update()
         single_rows = [s.update() for s in singles]
@@ -161,9 +166,9 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
 
 
 def test_stack_runs_refuses_a_layer_without_a_run_axis() -> None:
-    lstm = torch.nn.ModuleDict({"cell": torch.nn.LSTM(3, 4)})
+    plain = torch.nn.ModuleDict({"layer": torch.nn.Linear(3, 4)})
     with pytest.raises(NotImplementedError, match="no run axis"):
-        stack_runs([lstm, lstm])
+        stack_runs([plain, plain])
     layers = [GroupLinear(2, 3, 4) for _ in range(3)]
     stacked = stack_runs(layers)
     x = torch.randn(3, 5, 2, 3)
@@ -210,7 +215,7 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
         (["--seeds", "0", "1"], "add --inprocess"),
         (["--inprocess", "--seeds", "0", "0"], "distinct"),
         (["--inprocess", "--seeds", "0", "1", "--seed", "2"], "not both"),
-        (["--inprocess", "--seeds", "0", "1", "--algo", "ma-mesn-mm"], "one seed per process"),
+        (["--inprocess", "--seeds", "0", "1", "--env", "treadmill", "--hierarchical"], "one seed per process"),
     ):
         assert main([*base, *extra]) == 2
         err = " ".join(capsys.readouterr().err.split())
