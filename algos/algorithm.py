@@ -11,6 +11,7 @@ learns from sequences and brings its own data path; hierarchical DQN wraps two a
 from __future__ import annotations
 
 import copy
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -160,13 +161,15 @@ def td_target(
 
 @torch.no_grad()
 def bootstrap_target(q_fn: QFn, online: nn.ModuleDict, target: nn.ModuleDict, batch: Batch, cfg: AlgoConfig,
-                     mask: Tensor) -> Tensor:  # fmt: skip
+                     mask: Tensor, gamma: float | Tensor | None = None) -> Tensor:  # fmt: skip
     """The TD target ``[M, N]`` of a batch for any ``q_fn``: the target networks' Q at the next observation, the
     action picked by the online networks (``double_q``), a per-sample ``discount`` when stored (options), and
-    advantage learning's action gap ``max_b Q̄(s, b) − Q̄(s, a)`` subtracted when ``advantage_learning`` > 0."""
+    advantage learning's action gap ``max_b Q̄(s, b) − Q̄(s, a)`` subtracted when ``advantage_learning`` > 0.
+    ``gamma`` overrides ``cfg.gamma`` (a population's one per run, ``[R, 1]`` like a per-sample discount)."""
     q_next_t = q_fn(target, batch["next_obs"])
     q_next_o = q_fn(online, batch["next_obs"]) if cfg.double_q else None
-    y = td_target(batch["reward"], batch["terminated"], batch.get("discount", cfg.gamma), q_next_t, q_next_o, mask)
+    discount = batch.get("discount", cfg.gamma if gamma is None else gamma)
+    y = td_target(batch["reward"], batch["terminated"], discount, q_next_t, q_next_o, mask)
     if cfg.advantage_learning:
         q_now = q_fn(target, batch["obs"])
         gap = q_now.masked_fill(~mask, NEG).max(dim=-1).values - taken(q_now, batch["action"])
@@ -251,13 +254,44 @@ class NetworkAgent(ABC):
         self.target.requires_grad_(False)
         self._optimizer: torch.optim.Optimizer | None = None
         self._members: dict[int, NetworkAgent] = {}
+        self.run_cfgs: list[AlgoConfig] = [cfg] * len(self.seeds)
+        self.gamma: float | Tensor = cfg.gamma
+
+    def set_run_configs(self, configs: Sequence[AlgoConfig]) -> None:
+        """Give each run of a population its own hyper-parameters among ``PER_RUN`` (a grid over seeds × lr × γ ×
+        target period × ε schedule in one population); every other field must agree, since it sets shapes or the
+        update's structure."""
+        if self.runs is None or len(configs) != self.runs:
+            raise ValueError(f"configs: one per run of the population ({self.runs}), got {len(configs)}")
+        base = configs[0].model_dump()
+        for cfg in configs[1:]:
+            if type(cfg) is not type(configs[0]):
+                raise ValueError(
+                    f"configs: one algorithm's configs, got {type(cfg).__name__} beside {type(configs[0]).__name__}"
+                )
+            for name, value in cfg.model_dump().items():
+                if name not in PER_RUN and value != base[name]:
+                    raise ValueError(
+                        f"{name}: runs of one population must share it ({base[name]!r} vs {value!r}); only "
+                        f"{', '.join(PER_RUN)} may differ per run"
+                    )
+        if self._optimizer is not None:
+            raise RuntimeError("set_run_configs: call it before the first update")
+        self.run_cfgs, self.cfg = list(configs), configs[0]
+        gammas = [c.gamma for c in configs]
+        self.gamma = gammas[0] if len(set(gammas)) == 1 else torch.tensor(gammas, device=self.device).reshape(-1, 1)
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
         """Adam, made on first use: actors never update, and the first optimizer of a process costs ~2 s of imports.
-        Fused: one kernel for all parameters instead of ~10 elementwise passes (2.3× faster steps on CPU)."""
+        Fused: one kernel for all parameters instead of ~10 elementwise passes (2.3× faster steps on CPU). A
+        population whose runs have different learning rates steps with :class:`RunAdam`."""
         if self._optimizer is None:
-            self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
+            lrs = [c.lr for c in self.run_cfgs]
+            if len(set(lrs)) == 1:
+                self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
+            else:
+                self._optimizer = RunAdam(list(self.online.parameters()), torch.tensor(lrs, device=self.device))
         return self._optimizer
 
     # --- what each algorithm writes ------------------------------------------------------------------------------
@@ -323,6 +357,16 @@ class NetworkAgent(ABC):
         actions, greedy_a, eps_a = (np.stack(x) for x in zip(*runs, strict=True))
         return actions, greedy_a, eps_a
 
+    def sync_targets(self) -> None:
+        """After an update: the target sync of every run, each at its own ``target_update`` period."""
+        periods = {c.target_update for c in self.run_cfgs}
+        if len(periods) == 1 or self.cfg.target_tau < 1.0:
+            update_target(self.target, self.online, self.updates, self.cfg)
+        else:
+            due = np.array([self.updates % c.target_update == 0 for c in self.run_cfgs])
+            if due.any():
+                self.sync_runs(due)
+
     def sync_runs(self, due: np.ndarray) -> None:
         """Copy the online weights into the target of the runs ``due`` (a population whose runs sync apart)."""
         idx = torch.as_tensor(np.flatnonzero(due), device=self.device)
@@ -379,7 +423,7 @@ class NetworkAgent(ABC):
                 self._restore(~ok, kept)
             self.updates += 1
             if self.syncs_by_updates:
-                update_target(self.target, self.online, self.updates, self.cfg)
+                self.sync_targets()
         rows = [dict(zip(names, col, strict=True)) for col in table.T.tolist()]
         for row, good in zip(rows, ok, strict=True):
             if not good:
@@ -473,7 +517,7 @@ class NetworkAgent(ABC):
             return self
         agent = self._members.get(k)
         if agent is None:
-            agent = self._members[k] = type(self)(self.spec, self.cfg, device=self.device, seed=self.seeds[k])
+            agent = self._members[k] = type(self)(self.spec, self.run_cfgs[k], device=self.device, seed=self.seeds[k])
         opt = self.optimizer.state_dict()
         moments = {i: {n: v if n == "step" else v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}
         agent.load_state_dict(
@@ -526,6 +570,41 @@ class NetworkAgent(ABC):
     def n_parameters(self) -> int:
         """Parameters of one run."""
         return sum(p.numel() for p in self.online.parameters()) // len(self.seeds)
+
+
+# Hyper-parameters that may differ between the runs of one population: none changes a shape or the update's structure.
+PER_RUN: tuple[str, ...] = (
+    "lr", "gamma", "target_update", "eps_start", "eps_end", "eps_decay_fraction", "eps_decay_max_steps",
+)  # fmt: skip
+
+
+class RunAdam(torch.optim.Optimizer):
+    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) with one learning rate per run ``lrs [R]`` over stacked
+    parameters ``[R, …]``; its state has ``torch.optim.Adam``'s layout, so a run's share loads into a single run's
+    Adam. Equal to it up to float rounding (the fused kernel orders the same arithmetic differently)."""
+
+    def __init__(self, params: list[Tensor], lrs: Tensor, betas: tuple[float, float] = (0.9, 0.999)) -> None:
+        super().__init__(params, {"lr": 0.0, "betas": betas, "eps": 1e-8})
+        self.lrs = lrs
+
+    @torch.no_grad()
+    def step(self, closure: Any = None) -> None:
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
+                    st["exp_avg"], st["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)
+                st["step"] += 1
+                step = float(st["step"])
+                st["exp_avg"].lerp_(p.grad, 1 - b1)
+                st["exp_avg_sq"].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+                denom = (st["exp_avg_sq"].sqrt() / math.sqrt(1 - b2**step)).add_(group["eps"])
+                lr = self.lrs.reshape(-1, *([1] * (p.dim() - 1)))
+                p.addcdiv_(st["exp_avg"] * (-lr / (1 - b1**step)), denom)
 
 
 def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:

@@ -252,7 +252,8 @@ class DIAL(NetworkAgent):
             q_next_o = (
                 self.cnet(self.online, batch["next_obs"], self.hear(sent.detach()))[0] if self.cfg.double_q else None
             )
-            y = td_target(batch["reward"], batch["terminated"], self.cfg.gamma, q_next_t, q_next_o, self.action_mask)
+            gamma = self.gamma if isinstance(self.gamma, float) else self.gamma.reshape(-1, 1, 1)  # [R, T, B]
+            y = td_target(batch["reward"], batch["terminated"], gamma, q_next_t, q_next_o, self.action_mask)
         return q_all, q, y
 
     def is_weights(self, q_all: Tensor, batch: Batch) -> Tensor:

@@ -117,7 +117,7 @@ class IMS(ReplayAgent):
         # the centralised pass: every round's messages stay in the graph, so each agent's loss reaches every encoder
         q = taken(self.forward(self.online, batch["obs"], train=True)[0], batch["action"])
         # double-Q target from the target copy of the whole stack
-        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask)
+        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask, self.gamma)
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
 
     def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, Tensor]]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 
 import torch
 
@@ -29,7 +30,16 @@ def algorithm_class(name: str) -> type[NetworkAgent]:
 
 
 def make_algorithm(
-    name: str, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int = 0
+    name: str,
+    spec: EnvSpec,
+    cfg: AlgoConfig,
+    device: str | torch.device = "auto",
+    seed: int | Sequence[int] = 0,
+    run_configs: Sequence[AlgoConfig] | None = None,
 ) -> NetworkAgent:
-    """Build algorithm ``name`` for env ``spec`` with a resolved config (see ``convoy.config.resolve_algo``)."""
-    return algorithm_class(name)(spec, cfg, device=device, seed=seed)
+    """Build algorithm ``name`` for env ``spec`` with a resolved config (see ``convoy.config.resolve_algo``); a
+    sequence of seeds makes a population, ``run_configs`` (one per seed) its runs' own hyper-parameters."""
+    agent = algorithm_class(name)(spec, cfg, device=device, seed=seed)
+    if run_configs is not None:
+        agent.set_run_configs(run_configs)
+    return agent

@@ -47,7 +47,8 @@ def run_population(jobs: list[JobConfig], out_dirs: list[Path], progress: bool =
     configure_learner(job.torch_threads)
     env = make_env(job, job.num_envs * len(jobs))
     try:
-        agent = make_algorithm(job.algo, env.spec, job.algo_config(), device=job.device, seed=[j.seed for j in jobs])
+        configs = [j.algo_config() for j in jobs]  # the runs may differ in lr, γ, target period, ε schedule
+        agent = make_algorithm(job.algo, env.spec, configs[0], job.device, [j.seed for j in jobs], configs)
         trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress)
         return trainer.run()
     finally:

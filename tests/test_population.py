@@ -220,3 +220,33 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
         assert main([*base, *extra]) == 2
         err = " ".join(capsys.readouterr().err.split())
         assert "--seeds" in err and words in err, err
+
+
+@pytest.mark.parametrize("name", ["idqn", "dial"])
+def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str) -> None:
+    """A small grid in one population: run k follows its own learning rate (``RunAdam``), discount and target
+    period, as the single run with that config does (up to float rounding: RunAdam orders Adam's arithmetic
+    differently from torch's fused kernel); shapes and the update's structure must agree."""
+    torch.set_num_threads(1)
+    grid = [(1e-3, 0.9, 10), (3e-4, 0.95, 25), (2e-3, 0.99, 5)]
+    cfgs = [config(name, False, lr=lr, gamma=g, target_update=c) for lr, g, c in grid]
+    pop = make_algorithm(name, SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=cfgs)
+    singles = [make_algorithm(name, SPEC, c, device="cpu", seed=s) for c, s in zip(cfgs, SEEDS, strict=True)]
+    g = np.random.default_rng(1)
+    for _ in range(4):
+        c = chunk(g, len(SEEDS))
+        pop.observe(c)
+        for k, single in enumerate(singles):
+            single.observe({f: v[:, k] for f, v in c.items()})
+    for _ in range(200 if name == "idqn" else 50):  # DIAL's messages: see the module docstring
+        pop.update()
+        for single in singles:
+            single.update()
+    assert max_weight_gap(pop, singles) < 1e-5
+    for k, single in enumerate(singles):  # each run's target synced at its own period
+        for n, w in run_state(pop.target, k).items():
+            torch.testing.assert_close(w, single.target.state_dict()[n], rtol=0, atol=1e-5)
+    assert pop.member(1).cfg == cfgs[1]
+    wider = config(name, False, hidden=(64, 32))
+    with pytest.raises(ValueError, match="hidden"):
+        make_algorithm(name, SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=[cfgs[0], cfgs[1], wider])
