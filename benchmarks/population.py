@@ -35,6 +35,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from benchmarks.report import cpu_model, write_json  # noqa: E402
+from benchmarks.updates import ms_per_call  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
 from convoy.algos.registry import algorithm_class, make_algorithm  # noqa: E402
 from convoy.config import resolve_algo  # noqa: E402
@@ -107,23 +108,13 @@ def filled(algo: str, seeds: int | list[int], device: str = "cpu"):
     return agent
 
 
-def ms_per_call(step, seconds: float = 2.0) -> float:
-    for _ in range(3):
-        step()
-    n, t0 = 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds or n < 3:
-        step()
-        n += 1
-    return (time.perf_counter() - t0) / n * 1e3
-
-
 def update_cost(algo: str, p: int, threads: int) -> dict[str, float]:
     """ms per population update of P runs beside P single-run updates, with ``threads`` torch threads."""
     torch.set_num_threads(threads)
     single = filled(algo, 0)
     pop = filled(algo, list(range(p)))
-    one = ms_per_call(single.update)
-    many = ms_per_call(pop.update)
+    one = ms_per_call(single.update, 2.0)
+    many = ms_per_call(pop.update, 2.0)
     return {"single_ms": one, "population_ms": many, "per_run_ms": many / p, "ratio": p * one / many}
 
 
@@ -139,7 +130,7 @@ def cuda_figures(algo: str, steps: int, work: Path) -> dict[str, float]:
         torch.cuda.synchronize()
 
     return {"gpu_p20_steps_per_s": 20 * steps / t_gpu, "cpu_core_steps_per_s": steps / t_cpu,
-            "ratio": 20 * t_cpu / t_gpu, "gpu_update_ms_p1": ms_per_call(synced)}  # fmt: skip
+            "ratio": 20 * t_cpu / t_gpu, "gpu_update_ms_p1": ms_per_call(synced, 2.0)}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -70,6 +70,15 @@ def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
     }
 
 
+def feed(pop, singles, g: np.random.Generator, chunks: int = 4) -> None:
+    """The same random chunks into the population and, run k's share, into single run k."""
+    for _ in range(chunks):
+        c = chunk(g, len(singles))
+        pop.observe(c)
+        for k, single in enumerate(singles):
+            single.observe({f: v[:, k] for f, v in c.items()})
+
+
 def save_teacher(path: Path) -> Path:
     job = job_config(algo="ma-mesn", env="treadmill", algo_params={"hidden": (16,)}, device="cpu", seed=5)
     agent = make_algorithm("ma-mesn", SPEC, job.algo_config(), device="cpu", seed=5)
@@ -103,11 +112,7 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     for single, episodes in zip(singles, (12, 9, 15), strict=True):
         single.progress = Progress(500, episodes, 1000, training=True)
     g = np.random.default_rng(0)
-    for _ in range(4):
-        c = chunk(g, len(SEEDS))
-        pop.observe(c)
-        for k, single in enumerate(singles):
-            single.observe({f: v[:, k] for f, v in c.items()})
+    feed(pop, singles, g)
     first = pop.sample()
     for k, single in enumerate(singles):
         for f, v in single.sample().items():
@@ -232,12 +237,7 @@ def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str
     cfgs = [config(name, False, lr=lr, gamma=g, target_update=c) for lr, g, c in grid]
     pop = make_algorithm(name, SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=cfgs)
     singles = [make_algorithm(name, SPEC, c, device="cpu", seed=s) for c, s in zip(cfgs, SEEDS, strict=True)]
-    g = np.random.default_rng(1)
-    for _ in range(4):
-        c = chunk(g, len(SEEDS))
-        pop.observe(c)
-        for k, single in enumerate(singles):
-            single.observe({f: v[:, k] for f, v in c.items()})
+    feed(pop, singles, np.random.default_rng(1))
     for _ in range(200 if name == "idqn" else 50):  # DIAL's messages: see the module docstring
         pop.update()
         for single in singles:

@@ -21,80 +21,11 @@ teammates' observations from the engine as a stand-in for the channel.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import numpy as np
 
 from convoy.envs.treadmill.config import N_HEADINGS, NEIGHBOUR_FEATURES, OWN_FEATURES, TreadmillConfig
 from convoy.envs.treadmill.engine import DX, DY
-from convoy.envs.treadmill.scripted import heading_towards, own_state, steer_action
-
-HOLDS = ("straight", "circle", "weave")
-
-
-@dataclass(frozen=True)
-class DriverParams:
-    """One member of the family (see the module docstring)."""
-
-    danger: float = 12.0  # cells: flee a sensed car (ally or adversary, unknown) closer than this
-    danger_adversary: float = 20.0  # cells: flee a car known to be an adversary closer than this (team drivers)
-    hold: str = "straight"  # straight | circle | weave: what a car with nothing to flee does
-    flee_pace: int = 3  # window speed (cells per step) when fleeing, before the belt is added
-    brake: bool = False  # a threat ahead (in front of the car): brake to 0 and steer aside rather than flee
-    band: float = 10.0  # cells behind the middle of the window within which circling / weaving holds the place
-
-    def label(self) -> str:
-        return ",".join(f"{k}={v}" for k, v in asdict(self).items())
-
-
-def family_actions(
-    cfg: TreadmillConfig,
-    p: DriverParams,
-    t: int,
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    speed: np.ndarray,
-    threat_dx: np.ndarray,
-    threat_dy: np.ndarray,
-    threat: np.ndarray,
-) -> np.ndarray:
-    """Actions ``[B, N]`` for cars at window cells (x, y) with one threat each at offset (dx, dy) where ``threat``."""
-    belt = 0.5 * (cfg.treadmill_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed))  # expected belt
-    margin = 4.0 * cfg.max_speed + 2.0
-    mid_x, mid_y = (cfg.length - 1) / 2.0, (cfg.width - 1) / 2.0
-    dist = np.maximum(np.hypot(threat_dx, threat_dy), 1e-6)
-    flee_x, flee_y = -threat_dx / dist, -threat_dy / dist
-    home_x = np.clip((mid_x - x) / (cfg.length / 4.0), -1.0, 1.0)
-    home_y = np.clip((mid_y - y) / (cfg.width / 4.0), -1.0, 1.0)
-    wall_x = np.clip((margin - x) / margin, 0.0, 1.0) - np.clip((x - (cfg.length - 1 - margin)) / margin, 0.0, 1.0)
-    wall_y = np.clip((margin - y) / margin, 0.0, 1.0) - np.clip((y - (cfg.width - 1 - margin)) / margin, 0.0, 1.0)
-    ahead = threat & (threat_dx > 0) & (np.abs(threat_dy) < threat_dx) if p.brake else np.zeros_like(threat)
-    # braking for a car ahead: fall back on the window and step aside, away from it
-    flee_x = np.where(ahead, -1.0, flee_x)
-    flee_y = np.where(ahead, np.where(threat_dy > 0, -1.0, 1.0), flee_y)
-    want_x = np.where(threat, 2.0 * flee_x, 0.5 * home_x) + 3.0 * wall_x
-    want_y = np.where(threat, 2.0 * flee_y, 0.5 * home_y) + 3.0 * wall_y
-    pace = np.where(threat, float(p.flee_pace), 1.0)
-    norm = np.maximum(np.hypot(want_x, want_y), 1e-6)
-    road_x = pace * want_x / norm + belt
-    road_y = pace * want_y / norm
-    want_speed = np.clip(np.rint(np.hypot(road_x, road_y)), 0, cfg.max_speed).astype(np.int64)
-    want_heading = np.where(want_speed > 0, heading_towards(road_x, road_y), heading)
-    dy_now = DY[heading]
-    side_gap = np.where(dy_now > 0, cfg.width - 1 - y, np.where(dy_now < 0, y, np.inf))
-    want_speed = np.where(side_gap < 3 * want_speed + 2, np.minimum(want_speed, 1), want_speed)
-    act = steer_action(heading, speed, want_heading, want_speed)
-    if p.hold != "straight":
-        calm = ~threat & (np.abs(wall_x) + np.abs(wall_y) == 0) & (x > mid_x - p.band)
-        if p.hold == "circle":  # full circles at top speed: the car drifts back with the belt, then drives up again
-            held = 3 * 2 + np.where(speed < cfg.max_speed, 2, 1)
-        else:  # weave: ±45° around the road's direction, four steps each way, at top speed
-            left = (t // 4) % 2 == 0
-            want_h = np.where(left, 1, N_HEADINGS - 1)
-            held = steer_action(heading, speed, np.full_like(heading, want_h), np.full_like(speed, cfg.max_speed))
-        act = np.where(calm, held, act)
-    return act
+from convoy.envs.treadmill.scripted import DriverParams, family_actions, own_state
 
 
 def slot_cars(obs: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,7 +1,9 @@
 """Hand-written drivers: the baseline learners must beat, and the full-information reference.
 
-Both share one controller: keep away from a threat, the road's sides and the window's front and back, otherwise
-hold a place in the middle of the treadmill. They differ only in what they know of the threat.
+All share one controller, ``family_actions``: keep away from a threat, the road's sides and the window's front and
+back, otherwise hold a place on the treadmill (straight back to the middle, circling or weaving); ``DriverParams``
+picks a member of the family (``envs.treadmill.drivers`` tunes them). The scripted drivers are its plainest member
+(flee at top speed within ``DANGER`` cells, drive straight); they differ only in what they know of the threat.
 
 * ``scripted_actions`` reads an agent's own observation: the threat is the closest car its sensor sees, ally or
   adversary (it cannot tell them apart), so it is a legitimate decentralised policy.
@@ -11,6 +13,8 @@ hold a place in the middle of the treadmill. They differ only in what they know 
 """
 
 from __future__ import annotations
+
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -35,8 +39,28 @@ def steer_action(
     return 3 * (steer + 1) + (accel + 1)
 
 
-def drive(
+HOLDS = ("straight", "circle", "weave")
+
+
+@dataclass(frozen=True)
+class DriverParams:
+    """One member of the family (see the module docstring)."""
+
+    danger: float = 12.0  # cells: flee a sensed car (ally or adversary, unknown) closer than this
+    danger_adversary: float = 20.0  # cells: flee a car known to be an adversary closer than this (team drivers)
+    hold: str = "straight"  # straight | circle | weave: what a car with nothing to flee does
+    flee_pace: int = 3  # window speed (cells per step) when fleeing, before the belt is added
+    brake: bool = False  # a threat ahead (in front of the car): brake to 0 and steer aside rather than flee
+    band: float = 10.0  # cells behind the middle of the window within which circling / weaving holds the place
+
+    def label(self) -> str:
+        return ",".join(f"{k}={v}" for k, v in asdict(self).items())
+
+
+def family_actions(
     cfg: TreadmillConfig,
+    p: DriverParams,
+    t: int,
     x: np.ndarray,
     y: np.ndarray,
     heading: np.ndarray,
@@ -45,12 +69,8 @@ def drive(
     threat_dy: np.ndarray,
     threat: np.ndarray,
 ) -> np.ndarray:
-    """Actions for cars at window cells (x, y) that flee a threat at offset (dx, dy) where ``threat`` is set.
-
-    The wanted velocity is chosen on the window (away from the threat, away from any edge closer than a margin,
-    else back to the middle) and turned into a heading and speed on the road, which the treadmill shifts by
-    ``treadmill_speed``.
-    """
+    """Actions ``[B, N]`` for cars at window cells (x, y) with one threat each at offset (dx, dy) where ``threat``."""
+    belt = 0.5 * (cfg.treadmill_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed))  # expected belt
     margin = 4.0 * cfg.max_speed + 2.0
     mid_x, mid_y = (cfg.length - 1) / 2.0, (cfg.width - 1) / 2.0
     dist = np.maximum(np.hypot(threat_dx, threat_dy), 1e-6)
@@ -59,19 +79,32 @@ def drive(
     home_y = np.clip((mid_y - y) / (cfg.width / 4.0), -1.0, 1.0)
     wall_x = np.clip((margin - x) / margin, 0.0, 1.0) - np.clip((x - (cfg.length - 1 - margin)) / margin, 0.0, 1.0)
     wall_y = np.clip((margin - y) / margin, 0.0, 1.0) - np.clip((y - (cfg.width - 1 - margin)) / margin, 0.0, 1.0)
+    ahead = threat & (threat_dx > 0) & (np.abs(threat_dy) < threat_dx) if p.brake else np.zeros_like(threat)
+    # braking for a car ahead: fall back on the window and step aside, away from it
+    flee_x = np.where(ahead, -1.0, flee_x)
+    flee_y = np.where(ahead, np.where(threat_dy > 0, -1.0, 1.0), flee_y)
     want_x = np.where(threat, 2.0 * flee_x, 0.5 * home_x) + 3.0 * wall_x
     want_y = np.where(threat, 2.0 * flee_y, 0.5 * home_y) + 3.0 * wall_y
-    pace = np.where(threat, float(cfg.max_speed), 1.0)
+    pace = np.where(threat, float(p.flee_pace), 1.0)
     norm = np.maximum(np.hypot(want_x, want_y), 1e-6)
-    road_x = pace * want_x / norm + cfg.treadmill_speed  # velocity on the road = on the window + the belt
+    road_x = pace * want_x / norm + belt
     road_y = pace * want_y / norm
     want_speed = np.clip(np.rint(np.hypot(road_x, road_y)), 0, cfg.max_speed).astype(np.int64)
     want_heading = np.where(want_speed > 0, heading_towards(road_x, road_y), heading)
-    # a car still heading at a side it is close to slows down while it turns (3 steps to turn 135°)
     dy_now = DY[heading]
     side_gap = np.where(dy_now > 0, cfg.width - 1 - y, np.where(dy_now < 0, y, np.inf))
     want_speed = np.where(side_gap < 3 * want_speed + 2, np.minimum(want_speed, 1), want_speed)
-    return steer_action(heading, speed, want_heading, want_speed)
+    act = steer_action(heading, speed, want_heading, want_speed)
+    if p.hold != "straight":
+        calm = ~threat & (np.abs(wall_x) + np.abs(wall_y) == 0) & (x > mid_x - p.band)
+        if p.hold == "circle":  # full circles at top speed: the car drifts back with the belt, then drives up again
+            held = 3 * 2 + np.where(speed < cfg.max_speed, 2, 1)
+        else:  # weave: ±45° around the road's direction, four steps each way, at top speed
+            left = (t // 4) % 2 == 0
+            want_h = np.where(left, 1, N_HEADINGS - 1)
+            held = steer_action(heading, speed, np.full_like(heading, want_h), np.full_like(speed, cfg.max_speed))
+        act = np.where(calm, held, act)
+    return act
 
 
 def own_state(obs: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -83,6 +116,11 @@ def own_state(obs: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.nda
     return x, y, heading, speed
 
 
+def scripted_params(cfg: TreadmillConfig, danger: float = DANGER) -> DriverParams:
+    """The scripted drivers' member of the family: flee at top speed, else drive straight back to the middle."""
+    return DriverParams(danger=danger, flee_pace=cfg.max_speed)
+
+
 def scripted_actions(obs: np.ndarray, cfg: TreadmillConfig, danger: float = DANGER) -> np.ndarray:
     """Actions ``[B, N]`` from private observations ``[B, N, D]``: flee the closest car the sensor sees."""
     x, y, heading, speed = own_state(obs, cfg)
@@ -90,7 +128,7 @@ def scripted_actions(obs: np.ndarray, cfg: TreadmillConfig, danger: float = DANG
     dx = obs[..., OWN_FEATURES + 1] * cfg.sensor_range
     dy = obs[..., OWN_FEATURES + 2] * cfg.sensor_range
     threat = seen & (np.hypot(dx, dy) < danger)
-    return drive(cfg, x, y, heading, speed, dx, dy, threat)
+    return family_actions(cfg, scripted_params(cfg, danger), 0, x, y, heading, speed, dx, dy, threat)
 
 
 def full_information_actions(engine, danger: float = DANGER, team_only: bool = False) -> np.ndarray:
@@ -114,4 +152,5 @@ def full_information_actions(engine, danger: float = DANGER, team_only: bool = F
     dx = np.take_along_axis(rel_x, near, axis=2)[..., 0]
     dy = np.take_along_axis(rel_y, near, axis=2)[..., 0]
     own = np.s_[:, :n]
-    return drive(cfg, engine.x[own], engine.y[own], engine.heading[own], engine.speed[own], dx, dy, near_w < danger)
+    x, y, heading, speed = engine.x[own], engine.y[own], engine.heading[own], engine.speed[own]
+    return family_actions(cfg, scripted_params(cfg, danger), 0, x, y, heading, speed, dx, dy, near_w < danger)
