@@ -161,19 +161,22 @@ def td_target(
 
 @torch.no_grad()
 def bootstrap_target(q_fn: QFn, online: nn.ModuleDict, target: nn.ModuleDict, batch: Batch, cfg: AlgoConfig,
-                     mask: Tensor, gamma: float | Tensor | None = None) -> Tensor:  # fmt: skip
+                     mask: Tensor, gamma: float | Tensor | None = None,
+                     alpha: float | Tensor | None = None) -> Tensor:  # fmt: skip
     """The TD target ``[M, N]`` of a batch for any ``q_fn``: the target networks' Q at the next observation, the
     action picked by the online networks (``double_q``), a per-sample ``discount`` when stored (options), and
     advantage learning's action gap ``max_b Q̄(s, b) − Q̄(s, a)`` subtracted when ``advantage_learning`` > 0.
-    ``gamma`` overrides ``cfg.gamma`` (a population's one per run, ``[R, 1]`` like a per-sample discount)."""
+    ``gamma`` and ``alpha`` override ``cfg.gamma`` and ``cfg.advantage_learning`` (a population's one per run:
+    ``[R, 1]`` like a per-sample discount, ``[R, 1, 1]``)."""
     q_next_t = q_fn(target, batch["next_obs"])
     q_next_o = q_fn(online, batch["next_obs"]) if cfg.double_q else None
     discount = batch.get("discount", cfg.gamma if gamma is None else gamma)
     y = td_target(batch["reward"], batch["terminated"], discount, q_next_t, q_next_o, mask)
-    if cfg.advantage_learning:
+    alpha = cfg.advantage_learning if alpha is None else alpha
+    if isinstance(alpha, Tensor) or alpha:
         q_now = q_fn(target, batch["obs"])
         gap = q_now.masked_fill(~mask, NEG).max(dim=-1).values - taken(q_now, batch["action"])
-        y = y - cfg.advantage_learning * gap
+        y = y - alpha * gap
     return y
 
 
@@ -256,6 +259,7 @@ class NetworkAgent(ABC):
         self._members: dict[int, NetworkAgent] = {}
         self.run_cfgs: list[AlgoConfig] = [cfg] * len(self.seeds)
         self.gamma: float | Tensor = cfg.gamma
+        self.alpha: float | Tensor = cfg.advantage_learning
 
     def set_run_configs(self, configs: Sequence[AlgoConfig]) -> None:
         """Give each run of a population its own hyper-parameters among ``PER_RUN`` (a grid over seeds × lr × γ ×
@@ -278,8 +282,9 @@ class NetworkAgent(ABC):
         if self._optimizer is not None:
             raise RuntimeError("set_run_configs: call it before the first update")
         self.run_cfgs, self.cfg = list(configs), configs[0]
-        gammas = [c.gamma for c in configs]
+        gammas, alphas = [c.gamma for c in configs], [c.advantage_learning for c in configs]
         self.gamma = gammas[0] if len(set(gammas)) == 1 else torch.tensor(gammas, device=self.device).reshape(-1, 1)
+        self.alpha = alphas[0] if len(set(alphas)) == 1 else torch.tensor(alphas, device=self.device).reshape(-1, 1, 1)
 
     @property
     def optimizer(self) -> torch.optim.Optimizer:
@@ -389,6 +394,12 @@ class NetworkAgent(ABC):
         )
 
     # --- learning ------------------------------------------------------------------------------------------------
+    def bootstrap(self, q_fn: QFn, batch: Batch) -> Tensor:
+        """``bootstrap_target`` with this agent's networks, config and (a population's per-run) γ and α."""
+        return bootstrap_target(
+            q_fn, self.online, self.target, batch, self.cfg, self.action_mask, self.gamma, self.alpha
+        )
+
     def agent_losses(self, batch: Batch) -> Tensor:
         """Each agent's loss ``[N]`` on ``batch`` (tests back-propagate one to see which weights it reaches)."""
         return self.loss(batch).agents
@@ -574,7 +585,8 @@ class NetworkAgent(ABC):
 
 # Hyper-parameters that may differ between the runs of one population: none changes a shape or the update's structure.
 PER_RUN: tuple[str, ...] = (
-    "lr", "gamma", "target_update", "eps_start", "eps_end", "eps_decay_fraction", "eps_decay_max_steps",
+    "lr", "gamma", "target_update", "advantage_learning", "eps_start", "eps_end", "eps_decay_fraction",
+    "eps_decay_max_steps",
 )  # fmt: skip
 
 

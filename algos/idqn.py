@@ -6,7 +6,7 @@ from typing import Any
 
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import IDQNConfig
 
@@ -36,7 +36,7 @@ class IndependentDQN(ReplayAgent):
         """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network."""
         q = taken(self.online["q"](self.features(batch["obs"], batch)), batch["action"])
         q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
-        return q, bootstrap_target(q_fn, self.online, self.target, batch, self.cfg, self.action_mask, self.gamma)
+        return q, self.bootstrap(q_fn, batch)
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""

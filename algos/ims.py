@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from convoy.config import IMSConfig
 
@@ -117,7 +117,7 @@ class IMS(ReplayAgent):
         # the centralised pass: every round's messages stay in the graph, so each agent's loss reaches every encoder
         q = taken(self.forward(self.online, batch["obs"], train=True)[0], batch["action"])
         # double-Q target from the target copy of the whole stack
-        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask, self.gamma)
+        y = self.bootstrap(self.q_values, batch)
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
 
     def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, Tensor]]:

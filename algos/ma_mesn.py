@@ -15,7 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, bootstrap_target, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
 from convoy.config import MeSNConfig
@@ -75,6 +75,6 @@ class MAMeSN(HearsMessages, ReplayAgent):
         # Q_i = f″_i(o_i, m_−i) of the actions taken
         q = taken(self.listen(self.online, x, heard), batch["action"])
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
-        y = bootstrap_target(self.q_values, self.online, self.target, batch, self.cfg, self.action_mask, self.gamma)
+        y = self.bootstrap(self.q_values, batch)
         # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
