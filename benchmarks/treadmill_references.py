@@ -14,7 +14,7 @@ and who observes an adversary that is close to an agent: the agent, only a teamm
 Run: ``python benchmarks/treadmill_references.py`` (a few seconds); ``--set KEY=VALUE`` tries other rules.
 ``--search`` runs the searched and tuned references instead (``benchmarks/treadmill_search.py``: open-loop search,
 tuned private / team / 16-bit team drivers, paired ratios; the arguments after ``--search`` go to it, e.g.
-``--search --rules v3``).
+``--search``).
 """
 
 from __future__ import annotations

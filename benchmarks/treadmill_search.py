@@ -12,7 +12,7 @@ the paired ratios the treadmill is built for:
 * team driver ÷ tuned private driver (goal ≥ 1.3) and 16-bit team driver ÷ tuned private driver (goal ≥ 1.2), each
   with a paired 95 % CI (same episodes) that must exclude 1.
 
-Run: ``python benchmarks/treadmill_search.py --rules v3`` (a few minutes on one core); ``--quick`` for a smaller
+Run: ``python benchmarks/treadmill_search.py`` (a few minutes on one core); ``--quick`` for a smaller
 search; ``--set KEY=VALUE`` changes a rule.
 """
 
@@ -32,7 +32,7 @@ from rich.table import Table  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
 from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
-from convoy.envs.treadmill.config import V3_RULES  # noqa: E402
+from convoy.envs.treadmill.config import V2_RULES  # noqa: E402
 from convoy.envs.treadmill.references import (  # noqa: E402
     SCORING_SEED,
     driver_grid,
@@ -51,7 +51,9 @@ from convoy.validation import build_config  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--rules", choices=("default", "v3"), default="v3", help="rule set (default %(default)s)")
+    p.add_argument(
+        "--rules", choices=("default", "v2"), default="default", help="rule set: the defaults or the second set"
+    )
     p.add_argument("--episodes", type=int, default=500, help="scoring episodes per policy (default %(default)s)")
     p.add_argument(
         "--tune-episodes", type=int, default=300, help="tuning episodes per grid point (default %(default)s)"
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="treadmill parameter, repeatable")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = p.parse_args(argv)
-    base = V3_RULES if args.rules == "v3" else {}
+    base = V2_RULES if args.rules == "v2" else {}
     cfg = build_config(TreadmillConfig, **(base | parse_pairs(args.set, "--set")))
     console = Console(width=200)
     start = time.perf_counter()

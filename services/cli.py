@@ -206,7 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="POLICY",
         help="who drives the agents: random; constant-0 … constant-8 (one action throughout); scripted (private "
         "observations); team-information (also told of every adversary some agent observes); full-information "
-        "(knows every car and which are adversaries); all but random are treadmill-only (default: %(default)s)",
+        "(knows every car and which are adversaries); private-driver, team-driver, team16-driver (the tuned "
+        "reactive driver on its own sensor, told its teammates' observations, told a 16-bit code per teammate); "
+        "all but random are treadmill-only (default: %(default)s)",
     )
     ro.add_argument(
         "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"

@@ -29,6 +29,7 @@ from rich.console import Console
 
 from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
+from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.services.args import add_command
 from convoy.services.jobs_cmd import Api, CliError, plain
 from convoy.services.sweep_file import read_file, sweep_body
@@ -272,6 +273,12 @@ def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, A
             "extra": {"analysis": figures}, "analysis_names": names}  # fmt: skip
 
 
+def stale(record: dict[str, Any]) -> str:
+    """`` (treadmill rules N)`` for a figure measured on an earlier rule set of the treadmill, else ``""``."""
+    rules = record.get("treadmill_rules")
+    return f" (treadmill rules {rules})" if rules is not None and rules != TREADMILL_RULES else ""
+
+
 def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     ctx.current = fig
     meta = ctx.files[fig][0][1]["figure"]
@@ -283,9 +290,11 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     verdicts = judge_figure(meta.get("claims", []), named, result["extra"])
     scales = [d.get("scales") or d["figure"].get("scales") or {} for _, d in ctx.files[fig]]
     scale_notes = [s.get(ctx.scale, {}).get("note", "") for s in scales]
+    on_treadmill = any(d.get("base", {}).get("env") == "treadmill" for _, d in ctx.files[fig])
     record = {
         "id": fig,
         "title": meta["title"],
+        **({"treadmill_rules": TREADMILL_RULES} if on_treadmill else {}),
         "paper": meta.get("paper", ""),
         "scale": ctx.scale,
         "note": " ".join(n for n in scale_notes if n) or meta.get("note", ""),
@@ -330,7 +339,9 @@ def render(docs: Path, page: Path) -> None:
         "the figure's tests), *partly*, *not reproduced*; a number the paper measured on another reward scale is",
         "*not comparable*. The `quick` scale is far below the paper's budgets (each section says how far): a *not",
         "reproduced* there says what this budget shows, not that the paper is wrong. Each group's final return is",
-        "also tested against the random policy's on the same env (*above random?*, one-sided t-test).",
+        "also tested against the random policy's on the same env (*above random?*, one-sided t-test). A figure",
+        f"measured on an earlier rule set of the treadmill than the current one (rules {TREADMILL_RULES}) says so: its",
+        "numbers do not describe today's treadmill until it is run again.",
         "",
         "| figure | what the paper claims | scale | verdict |",
         "|---|---|---|---|",
@@ -340,7 +351,7 @@ def render(docs: Path, page: Path) -> None:
             r = records[fig]
             anchor = r["title"].lower().replace(" ", "-")
             lines.append(f"| [{r['title']}](#{''.join(c for c in anchor if c.isalnum() or c == '-')}) | "
-                         f"{r['paper']} | {r['scale']} | **{r['verdict']}** |")  # fmt: skip
+                         f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
     for fig in FIGURES:
@@ -348,6 +359,9 @@ def render(docs: Path, page: Path) -> None:
             continue
         r = records[fig]
         lines += ["", f"## {r['title']}", "", f"**Paper:** {r['paper']}", ""]
+        if stale(r):
+            lines += [f"**Measured on the treadmill's rules {r['treadmill_rules']}**, not the current ones "
+                      f"({TREADMILL_RULES}): run `{r['command']}` again.", ""]  # fmt: skip
         if r.get("note"):
             lines += [f"**Ours ({r['scale']}):** {r['note']}", ""]
         lines += [f"Regenerate: `{r['command']}` ({r['minutes']} min of wall time here; files: "

@@ -33,7 +33,10 @@ from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
 
-ENV = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 60}
+# forward spawns on a belt of constant speed: the goals' "cruise" is the belt's speed (the critic reads it from the
+# config), and the spawn pose is then a cruise
+ENV = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 60, "spawn_heading_spread": 0,
+       "treadmill_speed_max": 1}  # fmt: skip
 CFG = TreadmillConfig(**ENV)
 HP = {"hidden": (64,), "learning_starts": 500, "replay_ratio": 4.0, "target_update": 100, "lr": 2e-3}
 

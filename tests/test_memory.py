@@ -198,7 +198,7 @@ def test_env_stepper_records_history_and_clears_it_between_episodes() -> None:
     assert (hist[2, :, :-1] == 0).all()  # a new episode: nothing of the previous one is left
     algo.observe(chunk)  # and the replay can train on it
     _, stats = algo.memory_loss(algo.sample())
-    assert np.isfinite(stats["memory_loss"])
+    assert np.isfinite(float(stats["memory_loss"]))
 
 
 # --------------------------------------------------------------------------- 3. predictions only when asked

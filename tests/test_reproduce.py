@@ -199,3 +199,27 @@ def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyP
     lines = {line.get_label(): list(line.get_ydata()) for line in drawn[0].axes[0].get_lines()}
     assert lines["random"] == [2.0, 4.0, 8.0] and lines["scripted"] == [10.0, 20.0, 40.0]  # the return at each N
     assert "full-information" not in lines  # only the named references
+
+
+def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) -> None:
+    """A figure's record keeps the treadmill rules it was measured on; the page flags one from earlier rules (in the
+    overview and under its heading), and says nothing for the current rules or another env."""
+    from convoy.envs.treadmill.config import RULES
+    from convoy.services.reproduce_cmd import render
+
+    docs = tmp_path / "reproduction"
+    docs.mkdir()
+    base = {"paper": "p", "scale": "quick", "note": "", "files": [], "minutes": 1.0, "groups": [],
+            "references": {}, "verdicts": [], "verdict": "partly", "png": None}  # fmt: skip
+    for fig, rules in (("fig3", RULES - 1), ("fig5", RULES), ("fig8", None)):
+        record = {"id": fig, "title": f"{fig} title", **base, "command": f"convoy reproduce {fig} --scale quick"}
+        if rules is not None:
+            record["treadmill_rules"] = rules
+        (docs / f"{fig}.json").write_text(json.dumps(record))
+    page = tmp_path / "page.md"
+    render(docs, page)
+    text = page.read_text()
+    assert text.count(f"(treadmill rules {RULES - 1})") == 1
+    assert f"**Measured on the treadmill's rules {RULES - 1}**" in text
+    assert "convoy reproduce fig3 --scale quick` again" in text
+    assert text.count("treadmill rules") == 1  # the flagged row only

@@ -7,7 +7,7 @@
   ``observe_k`` slots), and that it is one: what perfectly decoded messages between agents could carry;
 * ``full-information`` — the same driver told every car's position and which cars are adversaries;
 * ``private-driver``, ``team-driver``, ``team16-driver`` — the reactive family of ``envs.treadmill.drivers`` with the
-  parameters tuned on the v3 rules (``V3_TUNED``): on its own sensor, told every teammate's observation, told a
+  parameters tuned on the default rules (``TUNED``): on its own sensor, told every teammate's observation, told a
   16-bit code per teammate. ``benchmarks/treadmill_search.py`` tunes them afresh on any rules and searches the
   open-loop policies (constants, cycles up to period 32, cross-entropy over whole sequences) beside them.
 
@@ -43,7 +43,7 @@ def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None
     if name == "team-information":
         return lambda obs: full_information_actions(engine, team_only=True)
     if name in DRIVERS:
-        return _driver_policy(name.split("-")[0], engine, V3_TUNED[name.split("-")[0]])
+        return _driver_policy(name.split("-")[0], engine, TUNED[name.split("-")[0]])
     if name in CONSTANTS:
         action = int(name.rsplit("-", 1)[1])
         return lambda obs: np.full(obs.shape[:2], action, np.int64)
@@ -88,12 +88,15 @@ def best_constant(results: dict[str, RolloutResult]) -> str:
 
 
 def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[str, tuple[float, float]]:
-    """What a trained policy's summary shows beside it: random, the best constant action (named), the scripted
-    driver and the full-information driver (what knowing every car is worth), each as (mean, 95 % CI half-width)
-    over ``episodes`` episodes."""
-    results = evaluate_references(cfg, episodes, seed, names=("random", *CONSTANTS, "scripted", "full-information"))
+    """What a trained policy's summary shows beside it, each as (mean, 95 % CI half-width) over ``episodes``
+    episodes: random; the best constant action (named; on the default rules also the best open-loop policy the
+    search of ``benchmarks/treadmill_search.py`` finds); the scripted driver; the tuned reactive drivers on their own
+    sensor, told their teammates' observations and told a 16-bit code per teammate (tuned on the default rules); and
+    the full-information driver (what knowing every car is worth)."""
+    names = ("random", *CONSTANTS, "scripted", *DRIVERS, "full-information")
+    results = evaluate_references(cfg, episodes, seed, names=names)
     best = best_constant(results)
-    return {name: results[name].ci95() for name in ("random", best, "scripted", "full-information")}
+    return {name: results[name].ci95() for name in ("random", best, "scripted", *DRIVERS, "full-information")}
 
 
 def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256, seed: int = 0) -> dict[str, float]:
@@ -124,9 +127,9 @@ def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256,
 # a 16-bit code per teammate. Every function below plays whole episodes, vectorised over envs.
 
 
-# The family's parameters chosen by ``benchmarks/treadmill_search.py --rules v3`` on 300 tuning episodes per grid point
+# The family's parameters chosen by ``benchmarks/treadmill_search.py`` on 300 tuning episodes per grid point
 # (seed TUNING_SEED; 72 private and 144 team grid points): see docs/treadmill.md for the scores.
-def _v3_tuned() -> dict:
+def _tuned() -> dict:
     from convoy.envs.treadmill.drivers import DriverParams
 
     return {
@@ -354,4 +357,4 @@ def random_returns(cfg: TreadmillConfig, episodes: int, seed: int) -> np.ndarray
     return rollout(engine, reference_policy("random", engine, seed), seed=seed).mean_return
 
 
-V3_TUNED = _v3_tuned()
+TUNED = _tuned()
