@@ -199,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         minutes = float(np.mean([r["wall_s"] for r in mine]) / 60)
         summary[algo] = {"final": final, "best_held_out": best, "minutes": minutes}
         table.add_row(algo, f"{final[0]:.1f} ± {final[1]:.1f}", f"{best[0]:.1f} ± {best[1]:.1f}", f"{minutes:.1f}")
-    for name in ("random", const, "scripted", "team-information", "full-information"):
+    for name in ("random", const, "scripted", "private-driver", "team-driver", "team-information", "full-information"):
         mean, ci = refs[name].ci95()
         summary[name] = {"reference": (mean, ci)}
         table.add_row(f"reference: {name}", f"{mean:.1f} ± {ci:.1f} (episodes)", "", "")
@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
                 a, ic = r[key], r[key]["instantaneous_coordination"]
                 console.print(
                     f"  seed {r['seed']}: entropy {a['message_entropy']['value']:.2f}, IC "
-                    f"{ic['value']:.4f} vs {ic['shuffled']:.4f}"
+                    f"{ic['value']:.4f} vs {ic['shuffled'] if ic['shuffled'] is not None else float('nan'):.4f}"
                     f", return {a['return_sent']['value']:.1f} vs white noise {a['return_noise']['value']:.1f}"
                 )
     if args.json:

@@ -39,11 +39,12 @@ def test_one_crash_ends_the_episode_for_every_agent(references) -> None:
 def test_who_sees_the_threat_splits_every_close_call_and_grows_with_what_agents_observe() -> None:
     """Messages can only add what a teammate observes and the threatened agent does not; observing more cars
     (observe_k 3) puts more of the close calls there, a 360° sensor puts them with the agent itself."""
-    one = who_sees_the_threat(TreadmillConfig(), steps=100, envs=64)
+    # on the previous rules (one slot, a 20-cell sensor), where one slot and a 360° sensor are the extremes
+    one = who_sees_the_threat(TreadmillConfig.v2(), steps=100, envs=64)
     assert sum(one.values()) == pytest.approx(1.0) and min(one.values()) > 0
-    three = who_sees_the_threat(TreadmillConfig(observe_k=3), steps=100, envs=64)
+    three = who_sees_the_threat(TreadmillConfig.v2(observe_k=3), steps=100, envs=64)
     assert three["only_teammate"] > one["only_teammate"] + 0.1
-    all_round = who_sees_the_threat(TreadmillConfig(sensor_fov=360), steps=100, envs=64)
+    all_round = who_sees_the_threat(TreadmillConfig.v2(sensor_fov=360), steps=100, envs=64)
     assert all_round["own"] > one["own"] + 0.2
 
 
