@@ -42,7 +42,9 @@ class Service:
         self.proc: subprocess.Popen | None = None
         self.client = httpx.Client(base_url=self.url, timeout=30)
 
-    def start(self, timeout: float = 60.0) -> Service:
+    def start(self, timeout: float = 120.0) -> Service:
+        """Start ``convoy serve`` and wait for /healthz (a generous bound: a loaded 2-core machine can take a minute);
+        a server that does not answer in time is killed, not left behind."""
         env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
         cmd = [sys.executable, "-m", "convoy.services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
         cmd += ["--max-processes", str(self.max_processes)]
@@ -60,7 +62,8 @@ class Service:
             except httpx.TransportError:
                 pass
             time.sleep(0.2)
-        raise TimeoutError("convoy serve did not answer /healthz")
+        self.stop()
+        raise TimeoutError(f"convoy serve did not answer /healthz within {timeout:.0f} s (stopped it)")
 
     def kill(self) -> None:
         """SIGKILL the API process only (its jobs keep running)."""
