@@ -19,7 +19,7 @@ STEPS  ?= 30000
 ACTORS ?= 2
 # A 2-minute demo: larger steps on smaller batches than the treadmill defaults (lr 1e-4, batch 128), which are
 # tuned for runs of 100k+ steps (docs/training.md), and the paper's sampled Gumbel messages, which learn on more
-# seeds at this length than the treadmill's deterministic default (README: greedy returns of seeds 0-2).
+# seeds at this length than the treadmill's deterministic default (measured on the previous rules).
 # In one process: at this length the distributed run's policy lag (~290 updates behind, from its flow-control
 # slack) costs it the learning.
 QUICK  ?= --hp lr=0.0003 --hp batch_size=64 --hp gumbel_noise=1 --eval-every 5000
