@@ -510,7 +510,7 @@ class NetworkAgent(ABC):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if self.runs is not None:
-            raise TypeError("a population loads per run: load_member_state(k, state)")
+            raise TypeError("a population does not load a single run's state (populations do not resume yet)")
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])
@@ -543,40 +543,14 @@ class NetworkAgent(ABC):
             }
         )
         p = self.progress
-        agent.progress = Progress(p.env_steps, int(np.asarray(p.episodes).reshape(-1)[k % np.size(p.episodes)]),
-                                  p.total_steps, p.training)  # fmt: skip
+        episodes = int(np.broadcast_to(p.episodes, (self.runs,))[k])  # one count for all runs, or one per run
+        agent.progress = Progress(p.env_steps, episodes, p.total_steps, p.training)
         agent.skipped_updates = self.skipped_updates
         return agent
 
     def member_state(self, k: int) -> dict[str, Any]:
         """What an algorithm adds to run k's ``state_dict`` beyond the networks, optimizer and streams."""
         return {}
-
-    def load_member_state(self, k: int, state: dict[str, Any]) -> None:
-        """Put a single run's state (``member(k).state_dict()``, a checkpoint's) into run k of a population."""
-        if self.runs is None:
-            raise TypeError("load_member_state is for populations; use load_state_dict")
-        opt = self.optimizer  # made before its state is written into
-        with torch.no_grad():
-            for module, key in ((self.online, "online"), (self.target, "target")):
-                for name, value in module.state_dict().items():
-                    value[k].copy_(state[key][name])
-            if state["optimizer"]["state"]:
-                if not opt.state:  # a fresh optimizer: take the first step's structure from the file
-                    stacked = {i: {n: v if n == "step" else torch.zeros(self.runs, *v.shape) for n, v in st.items()}
-                               for i, st in state["optimizer"]["state"].items()}  # fmt: skip
-                    opt.load_state_dict({"param_groups": opt.state_dict()["param_groups"], "state": stacked})
-                saved = sorted(state["optimizer"]["state"].items())
-                for p, (_, st) in zip(self.online.parameters(), saved, strict=True):
-                    for n, v in st.items():
-                        if n == "step":
-                            opt.state[p][n].copy_(v)
-                        else:
-                            opt.state[p][n][k].copy_(v)
-        self.updates = int(state["updates"])
-        self.rngs[k].bit_generator.state = state["rng"]
-        if "torch_rng" in state:
-            self.torch_rngs[k].set_state(state["torch_rng"])
 
     def n_parameters(self) -> int:
         """Parameters of one run."""

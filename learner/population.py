@@ -8,8 +8,10 @@ metric rows, greedy curve, ``best.pt``, ``checkpoint.pt``, ``summary.json`` — 
 run as a single-run agent, refreshed from the population before a row or checkpoint needs it. So each run's folder
 is what a single run of its seed writes, and ``convoy eval``/``analyze`` read it unchanged.
 
-Why: on 2 cores a run's cost is its learner update (the env steps millions of agent-steps per second), and an
-update of R runs in one batched call pays Python and dispatch once instead of R times (``benchmarks/population.py``).
+Why: a run's cost is its learner update and the Python around acting (the env steps millions of agent-steps per
+second); one process pays the acting, the env loop, start-up and evaluation set-up once for R runs, and on a GPU one
+batched update of R runs costs about what one run's does. On a CPU the batched update costs what R updates cost
+(``benchmarks/population.py``).
 """
 
 from __future__ import annotations
