@@ -60,6 +60,7 @@ class Actor:
         self.job_id, self.job, self.index, self.ident = job_id, job, index, ident
         self.settings = settings
         self.seed = job.seed + 1000 * (index + 1) if seed is None else seed
+        self.seeds = [s + self.seed - job.seed for s in job.run_seeds()]  # a population: each run's envs its own
         self.stopping = False
         self.stats = ActorStats()
         self.bad_weights = 0
@@ -92,19 +93,22 @@ class Actor:
 
     def _loop(self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any) -> int:
         job, rt = self.job, self.job.runtime
-        env = make_batched(job.env, job.num_envs, **job.env_params)
-        # the actor's own seed for exploration too (make_agent seeds the ε-greedy generator with the job's seed)
-        algo = make_agent(job.model_copy(update={"seed": self.seed}), env.spec, device=rt.actor_device)
+        runs = job.runs
+        env = make_batched(job.env, job.num_envs * (runs or 1), **job.env_params)
+        # the actor's own seeds for exploration too (make_agent seeds the ε-greedy generators with the job's)
+        own = {"seed": self.seed, "seeds": self.seeds if runs else []}
+        algo = make_agent(job.model_copy(update=own), env.spec, device=rt.actor_device)
         cfg = job.algo_config()
         t_len = rt.chunk_len(algo.chunk_len)
         version = -1
         budget: wire.Message | None = None
         sent_since_budget = 0
         seq = 0
-        b = env.num_envs
+        b = job.num_envs  # env steps of one run per env step (the budget counts each run's steps)
         try:
             stepper = EnvStepper(env, algo, self.seed)
             chunk_returns: list[float] = []
+            chunk_runs: list[int] = []
             t_metrics = time.perf_counter()
             steps_at_metrics = 0
             watch = ParentWatch()
@@ -140,15 +144,20 @@ class Actor:
                 )  # schedules, fingerprints
                 eps = actor_epsilon(epsilon_at(cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
                 chunk_returns.extend(stepper.step(eps))
+                chunk_runs.extend(stepper.ended_runs.tolist())
                 if stepper.chunk_steps >= t_len:
                     arrays = stepper.take_chunk()
-                    body = wire.chunk_body(arrays, self.ident, version, t_len * b, chunk_returns)
+                    if runs:  # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
+                        arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in arrays.items()}
+                    body = wire.chunk_body(
+                        arrays, self.ident, version, t_len * b, chunk_returns, chunk_runs if runs else None
+                    )
                     seq += 1
                     pub.put(wire.encode("chunk", body, self.ident, seq))
-                    self.stats.env_steps += t_len * b
+                    self.stats.env_steps += t_len * env.num_envs  # every run's: the actor's throughput
                     self.stats.returns.extend(chunk_returns)
                     sent_since_budget += t_len * b
-                    chunk_returns = []
+                    chunk_returns, chunk_runs = [], []
                 now = time.perf_counter()
                 if now - t_metrics >= METRICS_EVERY_S:
                     lag = max(0, budget.body["version"] - version)

@@ -552,6 +552,34 @@ class NetworkAgent(ABC):
         """What an algorithm adds to run k's ``state_dict`` beyond the networks, optimizer and streams."""
         return {}
 
+    def load_member_state(self, k: int, state: dict[str, Any]) -> None:
+        """Put a single run's state (``member(k).state_dict()``, a checkpoint's) into run k of a population: how a
+        population resumes from its runs' checkpoints."""
+        if self.runs is None:
+            raise TypeError("load_member_state is for populations; use load_state_dict")
+        opt = self.optimizer
+        with torch.no_grad():
+            for module, key in ((self.online, "online"), (self.target, "target")):
+                for name, value in module.state_dict().items():
+                    value[k].copy_(state[key][name])
+            saved = sorted(state["optimizer"]["state"].items())
+            if saved and not opt.state:  # a fresh optimizer: its first step's structure, zero for every run
+                stacked = {i: {n: v.clone() if n == "step" else torch.zeros(self.runs, *v.shape, device=self.device)
+                               for n, v in st.items()} for i, st in saved}  # fmt: skip
+                opt.load_state_dict({"param_groups": opt.state_dict()["param_groups"], "state": stacked})
+            for p, (_, st) in zip(self.online.parameters(), saved, strict=bool(saved)):
+                for n, v in st.items():
+                    (opt.state[p][n] if n == "step" else opt.state[p][n][k]).copy_(v)
+        self.updates = int(state["updates"])
+        self.rngs[k].bit_generator.state = state["rng"]
+        if "torch_rng" in state:
+            self.torch_rngs[k].set_state(state["torch_rng"])
+        self.load_member_extra(k, state)
+
+    def load_member_extra(self, k: int, state: dict[str, Any]) -> None:
+        """Run k's share of what ``member_state`` adds, from a single run's state (nothing, unless it adds)."""
+        return None
+
     def n_parameters(self) -> int:
         """Parameters of one run."""
         return sum(p.numel() for p in self.online.parameters()) // len(self.seeds)

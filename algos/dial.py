@@ -291,6 +291,10 @@ class DIAL(NetworkAgent):
         counts = {"episodes_done": int(done[k]), "synced_at": int(synced[k])}
         return {**counts, "dru_rng": self.torch_rngs[k].get_state()}
 
+    def load_member_extra(self, k: int, state: dict[str, Any]) -> None:
+        self.episodes_done[k] = int(state["episodes_done"])  # type: ignore[index]
+        self.synced_at[k] = int(state["synced_at"])  # type: ignore[index]
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)
         self.episodes_done = int(state["episodes_done"])

@@ -10,6 +10,7 @@ resolved, so a user who sets them explicitly always wins.
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -341,12 +342,14 @@ class ResourceLimits(BaseModel):
         """A ConfigError naming the job's field, the limit and ``command``'s flag that raises it."""
         hidden = tuple(job.algo_config().hidden or ())
         weights = sum(a * b for a, b in itertools.pairwise(hidden))
-        agents = job.agents_per_env()
+        agents, runs = job.agents_per_env(), job.runs or 1
+        envs = f"{job.num_envs:,} envs × {agents:,} agents" + (f" × {runs} runs" if runs > 1 else "")
         asks = [
             ("algo_params.hidden", "max_layer_width", max(hidden, default=0), f"{max(hidden, default=0):,} units"),
-            ("algo_params.hidden", "max_hidden_weights", weights, f"{weights:,} weights between hidden layers"),
-            ("num_envs", "max_agent_envs", job.num_envs * agents, f"{job.num_envs:,} envs × {agents:,} agents"),
-        ]
+            ("algo_params.hidden", "max_hidden_weights", weights * runs, f"{weights * runs:,} weights between hidden "
+             "layers" + (f" ({runs} runs)" if runs > 1 else "")),
+            ("num_envs", "max_agent_envs", job.num_envs * agents * runs, envs),
+        ]  # fmt: skip
         for field, limit, value, what in asks:
             bound = getattr(self, limit)
             if value > bound:
@@ -461,6 +464,9 @@ class RuntimeConfig(BaseModel):
         return max(self.slack_steps or 2 * self.actors * chunk_len * num_envs, chunk_len * num_envs)
 
 
+MAX_POPULATION = 256  # runs of one population: what one learner's memory and one weights message can hold
+
+
 class JobConfig(BaseModel):
     """One training job: which algorithm on which env, for how long, and how to report."""
 
@@ -481,6 +487,12 @@ class JobConfig(BaseModel):
     )
     num_envs: int = Field(16, ge=1, le=65536, description="Envs stepped together per actor.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of envs, exploration and network init.")
+    seeds: list[int] = Field(
+        default_factory=list,
+        max_length=MAX_POPULATION,
+        description="A population: one run per seed, trained together (one batched update for all; run k writes "
+        "DIR/seed-N as the single run of its seed would); instead of seed. Empty: the single run of seed.",
+    )
     eval_episodes: int = Field(
         100,
         ge=0,
@@ -533,7 +545,41 @@ class JobConfig(BaseModel):
             )
         if self.hierarchical and self.env != "treadmill":
             raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")
+        self._check_seeds()
         return self
+
+    def _check_seeds(self) -> None:
+        """A population's seeds: distinct, in range, not beside a different ``seed``; one seed is a single run."""
+        seeds = self.seeds
+        if not seeds:
+            return
+        if len(set(seeds)) != len(seeds) or not all(0 <= s < 2**31 for s in seeds):
+            raise ConfigError("seeds", f"expected distinct seeds in [0, 2^31), got {seeds}")
+        if "seed" in self.model_fields_set and self.seed != seeds[0]:
+            raise ConfigError("seeds", "give either seed (one run) or seeds (a population), not both")
+        if self.hierarchical:
+            raise ConfigError("seeds", "hierarchical DQN trains one seed per process; drop hierarchical or seeds")
+        object.__setattr__(self, "seed", seeds[0])
+        if len(seeds) == 1:  # a population of one is the single run of its seed
+            object.__setattr__(self, "seeds", [])
+
+    @property
+    def runs(self) -> int | None:
+        """Runs of a population, or None for a single run."""
+        return len(self.seeds) or None
+
+    def run_seeds(self) -> list[int]:
+        """The seed of every run: the population's, or the single run's."""
+        return list(self.seeds) or [self.seed]
+
+    def members(self) -> list[JobConfig]:
+        """One job per run: the single run of its seed, which run k of the population reproduces."""
+        return [self.model_copy(update={"seed": s, "seeds": []}) for s in self.run_seeds()]
+
+    def member_dirs(self, out_dir: str | Path) -> list[Path]:
+        """Where each run writes: ``out_dir`` for a single run, ``out_dir/seed-N`` for each run of a population."""
+        out = Path(out_dir)
+        return [out / f"seed-{s}" for s in self.seeds] if self.seeds else [out]
 
     def agents_per_env(self) -> int:
         """Bodies simulated in one env (the treadmill's cars; the particle envs have at most 3): what ``num_envs``

@@ -1,4 +1,4 @@
-"""Population training in one process: R runs of one algorithm, one per seed, stepped and updated together.
+"""Population training: R runs of one algorithm, one per seed, stepped and updated together.
 
 The agent holds every run's weights, optimizer state, replay and random streams on a leading run axis
 (``NetworkAgent(seed=[s_0, …])``); the env holds R·B envs, run k's seeded as the single run of ``s_k`` seeds its
@@ -7,6 +7,9 @@ metric rows, greedy curve, ``best.pt``, ``checkpoint.pt``, ``summary.json`` — 
 :class:`~convoy.learner.core.TrainingCore` fed with that run's episodes and figures, over ``agent.member(k)``: the
 run as a single-run agent, refreshed from the population before a row or checkpoint needs it. So each run's folder
 is what a single run of its seed writes, and ``convoy eval``/``analyze`` read it unchanged.
+
+:class:`PopulationCore` is that bookkeeping, shared by the in-process :class:`PopulationTrainer` and the learner
+process (``learner/service.py``), which takes the same chunks ``[T, R, B, …]`` from actors over Zenoh.
 
 Why: a run's cost is its learner update and the Python around acting (the env steps millions of agent-steps per
 second); one process pays the acting, the env loop, start-up and evaluation set-up once for R runs, and on a GPU one
@@ -19,15 +22,139 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import NetworkAgent, Progress
+from convoy.algos.checkpoint import save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.core import TrainingCore
 from convoy.learner.inprocess import TrainResult
+
+
+class PopulationCore:
+    """One :class:`TrainingCore` per run over one population agent: counts, rows, curves, checkpoints and summaries
+    per run; one rule for the updates the population owes (every run inserts the same number of transitions, so
+    every run owes the same updates) and one update for all runs."""
+
+    def __init__(
+        self,
+        jobs: list[JobConfig],
+        algo: NetworkAgent,
+        out_dirs: list[Path] | None,
+        make_eval_env: Callable[[int], BatchedEnv] | None,
+        *,
+        progress: bool = False,
+        counters: list[dict[str, Any]] | None = None,
+        replay: tuple[Path, int] | None = None,
+    ) -> None:
+        """``jobs[k]`` is run k's job (its seed ``algo.seeds[k]``); ``out_dirs[k]`` its folder; ``counters[k]``
+        its checkpoint's counters when the population resumes; ``replay`` = (file, max bytes): the population's
+        replay is written there before each checkpoint (the learner process, as ``TrainingCore`` does)."""
+        if algo.runs != len(jobs) or [j.seed for j in jobs] != list(algo.seeds):
+            raise ValueError("jobs: one job per run of the population, with the run's seed")
+        self.jobs, self.algo = jobs, algo
+        dirs = out_dirs or [None] * len(jobs)
+        self.cores = [
+            TrainingCore(job, algo.member(k), out, make_eval_env, progress=progress and k == 0, counters=c)
+            for k, (job, out, c) in enumerate(zip(jobs, dirs, counters or [None] * len(jobs), strict=True))
+        ]
+        self.owed = 0.0
+        self.replay = replay
+
+    @property
+    def done(self) -> bool:
+        return self.cores[0].done
+
+    @property
+    def env_steps(self) -> int:
+        """Env steps of each run (they step together)."""
+        return self.cores[0].env_steps
+
+    @property
+    def episodes(self) -> np.ndarray:
+        """Episodes each run has finished."""
+        return np.array([core.episodes for core in self.cores])
+
+    @property
+    def epsilon(self) -> np.ndarray:
+        """Each run's exploration rate (runs may have their own schedules)."""
+        return np.array([core.epsilon for core in self.cores])
+
+    def set_progress(self) -> None:
+        for core in self.cores:
+            core.set_progress()
+        self.algo.progress = Progress(self.env_steps, self.episodes, self.jobs[0].steps, training=True)
+
+    def stepped(self, steps: int, returns: list[float], runs: np.ndarray) -> None:
+        """Each run took ``steps`` env steps; the episodes with ``returns`` ended, ``runs[i]`` the run of the i-th."""
+        for k, core in enumerate(self.cores):
+            core.stepped(steps, [r for r, run in zip(returns, runs, strict=True) if run == k])
+
+    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+        """A chunk ``[T, R, B, …]`` of ``steps`` env steps per run; every run is owed ``updates_for(steps)``."""
+        self.algo.observe(chunk)
+        if self.algo.can_update():
+            self.owed += self.algo.updates_for(steps)
+
+    def update(self) -> None:
+        while self.owed >= 1.0 and self.algo.can_update():
+            for core, figures in zip(self.cores, self.algo.update(), strict=True):  # type: ignore[arg-type]
+                core.log.update(figures)
+            self.owed -= 1.0
+
+    def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> list[dict[str, Any]]:
+        """The metric rows due at this step, one per run (all runs' fall due together), or none."""
+        rows = []
+        for k, core in enumerate(self.cores):
+            if core.log.row_due(core.env_steps) or core.checkpoint_due:
+                self.algo.member(k)  # the run's current state into its single-run view
+            row = core.row(extra)
+            if row is not None:
+                rows.append(row)
+        return rows
+
+    def maybe_checkpoint(self) -> None:
+        if self.cores[0].checkpoint_due:
+            self._save_replay()
+        for core in self.cores:  # row() refreshed each member whose checkpoint is due
+            core.maybe_checkpoint()
+
+    def _save_replay(self) -> None:
+        """The population's replay, before its runs' checkpoints (a crash between leaves no mismatched pair)."""
+        if self.replay is not None:
+            save_replay(self.replay[0], self.algo, self.env_steps, self.replay[1])
+
+    def checkpoint(self) -> None:
+        self._save_replay()
+        for k, core in enumerate(self.cores):
+            if core.out_dir is not None:
+                self.algo.member(k)
+                core.checkpoint()
+
+    def close(self) -> None:
+        for core in self.cores:
+            core.close()
+
+    def finish(self, title: Callable[[JobConfig], str], **extra: Any) -> list[dict[str, Any]]:
+        """Each run's summary (``TrainingCore.finish`` over its member), in run order; training time ends now for
+        all runs, though they are evaluated one after another."""
+        end = time.perf_counter()
+        summaries = []
+        for k, (core, job) in enumerate(zip(self.cores, self.jobs, strict=True)):
+            self.algo.member(k)
+            summaries.append(core.finish(title(job), end=end, **extra))
+        return summaries
+
+
+def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """A population's metric rows as one: each figure's mean over the runs that report it (what a supervisor
+    shows for the whole job; each run's own rows are in its folder)."""
+    keys = {k for row in rows for k in row}
+    return {k: float(np.mean([row[k] for row in rows if k in row])) for k in sorted(keys)}
 
 
 class PopulationTrainer:
@@ -42,54 +169,32 @@ class PopulationTrainer:
         out_dirs: list[Path] | None = None,
         progress: bool = True,
     ) -> None:
-        """``jobs[k]`` is run k's job (its seed ``algo.seeds[k]``); ``out_dirs[k]`` its folder."""
-        if algo.runs != len(jobs) or [j.seed for j in jobs] != list(algo.seeds):
-            raise ValueError("jobs: one job per run of the population, with the run's seed")
         self.jobs, self.env, self.algo = jobs, env, algo
         self.make_eval_env = make_eval_env
-        self.out_dirs = out_dirs or [None] * len(jobs)
+        self.out_dirs = out_dirs
         self.show_progress = progress
 
     def run(self) -> list[TrainResult]:
-        algo, env, runs = self.algo, self.env, len(self.jobs)
-        per_run_envs = env.num_envs // runs
-        cores = [
-            TrainingCore(job, algo.member(k), out, self.make_eval_env, progress=self.show_progress and k == 0)
-            for k, (job, out) in enumerate(zip(self.jobs, self.out_dirs, strict=True))
-        ]
+        algo, env = self.algo, self.env
+        per_run_envs = env.num_envs // len(self.jobs)
+        core = PopulationCore(self.jobs, algo, self.out_dirs, self.make_eval_env, progress=self.show_progress)
         stepper = EnvStepper(env, algo, seed=self.jobs[0].seed)
-        owed = 0.0  # every run owes the same updates: they insert the same number of transitions
         try:
-            while not cores[0].done:
-                for core in cores:
-                    core.set_progress()
-                episodes = np.array([core.episodes for core in cores])
-                algo.progress = Progress(cores[0].env_steps, episodes, self.jobs[0].steps, training=True)
-                returns = np.asarray(stepper.step(np.array([core.epsilon for core in cores])))
-                for k, core in enumerate(cores):
-                    core.stepped(per_run_envs, returns[stepper.ended_runs == k].tolist())
+            while not core.done:
+                core.set_progress()
+                returns = stepper.step(core.epsilon)
+                core.stepped(per_run_envs, returns, stepper.ended_runs)
                 if stepper.chunk_steps >= algo.chunk_len:
                     steps = stepper.chunk_steps * per_run_envs
-                    algo.observe(stepper.take_chunk())
-                    if algo.can_update():
-                        owed += algo.updates_for(steps)
-                    while owed >= 1.0 and algo.can_update():
-                        for core, figures in zip(cores, algo.update(), strict=True):  # type: ignore[arg-type]
-                            core.log.update(figures)
-                        owed -= 1.0
-                for k, core in enumerate(cores):
-                    if core.log.row_due(core.env_steps) or core.checkpoint_due:
-                        algo.member(k)  # the run's current state into its single-run view
-                    core.row()
-                    core.maybe_checkpoint()
+                    core.observe(stepper.take_chunk(), steps)
+                    core.update()
+                core.row()
+                core.maybe_checkpoint()
         finally:
-            for core in cores:
-                core.close()
-        end = time.perf_counter()
-        results = []
-        for k, (core, job) in enumerate(zip(cores, self.jobs, strict=True)):
-            algo.member(k)
-            summary = core.finish(f"{job.algo} on {job.env}, seed {job.seed}", end=end)
-            out = self.out_dirs[k]
-            results.append(TrainResult(**summary, out_dir=str(out) if out else None, rows=core.log.rows))
-        return results
+            core.close()
+        summaries = core.finish(lambda job: f"{job.algo} on {job.env}, seed {job.seed}")
+        dirs = self.out_dirs or [None] * len(self.jobs)
+        return [
+            TrainResult(**s, out_dir=str(out) if out else None, rows=c.log.rows)
+            for s, out, c in zip(summaries, dirs, core.cores, strict=True)
+        ]

@@ -29,7 +29,7 @@ import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent
+from convoy.algos.algorithm import Agent, NetworkAgent
 from convoy.algos.checkpoint import (
     REPLAY_FILE,
     CheckpointError,
@@ -39,6 +39,7 @@ from convoy.algos.checkpoint import (
 from convoy.config import ConfigError, JobConfig, job_config
 from convoy.envs import make_batched
 from convoy.learner.core import TrainingCore
+from convoy.learner.population import PopulationCore, mean_row
 from convoy.learner.runtime import configure_learner
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
@@ -51,15 +52,17 @@ BUDGET_EVERY_S = 0.02
 
 
 def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple[int, ...]]]:
-    """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step."""
-    env = make_batched(job.env, 1, **job.env_params)
+    """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step (one
+    env per run; a population's chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
+    env = make_batched(job.env, job.runs or 1, **job.env_params)
     try:
         stepper = EnvStepper(env, algo, seed=0)
         stepper.step(1.0)
         chunk = stepper.take_chunk()
     finally:
         env.close()
-    return {k: (v.dtype.str, v.shape[2:]) for k, v in chunk.items()}
+    skip = 3 if job.runs else 2
+    return {k: (v.dtype.str, v.shape[skip:]) for k, v in chunk.items()}
 
 
 # Finite floats beyond this are hostile or broken on every env here (rewards and observations are O(1)–O(crash
@@ -110,30 +113,58 @@ class Learner:
         """Every chunk-key message this learner refused so far, by reason (the inbox's and its own value checks)."""
         return dict(collections.Counter(inbox.dropped) + collections.Counter(self.rejected))
 
-    def _restore(self, algo: Agent) -> dict[str, Any]:
-        """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
-        return its counters; an unreadable file is set aside and the job starts afresh."""
-        path = self.out_dir / "checkpoint.pt"
+    def _read(self, out_dir: Path) -> dict[str, Any] | None:
+        """The checkpoint in ``out_dir``, or None when there is none or it is unusable (an unreadable file is set
+        aside: the run starts afresh); one of another algorithm or env stops the learner."""
+        path = out_dir / "checkpoint.pt"
         if not path.is_file():
-            return {}
+            return None
         try:
             payload = read_checkpoint(path)
             job = job_config(**payload["job"])
         except (CheckpointError, ConfigError, KeyError, TypeError) as exc:  # keep the bad file, start afresh
             print(f"learner: checkpoint {path} unusable ({exc}); starting from scratch", flush=True)
             path.rename(path.with_suffix(".unreadable"))
-            return {}
+            return None
         if (job.algo, job.env, job.env_params) != (self.job.algo, self.job.env, self.job.env_params):
             raise CheckpointError(f"checkpoint {path}: belongs to {job.algo} on {job.env}; use another --out")
+        return payload
+
+    def _restore(self, algo: Agent) -> dict[str, Any]:
+        """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
+        return its counters; an unusable file is set aside and the job starts afresh."""
+        payload = self._read(self.out_dir)
+        if payload is None:
+            return {}
         try:
             algo.load_state_dict(payload["state"])
         except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
-            print(f"learner: checkpoint {path} does not match the job's networks ({exc}); starting from scratch")
-            path.rename(path.with_suffix(".unreadable"))
+            print(f"learner: checkpoint {self.out_dir} does not match the job's networks ({exc}); starting afresh")
+            (self.out_dir / "checkpoint.pt").rename(self.out_dir / "checkpoint.unreadable")
             return {}
         counters = dict(payload.get("counters", {}))
         counters["replay_rows"] = load_replay(self.out_dir / REPLAY_FILE, algo, int(counters.get("env_steps", 0)))
         return counters
+
+    def _restore_population(self, algo: NetworkAgent) -> list[dict[str, Any]] | None:
+        """Each run's last checkpoint (``DIR/seed-N/checkpoint.pt``) into its run of ``algo``; their counters, or
+        None (start afresh) unless every run has one, all at the same step. The population's replay
+        (``DIR/replay.npz``) comes back with them when it was saved at that step."""
+        payloads = [self._read(d) for d in self.job.member_dirs(self.out_dir)]
+        if all(p is None for p in payloads):
+            return None
+        steps = {int(p["counters"].get("env_steps", -1)) for p in payloads if p is not None}
+        if any(p is None for p in payloads) or len(steps) != 1:
+            print("learner: the population's runs have no checkpoints of one step; starting afresh", flush=True)
+            return None
+        try:
+            for k, payload in enumerate(payloads):
+                algo.load_member_state(k, payload["state"])  # type: ignore[index]
+        except Exception as exc:  # the networks differ (other sizes)
+            print(f"learner: the runs' checkpoints do not match the job's networks ({exc}); starting afresh")
+            return None
+        rows = load_replay(self.out_dir / REPLAY_FILE, algo, steps.pop())
+        return [{**p["counters"], "replay_rows": rows} for p in payloads]  # type: ignore[index]
 
     def run(self) -> int:
         job, rt = self.job, self.job.runtime
@@ -144,7 +175,13 @@ class Learner:
         probe.close()
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
-        counters = self._restore(algo)
+        if job.runs:
+            restored = self._restore_population(algo)  # type: ignore[arg-type]
+            if restored is None:
+                algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
+            counters: Any = restored or {}
+        else:
+            counters = self._restore(algo)
         session = open_session(self.settings)
         import zenoh
 
@@ -158,10 +195,11 @@ class Learner:
         self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
         self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
         if counters:  # say so: the supervisor reports it, tests check how far back the restart went
+            first = counters[0] if isinstance(counters, list) else counters
             values = {
                 "resumed_updates": algo.updates,
-                "resumed_env_steps": counters.get("env_steps", 0),
-                "resumed_replay_rows": counters["replay_rows"],
+                "resumed_env_steps": first.get("env_steps", 0),
+                "resumed_replay_rows": first["replay_rows"],
             }
             self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
         try:
@@ -178,16 +216,51 @@ class Learner:
         body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
         self.pub_budget.put(wire.encode("budget", body, "learner"))
 
-    def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: dict[str, Any]) -> int:
+    def _core(self, algo: Agent, counters: Any) -> TrainingCore | PopulationCore:
+        """The trainer core of this job: one run's, or a population's (each run in ``DIR/seed-N``)."""
+        job = self.job
+
+        def make_eval_env(n: int) -> Any:
+            return make_batched(job.env, n, **job.env_params)
+
+        replay_bytes = job.runtime.replay_checkpoint_mb << 20
+        if job.runs:
+            dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
+            return PopulationCore(
+                job.members(),
+                algo,
+                dirs,
+                make_eval_env,
+                counters=counters or None,
+                replay=replay,  # type: ignore[arg-type]
+            )
+        return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes)
+
+    def _take(self, core: TrainingCore | PopulationCore, msg: wire.Message) -> str | None:
+        """Chunk ``msg`` into the core (its transitions, steps and finished episodes), or why not (a drop reason)."""
+        arrays, returns, runs = dict(msg.body["arrays"]), list(msg.body["returns"]), self.job.runs
+        t_len, b = arrays["obs"].shape[:2]
+        if isinstance(core, TrainingCore):
+            arrays["episode"] = np.full_like(arrays["episode"], core.episodes)  # the learner's episode clock
+            core.set_progress()
+            core.observe(arrays, t_len * b)
+            core.stepped(t_len * b, returns)
+            return None
+        return_runs = np.asarray(msg.body.get("return_runs", []), dtype=np.int64)
+        if b % runs or len(return_runs) != len(returns):
+            return "schema"  # not a chunk of this population's runs
+        if return_runs.size and (return_runs.min() < 0 or return_runs.max() >= runs):
+            return "out-of-range"
+        arrays = {k: v.reshape(t_len, runs, b // runs, *v.shape[2:]) for k, v in arrays.items()}
+        arrays["episode"] = np.broadcast_to(core.episodes[:, None], arrays["episode"].shape).copy()
+        core.set_progress()
+        core.observe(arrays, t_len * (b // runs))
+        core.stepped(t_len * (b // runs), returns, return_runs)
+        return None
+
+    def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: Any) -> int:
         job, rt = self.job, self.job.runtime
-        core = TrainingCore(
-            job,
-            algo,
-            self.out_dir,
-            lambda n: make_batched(job.env, n, **job.env_params),
-            counters=counters,
-            replay_bytes=rt.replay_checkpoint_mb << 20,
-        )
+        core = self._core(algo, counters)
         t_weights = t_budget = t_chunk = 0.0
         t_start = time.perf_counter()
         last_weights_version = -1
@@ -236,24 +309,20 @@ class Learner:
                         )
                         return NO_DATA
                     continue
-                arrays = msg.body["arrays"]
-                problem = chunk_problem(arrays, schema, algo.spec.n_actions)
+                problem = chunk_problem(msg.body["arrays"], schema, algo.spec.n_actions) or self._take(core, msg)
                 if problem is not None:
                     self.rejected[problem] = self.rejected.get(problem, 0) + 1
                     continue
-                arrays = dict(arrays)
-                arrays["episode"] = np.full_like(arrays["episode"], core.episodes)  # the learner's episode clock
-                core.set_progress()
-                t_len, b = arrays["obs"].shape[:2]
-                chunk_steps = t_len * b
-                core.observe(arrays, chunk_steps)
-                core.stepped(chunk_steps, list(msg.body["returns"]))
+                t_len, b = msg.body["arrays"]["obs"].shape[:2]
+                chunk_steps = t_len * b // (job.runs or 1)
                 self._publish_budget(allowance(), core.env_steps, algo.updates)  # credit now, not after the updates
                 t_budget = t_chunk = time.perf_counter()
                 lags.append(algo.updates - msg.body["policy_version"])
                 ingested_chunks += 1
                 core.update()
                 row = core.row(transport)
+                if isinstance(row, list):  # a population's: its runs' mean (each run's rows are in its folder)
+                    row = mean_row(row) if row else None
                 if row is not None:
                     self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
                     lags = []
@@ -265,12 +334,15 @@ class Learner:
         finally:
             core.close()  # the metric files, whichever way the loop ends
         dropped = self.dropped_by_reason(inbox)
-        summary = core.finish(
-            f"{job.algo} on {job.env} (distributed)", dropped=sum(dropped.values()), dropped_by_reason=dropped
-        )
+        counts = {"dropped": sum(dropped.values()), "dropped_by_reason": dropped}
+        if isinstance(core, PopulationCore):
+            runs = core.finish(lambda j: f"{j.algo} on {j.env}, seed {j.seed} (distributed population)", **counts)
+            eval_return = float(np.mean([r["eval_return"] for r in runs]))
+        else:
+            eval_return = core.finish(f"{job.algo} on {job.env} (distributed)", **counts)["eval_return"]
         done = {
             "done": 1.0,
-            "eval_return": summary["eval_return"],
+            "eval_return": eval_return,
             "env_steps": core.env_steps,
             "updates": algo.updates,
         }

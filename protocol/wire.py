@@ -11,7 +11,8 @@ Kinds and their bodies:
 * ``chunk`` (actor → learner): ``arrays`` (the joint transitions ``[T, B, …]``: ``obs, action, reward, next_obs,
   terminated, truncated, episode`` plus the algorithm's extras), ``actor``, ``policy_version``, ``env_steps``,
   ``returns`` (mean-over-agents returns of episodes finished in the chunk). DIAL's on-policy sequences are chunks
-  with T = its unroll length, so one kind serves transition batches and episode batches.
+  with T = its unroll length, so one kind serves transition batches and episode batches. A population's chunk
+  holds its R runs' envs run by run (B = R × envs per run) and says each return's run in ``return_runs``.
 * ``weights`` (learner → actors): ``version``, ``algo``, ``state`` (name → array).
 * ``budget`` (learner → actors): ``allowed_steps`` (env steps the learner will take in total before it has done
   the updates they are owed), ``ingested_steps``, ``version`` — the samples-per-insert throttle.
@@ -177,6 +178,11 @@ def validate(kind: str, body: dict[str, Any]) -> None:
             env_steps=_is_int,
             returns=lambda x: isinstance(x, list) and all(_is_num(r) for r in x),
         )
+        runs = body.get("return_runs")
+        if runs is not None and not (
+            isinstance(runs, list) and len(runs) == len(body["returns"]) and all(_is_int(r) for r in runs)
+        ):
+            raise WireError("bad-chunk", "return_runs must be one int per return")
         arrays = body["arrays"]
         missing = [f for f in CHUNK_FIELDS if f not in arrays]
         if missing:
@@ -204,15 +210,23 @@ def validate(kind: str, body: dict[str, Any]) -> None:
 
 # ------------------------------------------------------------------------------------------ typed constructors
 def chunk_body(
-    arrays: dict[str, np.ndarray], actor: str, policy_version: int, env_steps: int, returns: list[float]
+    arrays: dict[str, np.ndarray],
+    actor: str,
+    policy_version: int,
+    env_steps: int,
+    returns: list[float],
+    return_runs: list[int] | None = None,
 ) -> dict[str, Any]:
-    return {
+    body = {
         "arrays": arrays,
         "actor": actor,
         "policy_version": int(policy_version),
         "env_steps": int(env_steps),
         "returns": [float(r) for r in returns],
     }
+    if return_runs is not None:  # a population's chunk
+        body["return_runs"] = [int(r) for r in return_runs]
+    return body
 
 
 def weights_body(version: int, algo: str, state: dict[str, np.ndarray]) -> dict[str, Any]:

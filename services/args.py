@@ -66,6 +66,9 @@ def add_model_flags(
         if info.annotation is bool:
             p.add_argument(flag, dest=name, action="store_const", const=True, help=f"{text} (default off)")
             continue
+        if get_origin(info.annotation) is list:  # a list of ints (a population's seeds)
+            p.add_argument(flag, dest=name, type=int, nargs="+", metavar="N", help=f"{text} (default none)")
+            continue
         default = f"{info.default:,}" if isinstance(info.default, int) else info.default
         choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else None
         kind = info.annotation if info.annotation in (int, float) else str

@@ -138,6 +138,8 @@ class JobRunner:
             self._wanted = actors
 
     def run(self) -> dict[str, Any]:
+        """Run the job to its end; the learner's summary (a population's as ``{"runs": [one per seed]}``), or {}
+        when it stopped early."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(prefix="convoy-zenoh-") as private:  # 0700: the job's credential
             return self._run(self.job.runtime.zenoh.secured(private, self.job_id).rooted())
@@ -173,16 +175,19 @@ class JobRunner:
             group.stop_all()
             display.close()
             session.close()
-        path = self.out_dir / "summary.json"
+        paths = [d / "summary.json" for d in self.job.member_dirs(self.out_dir)]
         # a job stopped early has no summary of its own (one left by an earlier run in out_dir is not this job's)
-        if not (finished and path.is_file()):
+        if not (finished and all(p.is_file() for p in paths)):
             return {}
-        summary = json.loads(path.read_text())
-        summary["dropped_elsewhere"] = self.drop_report(metrics)
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(summary, indent=2) + "\n")  # as the learner wrote it
-        tmp.replace(path)
-        return summary
+        summaries = []
+        for path in paths:
+            summary = json.loads(path.read_text())
+            summary["dropped_elsewhere"] = self.drop_report(metrics)
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(summary, indent=2) + "\n")  # as the learner wrote it
+            tmp.replace(path)
+            summaries.append(summary)
+        return {"runs": summaries} if self.job.runs else summaries[0]
 
     def drop_report(self, metrics: Inbox) -> dict[str, Any]:
         """What the learner's ``dropped_by_reason`` does not see: the actors' drops and the supervisor's own."""

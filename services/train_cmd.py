@@ -54,7 +54,7 @@ def read_config_file(path: str) -> dict[str, Any]:
 def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
-    values.update(given(args, (*JOB_FLAGS, "device", "torch_threads")))
+    values.update(given(args, (*JOB_FLAGS, "seeds", "device", "torch_threads")))
     values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
     if args.actors is not None:
         values["runtime"]["actors"] = args.actors
@@ -71,60 +71,48 @@ def cmd_train(args: argparse.Namespace) -> int:
     --out.
     """
     job = job_from_args(args)
-    jobs = population_jobs(args, job) if args.seeds else [job]
     limits_from_args(args).check(job, "convoy train")
     out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
     run_dir = claim(out, overwrite=args.overwrite)
     try:
-        return _train_population(args, jobs, out) if args.seeds else _train(args, job, out)
+        return _train_population(args, job, out) if job.runs else _train(args, job, out)
     finally:
         run_dir.release()
 
 
-def population_jobs(args: argparse.Namespace, job: JobConfig) -> list[JobConfig]:
-    """One job per ``--seeds`` value, checked for what population training can do."""
-    from convoy.algos.registry import algorithm_class
-
-    seeds = list(args.seeds)
-    if args.seed is not None:
-        raise ConfigError("--seeds", "give either --seed (one run) or --seeds (a population), not both")
-    if len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise ConfigError("--seeds", f"expected distinct non-negative seeds, got {seeds}")
-    if not args.inprocess:
-        raise ConfigError("--seeds", "population runs train in one process: add --inprocess")
-    if job.hierarchical or not algorithm_class(job.algo).population:
-        able = ", ".join(n for n in ALGO_CONFIGS if algorithm_class(n).population)
-        what = "hierarchical DQN" if job.hierarchical else job.algo
-        raise ConfigError("--seeds", f"{what} trains one seed per process; populations: {able}")
-    return [job_config(**{**job.model_dump(), "seed": s}) for s in seeds]
-
-
-def _train_population(args: argparse.Namespace, jobs: list[JobConfig], out: Path) -> int:
-    from convoy.services.training import run_population
+def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
+    from convoy.services.procs import JobFailed
+    from convoy.services.training import run_distributed, run_population
     from convoy.stats import ci95_half
 
-    job = jobs[0]
-    seeds = [j.seed for j in jobs]
+    seeds = job.run_seeds()
+    where = "one population in this process" if args.inprocess else (
+        f"{job.runtime.actors} actor processes stepping every run's envs + one learner (Zenoh)")  # fmt: skip
     console.print(
         f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
-        f"{len(jobs)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, {job.num_envs} envs each, "
-        f"hidden {job.algo_config().hidden}, one population in this process → {out}/seed-N/",
+        f"{len(seeds)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, {job.num_envs} envs each"
+        f"{'' if args.inprocess else ' per actor'}, hidden {job.algo_config().hidden}, {where} → {out}/seed-N/",
         highlight=False,
         soft_wrap=True,
     )
-    dirs = [out / f"seed-{s}" for s in seeds]
-    results = run_population(jobs, dirs, progress=not args.no_progress)
-    table = Table(title=f"{job.algo} on {job.env}: {len(jobs)} runs")
+    dirs = job.member_dirs(out)
+    if args.inprocess:
+        results = [r.as_dict() for r in run_population(job.members(), dirs, progress=not args.no_progress)]
+    else:
+        results = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
+        if not results:
+            raise JobFailed(f"the learner stopped before the job finished; {out}/seed-N/checkpoint.pt hold progress")
+    table = Table(title=f"{job.algo} on {job.env}: {len(seeds)} runs")
     for col in ("seed", "greedy return (95 % CI)", "best greedy point (step)", "ε-greedy return (last 10 %)"):
         table.add_column(col, justify="right")
     for s, r in zip(seeds, results, strict=True):
-        best = f"{r.best_eval_return:.3f} ({r.best_eval_step:,})" if r.best_eval_step >= 0 else "–"
-        table.add_row(str(s), f"{r.eval_return:.3f} ± {r.eval_ci95:.3f}", best, f"{r.final_return:.3f}")
-    finals = [r.eval_return for r in results]
+        best = f"{r['best_eval_return']:.3f} ({r['best_eval_step']:,})" if r["best_eval_step"] >= 0 else "–"
+        table.add_row(str(s), f"{r['eval_return']:.3f} ± {r['eval_ci95']:.3f}", best, f"{r['final_return']:.3f}")
+    finals = [r["eval_return"] for r in results]
     table.add_row("[bold]mean over seeds[/]", f"{sum(finals) / len(finals):.3f} ± {ci95_half(finals):.3f}", "", "")
     console.print(table)
-    wall = results[0].wall_s
-    steps = sum(r.env_steps for r in results)
+    wall = results[0]["wall_s"]
+    steps = sum(r["env_steps"] for r in results)
     console.print(f"{steps:,} env steps in {wall:.1f} s: {steps / max(wall, 1e-9):,.0f} env steps/s over all runs")
     console.print(f"wrote {', '.join(str(d) for d in dirs)} (metrics, curve.png, checkpoint.pt, summary.json each)")
     return 0
@@ -146,9 +134,10 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
     if args.inprocess:
         s = run_inprocess(job, out, progress=not args.no_progress).as_dict()
     else:
-        s = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
-        if not s:
+        runs = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
+        if not runs:
             raise JobFailed(f"the learner stopped before the job finished; {out}/checkpoint.pt holds its progress")
+        s = runs[0]
     table = Table(title=f"{job.algo} on {job.env}")
     table.add_column("figure")
     table.add_column("value", justify="right")
@@ -202,14 +191,6 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--job-id", help="Zenoh job id (default: the --out directory's name + a random suffix)")
     add_job_arguments(tr)
     tr.add_argument(
-        "--seeds",
-        type=int,
-        nargs="+",
-        metavar="N",
-        help="train one run per seed as one population (in-process: one batched update for all; each run writes "
-        "DIR/seed-N as a single run of that seed would); instead of --seed",
-    )
-    tr.add_argument(
         "--out",
         metavar="DIR",
         help="output directory, one run each (default runs/ALGO-ENV, or runs/ALGO-ENV-2, -3, … when that holds a run)",
@@ -222,7 +203,7 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     add_job_flags(tr)
-    add_model_flags(tr, JobConfig, ("device", "torch_threads"), flags={"torch_threads": "--threads"})
+    add_model_flags(tr, JobConfig, ("seeds", "device", "torch_threads"), flags={"torch_threads": "--threads"})
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
 

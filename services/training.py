@@ -35,8 +35,8 @@ def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: b
 
 
 def run_population(jobs: list[JobConfig], out_dirs: list[Path], progress: bool = True) -> list[TrainResult]:
-    """Train the jobs (one algorithm, one per seed) as one population in this process; run k writes ``out_dirs[k]``
-    as a single run of its seed would."""
+    """Train the jobs (one algorithm, one per seed; they may differ in the hyper-parameters a population lets runs
+    differ in) as one population in this process; run k writes ``out_dirs[k]`` as a single run of its seed would."""
     from convoy.algos.registry import make_algorithm
     from convoy.learner.population import PopulationTrainer
     from convoy.learner.runtime import configure_learner
@@ -70,9 +70,10 @@ def run_distributed(
     progress: bool = True,
     job_id: str | None = None,
     stop_on_sigterm: bool = False,
-) -> dict[str, Any]:
-    """Train ``job`` with ``job.runtime.actors`` actor processes and a learner process on this machine;
-    ``stop_on_sigterm`` (the CLI): SIGTERM stops the job cleanly — children stopped, the learner checkpointed."""
+) -> list[dict[str, Any]]:
+    """Train ``job`` with ``job.runtime.actors`` actor processes and a learner process on this machine; each run's
+    summary (one, or one per seed of a population), none when the job stopped early. ``stop_on_sigterm`` (the
+    CLI): SIGTERM stops the job cleanly — children stopped, the learner checkpointed."""
     import signal
 
     from convoy.services.jobrunner import JobRunner
@@ -80,4 +81,5 @@ def run_distributed(
     runner = JobRunner(job_id or default_job_id(out_dir), job, out_dir, progress=progress)
     if stop_on_sigterm:
         signal.signal(signal.SIGTERM, lambda *_: runner.stop())
-    return runner.run()
+    summary = runner.run()
+    return summary.get("runs", [summary]) if summary else []

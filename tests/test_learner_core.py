@@ -434,3 +434,39 @@ def test_eval_messages_the_algorithm_cannot_hear_are_refused() -> None:
     with pytest.raises(ConfigError, match="no message channel"):
         job_config(algo="idqn", eval_messages="noise")
     assert job_config(algo="idqn", eval_messages="predicted").eval_messages == "predicted"  # decentralised already
+
+
+def test_a_populations_chunks_name_runs_it_has(tmp_path: Path) -> None:
+    """A population's chunk is ``[T, R·B, …]`` with one run index per finished episode: a chunk whose envs do not
+    split into the job's runs, or whose returns name a run the job does not have, is refused with its reason and
+    nothing reaches the replay or the runs' counts; a good one reaches each run's own counts."""
+    from convoy.algos.agent import make_agent
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+    from convoy.learner.service import Learner
+    from convoy.protocol import wire
+    from convoy.protocol.session import ZenohSettings
+
+    job = job_config(algo="idqn", env="referential", steps=1000, seeds=[0, 1], num_envs=4,
+                     algo_params={"hidden": [16], "learning_starts": 10_000})  # fmt: skip
+    learner = Learner("pop", job, tmp_path, ZenohSettings())
+    algo = make_agent(job, make_batched("referential", 1).spec)
+    core = learner._core(algo, {})
+    g = np.random.default_rng(0)
+    n = algo.spec.n_agents
+
+    def chunk(envs: int, returns: list[float], runs: list[int]) -> wire.Message:
+        arrays = {"obs": g.normal(size=(2, envs, n, algo.obs_dim)).astype(np.float32),
+                  "next_obs": g.normal(size=(2, envs, n, algo.obs_dim)).astype(np.float32),
+                  "action": np.zeros((2, envs, n), np.int64), "reward": np.zeros((2, envs, n), np.float32),
+                  "terminated": np.zeros((2, envs), bool), "truncated": np.zeros((2, envs), bool),
+                  "episode": np.zeros((2, envs), np.int64)}  # fmt: skip
+        return wire.Message("chunk", "a", 0, 0.0, wire.chunk_body(arrays, "a", 0, 2 * envs // 2, returns, runs))
+
+    assert learner._take(core, chunk(7, [], [])) == "schema"  # 7 envs do not split into 2 runs
+    assert learner._take(core, chunk(8, [1.0], [2])) == "out-of-range"  # the job has runs 0 and 1
+    assert learner._take(core, chunk(8, [1.0], [-1])) == "out-of-range"
+    assert len(algo.replay) == 0 and core.env_steps == 0 and list(core.episodes) == [0, 0]
+    assert learner._take(core, chunk(8, [1.0, 2.0, 3.0], [1, 1, 0])) is None
+    assert len(algo.replay) == 2 * 4 and core.env_steps == 2 * 4 and list(core.episodes) == [1, 2]
+    core.close()

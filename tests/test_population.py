@@ -217,14 +217,13 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
 
     base = ["train", "--algo", "idqn", "--env", "referential", "--steps", "100"]
     for extra, words in (
-        (["--seeds", "0", "1"], "add --inprocess"),
         (["--inprocess", "--seeds", "0", "0"], "distinct"),
         (["--inprocess", "--seeds", "0", "1", "--seed", "2"], "not both"),
         (["--inprocess", "--seeds", "0", "1", "--env", "treadmill", "--hierarchical"], "one seed per process"),
     ):
         assert main([*base, *extra]) == 2
         err = " ".join(capsys.readouterr().err.split())
-        assert "--seeds" in err and words in err, err
+        assert "seeds" in err and words in err, err
 
 
 @pytest.mark.parametrize("name", ["idqn", "dial"])
@@ -250,3 +249,29 @@ def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str
     wider = config(name, False, hidden=(64, 32))
     with pytest.raises(ValueError, match="hidden"):
         make_algorithm(name, SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=[cfgs[0], cfgs[1], wider])
+
+
+def test_a_jobs_seeds_make_a_population_of_single_runs() -> None:
+    """``seeds`` in the one config model (CLI, files, the learner and actors read it): one seed is the single run
+    of that seed; a population's members are single runs of their seeds writing DIR/seed-N; the resource limits
+    count every run's envs and weights."""
+    from convoy.config import ResourceLimits, job_config
+    from convoy.validation import ConfigError
+
+    one = job_config(algo="idqn", env="referential", seeds=[7])
+    assert one.seed == 7 and one.seeds == [] and one.runs is None and one.member_dirs("out") == [Path("out")]
+    pop = job_config(algo="idqn", env="referential", seeds=[4, 2, 9], num_envs=8)
+    assert pop.seed == 4 and pop.runs == 3 and pop.run_seeds() == [4, 2, 9]
+    assert [(m.seed, m.seeds, m.num_envs) for m in pop.members()] == [(4, [], 8), (2, [], 8), (9, [], 8)]
+    assert pop.member_dirs("out") == [Path("out/seed-4"), Path("out/seed-2"), Path("out/seed-9")]
+    assert job_config(**pop.model_dump()) == pop  # a saved config reads back as itself
+    limits = ResourceLimits(max_agent_envs=3 * 8 * pop.agents_per_env())  # room for three runs of 8 envs
+    limits.check(pop, "test")
+    with pytest.raises(ConfigError, match="3 runs"):
+        limits.check(job_config(**{**pop.model_dump(), "num_envs": 9}), "test")
+    hierarchical = {"seeds": [1, 2], "env": "treadmill", "hierarchical": True}
+    for bad, words in (({"seeds": [1, 1]}, "distinct"), ({"seeds": [1, 2], "seed": 3}, "not both"),
+                       (hierarchical, "one seed per process")):  # fmt: skip
+        with pytest.raises(ConfigError, match=words) as info:
+            job_config(algo="idqn", **{"env": "referential", **bad})
+        assert info.value.field == "seeds"

@@ -540,3 +540,39 @@ def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, capsys:
     assert code == NO_DATA
     assert (tmp_path / "checkpoint.pt").is_file()
     assert "no chunk from any actor for 1 s" in capsys.readouterr().out
+
+
+def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_killed_learner(
+    tmp_path: Path,
+) -> None:
+    """``seeds``: the actors step every run's envs and act with the stacked policy (weights as one message), the
+    learner updates all runs at once and writes DIR/seed-N per run; a learner killed with SIGKILL comes back with
+    every run's checkpoint and the population's replay, and each run's folder reads as a single run's."""
+    from convoy.algos.checkpoint import load_checkpoint
+
+    every, seeds = 4_000, [3, 5, 8]
+    job = job_config(algo="idqn", steps=24_000, seeds=seeds, checkpoint_every=every, runtime={"actors": 1}, **TREADMILL)
+    runner = JobRunner("killpop", job, tmp_path, progress=False)
+    dirs = [tmp_path / f"seed-{s}" for s in seeds]
+    with Background(runner) as bg:
+        wait_for(lambda: all((d / "checkpoint.pt").is_file() for d in dirs) and (tmp_path / "replay.npz").is_file()
+                 and runner.last_row.get("env_steps", 0) > 2 * every, 120, "checkpoints of every run")  # fmt: skip
+        os.kill(runner.group.learner.proc.pid, signal.SIGKILL)
+        wait_for(lambda: runner.group.learner is not None and runner.group.learner.generation == 1, 5, "restart")
+        result = bg.join(240)
+    assert len(runner.resumes) == 1 and runner.resumes[0]["resumed_replay_rows"] > 0, runner.resumes
+    resumed_steps = runner.resumes[0]["resumed_env_steps"]
+    assert len(result["runs"]) == len(seeds)
+    for s, d, summary in zip(seeds, dirs, result["runs"], strict=True):
+        assert {"checkpoint.pt", "summary.json", "metrics.jsonl", "curve.png"} <= {p.name for p in d.iterdir()}
+        assert summary["env_steps"] >= job.steps and summary["updates"] > 0 and summary["episodes"] > 0, summary
+        rows = [json.loads(line) for line in (d / "metrics.jsonl").read_text().splitlines()]
+        steps = [r["env_steps"] for r in rows]
+        assert steps == sorted(steps) and len(steps) == len(set(steps)), f"seed {s}: duplicate rows after restart"
+        assert any(r["env_steps"] <= resumed_steps for r in rows) and rows[-1]["env_steps"] >= job.steps
+        agent, run_job, counters = load_checkpoint(d / "checkpoint.pt", device="cpu")  # a plain single run
+        assert run_job.seed == s and not run_job.seeds and agent.runs is None
+        assert counters["env_steps"] == summary["env_steps"]
+    weights = [read_checkpoint(d / "checkpoint.pt")["state"]["online"] for d in dirs]
+    first = next(iter(weights[0]))
+    assert not torch.equal(weights[0][first], weights[1][first]), "runs of different seeds hold the same weights"

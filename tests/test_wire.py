@@ -249,6 +249,10 @@ def test_typed_constructors() -> None:
     assert type(body["env_steps"]) is int and body["returns"] == [1.5, 2.0]
     assert all(type(r) is float for r in body["returns"])
     wire.validate("chunk", body)
+    assert "return_runs" not in body  # a single run's chunk
+    pop = wire.chunk_body(make_chunk()["arrays"], "a", 3, 12, [1.5, 2.0], [np.int64(1), 0])
+    assert pop["return_runs"] == [1, 0] and all(type(r) is int for r in pop["return_runs"])
+    wire.validate("chunk", pop)
     w = wire.weights_body(np.int64(5), "dqn", {"w": np.ones(2, np.float32)})
     assert type(w["version"]) is int
     wire.validate("weights", w)
@@ -291,6 +295,9 @@ INVALID_BODIES = [
     pytest.param("chunk", {**make_chunk(), "returns": (1.0,)}, "bad-chunk", id="chunk-tuple-returns"),
     pytest.param("chunk", {**make_chunk(), "returns": [1.0, "x"]}, "bad-chunk", id="chunk-str-return"),
     pytest.param("chunk", {**make_chunk(), "returns": [True]}, "bad-chunk", id="chunk-bool-return"),
+    pytest.param("chunk", {**make_chunk(), "returns": [1.0], "return_runs": []}, "bad-chunk", id="chunk-runs-len"),
+    pytest.param("chunk", {**make_chunk(), "returns": [1.0], "return_runs": [0.0]}, "bad-chunk", id="chunk-runs-f"),
+    pytest.param("chunk", {**make_chunk(), "return_runs": {}}, "bad-chunk", id="chunk-runs-map"),
     pytest.param("weights", {"version": 1, "algo": "x"}, "bad-weights", id="weights-no-state"),
     pytest.param("weights", {"version": 1, "algo": "x", "state": {"w": [1.0]}}, "bad-weights", id="weights-list"),
     pytest.param("weights", {"version": True, "algo": "x", "state": {}}, "bad-weights", id="weights-bool-version"),
