@@ -103,4 +103,6 @@ def view(rec: JobRecord, control: JobControl) -> JobView:
         queue_position=control.store.queue_position(rec.id),
         config=finite(cfg),
         final=FinalEvaluation(**finite(prog["final"])) if isinstance(prog.get("final"), dict) else None,
+        population=prog.get("packed_in"),
+        members=list(prog.get("members", [])),
     )

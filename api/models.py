@@ -13,7 +13,16 @@ from typing import Any, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from convoy.config import ALGO_CONFIGS, ConfigError, JobConfig, MessageSource, RuntimeConfig, algo_name, job_config
+from convoy.config import (
+    ALGO_CONFIGS,
+    MAX_POPULATION,
+    ConfigError,
+    JobConfig,
+    MessageSource,
+    RuntimeConfig,
+    algo_name,
+    job_config,
+)
 
 MAX_ACTORS = 64  # per job through the API (the runtime allows 256; a laptop's API should not)
 ACTORS_DEFAULT: int = RuntimeConfig.model_fields["actors"].default
@@ -121,6 +130,14 @@ class SweepSubmit(JsonBody):
     actors: int = Field(1, ge=1, le=MAX_ACTORS, description="Actor processes of each job.")
     threshold: float | None = Field(
         None, description="The return whose first crossing the summary times (env steps and seconds); none = no timing."
+    )
+    pack: int = Field(
+        10,
+        ge=1,
+        le=MAX_POPULATION,
+        description="Most seeds of one group trained together as one population job (one learner, one batched "
+        "update; each seed still its own job of the sweep, with its own folder, metrics and summary), fewer where "
+        "the service's resource limits allow fewer; 1 = one process group per job.",
     )
 
     @field_validator("grid")
@@ -264,6 +281,12 @@ class JobView(BaseModel):
     queue_position: int | None = Field(None, description="Place in the queue of a queued job (0 = next).")
     config: dict[str, Any] = Field(description="The job's full configuration, defaults filled in.")
     final: FinalEvaluation | None = Field(None, description="The greedy evaluation of a completed job.")
+    population: str | None = Field(
+        None, description="A packed seed of a sweep: the population job that trains it (and stops, resumes, scales)."
+    )
+    members: list[str] = Field(
+        default_factory=list, description="A population job: the sweep's seed jobs it trains, one run each."
+    )
 
 
 class JobList(BaseModel):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -76,6 +77,28 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
             raise ConfigError(field, f"{problem} (in the job {point})") from None
         jobs.append(SweepJob(point, config))
     return jobs
+
+
+def population(configs: list[JobConfig]) -> JobConfig:
+    """Jobs that differ only in seed as one population job (``seeds``): one learner trains them all at once."""
+    return build_config(JobConfig, **{**configs[0].model_dump(), "seeds": [c.seed for c in configs]})
+
+
+def packs(jobs: list[SweepJob], most: int, fits: Callable[[JobConfig], bool]) -> list[list[int]]:
+    """The sweep's jobs as process groups (indices into ``jobs``, each pack in grid order of its first job): each
+    group's seeds in populations of at most ``most`` runs — fewer while ``fits`` refuses the population (the
+    service's limits on envs and weights count every run) — and every other job alone (a group of one seed,
+    hierarchical DQN)."""
+    groups: dict[str, list[int]] = {}
+    for i, job in enumerate(jobs):
+        groups.setdefault(group_name(job.point), []).append(i)
+    out: list[list[int]] = []
+    for members in groups.values():
+        size = 1 if jobs[members[0]].config.hierarchical else min(most, len(members))
+        while size > 1 and not fits(population([jobs[i].config for i in members[:size]])):
+            size -= 1
+        out += [members[i : i + size] for i in range(0, len(members), size)]
+    return sorted(out, key=lambda pack: pack[0])
 
 
 def sweep_state(states: dict[str, int]) -> str:

@@ -17,6 +17,14 @@ again, so it resumes from its last checkpoint: no job is forgotten.
 
 Scheduling: a job needs ``actors + 2`` processes (learner, host agent, actors); jobs start in submission order
 while the ``max_processes`` budget allows, the others wait with a visible queue position.
+
+Packed sweeps. A sweep's jobs that differ only in seed run as *population jobs* (``api/sweeps.packs``: at most the
+sweep's ``pack`` seeds each, fewer where the service's resource limits, which count every run, allow fewer): one
+host, one learner updating every seed at once. Each seed stays a job of its own — its record, state, metrics,
+folder (the population's ``seed-N``), checkpoints and summary — so the sweep's view, summary, CLI and dashboard
+are those of an unpacked sweep. The population job alone is scheduled and watched; its seeds move with it (their
+``progress.packed_in`` names it), take their metric rows from their own ``metrics.jsonl`` whenever the
+population's row arrives, and stop, resume and scale through it.
 """
 
 from __future__ import annotations
@@ -36,9 +44,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from convoy.api.lifecycle import ACTIVE_STATES, JobRecord, JobState, StoreError, SweepRecord
+import numpy as np
+
+from convoy.api.lifecycle import ACTIVE_STATES, InvalidTransition, JobRecord, JobState, StoreError, SweepRecord
 from convoy.api.models import EvalRequest, SweepSubmit
-from convoy.api.sweeps import expand, group_name
+from convoy.api.sweeps import expand, group_name, packs, population
 from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
 from convoy.protocol import keys, wire
@@ -79,7 +89,7 @@ class Tracked:
         self.inbox = Inbox({"metrics"}, maxlen=4096)
         self.sub = session.declare_subscriber(keys.metrics_all(rec.id), self.inbox)
         self.stop_asked: float | None = None
-        self.ckpt_mtime = 0.0
+        self.ckpt_mtime: dict[str, float] = {}  # per job: a population's are its seeds'
         self.reports = MetricReports()
         log = Path(rec.out_dir or "") / "host.log"
         self.log, self.log_offset = log, log.stat().st_size if log.is_file() else 0  # only what happens from now
@@ -157,15 +167,40 @@ class JobService:
             raise ConfigError("actors", f"{spec.actors} actors need {spec.actors + 2} processes; this service runs "
                               f"at most {self.max_processes} (convoy serve --max-processes)")  # fmt: skip
         sweep_id = f"{spec.name}-{secrets.token_hex(3)}"
-        rows = [
-            (f"{sweep_id}-{i:03d}", job.config.model_dump(mode="json"), spec.actors,
-             str(self.data_dir / "jobs" / f"{sweep_id}-{i:03d}"), job.point)
-            for i, job in enumerate(jobs)
-        ]  # fmt: skip
-        sweep = self.store.create_sweep(sweep_id, spec.model_dump(mode="json"), rows)
+        ids = [f"{sweep_id}-{i:03d}" for i in range(len(jobs))]
+        outs = [self.data_dir / "jobs" / job_id for job_id in ids]
+        progress: dict[str, dict[str, Any]] = {}
+        populations = []
+        for pack in (p for p in packs(jobs, spec.pack, self._fits) if len(p) > 1):
+            pop_id, config = f"{sweep_id}-pop{len(populations):02d}", population([jobs[i].config for i in pack])
+            pop_out = self.data_dir / "jobs" / pop_id
+            populations.append((pop_id, config.model_dump(mode="json"), spec.actors, str(pop_out)))
+            progress[pop_id] = {"members": [ids[i] for i in pack]}
+            for i, member_out in zip(pack, config.member_dirs(pop_out), strict=True):
+                outs[i], progress[ids[i]] = member_out, {"packed_in": pop_id}
+        rows = [(job_id, job.config.model_dump(mode="json"), spec.actors, str(out), job.point)
+                for job_id, job, out in zip(ids, jobs, outs, strict=True)]  # fmt: skip
+        sweep = self.store.create_sweep(sweep_id, spec.model_dump(mode="json"), rows, progress, populations)
         groups = len({group_name(job.point) for job in jobs})
-        say(f"sweep {sweep_id}: submitted ({len(jobs)} jobs in {groups} group{'' if groups == 1 else 's'}), queued")
+        packed = f", their seeds in {len(populations)} population jobs" if populations else ""
+        say(f"sweep {sweep_id}: submitted ({len(jobs)} jobs in {groups} group{'' if groups == 1 else 's'}"
+            f"{packed}), queued")  # fmt: skip
         return sweep
+
+    def _fits(self, job: JobConfig) -> bool:
+        try:
+            self.limits.check(job, "convoy serve")
+        except ConfigError:
+            return False
+        return True
+
+    def _runner(self, job_id: str) -> str:
+        """The job whose processes run ``job_id``: its population job when it is a packed seed of a sweep."""
+        return str(self.store.get(job_id).progress.get("packed_in") or job_id)
+
+    def _members(self, rec: JobRecord) -> list[str]:
+        """The packed jobs a population job runs (that still exist)."""
+        return [m for m in rec.progress.get("members", []) if self.store.exists(m)]
 
     def stop_sweep(self, sweep_id: str) -> SweepRecord:
         """Stop every job of the sweep that is still queued or running (each checkpoints first)."""
@@ -192,11 +227,14 @@ class JobService:
         sweep = self.store.sweep(sweep_id)
         for member in sweep.jobs:
             if self.store.exists(member["id"]):
-                self.delete(member["id"])
+                self.delete(self._runner(member["id"]))  # a population job deletes its packed seeds with it
         self.store.delete_sweep(sweep_id)
 
     def scale(self, job_id: str, actors: int) -> JobRecord:
         with self._lock:
+            if self._runner(job_id) != job_id:  # a packed seed scales with its population
+                self.scale(self._runner(job_id), actors)
+                return self.store.get(job_id)
             rec = self.store.get(job_id)
             if rec.state not in ACTIVE_STATES:
                 raise StoreError(
@@ -207,12 +245,17 @@ class JobService:
                 raise ConfigError("actors", f"{actors} actors need {actors + 2} processes; the limit is "
                                   f"{self.max_processes} (convoy serve --max-processes)")  # fmt: skip
             rec = self.store.update(job_id, actors=actors)
+            for member in self._members(rec):
+                self.store.update(member, actors=actors)
             if job_id in self.tracked:
                 self._command(job_id, "scale", {"actors": actors})
             return rec
 
     def stop(self, job_id: str) -> JobRecord:
         with self._lock:
+            if self._runner(job_id) != job_id:  # a packed seed stops with its population
+                self.stop(self._runner(job_id))
+                return self.store.get(job_id)
             rec = self.store.get(job_id)
             if rec.state == JobState.queued:
                 return self._move(job_id, JobState.stopped, "stopped before it started")
@@ -229,25 +272,40 @@ class JobService:
 
     def resume(self, job_id: str, actors: int | None, steps: int | None) -> JobRecord:
         with self._lock:
+            if self._runner(job_id) != job_id:  # a packed seed resumes with its population
+                self.resume(self._runner(job_id), actors, steps)
+                return self.store.get(job_id)
             rec = self.store.get(job_id)
             if rec.state in ACTIVE_STATES:
                 raise StoreError(f"job {job_id!r} is {rec.state}; only a stopped, failed or completed job resumes")
-            config = dict(rec.config)
-            if steps is not None:
-                config = job_config(**{**config, "steps": steps}).model_dump(mode="json")
+            lost = [m for m in rec.progress.get("members", []) if not self.store.exists(m)]
+            if lost:
+                raise StoreError(f"population job {job_id!r} cannot resume: its seed jobs {lost} were deleted and "
+                                 "its runs resume together; submit the remaining seeds again")  # fmt: skip
             n = actors or rec.actors
             if n + 2 > self.max_processes:
                 raise ConfigError("actors", f"{n} actors need {n + 2} processes; the limit is {self.max_processes}")
-            self.store.update(job_id, actors=n, config=config)
+            for each in [job_id, *self._members(rec)]:
+                config = dict(self.store.get(each).config)
+                if steps is not None:
+                    config = job_config(**{**config, "steps": steps}).model_dump(mode="json")
+                self.store.update(each, actors=n, config=config)
             return self._move(job_id, JobState.queued, "resume requested")
 
     def delete(self, job_id: str) -> None:
         with self._lock:
             rec = self.store.get(job_id)
+            runner = self._runner(job_id)
+            if runner != job_id and self.store.exists(runner) and self.store.get(runner).state in ACTIVE_STATES:
+                raise StoreError(f"job {job_id!r} is one seed of population job {runner!r}, which is "
+                                 f"{self.store.get(runner).state}: stop {runner!r} first, or delete the whole "
+                                 "sweep")  # fmt: skip
             tracked = self.tracked.pop(job_id, None)
             if tracked is not None:
                 self._kill(tracked)
                 tracked.close()
+            for member in self._members(rec):
+                self.store.delete(member)
             self.store.delete(job_id)
         if rec.out_dir and Path(rec.out_dir).is_dir():
             shutil.rmtree(rec.out_dir, ignore_errors=True)
@@ -356,40 +414,50 @@ class JobService:
             rows = [r for r in rows if r["env_steps"] > last]
         if rows:
             self.store.append_metrics(job_id, rows)
+            for member in self._members(self.store.get(job_id)):  # each seed's rows: from its own metrics file
+                self._backfill(member)
         if progress:
             self.store.update(job_id, progress=progress)
 
     def _note_checkpoint(self, rec: JobRecord, tracked: Tracked) -> None:
-        path = self._out(rec.id) / "checkpoint.pt"
-        try:
-            mtime = path.stat().st_mtime
-        except OSError:
-            return
-        if mtime != tracked.ckpt_mtime:
-            tracked.ckpt_mtime = mtime
-            self.store.update(rec.id, last_checkpoint=str(path))
+        for job_id in self._members(rec) or [rec.id]:  # a population's checkpoints are its seeds'
+            path = self._out(job_id) / "checkpoint.pt"
+            try:
+                mtime = path.stat().st_mtime
+            except OSError:
+                continue
+            if mtime != tracked.ckpt_mtime.get(job_id):
+                tracked.ckpt_mtime[job_id] = mtime
+                self.store.update(job_id, last_checkpoint=str(path))
 
     def _move(self, job_id: str, to: JobState, reason: str) -> JobRecord:
-        """A state change in the store, and one line of it in the service's log."""
+        """A state change in the store, and one line of it in the service's log; a population job's packed seeds
+        move with it."""
         before = self.store.get(job_id).state
         rec = self.store.transition(job_id, to, reason)
         say(f"job {job_id}: {before} → {to} ({reason})")
+        for member in self._members(rec):
+            with contextlib.suppress(InvalidTransition):
+                self.store.transition(member, to, f"{reason} (population job {job_id})")
         return rec
 
     def _finished(self, rec: JobRecord, tracked: Tracked, code: int) -> None:
         self._ingest(rec.id, tracked)
-        self._backfill(rec.id)
-        summary = self._out(rec.id) / "summary.json"
+        runs = self._members(rec) or [rec.id]  # a population job's runs are its packed seeds
+        for job_id in runs:
+            self._backfill(job_id)
+        summaries = [self._out(job_id) / "summary.json" for job_id in runs]
         started = float(rec.progress.get("started_at", 0.0))
-        done = summary.is_file() and summary.stat().st_mtime >= started
+        done = all(p.is_file() and p.stat().st_mtime >= started for p in summaries)
         if rec.state == JobState.stopping:
             self._move(rec.id, JobState.stopped, f"host exited ({code})")
         elif done and code in (0, -1):
-            result = json.loads(summary.read_text())
-            keep = {k: result[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in result}
-            final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
-            keep["final"] = {k: result[k] for k in final if k in result}
-            self.store.update(rec.id, progress=keep)
+            results = [json.loads(p.read_text()) for p in summaries]
+            for job_id, result in zip(runs, results, strict=True):
+                self.store.update(job_id, progress=final_progress(result))
+            if runs != [rec.id]:  # the population's own record: its seeds' mean
+                mean = {k: float(np.mean([r[k] for r in results])) for k in ("eval_return", "env_steps", "updates")}
+                self.store.update(rec.id, progress=mean)
             self._move(rec.id, JobState.completed, "the learner has all its steps")
         else:
             self._move(rec.id, JobState.failed, f"host exited with code {code}: {self._log_tail(rec.id)}")
@@ -399,6 +467,8 @@ class JobService:
     def _schedule(self) -> None:
         used = sum(self.store.get(j).actors + 2 for j in self.tracked if self.store.exists(j))
         for rec in self.store.list(JobState.queued):
+            if rec.progress.get("packed_in"):
+                continue  # its population job runs it
             if used + rec.actors + 2 > self.max_processes:
                 break  # first come, first served: later jobs wait behind this one
             self._start(rec)
@@ -437,7 +507,10 @@ class JobService:
             raise
         finally:
             log.close()
-        self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": time.time(), "zenoh": endpoint})
+        started = time.time()
+        self.store.update(rec.id, progress={"host_pid": proc.pid, "started_at": started, "zenoh": endpoint})
+        for member in self._members(rec):
+            self.store.update(member, progress={"started_at": started})
         rec = self._move(rec.id, JobState.starting, f"host pid {proc.pid}")
         self.tracked[rec.id] = Tracked(rec, session, proc)
 
@@ -455,6 +528,8 @@ class JobService:
         for rec in self.store.list():
             if rec.state not in (JobState.starting, JobState.running, JobState.stopping):
                 continue
+            if rec.progress.get("packed_in"):
+                continue  # its population job's reconciliation moves it
             pid = int(rec.progress.get("host_pid", 0))
             if pid_alive(pid):
                 self._backfill(rec.id)
@@ -498,8 +573,9 @@ class JobService:
                 time.sleep(0.1)
 
     def logs(self, job_id: str, lines: int) -> list[str]:
-        """The last ``lines`` lines of the job's process output (``host.log``: starts, crashes, tracebacks)."""
-        path = self._out(job_id) / "host.log"
+        """The last ``lines`` lines of the job's process output (``host.log``: starts, crashes, tracebacks; a
+        packed seed's are its population's)."""
+        path = self._out(self._runner(job_id)) / "host.log"
         try:
             with path.open(errors="replace") as fh:
                 return [ln.rstrip("\n") for ln in collections.deque(fh, maxlen=lines)]
@@ -508,6 +584,14 @@ class JobService:
 
     def _log_tail(self, job_id: str) -> str:
         return failure_summary(job_id, self.logs(job_id, 400))
+
+
+def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
+    """What a finished run's ``summary.json`` adds to its job's progress: the headline figures and ``final``."""
+    keep = {k: summary[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in summary}
+    final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
+    keep["final"] = {k: summary[k] for k in final if k in summary}
+    return keep
 
 
 def failure_summary(job_id: str, output: list[str]) -> str:

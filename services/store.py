@@ -309,23 +309,29 @@ class JobStore:
 
     @staticmethod
     def _job_row(
-        job_id: str, config: dict[str, Any], actors: int, out_dir: str | None, state: JobState | str
+        job_id: str,
+        config: dict[str, Any],
+        actors: int,
+        out_dir: str | None,
+        state: JobState | str,
+        progress: dict[str, Any] | None = None,
     ) -> tuple[Any, ...]:
         if not isinstance(job_id, str) or not job_id:
             raise StoreError(f"job id must be a non-empty str, got {job_id!r}")
         config_json = _dumps(_as_dict(config, "config"), f"config of job {job_id!r}")
+        progress_json = _dumps(_as_dict(progress or {}, "progress"), f"progress of job {job_id!r}")
         return (job_id, _coerce_state(state).value, config_json, _as_int(actors, "actors", minimum=0),
-                _as_opt_str(out_dir, "out_dir"))  # fmt: skip
+                _as_opt_str(out_dir, "out_dir"), progress_json)  # fmt: skip
 
     @staticmethod
     def _insert_job(conn: sqlite3.Connection, row: tuple[Any, ...]) -> None:
-        job_id, state, config_json, actors, out_dir = row
+        job_id, state, config_json, actors, out_dir, progress_json = row
         now = time.time()
         if conn.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone() is not None:
             raise StoreError(f"job {job_id!r} already exists; pick another id or delete it first")
         conn.execute(
-            f"INSERT INTO jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, '{{}}')",
-            (job_id, state, config_json, actors, now, now, out_dir),
+            f"INSERT INTO jobs ({_JOB_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, NULL, NULL, ?)",
+            (job_id, state, config_json, actors, now, now, out_dir, progress_json),
         )
         conn.execute(
             "INSERT INTO transitions (job_id, at, from_state, to_state, reason) VALUES (?, ?, NULL, ?, 'created')",
@@ -335,12 +341,19 @@ class JobStore:
     # -- sweeps ----------------------------------------------------------------------------------------------------
 
     def create_sweep(
-        self, sweep_id: str, spec: dict[str, Any], jobs: list[tuple[str, dict[str, Any], int, str, dict[str, Any]]]
+        self,
+        sweep_id: str,
+        spec: dict[str, Any],
+        jobs: list[tuple[str, dict[str, Any], int, str, dict[str, Any]]],
+        progress: dict[str, dict[str, Any]] | None = None,
+        extra: list[tuple[str, dict[str, Any], int, str]] | None = None,
     ) -> SweepRecord:
         """Add a sweep and all its jobs (``(id, config, actors, out_dir, point)``, queued) in one transaction: a
-        crash leaves either the whole sweep or nothing."""
-        rows = [self._job_row(job_id, config, actors, out_dir, JobState.queued) for job_id, config, actors, out_dir, _
-                in jobs]  # fmt: skip
+        crash leaves either the whole sweep or nothing. ``progress[id]``: a job's first progress; ``extra``: jobs
+        that run for the sweep without being its grid points (``(id, config, actors, out_dir)``: its populations)."""
+        progress = progress or {}
+        rows = [self._job_row(job_id, config, actors, out_dir, JobState.queued, progress.get(job_id))
+                for job_id, config, actors, out_dir, *_ in [*jobs, *(extra or [])]]  # fmt: skip
         members = _dumps([{"id": j[0], "point": j[4]} for j in jobs], f"jobs of sweep {sweep_id!r}")
         with self._write() as conn:
             if conn.execute("SELECT 1 FROM sweeps WHERE id = ?", (sweep_id,)).fetchone() is not None:

@@ -94,7 +94,7 @@ def test_a_sweep_runs_through_a_service_restart_and_summarises_its_groups(tmp_pa
         code = main(["sweep", "summary", sid, "--url", again.url, "--plot", str(png)])
         assert code == 0 and png.stat().st_size > 10_000
         log = (data.parent / f"serve-{svc.port}.log").read_text()
-        assert f"sweep {sid}: submitted (4 jobs in 2 groups), queued" in log
+        assert f"sweep {sid}: submitted (4 jobs in 2 groups, their seeds in 2 population jobs), queued" in log
     finally:
         if again is not None:
             again.stop()
@@ -211,3 +211,81 @@ def test_an_algorithms_own_parameters_reach_its_jobs_only() -> None:
     jobs = {job.config.algo: job.config.algo_params for job in expand(spec)}
     assert jobs["dial"]["replay"] is True and jobs["dial"]["lr"] == 0.01  # the grid's axis wins
     assert "replay" not in jobs["idqn"] and jobs["idqn"]["hidden"] == [32]
+
+
+def test_a_sweeps_seeds_pack_into_populations_the_limits_allow() -> None:
+    """Each group's seeds in populations of at most ``pack`` runs, fewer where the service's limits (which count
+    every run's envs) refuse the population; other axes never share a population; pack 1 = one job each."""
+    from convoy.api.models import SweepSubmit
+    from convoy.api.sweeps import expand, packs
+    from convoy.config import ResourceLimits
+
+    spec = SweepSubmit(**{**TINY, "grid": {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2, 3, 4]}, "pack": 3})
+    jobs = expand(spec)
+
+    def fits(limits: ResourceLimits) -> Any:
+        def check(job: Any) -> bool:
+            try:
+                limits.check(job, "test")
+            except ConfigError:
+                return False
+            return True
+
+        return check
+
+    got = packs(jobs, 3, fits(ResourceLimits()))
+    assert sorted(i for p in got for i in p) == list(range(10))
+    for pack in got:
+        assert len({jobs[i].config.algo for i in pack}) == 1 and len(pack) <= 3
+    assert sorted(len(p) for p in got) == [2, 2, 3, 3]
+    per_env = jobs[0].config.num_envs * jobs[0].config.agents_per_env()
+    assert sorted(len(p) for p in packs(jobs, 3, fits(ResourceLimits(max_agent_envs=2 * per_env)))) == [1] * 2 + [2] * 4
+    assert packs(jobs, 1, fits(ResourceLimits())) == [[i] for i in range(10)]
+
+
+def test_a_packed_sweeps_summary_reads_as_an_unpacked_ones(tmp_path: Path) -> None:
+    """One group of three seeds, packed (one population job, the default) and unpacked (``pack`` 1): the same
+    summary layout, each seed its own job with its own folder, checkpoints and final return; a packed seed stops,
+    resumes and deletes through its population, and a population that lost a seed says it cannot resume."""
+    base = {**TINY["base"], "steps": 2_000, "algo": "idqn"}
+    svc = Service(tmp_path / "svc", max_processes=3).start()
+    try:
+        views = {}
+        for pack in (10, 1):
+            body = {"name": f"p{pack}", "base": base, "grid": {"seed": [0, 1, 2]}, "pack": pack}
+            sid = svc.client.post("/sweeps", json=body, headers=AUTH).json()["id"]
+            views[pack] = wait_sweep(svc, sid, lambda v: v["state"] != "running", 300, f"sweep pack={pack}")
+            assert views[pack]["state"] == "completed", views[pack]
+        jobs = {j["id"]: j for j in svc.client.get("/jobs").json()["jobs"]}
+        packed = [jobs[m["id"]] for m in views[10]["jobs"]]
+        population = {j["population"] for j in packed}
+        assert len(population) == 1 and None not in population, packed
+        pop = jobs[population.pop()]
+        assert pop["config"]["seeds"] == [0, 1, 2] and pop["state"] == "completed"
+        assert pop["members"] == [j["id"] for j in packed]
+        for job in packed:
+            folder = Path(job["last_checkpoint"]).parent  # in the population's folder, as a run of it
+            assert (folder.parent.name, folder.name) == (pop["id"], f"seed-{job['config']['seed']}"), folder
+            assert isinstance(job["final"]["eval_return"], float)
+            names = {c["name"] for c in svc.client.get(f"/jobs/{job['id']}/checkpoints").json()["checkpoints"]}
+            assert "checkpoint.pt" in names
+        assert all(jobs[m["id"]]["population"] is None for m in views[1]["jobs"])
+        summaries = {p: svc.client.get(f"/sweeps/{v['id']}/summary").json() for p, v in views.items()}
+
+        def layout(x: Any) -> Any:
+            if isinstance(x, dict):
+                return {k: layout(v) for k, v in x.items() if k not in ("id", "values", "jobs")}
+            return [layout(v) for v in x[:1]] if isinstance(x, list) else type(x).__name__
+
+        assert layout(summaries[10]["groups"]) == layout(summaries[1]["groups"])
+        assert summaries[10]["groups"][0]["final"]["n"] == 3
+
+        first = packed[0]["id"]  # resumed through its population, which finishes at once (past its budget)
+        assert svc.client.post(f"/jobs/{first}/resume", json={}, headers=AUTH).status_code == 200
+        svc.wait(pop["id"], lambda v: v["state"] == "completed", timeout=120, what="the resumed population")
+        assert svc.client.get(f"/jobs/{first}").json()["state"] == "completed"
+        assert svc.client.delete(f"/jobs/{first}", headers=AUTH).status_code == 204
+        resp = svc.client.post(f"/jobs/{pop['id']}/resume", json={}, headers=AUTH)
+        assert resp.status_code == 409 and "cannot resume" in resp.text, resp.text
+    finally:
+        svc.stop()
