@@ -1,14 +1,17 @@
 """Checkpoints: one file with the job, the env's shape, the algorithm's full state and the counters.
 
 Written atomically (temporary file, fsync, rename), so a process killed mid-write leaves the previous checkpoint
-intact. Loading rebuilds the algorithm from what the file says, so ``convoy eval`` and the learner's restart need
-nothing else; every way a file can be wrong (missing, truncated, not ours, from a newer format) is a
+intact. Read with ``torch.load(weights_only=True)``: a file holds tensors and plain data (dicts, lists, numbers,
+strings) only, so a hostile file given as a checkpoint or a CoDBC teacher cannot run code; it is refused. Loading
+rebuilds the algorithm from what the file says, so ``convoy eval`` and the learner's restart need nothing else;
+every way a file can be wrong (missing, truncated, not ours, from a newer format, holding code) is a
 ``CheckpointError`` that says what to do.
 """
 
 from __future__ import annotations
 
 import os
+import pickle
 import tempfile
 from collections.abc import Callable
 from dataclasses import asdict
@@ -81,7 +84,15 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f"checkpoint {path}: no such file; train one with `convoy train` (it writes checkpoint.pt)"
         )
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        payload = torch.load(path, map_location="cpu", weights_only=True)  # never runs code from the file
+    except pickle.UnpicklingError as exc:
+        if "weights only" not in str(exc).lower():
+            raise CheckpointError(f"checkpoint {path}: cannot be read ({exc}); use an earlier one or retrain") from None
+        raise CheckpointError(
+            f"checkpoint {path}: refused — it holds Python objects, not only tensors and plain data, and loading it "
+            "could run code. Convoy's checkpoints never do (every Convoy checkpoint loads); take this file only if "
+            "you trust it, and convert it yourself"
+        ) from None
     except Exception as exc:  # truncated, not a torch file, …
         raise CheckpointError(
             f"checkpoint {path}: cannot be read ({type(exc).__name__}); it is corrupt or not a Convoy checkpoint — "

@@ -221,3 +221,47 @@ def test_eval_gif_on_the_treadmill(tmp_path: Path, capsys: pytest.CaptureFixture
     assert gif.stat().st_size > 0
     with Image.open(gif) as img:
         assert img.format == "GIF" and img.n_frames > 1
+
+
+# --------------------------------------------------------------------------- hostile checkpoints
+
+
+class _Touch:
+    """Unpickling this runs ``open(path, "w")``: what a hostile "checkpoint" does under a full pickle load."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (str(self.path), "w"))
+
+
+def test_a_hostile_checkpoint_runs_no_code(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A pickle whose loading creates a file: the old loader (``weights_only=False``) runs it, ``convoy eval`` and a
+    CoDBC teacher refuse it with a clear error, and the file never appears."""
+    from convoy.algos.checkpoint import CheckpointError, read_checkpoint
+    from convoy.config import resolve_algo
+    from convoy.validation import ConfigError
+
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.pt"
+    torch.save({"kind": "convoy-checkpoint", "format": 1, "state": _Touch(marker)}, evil)
+    torch.load(evil, weights_only=False)  # the old loader: the file's code runs
+    assert marker.exists()
+    marker.unlink()
+
+    assert main(["eval", str(evil), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert "refused" in err and "could run code" in err, err
+    with pytest.raises(CheckpointError, match="refused"):
+        read_checkpoint(evil)
+    from convoy.algos.registry import make_algorithm
+    from convoy.envs import make_batched
+
+    env = make_batched("treadmill", 2, n_agents=2, n_adversaries=1)
+    cfg = resolve_algo("codbc", "treadmill", {"teacher": str(evil), "hidden": (16,)})
+    student = make_algorithm("codbc", env.spec, cfg, device="cpu", seed=0)
+    with pytest.raises(ConfigError, match="refused") as info:
+        student.teacher  # noqa: B018 (loaded on first use)
+    assert info.value.field == "teacher"
+    assert not marker.exists()
