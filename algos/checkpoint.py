@@ -35,6 +35,7 @@ __all__ = [
     "BEST_CHECKPOINT",
     "REPLAY_FILE",
     "CheckpointError",
+    "drop_replay",
     "load_checkpoint",
     "load_replay",
     "read_checkpoint",
@@ -159,6 +160,12 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
         path.replace(previous_replay(path))
     _write_atomically(path, lambda fh: np.savez(fh, **arrays))
     return size
+
+
+def drop_replay(path: str | Path) -> None:
+    """Delete a replay file and the one of the checkpoint before (a completed run needs neither)."""
+    Path(path).unlink(missing_ok=True)
+    previous_replay(Path(path)).unlink(missing_ok=True)
 
 
 def previous_replay(path: Path) -> Path:

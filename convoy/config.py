@@ -446,9 +446,14 @@ class RuntimeConfig(BaseModel):
     replay_checkpoint_mb: int = Field(
         2048,
         ge=0,
-        description="The learner saves its replay buffer (replay.npz beside checkpoint.pt) with each checkpoint "
-        "while it holds at most this many MB, so a restarted learner resumes with its data instead of an empty "
-        "buffer; 0 = never. The treadmill's rows are ~0.7 KB: 2048 MB keeps ~3 M of them.",
+        description="A run saves its replay buffer (replay.npz beside checkpoint.pt) with each checkpoint while it "
+        "holds at most this many MB, so a restarted learner or `convoy train --resume` goes on with its data "
+        "instead of an empty buffer; 0 = never. The treadmill's rows are ~0.7 KB: 2048 MB keeps ~3 M of them.",
+    )
+    keep_replay: bool = Field(
+        False,
+        description="Keep replay.npz when the run completes (to resume it past its budget with its data); by default "
+        "a completed run deletes it: it can be gigabytes, and only an unfinished run needs it.",
     )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="Zenoh session (peer on loopback).")
 

@@ -8,6 +8,7 @@ policy (``best.pt``), one checkpoint cadence and one summary.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -17,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from convoy.algos.algorithm import Agent, Progress, epsilon_at
-from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, save_checkpoint, save_replay
+from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, drop_replay, save_checkpoint, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
@@ -71,6 +72,9 @@ class TrainingCore:
         self.t0 = time.perf_counter()
         self.steps_at_start = self.env_steps
         self._closed = False
+        if self.out_dir is not None:  # the run's resolved config: what `convoy train --resume` reads back
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "job.json").write_text(json.dumps(job.model_dump(mode="json"), indent=2) + "\n")
 
     @property
     def done(self) -> bool:
@@ -124,8 +128,9 @@ class TrainingCore:
             while self.next_checkpoint <= self.env_steps:
                 self.next_checkpoint += self.job.checkpoint_every
 
-    def checkpoint(self, name: str = "checkpoint.pt") -> None:
-        """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point."""
+    def checkpoint(self, name: str = "checkpoint.pt", replay: bool = True) -> None:
+        """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point (and the
+        replay beside the last one, unless ``replay`` is off)."""
         assert self.out_dir is not None
         counters: dict[str, Any] = {
             "env_steps": self.env_steps,
@@ -134,7 +139,7 @@ class TrainingCore:
         }
         if self.evaluator.best > -math.inf:
             counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
-        if name == "checkpoint.pt" and self.replay_bytes:  # replay first: a crash between leaves no mismatched pair
+        if name == "checkpoint.pt" and self.replay_bytes and replay:  # replay first: a crash leaves no mismatch
             save_replay(self.out_dir / REPLAY_FILE, self.algo, self.env_steps, self.replay_bytes)
         save_checkpoint(self.out_dir / name, self.algo, self.job, counters)
 
@@ -150,7 +155,10 @@ class TrainingCore:
         together, then evaluate one after another)."""
         self.close()
         if self.out_dir is not None:
-            self.checkpoint()
+            keep = self.job.runtime.keep_replay
+            self.checkpoint(replay=keep)
+            if not keep:
+                drop_replay(self.out_dir / REPLAY_FILE)
         wall = (time.perf_counter() if end is None else end) - self.t0
         try:
             final = self.evaluator.final(self.algo)
@@ -159,6 +167,11 @@ class TrainingCore:
         tail = self.returns[-max(1, len(self.returns) // 10) :] if self.returns else [math.nan]
         steps_here = self.env_steps - self.steps_at_start
         summary = {
+            "algo": self.job.algo,
+            "env": self.job.env,
+            "seed": self.job.seed,
+            "env_params": self.job.env_params,
+            "hyper_parameters": self.cfg.model_dump(mode="json"),
             "env_steps": self.env_steps,
             "updates": self.algo.updates,
             "episodes": self.episodes,

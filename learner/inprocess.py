@@ -39,6 +39,11 @@ class TrainResult:
     references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
     best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
     best_eval_step: int = -1
+    algo: str = ""
+    env: str = ""
+    seed: int = 0
+    env_params: dict[str, Any] = field(default_factory=dict)
+    hyper_parameters: dict[str, Any] = field(default_factory=dict)  # the algorithm's resolved config
     out_dir: str | None = None
     rows: list[dict[str, float]] = field(default_factory=list)
 
@@ -60,9 +65,12 @@ class Trainer:
         out_dir: str | Path | None = None,
         progress: bool = True,
         on_row: Callable[[int], dict[str, float]] | None = None,
+        counters: dict[str, Any] | None = None,
     ) -> None:
-        """``on_row(env_steps)``: figures measured at every metric row and added to it (periodic evaluation)."""
+        """``on_row(env_steps)``: figures measured at every metric row and added to it (periodic evaluation);
+        ``counters``: a checkpoint's, when ``algo`` resumes from it (``learner/resume.py``)."""
         self.job, self.env, self.algo = job, env, algo
+        self.counters = counters
         self.on_row = on_row
         self.make_eval_env = make_eval_env
         self.out_dir = Path(out_dir) if out_dir is not None else None
@@ -71,7 +79,8 @@ class Trainer:
     def run(self) -> TrainResult:
         job, env, algo = self.job, self.env, self.algo
         torch.manual_seed(job.seed)
-        core = TrainingCore(job, algo, self.out_dir, self.make_eval_env, progress=self.show_progress)
+        core = TrainingCore(job, algo, self.out_dir, self.make_eval_env, progress=self.show_progress,
+                            counters=self.counters, replay_bytes=job.runtime.replay_checkpoint_mb << 20)  # fmt: skip
         stepper = EnvStepper(env, algo, job.seed)
         try:
             while not core.done:

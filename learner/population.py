@@ -28,7 +28,7 @@ import numpy as np
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import NetworkAgent, Progress
-from convoy.algos.checkpoint import save_replay
+from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.core import TrainingCore
@@ -143,6 +143,10 @@ class PopulationCore:
         """Each run's summary (``TrainingCore.finish`` over its member), in run order; training time ends now for
         all runs, though they are evaluated one after another."""
         end = time.perf_counter()
+        if self.replay is not None and self.jobs[0].runtime.keep_replay:
+            self._save_replay()  # beside the runs' last checkpoints, when asked
+        elif self.replay is not None:
+            drop_replay(self.replay[0])  # a completed population needs its replay no more
         summaries = []
         for k, (core, job) in enumerate(zip(self.cores, self.jobs, strict=True)):
             self.algo.member(k)
@@ -168,16 +172,23 @@ class PopulationTrainer:
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
         out_dirs: list[Path] | None = None,
         progress: bool = True,
+        replay: Path | None = None,
+        counters: list[dict[str, Any]] | None = None,
     ) -> None:
+        """``replay``: where the population's replay goes with each checkpoint; ``counters``: the runs'
+        checkpoints' when ``algo`` resumes from them (``learner/resume.py``)."""
         self.jobs, self.env, self.algo = jobs, env, algo
         self.make_eval_env = make_eval_env
         self.out_dirs = out_dirs
         self.show_progress = progress
+        self.replay, self.counters = replay, counters
 
     def run(self) -> list[TrainResult]:
         algo, env = self.algo, self.env
         per_run_envs = env.num_envs // len(self.jobs)
-        core = PopulationCore(self.jobs, algo, self.out_dirs, self.make_eval_env, progress=self.show_progress)
+        replay = (self.replay, self.jobs[0].runtime.replay_checkpoint_mb << 20) if self.replay else None
+        core = PopulationCore(self.jobs, algo, self.out_dirs, self.make_eval_env, progress=self.show_progress,
+                              counters=self.counters, replay=replay)  # fmt: skip
         stepper = EnvStepper(env, algo, seed=self.jobs[0].seed)
         try:
             while not core.done:

@@ -29,17 +29,13 @@ import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent, NetworkAgent
-from convoy.algos.checkpoint import (
-    REPLAY_FILE,
-    CheckpointError,
-    load_replay,
-    read_checkpoint,
-)
-from convoy.config import ConfigError, JobConfig, job_config
+from convoy.algos.algorithm import Agent
+from convoy.algos.checkpoint import REPLAY_FILE
+from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.learner.core import TrainingCore
 from convoy.learner.population import PopulationCore, mean_row
+from convoy.learner.resume import restore
 from convoy.learner.runtime import configure_learner
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
@@ -113,59 +109,6 @@ class Learner:
         """Every chunk-key message this learner refused so far, by reason (the inbox's and its own value checks)."""
         return dict(collections.Counter(inbox.dropped) + collections.Counter(self.rejected))
 
-    def _read(self, out_dir: Path) -> dict[str, Any] | None:
-        """The checkpoint in ``out_dir``, or None when there is none or it is unusable (an unreadable file is set
-        aside: the run starts afresh); one of another algorithm or env stops the learner."""
-        path = out_dir / "checkpoint.pt"
-        if not path.is_file():
-            return None
-        try:
-            payload = read_checkpoint(path)
-            job = job_config(**payload["job"])
-        except (CheckpointError, ConfigError, KeyError, TypeError) as exc:  # keep the bad file, start afresh
-            print(f"learner: checkpoint {path} unusable ({exc}); starting from scratch", flush=True)
-            path.rename(path.with_suffix(".unreadable"))
-            return None
-        if (job.algo, job.env, job.env_params) != (self.job.algo, self.job.env, self.job.env_params):
-            raise CheckpointError(f"checkpoint {path}: belongs to {job.algo} on {job.env}; use another --out")
-        return payload
-
-    def _restore(self, algo: Agent) -> dict[str, Any]:
-        """Load the last checkpoint into ``algo`` (this learner's own networks: no second copy is built) and
-        return its counters; an unusable file is set aside and the job starts afresh."""
-        payload = self._read(self.out_dir)
-        if payload is None:
-            return {}
-        try:
-            algo.load_state_dict(payload["state"])
-        except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
-            print(f"learner: checkpoint {self.out_dir} does not match the job's networks ({exc}); starting afresh")
-            (self.out_dir / "checkpoint.pt").rename(self.out_dir / "checkpoint.unreadable")
-            return {}
-        counters = dict(payload.get("counters", {}))
-        counters["replay_rows"] = load_replay(self.out_dir / REPLAY_FILE, algo, int(counters.get("env_steps", 0)))
-        return counters
-
-    def _restore_population(self, algo: NetworkAgent) -> list[dict[str, Any]] | None:
-        """Each run's last checkpoint (``DIR/seed-N/checkpoint.pt``) into its run of ``algo``; their counters, or
-        None (start afresh) unless every run has one, all at the same step. The population's replay
-        (``DIR/replay.npz``) comes back with them when it was saved at that step."""
-        payloads = [self._read(d) for d in self.job.member_dirs(self.out_dir)]
-        if all(p is None for p in payloads):
-            return None
-        steps = {int(p["counters"].get("env_steps", -1)) for p in payloads if p is not None}
-        if any(p is None for p in payloads) or len(steps) != 1:
-            print("learner: the population's runs have no checkpoints of one step; starting afresh", flush=True)
-            return None
-        try:
-            for k, payload in enumerate(payloads):
-                algo.load_member_state(k, payload["state"])  # type: ignore[index]
-        except Exception as exc:  # the networks differ (other sizes)
-            print(f"learner: the runs' checkpoints do not match the job's networks ({exc}); starting afresh")
-            return None
-        rows = load_replay(self.out_dir / REPLAY_FILE, algo, steps.pop())
-        return [{**p["counters"], "replay_rows": rows} for p in payloads]  # type: ignore[index]
-
     def run(self) -> int:
         job, rt = self.job, self.job.runtime
         configure_learner(job.torch_threads)
@@ -175,13 +118,9 @@ class Learner:
         probe.close()
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
-        if job.runs:
-            restored = self._restore_population(algo)  # type: ignore[arg-type]
-            if restored is None:
-                algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
-            counters: Any = restored or {}
-        else:
-            counters = self._restore(algo)
+        counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
+        if counters is None and job.runs:
+            algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
         session = open_session(self.settings)
         import zenoh
 

@@ -20,11 +20,17 @@ from convoy.validation import ConfigError
 LOCK = ".convoy.lock"
 RUN_FILES = ("checkpoint.pt", "metrics.jsonl", "summary.json")  # what makes a directory hold a run
 # What a run writes, and all that --overwrite removes (never anything else a user keeps beside it).
-ARTEFACTS = (*RUN_FILES, "best.pt", "replay.npz", "metrics.csv", "curve.png", "checkpoint.unreadable")
+ARTEFACTS = (*RUN_FILES, "best.pt", "replay.npz", "replay.previous.npz", "metrics.csv", "curve.png",
+             "checkpoint.unreadable", "job.json")  # fmt: skip
+
+
+def run_folders(path: Path) -> list[Path]:
+    """``path`` and the folders of a population's runs in it (``seed-N``)."""
+    return [path, *sorted(p for p in path.glob("seed-*") if p.is_dir())]
 
 
 def holds_run(path: Path) -> bool:
-    return any((path / name).exists() for name in RUN_FILES)
+    return any((folder / name).exists() for folder in run_folders(path) for name in RUN_FILES)
 
 
 def free_default(path: Path) -> Path:
@@ -48,8 +54,11 @@ class RunDir:
             self._handle.close()
 
 
-def claim(path: Path, overwrite: bool = False) -> RunDir:
-    """Lock ``path`` for this run; ConfigError naming ``--out`` and the fix when another run has it or holds it."""
+def claim(path: Path, overwrite: bool = False, resume: bool = False) -> RunDir:
+    """Lock ``path`` for this run; ConfigError naming ``--out`` and the fix when another run has it or holds it
+    (``resume``: the run it holds goes on, so it must hold one)."""
+    if resume and not holds_run(path):
+        raise ConfigError("--resume", f"{path} holds no run to resume (no checkpoint.pt, metrics or summary)")
     path.mkdir(parents=True, exist_ok=True)
     handle = open(path / LOCK, "a+")  # noqa: SIM115 - held for the run's lifetime
     try:
@@ -61,17 +70,18 @@ def claim(path: Path, overwrite: bool = False) -> RunDir:
         raise ConfigError(
             "--out", f"{path} is being written by another run (pid {owner}); wait for it or choose another --out"
         ) from None
-    if holds_run(path):
+    if holds_run(path) and not resume:
         if not overwrite:
             fcntl.flock(handle, fcntl.LOCK_UN)
             handle.close()
             raise ConfigError(
                 "--out",
-                f"{path} holds an earlier run ({', '.join(n for n in RUN_FILES if (path / n).exists())}); choose "
-                "another --out, or add --overwrite to replace it",
+                f"{path} holds an earlier run ({', '.join(n for n in RUN_FILES if (path / n).exists()) or 'seed-N/'});"
+                f" choose another --out, add --overwrite to replace it, or go on with it: --resume {path}",
             )
-        for name in ARTEFACTS:
-            (path / name).unlink(missing_ok=True)
+        for folder in run_folders(path):
+            for name in ARTEFACTS:
+                (folder / name).unlink(missing_ok=True)
     handle.seek(0)
     handle.truncate()
     handle.write(f"{os.getpid()}\n")

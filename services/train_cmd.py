@@ -70,14 +70,41 @@ def cmd_train(args: argparse.Namespace) -> int:
     metrics.jsonl/metrics.csv (one row per --log-every steps), curve.png, checkpoint.pt and summary.json under
     --out.
     """
-    job = job_from_args(args)
+    job = resumed_job(args) if args.resume else job_from_args(args)
     limits_from_args(args).check(job, "convoy train")
-    out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
-    run_dir = claim(out, overwrite=args.overwrite)
+    if args.resume:
+        out = Path(args.resume)
+    else:
+        out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
+    run_dir = claim(out, overwrite=args.overwrite, resume=bool(args.resume))
     try:
         return _train_population(args, job, out) if job.runs else _train(args, job, out)
     finally:
         run_dir.release()
+
+
+RESUME_FLAGS = ("steps", "device", "torch_threads")  # what may change when a run goes on
+
+
+def resumed_job(args: argparse.Namespace) -> JobConfig:
+    """The job of the run in ``--resume DIR`` (its ``job.json``), with the few flags a run may change as it goes on."""
+    path = Path(args.resume) / "job.json"
+    if not path.is_file():
+        raise ConfigError("--resume", f"{path.parent} has no job.json, the run's config: give the run's folder (Convoy "
+                          "writes job.json there), or train it again with its flags and --overwrite")  # fmt: skip
+    other = [f for f in (*JOB_FLAGS, "seeds") if getattr(args, f) is not None and f not in RESUME_FLAGS]
+    other += [flag for flag, value in (("--set", args.set), ("--hp", args.hp), ("--config", args.config),
+                                       ("--out", args.out), ("--agents", args.agents),
+                                       ("--adversaries", args.adversaries)) if value]  # fmt: skip
+    if other:
+        raise ConfigError("--resume", f"goes on with the run's own job ({path}); {', '.join(other)} cannot change "
+                          "(only --steps, --device, --threads, --actors and --runtime)")  # fmt: skip
+    values = json.loads(path.read_text())
+    values.update(given(args, RESUME_FLAGS))
+    values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
+    if args.actors is not None:
+        values["runtime"]["actors"] = args.actors
+    return job_config(**values)
 
 
 def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
@@ -96,8 +123,11 @@ def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> in
         soft_wrap=True,
     )
     dirs = job.member_dirs(out)
+    out.mkdir(parents=True, exist_ok=True)  # the population's own config (each run writes its own): for --resume
+    (out / "job.json").write_text(json.dumps(job.model_dump(mode="json"), indent=2) + "\n")
     if args.inprocess:
-        results = [r.as_dict() for r in run_population(job.members(), dirs, progress=not args.no_progress)]
+        pop = run_population(job.members(), dirs, not args.no_progress, root=out, resume=bool(args.resume))
+        results = [r.as_dict() for r in pop]
     else:
         results = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
         if not results:
@@ -132,7 +162,7 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
         soft_wrap=True,
     )
     if args.inprocess:
-        s = run_inprocess(job, out, progress=not args.no_progress).as_dict()
+        s = run_inprocess(job, out, progress=not args.no_progress, resume=bool(args.resume)).as_dict()
     else:
         runs = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
         if not runs:
@@ -196,6 +226,12 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         help="output directory, one run each (default runs/ALGO-ENV, or runs/ALGO-ENV-2, -3, … when that holds a run)",
     )
     tr.add_argument("--overwrite", action="store_true", help="replace the run already in --out")
+    tr.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="go on with the run in DIR (its job.json, checkpoint and replay) up to its steps, or to a new --steps; "
+        "only --steps, --device, --threads, --actors and --runtime may change",
+    )
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     add_limit_flags(tr)
 

@@ -18,38 +18,53 @@ def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
     return make_batched(job.env, job.num_envs if num_envs is None else num_envs, **job.env_params)
 
 
-def run_inprocess(job: JobConfig, out_dir: str | Path | None = None, progress: bool = True) -> TrainResult:
-    """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``."""
+def run_inprocess(
+    job: JobConfig, out_dir: str | Path | None = None, progress: bool = True, resume: bool = False
+) -> TrainResult:
+    """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``. ``resume``:
+    go on from ``out_dir``'s checkpoint (weights, optimizer, counters, schedules, replay; the envs start new
+    episodes) to ``job.steps``."""
     from convoy.algos.agent import make_agent
     from convoy.learner.inprocess import Trainer
+    from convoy.learner.resume import restore
     from convoy.learner.runtime import configure_learner
 
     configure_learner(job.torch_threads)
     env = make_env(job)  # the agent's initial weights follow job.seed, and Trainer.run seeds the training stream
     try:
         agent = make_agent(job, env.spec)
-        trainer = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), out_dir=out_dir, progress=progress)
+        counters = restore(agent, job, out_dir, strict=True) if resume and out_dir is not None else None
+        trainer = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), out_dir=out_dir,
+                          progress=progress, counters=counters)  # fmt: skip
         return trainer.run()
     finally:
         env.close()
 
 
-def run_population(jobs: list[JobConfig], out_dirs: list[Path], progress: bool = True) -> list[TrainResult]:
+def run_population(
+    jobs: list[JobConfig], out_dirs: list[Path], progress: bool = True, root: Path | None = None, resume: bool = False
+) -> list[TrainResult]:
     """Train the jobs (one algorithm, one per seed; they may differ in the hyper-parameters a population lets runs
-    differ in) as one population in this process; run k writes ``out_dirs[k]`` as a single run of its seed would."""
+    differ in) as one population in this process; run k writes ``out_dirs[k]`` as a single run of its seed would,
+    the population's replay goes to ``root/replay.npz`` with each checkpoint; ``resume`` goes on from there."""
+    from convoy.algos.checkpoint import REPLAY_FILE
     from convoy.algos.registry import make_algorithm
     from convoy.learner.population import PopulationTrainer
+    from convoy.learner.resume import restore_population
     from convoy.learner.runtime import configure_learner
 
     job = jobs[0]
     if len(jobs) == 1:  # a population of one is the single run of its seed, bit for bit
-        return [run_inprocess(job, out_dirs[0], progress=progress)]
+        return [run_inprocess(job, out_dirs[0], progress=progress, resume=resume)]
     configure_learner(job.torch_threads)
     env = make_env(job, job.num_envs * len(jobs))
+    replay = (root or out_dirs[0].parent) / REPLAY_FILE
     try:
         configs = [j.algo_config() for j in jobs]  # the runs may differ in lr, γ, target period, ε schedule
         agent = make_algorithm(job.algo, env.spec, configs[0], job.device, [j.seed for j in jobs], configs)
-        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress)
+        counters = restore_population(agent, jobs, out_dirs, replay, strict=True) if resume else None
+        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress,
+                                    replay=replay, counters=counters)  # fmt: skip
         return trainer.run()
     finally:
         env.close()

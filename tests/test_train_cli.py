@@ -161,3 +161,42 @@ def test_runs_never_share_a_directory_by_accident(tmp_path, capsys, monkeypatch)
         assert main(["train", "--algo", "idqn", *TINY]) == 0
     assert (tmp_path / "runs/idqn-referential/summary.json").exists()
     assert (tmp_path / "runs/idqn-referential-2/summary.json").exists()
+
+
+@pytest.mark.parametrize("seeds", [["--seed", "3"], ["--seeds", "3", "5"]], ids=["one-run", "population"])
+def test_a_run_goes_on_from_its_folder(tmp_path, capsys, seeds: list[str]) -> None:
+    """``--resume DIR`` reads the run's own job.json and checkpoint (and replay, kept here) and goes on to a new
+    ``--steps``: the counters carry on, the replay comes back, the metric rows continue without a duplicate, and
+    the summary names the algorithm, env, seed and hyper-parameters. A completed run drops its replay by default."""
+    out = tmp_path / "run"
+    first = ["train", "--algo", "idqn", *TINY, "--steps", "2000", *seeds, "--out", str(out)]
+    assert main(first) == 0
+    folders = [out] if seeds[0] == "--seed" else [out / "seed-3", out / "seed-5"]
+    assert not list(out.rglob("replay*.npz")), "a completed run keeps its replay only when asked"
+    assert main([*first, "--overwrite", "--runtime", "keep_replay=true"]) == 0
+    assert list(out.rglob("replay.npz"))
+    updates = [json.loads((f / "summary.json").read_text())["updates"] for f in folders]
+    capsys.readouterr()
+    assert main(["train", "--resume", str(out), "--steps", "4000", "--inprocess", "--no-progress"]) == 0
+    for folder, before, seed in zip(folders, updates, (3, 5), strict=False):
+        assert json.loads((folder / "job.json").read_text())["seed"] == seed
+        summary = json.loads((folder / "summary.json").read_text())
+        assert summary["env_steps"] >= 4000 and summary["algo"] == "idqn" and summary["env"] == "referential"
+        assert summary["seed"] == seed and summary["hyper_parameters"]["hidden"] == [32]
+        # the replay came back: updates went on at once (32 envs × 2000 steps of data ≥ learning_starts)
+        assert summary["updates"] >= 2 * before - 2, (summary["updates"], before)
+        steps = [json.loads(line)["env_steps"] for line in (folder / "metrics.jsonl").read_text().splitlines()]
+        assert steps == sorted(set(steps)) and steps[-1] >= 4000, steps
+
+
+def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    assert main(["train", "--resume", str(out), "--inprocess"]) == 2
+    assert "has no job.json" in capsys.readouterr().err
+    assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["train", "--resume", str(out), "--inprocess", "--hp", "lr=0.1"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "--resume" in err and "--hp cannot change" in err, err
+    assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 2
+    assert "--resume" in capsys.readouterr().err  # the refusal to reuse a folder names the way to go on

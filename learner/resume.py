@@ -1,0 +1,92 @@
+"""Resuming a run from its folder: the last checkpoint's weights, optimizer, counters and replay into a fresh agent.
+
+Two callers, two policies for a file that cannot be used. The learner process resumes after a crash or a stop on
+its own, and an unusable file must not keep a job from running: it is set aside (``checkpoint.unreadable``) and the
+job starts afresh (``strict=False``). ``convoy train --resume DIR`` is a user asking for that run: an unusable file
+is an error naming it (``strict=True``). A checkpoint of another algorithm or env is an error either way.
+
+A population resumes from its runs' checkpoints (``DIR/seed-N/checkpoint.pt``, all of one step) and the
+population's replay (``DIR/replay.npz``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from convoy.algos.algorithm import Agent
+from convoy.algos.checkpoint import REPLAY_FILE, CheckpointError, load_replay, read_checkpoint
+from convoy.config import ConfigError, JobConfig, job_config
+
+
+def _unusable(path: Path, why: str, strict: bool) -> None:
+    """Say why ``path`` cannot be used: an error (strict), or set it aside and say the run starts afresh."""
+    if strict:
+        raise CheckpointError(f"checkpoint {path}: {why}; resume from another folder or train afresh")
+    print(f"learner: checkpoint {path} unusable ({why}); starting from scratch", flush=True)
+    path.rename(path.with_suffix(".unreadable"))
+
+
+def _payload(out_dir: Path, job: JobConfig, strict: bool) -> dict[str, Any] | None:
+    path = out_dir / "checkpoint.pt"
+    if not path.is_file():
+        if strict:
+            raise CheckpointError(f"{out_dir}: no checkpoint.pt to resume from; train the run first")
+        return None
+    try:
+        payload = read_checkpoint(path)
+        saved = job_config(**payload["job"])
+    except (CheckpointError, ConfigError, KeyError, TypeError) as exc:
+        _unusable(path, str(exc), strict)
+        return None
+    if (saved.algo, saved.env, saved.env_params) != (job.algo, job.env, job.env_params):
+        raise CheckpointError(f"checkpoint {path}: belongs to {saved.algo} on {saved.env}; use another --out")
+    return payload
+
+
+def restore(algo: Agent, job: JobConfig, out_dir: str | Path, strict: bool = False) -> Any:
+    """Load the run's last checkpoint (and replay) into ``algo``: its counters (a population's: one dict per run,
+    each with ``replay_rows``), or None when there is nothing to resume — then a population's ``algo`` may hold
+    a partial load and must be built again."""
+    out = Path(out_dir)
+    if job.runs:
+        return restore_population(algo, job.members(), job.member_dirs(out), out / REPLAY_FILE, strict)
+    payload = _payload(out, job, strict)
+    if payload is None:
+        return None
+    try:
+        algo.load_state_dict(payload["state"])
+    except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
+        _unusable(out / "checkpoint.pt", f"does not match the job's networks ({exc})", strict)
+        return None
+    counters = dict(payload.get("counters", {}))
+    counters["replay_rows"] = load_replay(out / REPLAY_FILE, algo, int(counters.get("env_steps", 0)))
+    return counters
+
+
+def restore_population(
+    algo: Agent, jobs: list[JobConfig], dirs: list[Path], replay: Path, strict: bool = False
+) -> list[dict[str, Any]] | None:
+    """Run k's checkpoint (``dirs[k]``, job ``jobs[k]``) into run k of ``algo`` and the population's replay from
+    ``replay``; the runs' counters, or None unless every run has a checkpoint, all of one step."""
+    payloads = [_payload(d, job, strict) for d, job in zip(dirs, jobs, strict=True)]
+    if all(p is None for p in payloads):
+        return None
+    steps = {int(p["counters"].get("env_steps", -1)) for p in payloads if p is not None}
+    if any(p is None for p in payloads) or len(steps) != 1:
+        why = "the population's runs have no checkpoints of one step"
+        if strict:
+            raise CheckpointError(f"{replay.parent}: {why}; train afresh")
+        print(f"learner: {why}; starting afresh", flush=True)
+        return None
+    try:
+        for k, payload in enumerate(payloads):
+            algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined,index]
+    except Exception as exc:  # the networks differ (other sizes)
+        why = f"the runs' checkpoints do not match the job's networks ({exc})"
+        if strict:
+            raise CheckpointError(f"{replay.parent}: {why}") from None
+        print(f"learner: {why}; starting afresh", flush=True)
+        return None
+    rows = load_replay(replay, algo, steps.pop())
+    return [{**p["counters"], "replay_rows": rows} for p in payloads]  # type: ignore[index]
