@@ -87,8 +87,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)  # never runs code from the file
     except pickle.UnpicklingError as exc:
-        if "weights only" not in str(exc).lower():
-            raise CheckpointError(f"checkpoint {path}: cannot be read ({exc}); use an earlier one or retrain") from None
+        if "unsupported global" not in str(exc).lower():  # garbage, not an object to build
+            raise CheckpointError(
+                f"checkpoint {path}: cannot be read (not a pickle torch can read); it is corrupt or not a Convoy "
+                "checkpoint — use an earlier checkpoint or retrain"
+            ) from None
         raise CheckpointError(
             f"checkpoint {path}: refused — it holds Python objects, not only tensors and plain data, and loading it "
             "could run code. Convoy's checkpoints never do (every Convoy checkpoint loads); take this file only if "

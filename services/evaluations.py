@@ -22,10 +22,20 @@ from convoy.config import ConfigError
 from convoy.services.procs import pid_alive
 
 MAX_RUNNING = 2  # evaluations at once, service-wide: each takes a core
+_CHILDREN: dict[int, subprocess.Popen] = {}  # this process's running evaluations, until reaped
+
+
+def reap() -> None:
+    """Collect the exit of every evaluation this process started that has ended: an unreaped child stays a zombie,
+    and a zombie's pid looks alive (a failed evaluation would show as running for ever)."""
+    for pid, proc in list(_CHILDREN.items()):
+        if proc.poll() is not None:
+            del _CHILDREN[pid]
 
 
 def view(folder: Path, job_id: str) -> dict[str, Any]:
     """One evaluation as the API shows it, from its folder."""
+    reap()
     request = json.loads((folder / "request.json").read_text())
     out: dict[str, Any] = {
         "id": folder.name,
@@ -79,6 +89,7 @@ def start(job_dir: Path, job_id: str, request: EvalRequest, running_elsewhere: i
            "--device", "cpu"] + (["--channel", request.channel] if request.channel else [])  # fmt: skip
     with open(folder / "eval.log", "wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    _CHILDREN[proc.pid] = proc
     record = {"request": request.model_dump(mode="json"), "pid": proc.pid, "created_at": time.time()}
     (folder / "request.json").write_text(json.dumps(record, indent=2))
     return view(folder, job_id) | {"state": "running"}

@@ -245,6 +245,7 @@ class JobService:
                 raise ConfigError("actors", f"{actors} actors need {actors + 2} processes; the limit is "
                                   f"{self.max_processes} (convoy serve --max-processes)")  # fmt: skip
             rec = self.store.update(job_id, actors=actors)
+            say(f"job {job_id}: scaled to {actors} actor{'' if actors == 1 else 's'}")
             for member in self._members(rec):
                 self.store.update(member, actors=actors)
             if job_id in self.tracked:
@@ -307,6 +308,7 @@ class JobService:
             for member in self._members(rec):
                 self.store.delete(member)
             self.store.delete(job_id)
+            say(f"job {job_id}: deleted ({rec.state} before; its processes, history and files)")
         if rec.out_dir and Path(rec.out_dir).is_dir():
             shutil.rmtree(rec.out_dir, ignore_errors=True)
 
@@ -369,6 +371,7 @@ class JobService:
                 print(f"jobservice: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
 
     def _tick(self) -> None:
+        evaluations.reap()
         for job_id, tracked in list(self.tracked.items()):
             if not self.store.exists(job_id):
                 continue

@@ -311,5 +311,27 @@ def test_the_service_log_tells_of_a_crash_and_the_respawn(tmp_path: Path) -> Non
         text = log.read_text()
         assert re.search(rf"\d\d:\d\d:\d\d job {job}: crashed h-{job}\.\w+-\d+ exit code -9", text), text
         assert view["state"] == "running"
+        assert svc.client.patch(f"/jobs/{job}", json={"actors": 2}, headers=AUTH).status_code == 200
+        assert svc.client.delete(f"/jobs/{job}", headers=AUTH).status_code == 204
+        text = log.read_text()  # every change a user asks for is in the log, not only the ones the service makes
+        assert f"job {job}: scaled to 2 actors" in text and f"job {job}: deleted (running before" in text, text
     finally:
         svc.stop()
+
+
+def test_a_finished_evaluation_is_reaped_and_a_failed_one_says_so(tmp_path: Path) -> None:
+    """An evaluation whose process ended without a result reads as failed with its reason (an unreaped child is a
+    zombie whose pid looks alive: it would read as running for ever), and its process is collected."""
+    import sys
+
+    from convoy.api.models import EvalRequest
+    from convoy.services import evaluations
+
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    started = evaluations.start(tmp_path, "job", EvalRequest(episodes=2), 0, sys.executable)
+    t_end = time.monotonic() + 120
+    while (view := evaluations.find(tmp_path, "job", started["id"]))["state"] == "running":
+        assert time.monotonic() < t_end, view
+        time.sleep(0.2)
+    assert view["state"] == "failed" and "corrupt or not a Convoy checkpoint" in view["error"], view
+    assert not evaluations._CHILDREN  # reaped
