@@ -44,6 +44,8 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check .
 
 test: lint
+	@echo "make test: the dashboard tests need chromium on PATH and the multi-host test ip netns as root;"
+	@echo "  without them they skip (named below), and with CI=true the dashboard's fail instead"
 	$(BIN)/pytest
 
 test-fast: $(STAMP)
