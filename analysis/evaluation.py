@@ -21,7 +21,7 @@ from convoy.algos.listening import HearsMessages, Listening, Source
 from convoy.algos.memory import MemoryModule
 from convoy.envs.batched import BatchedEnv
 from convoy.envs.channel import MessageChannel
-from convoy.envs.rollout import rollout
+from convoy.envs.rollout import random_policy, rollout
 from convoy.stats import ci95_half
 from convoy.validation import ConfigError
 
@@ -57,6 +57,16 @@ def evaluate(env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: fl
     for rnd in range(-(-episodes // env.num_envs)):
         policy = AgentPolicy(algo, env.num_envs, epsilon)  # nothing in flight from an earlier round
         out.append(rollout(env, policy, seed=seed + rnd, after_step=policy.after_step).mean_return)
+    return np.concatenate(out)[:episodes].astype(np.float64)
+
+
+def evaluate_random(env: BatchedEnv, episodes: int, seed: int) -> np.ndarray:
+    """Per-episode returns of the uniform random policy (every agent's action uniform in its own range, no messages)
+    on the episodes ``evaluate`` plays with ``seed``: the one random reference, whatever algorithm is compared to
+    it (an algorithm at ε = 1 still sends its learned messages, so its "random" would differ by algorithm)."""
+    out: list[np.ndarray] = []
+    for rnd in range(-(-episodes // env.num_envs)):
+        out.append(rollout(env, random_policy(env.spec, seed + rnd), seed=seed + rnd).mean_return)
     return np.concatenate(out)[:episodes].astype(np.float64)
 
 

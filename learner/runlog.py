@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from convoy.algos.listening import HearsMessages
-from convoy.analysis.evaluation import evaluate, listening, listening_for
+from convoy.analysis.evaluation import evaluate, evaluate_random, listening, listening_for
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.metrics import MetricsWriter, plot_curves
 from convoy.stats import ci95_half
@@ -173,22 +173,24 @@ class Evaluator:
 
     def final(self, algo: Any) -> dict[str, Any]:
         """The trained policy's greedy return and CI, the best point of the curve and the reference policies'
-        returns on the same number of episodes (random for every env; the treadmill adds its best constant action
-        and the scripted driver)."""
+        returns on the same number of episodes (the uniform random policy for every env, the same for every
+        algorithm; the treadmill adds its best constant action and its drivers)."""
         if not self.enabled:
             nan = math.nan
             return {"eval_return": nan, "eval_ci95": nan, "random_return": nan, "references": {}}
-        greedy, rand = self.returns(algo), self.returns(algo, epsilon=1.0)
-        refs: dict[str, tuple[float, float]] = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
         from convoy.envs.registry import env_entry
 
+        greedy = self.returns(algo)
         table = env_entry(self.env_name).references
-        if table is not None:
+        if table is not None:  # the env's own references, its uniform random policy among them
             refs = table(self.env_params, self.episodes, self.seed)
+        else:
+            rand = evaluate_random(self._env, self.episodes, self.seed)  # type: ignore[arg-type]
+            refs = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
         out: dict[str, Any] = {
             "eval_return": float(greedy.mean()),
             "eval_ci95": ci95_half(greedy, single=0.0),
-            "random_return": float(rand.mean()),
+            "random_return": float(refs["random"][0]),  # the same figure as references.random
             "references": {k: [float(m), float(c)] for k, (m, c) in refs.items()},
         }
         if self.best > -math.inf:

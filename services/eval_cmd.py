@@ -39,8 +39,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     interval, next to the random policy's. --messages and --channel probe the communication: white noise in
     place of messages, the memory module's predictions (no channel, -mm algorithms), or a lossy channel.
     """
-    from convoy.analysis.evaluation import evaluate_policy, parse_channel
+    from convoy.analysis.evaluation import evaluate_policy, evaluate_random, parse_channel
     from convoy.services.training import make_env
+    from convoy.stats import ci95_half
 
     if args.episodes < 1:
         raise ConfigError("--episodes", f"must be ≥ 1 (got {args.episodes})")
@@ -58,11 +59,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     env = make_env(job, min(args.episodes, args.num_envs))
     try:
         result = evaluate_policy(algo, env, args.episodes, seed=args.seed, messages=args.messages, channel=args.channel)
-        rand = evaluate_policy(algo, env, args.episodes, seed=args.seed, epsilon=1.0)
+        rand = evaluate_random(env, args.episodes, seed=args.seed)
     finally:
         env.close()
     console.print(f"greedy return:  {result.describe()}", highlight=False, soft_wrap=True)
-    console.print(f"random policy:  {rand.mean:.3f} ± {rand.ci95:.3f}", highlight=False)
+    console.print(f"random policy:  {rand.mean():.3f} ± {ci95_half(rand, single=0.0):.3f}", highlight=False)
     if args.gif:
         frames = gif_episode(algo, job, args)
         console.print(f"wrote {args.gif} ({frames} frames of one greedy episode)")
@@ -76,7 +77,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
             "episodes": args.episodes,
             "mean_return": result.mean,
             "ci95": result.ci95,
-            "random_return": rand.mean,
+            "random_return": float(rand.mean()),
             "returns": result.returns.tolist(),
         }
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

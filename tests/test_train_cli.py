@@ -200,3 +200,16 @@ def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
     assert "--resume" in err and "--hp cannot change" in err, err
     assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 2
     assert "--resume" in capsys.readouterr().err  # the refusal to reuse a folder names the way to go on
+
+
+def test_one_random_reference_whatever_the_algorithm(tmp_path, capsys) -> None:
+    """The random reference is the uniform random policy on the evaluation episodes: the same figure for an
+    algorithm with learned messages (DIAL) and one without, and summary.json carries it once."""
+    randoms = []
+    for algo in ("dial", "idqn"):
+        out = tmp_path / algo
+        assert main(["train", "--algo", algo, *TINY, "--steps", "600", "--out", str(out)]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["random_return"] == summary["references"]["random"][0]
+        randoms.append(summary["random_return"])
+    assert randoms[0] == randoms[1]
