@@ -189,7 +189,38 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
     console.print(table)
     best = ", best.pt" if s.get("best_eval_step", -1) >= 0 else ""
     console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt{best}, summary.json")
+    warn_constant_messages(out / "checkpoint.pt")
     return 0
+
+
+def warn_constant_messages(checkpoint: Path, steps: int = 100, envs: int = 16) -> float | None:
+    """Say so when a trained policy sends one message whatever it sees: its messages carry nothing, and a probe
+    of them (``--messages noise``, ``convoy analyze``) says nothing about communication. The entropy in nats of
+    the messages of ``steps`` greedy steps of ``envs`` envs (None for algorithms without discrete messages)."""
+    from convoy.algos.checkpoint import load_checkpoint
+    from convoy.algos.listening import HearsMessages
+    from convoy.analysis.comm_metrics import entropy, symbols
+    from convoy.analysis.recording import record
+    from convoy.services.training import make_env
+
+    algo, job, _ = load_checkpoint(checkpoint, device="cpu")
+    if not isinstance(algo, HearsMessages):
+        return None
+    env = make_env(job, envs)
+    try:
+        sent = symbols(record(algo, env, steps, seed=job.seed + 20_000).messages)  # [T, B, N]
+    finally:
+        env.close()
+    h = entropy(sent.reshape(-1))
+    if h < 0.01:
+        console.print(
+            f"[bold yellow]warning:[/] every message this policy sent in {steps * envs:,} greedy steps was the same "
+            f"(entropy {h:.3f} nats): its messages carry nothing, so probing them (convoy eval --messages noise, "
+            "convoy analyze) says nothing about communication. Longer training, or --hp signalling_coef, changes "
+            "that.",
+            highlight=False,
+        )
+    return h
 
 
 def _algo_epilog() -> str:

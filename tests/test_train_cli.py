@@ -213,3 +213,27 @@ def test_one_random_reference_whatever_the_algorithm(tmp_path, capsys) -> None:
         assert summary["random_return"] == summary["references"]["random"][0]
         randoms.append(summary["random_return"])
     assert randoms[0] == randoms[1]
+
+
+def test_a_policy_that_sends_one_message_is_said_to(tmp_path, capsys) -> None:
+    """After training, a message-sending policy whose messages never vary gets a warning (probing them says
+    nothing); one whose messages vary does not."""
+    from convoy.algos.agent import make_agent
+    from convoy.algos.checkpoint import save_checkpoint
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+    from convoy.services.train_cmd import warn_constant_messages
+
+    job = job_config(algo="ma-mesn", env="referential", algo_params={"hidden": [16]}, device="cpu")
+    algo = make_agent(job, make_batched("referential", 1).spec)
+    path = save_checkpoint(tmp_path / "varied.pt", algo, job, {"env_steps": 0, "episodes": 0, "updates": 0})
+    assert warn_constant_messages(path) > 0.1 and "warning" not in capsys.readouterr().out
+    last = list(algo.online["message"].modules())[-1]  # f′'s last layer: every bit's logit pair fixed
+    with torch.no_grad():
+        for p in last.parameters():
+            p.zero_()
+        last.bias.view(-1)[0::2] = 5.0
+    path = save_checkpoint(tmp_path / "constant.pt", algo, job, {"env_steps": 0, "episodes": 0, "updates": 0})
+    assert warn_constant_messages(path) == 0.0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "warning: every message this policy sent" in out and "says nothing about communication" in out, out
