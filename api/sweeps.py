@@ -18,10 +18,11 @@ from typing import Any
 
 import numpy as np
 
+from convoy.analysis.curves import mean_ci as _mean_ci
+from convoy.analysis.curves import mean_curve
 from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
 from convoy.config import ConfigError, JobConfig, algo_name
-from convoy.stats import ci95_half
 from convoy.validation import build_config
 
 
@@ -163,13 +164,6 @@ def _curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: i
     return np.array(steps, np.int64), np.array(values), np.array(wall)
 
 
-def _mean_ci(values: list[float]) -> dict[str, Any]:
-    x = np.asarray(values, dtype=np.float64)
-    if not len(x):
-        return {"mean": None, "ci95": None, "n": 0, "values": []}
-    return {"mean": float(x.mean()), "ci95": ci95_half(x, single=0.0), "n": len(x), "values": x.tolist()}
-
-
 def summarize_group(
     name: str, members: list[tuple[str, dict[str, Any]]], reader: JobReader, threshold: float | None
 ) -> dict[str, Any]:
@@ -195,21 +189,12 @@ def summarize_group(
             if len(hit):
                 reached_steps.append(float(steps[hit[0]]))
                 reached_wall.append(float(wall[hit[0]]))
-    # the common points: the evaluation steps of the longest curve; a seed counts at a point its curve spans
-    grid = max((s for s, _ in curves), key=len, default=np.zeros(0, np.int64))
-    mean, ci, count = [], [], []
-    for x in grid:
-        at = [float(np.interp(x, s, v)) for s, v in curves if s[0] <= x <= s[-1]]
-        stats = _mean_ci(at)
-        mean.append(stats["mean"])
-        ci.append(stats["ci95"])
-        count.append(stats["n"])
     out: dict[str, Any] = {
         "group": name,
         "point": {k: v for k, v in members[0][1].items() if k != "seed"} if members else {},
         "jobs": jobs,
         "states": states,
-        "curve": {"env_steps": [int(x) for x in grid], "mean": mean, "ci95": ci, "n": count},
+        "curve": mean_curve(curves),
         "final": _mean_ci(finals),
     }
     if threshold is not None:

@@ -518,6 +518,12 @@ class JobConfig(BaseModel):
     )
     log_every: int = Field(2_000, ge=1, le=1_000_000_000, description="Env steps between metric rows.")
     checkpoint_every: int = Field(50_000, ge=1, le=1_000_000_000, description="Env steps between checkpoints.")
+    loggers: list[Literal["wandb", "mlflow"]] = Field(
+        default_factory=list,
+        max_length=2,
+        description="Experiment trackers besides TensorBoard (every run writes RUN/tb/): wandb, mlflow — each an "
+        "optional extra (pip install 'convoy[wandb]').",
+    )
     device: Device = Field("auto", description="Torch device; auto = CUDA when present.")
     torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig, description="Distributed runtime settings.")

@@ -22,6 +22,7 @@ from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, drop_replay, s
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
+from convoy.learner.trackers import Trackers
 
 
 class TrainingCore:
@@ -72,9 +73,13 @@ class TrainingCore:
         self.t0 = time.perf_counter()
         self.steps_at_start = self.env_steps
         self._closed = False
+        self.trackers: Trackers | None = None
         if self.out_dir is not None:  # the run's resolved config: what `convoy train --resume` reads back
             self.out_dir.mkdir(parents=True, exist_ok=True)
             (self.out_dir / "job.json").write_text(json.dumps(job.model_dump(mode="json"), indent=2) + "\n")
+            config = {**job.model_dump(mode="json", exclude={"runtime"}), "hyper_parameters": self.cfg.model_dump()}
+            resume_at = self.env_steps if counters else None
+            self.trackers = Trackers(self.out_dir, config, tuple(job.loggers), resume_at=resume_at)
 
     @property
     def done(self) -> bool:
@@ -116,7 +121,10 @@ class TrainingCore:
                 figures.update(self.evaluator.point(self.algo, self.env_steps))
             if extra is not None:
                 figures.update(extra(self.env_steps))
-        return self.log.maybe_row(self.env_steps, self.episodes, self.algo.updates, self.epsilon, **figures)
+        row = self.log.maybe_row(self.env_steps, self.episodes, self.algo.updates, self.epsilon, **figures)
+        if row is not None and self.trackers is not None:
+            self.trackers.row(row)
+        return row
 
     @property
     def checkpoint_due(self) -> bool:
@@ -144,9 +152,17 @@ class TrainingCore:
         save_checkpoint(self.out_dir / name, self.algo, self.job, counters)
 
     def close(self) -> None:
+        """The metric files (the trackers stay open for the summary: ``finish`` closes them)."""
         if not self._closed:
             self._closed = True
             self.log.close()
+
+    def _close_trackers(self, summary: dict[str, Any] | None = None) -> None:
+        if self.trackers is not None:
+            if summary is not None:
+                self.trackers.summary(summary)
+            self.trackers.close()
+            self.trackers = None
 
     def finish(self, title: str, end: float | None = None, **extra: Any) -> dict[str, Any]:
         """Close the log, checkpoint, evaluate the final policy beside the references, write ``summary.json`` and
@@ -184,4 +200,5 @@ class TrainingCore:
         }
         if self.out_dir is not None:
             write_artefacts(self.out_dir, summary, self.log.rows, title=title)
+        self._close_trackers(summary)
         return summary

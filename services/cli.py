@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from convoy.algos.errors import CheckpointError
@@ -218,6 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
 
+    from convoy.services.compare_cmd import add_compare_parser
     from convoy.services.eval_cmd import add_eval_parsers
     from convoy.services.jobs_cmd import add_jobs_parser
     from convoy.services.reproduce_cmd import add_reproduce_parser
@@ -228,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_train_parser(sub)
     add_eval_parsers(sub)
+    add_compare_parser(sub)
     add_serve_parser(sub)
     add_jobs_parser(sub)
     add_sweep_parser(sub)
@@ -242,13 +245,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ConfigError, ValidationError, CheckpointError) as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
     except JobFailed as exc:
-        err_console.print(f"[bold red]job failed:[/] {exc}", highlight=False, soft_wrap=True)
+        err_console.print(f"[bold red]job failed:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 1
     except FloatingPointError as exc:  # the in-process trainer's Algorithm.update gave up on non-finite losses
-        err_console.print(f"[bold red]job failed:[/] training diverged: {exc}", highlight=False, soft_wrap=True)
+        err_console.print(
+            f"[bold red]job failed:[/] training diverged: {escape(str(exc))}", highlight=False, soft_wrap=True
+        )
         return 1
     except KeyboardInterrupt:
         err_console.print("interrupted")

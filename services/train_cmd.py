@@ -54,7 +54,7 @@ def read_config_file(path: str) -> dict[str, Any]:
 def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
-    values.update(given(args, (*JOB_FLAGS, "seeds", "device", "torch_threads")))
+    values.update(given(args, (*JOB_FLAGS, "seeds", "loggers", "device", "torch_threads")))
     values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
     if args.actors is not None:
         values["runtime"]["actors"] = args.actors
@@ -83,7 +83,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         run_dir.release()
 
 
-RESUME_FLAGS = ("steps", "device", "torch_threads")  # what may change when a run goes on
+RESUME_FLAGS = ("steps", "device", "torch_threads", "loggers")  # what may change when a run goes on
 
 
 def resumed_job(args: argparse.Namespace) -> JobConfig:
@@ -271,6 +271,14 @@ def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     add_job_flags(tr)
     add_model_flags(tr, JobConfig, ("seeds", "device", "torch_threads"), flags={"torch_threads": "--threads"})
+    tr.add_argument(
+        "--logger",
+        dest="loggers",
+        action="append",
+        choices=("wandb", "mlflow"),
+        help="also send metrics and the summary to this tracker (repeatable; every run writes TensorBoard files to "
+        "RUN/tb/); each an optional extra: pip install 'convoy[wandb]'",
+    )
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
 

@@ -237,3 +237,45 @@ def test_a_policy_that_sends_one_message_is_said_to(tmp_path, capsys) -> None:
     assert warn_constant_messages(path) == 0.0
     out = " ".join(capsys.readouterr().out.split())
     assert "warning: every message this policy sent" in out and "says nothing about communication" in out, out
+
+
+def test_runs_open_in_tensorboard_and_compare_side_by_side(tmp_path, capsys) -> None:
+    """Every run writes TensorBoard events (the greedy return with its interval, training figures, speeds, the
+    config as hyper-parameters; a resumed run without duplicate steps), and ``convoy compare`` tables and plots
+    runs and populations side by side."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    one, pop = tmp_path / "one", tmp_path / "pop"
+    base = ["train", "--algo", "idqn", *TINY, "--steps", "2000", "--eval-every", "1000"]
+    assert main([*base, "--out", str(one)]) == 0
+    assert main(["train", "--resume", str(one), "--steps", "3000", "--inprocess", "--no-progress"]) == 0
+    assert main([*base, "--seeds", "1", "2", "--out", str(pop)]) == 0
+    events = EventAccumulator(str(one / "tb"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"eval/return", "eval/lower", "eval/upper", "train/loss", "train/epsilon", "speed/env_steps_per_s"} <= tags
+    rows = [json.loads(line) for line in (one / "metrics.jsonl").read_text().splitlines()]
+    want = [(r["env_steps"], r["eval_return"]) for r in rows if r.get("eval_return") is not None]
+    got = [(e.step, e.value) for e in events.Scalars("eval/return")]
+    assert [s for s, _ in got] == [s for s, _ in want] and np.allclose([v for _, v in got], [v for _, v in want])
+    steps = [e.step for e in events.Scalars("train/loss")]
+    assert steps == sorted(set(steps)), "the resumed run's events repeat steps"
+    assert any(p.name.startswith("events") for p in (pop / "seed-2" / "tb").iterdir())
+    capsys.readouterr()
+    png = tmp_path / "cmp.png"
+    assert main(["compare", str(one), str(pop), "--plot", str(png)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "final greedy" in out and png.stat().st_size > 10_000
+    assert main(["compare", str(tmp_path / "nothing")]) == 2
+    assert "holds no run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("logger", ["wandb", "mlflow"])
+def test_a_tracker_that_is_not_installed_is_named_with_its_extra(tmp_path, capsys, logger: str) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec(logger) is not None:
+        pytest.skip(f"{logger} is installed here")
+    assert main(["train", "--algo", "idqn", *TINY, "--logger", logger, "--out", str(tmp_path / "run")]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"loggers: {logger} is not installed: pip install 'convoy[{logger}]'" in err, err

@@ -1,0 +1,77 @@
+"""``convoy compare RUN…``: local runs side by side — their greedy curves in one plot and their figures in one table."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from convoy.services.args import add_command
+from convoy.services.rundir import run_folders
+from convoy.validation import ConfigError
+
+console = Console()
+
+
+def load_group(path: Path) -> dict[str, Any]:
+    """A run folder, or a population's (its ``seed-N`` runs as one group), as a group of seeds: the mean greedy
+    curve with its CI, the final and best greedy returns over seeds, and the random reference."""
+    import numpy as np
+
+    from convoy.analysis.curves import mean_ci, mean_curve
+    from convoy.learner.metrics import read_rows
+
+    folders = [f for f in run_folders(path) if (f / "metrics.jsonl").is_file()]
+    if not folders:
+        raise ConfigError("RUN", f"{path} holds no run (no metrics.jsonl, nor seed-N/ folders with one); give a "
+                          "folder convoy train wrote")  # fmt: skip
+    curves, summaries = [], []
+    for folder in folders:
+        points = [r for r in read_rows(folder) if math.isfinite(r.get("eval_return", math.nan))]
+        if points:
+            curves.append((np.array([r["env_steps"] for r in points]), np.array([r["eval_return"] for r in points])))
+        if (folder / "summary.json").is_file():
+            summaries.append(json.loads((folder / "summary.json").read_text()))
+
+    def over(key: str) -> dict[str, Any]:
+        return mean_ci([float(s[key]) for s in summaries if isinstance(s.get(key), int | float)])
+
+    return {"group": str(path), "runs": len(folders), "curve": mean_curve(curves), "final": over("eval_return"),
+            "best": over("best_eval_return"), "random": over("random_return"),
+            "steps": max((int(s.get("env_steps", 0)) for s in summaries), default=0)}  # fmt: skip
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """Compare local runs: greedy curves side by side.
+
+    Each RUN is a folder written by convoy train: one run, or a population's (its seeds are one group, drawn as the
+    mean over seeds with its 95 % CI band). Prints each group's final greedy return, best greedy point and random
+    reference (mean ± 95 % CI over its seeds) and plots the greedy curves in one PNG.
+    """
+    from convoy.analysis.curves import plot_groups
+
+    groups = [load_group(Path(run)) for run in args.runs]
+    table = Table(title="greedy return: mean ± 95 % CI over each group's seeds")
+    for col in ("run", "seeds", "env steps", "final greedy", "best greedy point", "random"):
+        table.add_column(col, justify="left" if col == "run" else "right")
+
+    def fmt(stats: dict[str, Any]) -> str:
+        return "–" if stats["mean"] is None else f"{stats['mean']:.3f} ± {stats['ci95']:.3f}"
+
+    for g in groups:
+        table.add_row(g["group"], str(g["runs"]), f"{g['steps']:,}", fmt(g["final"]), fmt(g["best"]), fmt(g["random"]))
+    console.print(table)
+    plot_groups(groups, args.plot, title="greedy evaluation (mean ± 95 % CI over seeds)")
+    console.print(f"wrote {args.plot}")
+    return 0
+
+
+def add_compare_parser(sub: argparse._SubParsersAction) -> None:
+    p = add_command(sub, "compare", cmd_compare)
+    p.add_argument("runs", nargs="+", metavar="RUN", help="a run's folder, or a population's (its seed-N runs)")
+    p.add_argument("--plot", default="compare.png", metavar="PATH", help="the plot's file (default: %(default)s)")
