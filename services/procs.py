@@ -34,6 +34,7 @@ from convoy.protocol.session import ZenohSettings
 # torch._dynamo: torch imports it on the first optimizer's construction (~0.9 s), which would stall a learner's
 # first update while every actor waits for it.
 PRELOAD = ["convoy.actors.actor", "convoy.algos.agent", "convoy.learner.service", "torch._dynamo"]
+EXIT_GRACE_S = 3.0  # how long an actor's exit 0 waits for the learner's word that the job has its data
 SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
 MAX_BACKOFF_S = 30.0
 
@@ -84,6 +85,7 @@ class Slot:
     started: float = field(default_factory=time.monotonic)
 
     prefix: str = ""
+    exited_at: float | None = None  # when an exit 0 was first seen before the learner had the job's steps
 
     @property
     def ident(self) -> str:
@@ -224,6 +226,14 @@ class ProcessGroup:
                 continue
             slot.proc.join(0)
             left_early = code == 0 and self.learner is not None and not learner_has_data
+            if left_early and self.learner.proc.exitcode is None:
+                # the learner tells actors it has all its data just before its last row: that row (or the learner's
+                # own exit 0) may still be on its way. Wait for it a little before calling the exit a crash.
+                slot.exited_at = slot.exited_at or time.monotonic()
+                if time.monotonic() - slot.exited_at < EXIT_GRACE_S:
+                    continue
+            if left_early and self.learner.proc.exitcode == 0:
+                left_early = False  # the learner finished: the actor left because the job has its data
             if code == 0 and not left_early:
                 events.append(Event("exited", "actor", slot.ident))
                 del self.actors[index]

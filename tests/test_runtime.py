@@ -103,7 +103,9 @@ def test_distributed_learner_matches_inprocess_on_referential(tmp_path: Path) ->
     """
     job = job_config(algo="ma-mesn", steps=30_000, seed=0, runtime={"actors": 1}, **REFERENTIAL)
     inproc = run_inprocess(job, tmp_path / "inproc", progress=False).as_dict()
-    dist = JobRunner("equiv", job, tmp_path / "dist", progress=False).run()
+    runner = JobRunner("equiv", job, tmp_path / "dist", progress=False)
+    dist = runner.run()
+    assert not [e for e in runner.events if e.kind in ("crashed", "respawned")], runner.events  # a normal end
     assert inproc["eval_return"] >= 0.9, inproc
     assert dist["eval_return"] >= 0.9, dist
     assert abs(dist["eval_return"] - inproc["eval_return"]) <= 0.1
@@ -119,9 +121,11 @@ def test_dial_runs_distributed_with_chunks_of_its_unroll(tmp_path: Path, slack: 
     runtime = {"actors": 1, "slack_steps": slack}
     job = job_config(algo="dial", steps=4_000, seed=0, runtime=runtime, **{**REFERENTIAL, "eval_episodes": 0})
     assert job.runtime.slack(job.num_envs, job.runtime.chunk_len(32)) >= 32 * job.num_envs
-    with Background(JobRunner("dial", job, tmp_path / "dial", progress=False)) as bg:
+    runner = JobRunner("dial", job, tmp_path / "dial", progress=False)
+    with Background(runner) as bg:
         result = bg.join(120)
     assert result["env_steps"] >= 4_000 and result["updates"] > 0, result
+    assert not [e for e in runner.events if e.kind in ("crashed", "respawned")], runner.events  # a normal end
 
 
 def test_killed_actor_is_respawned_within_2s_and_the_job_completes(tmp_path: Path) -> None:
