@@ -18,7 +18,7 @@ from convoy.api.lifecycle import JobReader, JobRecord, JobState, SweepRecord
 from convoy.api.models import EvalRequest, FinalEvaluation, JobView, Progress, SweepSubmit
 from convoy.config import JobConfig
 
-PROGRESS_FIELDS = ("updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
+PROGRESS_FIELDS = ("updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
 
 

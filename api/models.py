@@ -236,7 +236,10 @@ class Progress(BaseModel):
     env_steps: int = 0
     fraction: float = 0.0
     updates: int | None = None
-    return_: float | None = Field(None, alias="return", serialization_alias="return")
+    return_: float | None = Field(
+        None, alias="return", serialization_alias="return", description="ε-greedy training return of the last row."
+    )
+    eval_return: float | None = Field(None, description="The latest greedy evaluation (ε = 0, fixed seeds).")
     loss: float | None = None
     env_steps_per_s: float | None = None
     updates_per_s: float | None = None

@@ -69,7 +69,8 @@ from convoy.services.store import JobStore
 EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
 HOST_EVENT = re.compile(r"^\[h-[^\]]+\] ((?:crashed|respawned|backoff|failed) .*)")  # services/host.py's events
 SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
-PROGRESS_KEYS = ("env_steps", "updates", "return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
+PROGRESS_KEYS = ("env_steps", "updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s",
+                 "policy_lag")  # fmt: skip
 STOP_GRACE_S = 20.0
 CREDENTIALS_FILE = "zenoh-credentials"  # in the job's directory: its usrpwd dictionary (0600)
 

@@ -118,6 +118,14 @@ def test_dashboard_draws_a_sweep_with_ci_bands_and_acts_on_a_finished_job(tmp_pa
             page.wait_for_function(f"window.convoy.selected === {first!r}")
             page.wait_for_selector("#job-final:not([hidden])")
             assert "final greedy return" in page.inner_text("#job-final")
+            # its greedy chart: the CI band and the references it was scored beside; a link that opens it again
+            page.wait_for_function("window.convoy.greedy && window.convoy.greedy.band >= 1 "
+                                   "&& window.convoy.greedy.references >= 1")  # fmt: skip
+            assert f"job={first}" in page.evaluate("location.hash") and f"sweep={sid}" in page.evaluate("location.hash")
+            other = browser.new_page(viewport={"width": 1280, "height": 1100})
+            other.goto(f"{svc.url}/#job={first}&sweep={sid}")
+            other.wait_for_function(f"window.convoy.selected === {first!r} && window.convoy.sweep.groups === 2")
+            other.close()
             page.wait_for_selector('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
             page.click("#logs-box summary")
             page.wait_for_function("window.convoy.logs > 0")

@@ -2,6 +2,7 @@
 "use strict";
 
 const METRICS = ["eval_return", "return", "env_steps_per_s", "loss", "policy_lag"];
+const BAND = "eval_ci95"; // the greedy return's 95 % CI half-width, drawn as a band around it
 const ACTIVE = new Set(["queued", "starting", "running"]);
 const TERMINAL = new Set(["stopped", "completed", "failed"]);
 const TOKEN_KEY = "convoy-token";
@@ -130,6 +131,7 @@ function setOffline(offline, err) {
 // ---------------------------------------------------------------- charts
 
 const COLORS = { eval_return: "#1d3f8f", return: "#8fb0ef", env_steps_per_s: "#2e9d5b", loss: "#d9822b", policy_lag: "#8b5cf6" };
+const REF_COLORS = ["#7b8794", "#d9822b", "#2e9d5b", "#c0392b", "#8b5cf6", "#a16207"];
 
 function niceTicks(lo, hi, count) {
   if (!(hi > lo)) { const d = Math.abs(lo) * 0.1 || 1; lo -= d; hi += d; }
@@ -149,8 +151,9 @@ function tickLabel(v, step) {
   return v.toFixed(decimals);
 }
 
-// Draws one learning curve (points: [[x, y], ...], nulls already skipped). Returns the number of points drawn.
-function drawChart(canvas, points, color) {
+// Draws one learning curve (points: [[x, y], ...], nulls already skipped), with an optional band ([[x, half]]:
+// y ± half at the points' steps) and reference lines ({name: y}). Returns the number of points drawn.
+function drawChart(canvas, points, color, band = [], refs = {}) {
   const dpr = window.devicePixelRatio || 1;
   const w = canvas.clientWidth || 300, h = canvas.clientHeight || 180;
   if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
@@ -170,11 +173,19 @@ function drawChart(canvas, points, color) {
     return 0;
   }
 
+  const half = new Map(band);
+  const bandPts = points.filter(([x]) => half.has(x)).map(([x, y]) => [x, y - half.get(x), y + half.get(x)]);
+  const refList = Object.entries(refs).filter(([, v]) => Number.isFinite(v));
   let xmin = Infinity, xmax = -Infinity, ymin = Infinity, ymax = -Infinity;
   for (const [x, y] of points) {
     if (x < xmin) xmin = x; if (x > xmax) xmax = x;
     if (y < ymin) ymin = y; if (y > ymax) ymax = y;
   }
+  for (const [, lo, hi] of bandPts) { ymin = Math.min(ymin, lo); ymax = Math.max(ymax, hi); }
+  for (const [, v] of refList) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
+  // no zoom into noise: the axis spans at least 10 % of the values' size (23.47 → 23.22 is a flat line)
+  const minSpan = 0.1 * Math.max(Math.abs(ymin), Math.abs(ymax), 1e-9);
+  if (ymax - ymin < minSpan) { const mid = (ymax + ymin) / 2; ymin = mid - minSpan / 2; ymax = mid + minSpan / 2; }
   const yt = niceTicks(ymin, ymax, 4);
   const xt = niceTicks(xmin, xmax, Math.max(2, Math.floor(w / 110)));
   const yLabels = yt.ticks.map((v) => tickLabel(v, yt.step));
@@ -208,6 +219,27 @@ function drawChart(canvas, points, color) {
   ctx.strokeStyle = "#c5ccd6";
   ctx.beginPath(); ctx.moveTo(left + 0.5, top); ctx.lineTo(left + 0.5, top + ph + 0.5); ctx.lineTo(left + pw, top + ph + 0.5); ctx.stroke();
 
+  // the CI band, then the reference lines (dashed, labelled at the right)
+  if (bandPts.length > 1) {
+    ctx.beginPath();
+    bandPts.forEach(([x, , hi], i) => (i ? ctx.lineTo(sx(x), sy(hi)) : ctx.moveTo(sx(x), sy(hi))));
+    for (const [x, lo] of [...bandPts].reverse()) ctx.lineTo(sx(x), sy(lo));
+    ctx.closePath();
+    ctx.globalAlpha = 0.18;
+    ctx.fillStyle = color;
+    ctx.fill();
+    ctx.globalAlpha = 1;
+  }
+  ctx.setLineDash([4, 3]);
+  ctx.textAlign = "right";
+  ctx.textBaseline = "bottom";
+  refList.forEach(([name, v], i) => {
+    const y = Math.round(sy(v)) + 0.5, c = REF_COLORS[i % REF_COLORS.length];
+    ctx.strokeStyle = c; ctx.lineWidth = 1;
+    ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + pw, y); ctx.stroke();
+    ctx.fillStyle = c; ctx.fillText(name, left + pw - 2, y - 1);
+  });
+  ctx.setLineDash([]);
   // the curve: soft area fill then line
   ctx.beginPath();
   points.forEach(([x, y], i) => (i ? ctx.lineTo(sx(x), sy(y)) : ctx.moveTo(sx(x), sy(y))));
@@ -230,9 +262,19 @@ function drawChart(canvas, points, color) {
 
 function redrawCharts() {
   for (const m of METRICS) {
-    window.convoy.points[m] = drawChart($(`chart-${m}`), state.series[m] || [], COLORS[m]);
+    const greedy = m === "eval_return";
+    const band = greedy ? state.series[BAND] || [] : [];
+    const refs = greedy ? references(state.job) : {};
+    window.convoy.points[m] = drawChart($(`chart-${m}`), state.series[m] || [], COLORS[m], band, refs);
+    if (greedy) window.convoy.greedy = { band: band.length, references: Object.keys(refs).length };
   }
   window.convoy.selected = state.selected;
+}
+
+// The reference returns a finished job was scored beside (random, and on the treadmill its drivers and bounds).
+function references(job) {
+  const refs = (job && job.final && job.final.references) || {};
+  return Object.fromEntries(Object.entries(refs).filter(([, v]) => Array.isArray(v) && Number.isFinite(v[0])).map(([k, v]) => [k, v[0]]));
 }
 
 // ---------------------------------------------------------------- jobs table
@@ -299,7 +341,7 @@ function renderJobs() {
       cell(badge(job)),
       cell(progressCell(job)),
       cell(`${job.actors_alive} / ${job.actors}`, "num"),
-      cell(fmtValue(p.return), "num"),
+      cell(fmtValue(p.eval_return), "num"),
       cell(fmtCount(p.env_steps_per_s), "num"),
     );
     tr.addEventListener("click", () => selectJob(job.id));
@@ -333,7 +375,9 @@ async function refreshJobs() {
 function updatePanel(job) {
   if (!job || job.id !== state.selected) return;
   const wasTerminal = state.job && TERMINAL.has(state.job.state);
+  const hadRefs = Object.keys(references(state.job)).length;
   state.job = job;
+  if (Object.keys(references(job)).length !== hadRefs) redrawCharts(); // a finished job's references arrived
   if (!TERMINAL.has(job.state) || !wasTerminal) state.metricsDrained = false;
   const p = job.progress || {};
   $("job-title").textContent = `${job.id} · ${job.algo} on ${job.env}`;
@@ -417,16 +461,31 @@ function resetPanel() {
   $("job-downloads").textContent = "–";
   $("job-logs").textContent = "–";
   $("eval-status").textContent = "";
-  state.series = Object.fromEntries(METRICS.map((m) => [m, []]));
+  state.series = Object.fromEntries([...METRICS, BAND].map((m) => [m, []]));
   state.lastStep = null;
   state.metricsDrained = false;
   state.requestedShown = null;
   state.job = null;
 }
 
+// A link to what is shown: #job=ID (and &sweep=ID) in the address, read back when the page opens.
+function writeHash() {
+  const parts = [];
+  if (state.selected) parts.push(`job=${encodeURIComponent(state.selected)}`);
+  if (state.sweep) parts.push(`sweep=${encodeURIComponent(state.sweep)}`);
+  history.replaceState(null, "", parts.length ? `#${parts.join("&")}` : location.pathname + location.search);
+}
+
+function readHash() {
+  const params = new URLSearchParams(location.hash.slice(1));
+  if (params.get("sweep")) selectSweep(params.get("sweep"));
+  if (params.get("job")) selectJob(params.get("job"));
+}
+
 function selectJob(id) {
   if (id === state.selected) return;
   state.selected = id;
+  writeHash();
   state.gen += 1;
   resetPanel();
   const job = state.jobs.find((j) => j.id === id);
@@ -455,7 +514,7 @@ async function pollMetrics() {
       if (typeof x !== "number" || (state.lastStep != null && x <= state.lastStep)) continue;
       state.lastStep = x;
       added += 1;
-      for (const m of METRICS) {
+      for (const m of [...METRICS, BAND]) {
         const v = row[m];
         if (typeof v === "number" && Number.isFinite(v)) state.series[m].push([x, v]);
       }
@@ -622,6 +681,7 @@ async function refreshSummary() {
 
 function selectSweep(id) {
   state.sweep = id;
+  writeHash();
   state.summary = null;
   renderSweeps();
   refreshSummary();
@@ -744,6 +804,7 @@ function boot() {
   refreshJobs();
   refreshSweeps();
   drawSweep();
+  readHash();
   setInterval(refreshJobs, JOBS_EVERY_MS);
   setInterval(pollMetrics, METRICS_EVERY_MS);
   setInterval(refreshSweeps, SWEEPS_EVERY_MS);
