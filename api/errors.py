@@ -147,7 +147,8 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ConfigError)
     async def _config(_: Request, exc: ConfigError) -> JSONResponse:
         text = str(exc).split(": ", 1)[-1]
-        return error_response(422, exc.field, text, "change this field (GET /docs lists every parameter)")
+        fix = "change this field (GET /envs and GET /algos list every parameter with its default and range)"
+        return error_response(422, exc.field, text, fix)
 
     # the store's and the files' errors: (status, field, fix); the most specific class wins (UnknownJob, then
     # StoreError for every other refusal, InvalidTransition included)

@@ -21,21 +21,61 @@ from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
 from convoy.services.args import add_command, env_params
 from convoy.services.procs import JobFailed
-from convoy.validation import ConfigError, allowed_range, build_config
+from convoy.validation import ConfigError, build_config
 
 console = Console()
 err_console = Console(stderr=True)
 
 
+def describe(params: dict[str, dict[str, Any]], names: list[str] | None = None) -> str:
+    """One line per parameter (``convoy.catalog``): default, allowed range, meaning."""
+    lines = []
+    for field in names or params:
+        p = params[field]
+        extra = f", {p['range']}" if p["range"] else ""
+        lines.append(f"  {field} (default {p['default']!r}{extra}): {p['description']}")
+    return "\n".join(lines)
+
+
 def describe_params(name: str) -> str:
     """One line per parameter of env ``name``: default, allowed range, meaning (from its pydantic model)."""
-    model = ENVS[name].config()
-    lines = []
-    for field, info in model.model_fields.items():
-        rng = allowed_range(model, field)
-        extra = f", {rng}" if rng else ""
-        lines.append(f"  {field} (default {info.default!r}{extra}): {info.description}")
-    return "\n".join(lines)
+    from convoy.catalog import parameters
+
+    return describe(parameters(ENVS[name].config()))
+
+
+def cmd_algos(args: argparse.Namespace) -> int:
+    """List the algorithms.
+
+    List the algorithms and, with --params, their hyper-parameters (--hp KEY=VALUE) with defaults, ranges and the
+    values each env sets; --json prints the same as GET /algos.
+    """
+    from convoy.catalog import algos
+
+    table_ = algos()
+    if args.json:
+        print(json.dumps(table_, indent=2))
+        return 0
+    table = Table(title="Convoy algorithms")
+    table.add_column("name")
+    table.add_column("what it is")
+    for name, entry in table_.items():
+        table.add_row(name, entry["summary"])
+    console.print(table)
+    if not args.params:
+        console.print("Each algorithm's hyper-parameters, defaults, ranges and env defaults: convoy algos --params")
+        return 0
+    common = list(next(iter(table_.values()))["params"])
+    common = [k for k in common if all(k in e["params"] for e in table_.values())]
+    console.print(f"\n[bold]every algorithm[/] (--hp KEY=VALUE):\n{describe(table_['idqn']['params'], common)}",
+                  highlight=False, soft_wrap=True)  # fmt: skip
+    for name, entry in table_.items():
+        own = describe(entry["params"], entry["own"]) if entry["own"] else "  (none of its own)"
+        set_by = "; ".join(f"{env}: " + ", ".join(f"{k}={v}" for k, v in d.items())
+                           for env, d in entry["env_defaults"].items() if d)  # fmt: skip
+        console.print(f"\n[bold]{name}[/] — its own:\n{own}\n  env defaults: {set_by}", highlight=False,
+                      soft_wrap=True)  # fmt: skip
+    return 0
 
 
 def cmd_env_list(args: argparse.Namespace) -> int:
@@ -181,6 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     lst = add_command(env_sub, "list", cmd_env_list)
     lst.add_argument("--params", action="store_true", help="also list every parameter with its default and range")
+    alg = add_command(sub, "algos", cmd_algos)
+    alg.add_argument("--params", action="store_true", help="also list every hyper-parameter and the env defaults")
+    alg.add_argument("--json", action="store_true", help="print the catalogue as JSON (what GET /algos returns)")
 
     ro = add_command(
         env_sub,

@@ -157,6 +157,24 @@ def test_unknown_algorithm(service: Service) -> None:
     assert "no-such-algo" in body["problem"]
 
 
+def test_the_catalogue_lists_every_parameter_the_errors_point_to(service: Service, capsys) -> None:
+    """GET /envs and GET /algos list every env and algorithm with each parameter's default, range and meaning
+    (the fields a 422 names are among them, and the 422 says where to look); convoy algos --json is the same."""
+    from convoy.services.cli import main
+
+    envs = service.client.get("/envs").json()["envs"]
+    algos = service.client.get("/algos").json()["algos"]
+    assert {"treadmill", "referential"} <= set(envs) and {"idqn", "ma-mesn", "dial"} <= set(algos)
+    assert {"sensor_fov", "team_sightings"} <= set(envs["treadmill"]["params"])
+    assert {"gumbel_noise", "message_bits"} <= set(algos["ma-mesn"]["params"])
+    lr = algos["idqn"]["params"]["lr"]
+    assert lr["range"] and lr["description"] and algos["idqn"]["env_defaults"]["treadmill"]["lr"] == 1e-4
+    body = assert_error(submit(service, algo_params={"lr": -1.0}), 422, "lr")
+    assert "GET /algos" in body["fix"], body
+    assert main(["algos", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == algos
+
+
 @pytest.mark.parametrize("actors", [0, -1, -1000])
 def test_actors_not_positive(service: Service, actors: int) -> None:
     assert_error(submit(service, actors=actors), 422, "actors")

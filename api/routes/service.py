@@ -20,6 +20,22 @@ def healthz(control: JobControl = CONTROL) -> dict[str, Any]:
     return {"ok": True, "jobs": control.store.count_by_state()}
 
 
+@router.get("/envs", tags=["service"])
+def list_envs() -> dict[str, Any]:
+    """Every environment with its parameters (a job's ``env_params``): default, allowed range, meaning."""
+    from convoy.catalog import envs
+
+    return {"envs": envs()}
+
+
+@router.get("/algos", tags=["service"])
+def list_algos() -> dict[str, Any]:
+    """Every algorithm with its hyper-parameters (a job's ``algo_params``) and the values each env sets."""
+    from convoy.catalog import algos
+
+    return {"algos": algos()}
+
+
 @router.get("/", include_in_schema=False)
 def dashboard() -> Response:
     index = STATIC / "index.html"
