@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,26 @@ from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 from convoy.learner.trackers import Trackers
+
+
+class UpdateClock:
+    """The updates a run owes the data it observed: ``updates_for`` per chunk (samples per insert exactly), the
+    fraction carried over — one rule for a single run and a population."""
+
+    def __init__(self, algo: Agent) -> None:
+        self.algo, self.owed = algo, 0.0
+
+    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+        """A chunk of ``steps`` env steps (per run) goes into the algorithm and is owed ``updates_for(steps)``."""
+        self.algo.observe(chunk)
+        if self.algo.can_update():
+            self.owed += self.algo.updates_for(steps)
+
+    def updates(self) -> Iterator[Any]:
+        """Run the owed updates, yielding each one's figures (a population's: one dict per run)."""
+        while self.owed >= 1.0 and self.algo.can_update():
+            yield self.algo.update()
+            self.owed -= 1.0
 
 
 class TrainingCore:
@@ -67,7 +87,7 @@ class TrainingCore:
             best=float(counters.get("best_eval_return", -math.inf)),
             first_step=self.env_steps,
         )
-        self.owed = 0.0  # updates owed to observed data (the fractional part carries over)
+        self.clock = UpdateClock(algo)
         every = job.checkpoint_every
         self.next_checkpoint = (self.env_steps // every + 1) * every
         self.t0 = time.perf_counter()
@@ -102,15 +122,12 @@ class TrainingCore:
 
     def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
         """A chunk ``[T, B, …]`` of ``steps`` env steps goes into the algorithm; it is owed ``updates_for(steps)``."""
-        self.algo.observe(chunk)
-        if self.algo.can_update():
-            self.owed += self.algo.updates_for(steps)
+        self.clock.observe(chunk, steps)
 
     def update(self) -> None:
         """Run the updates observed data is owed."""
-        while self.owed >= 1.0 and self.algo.can_update():
-            self.log.update(self.algo.update())
-            self.owed -= 1.0
+        for figures in self.clock.updates():
+            self.log.update(figures)
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> dict[str, Any] | None:
         """The metric row due at this step (with a greedy-curve point when one is due, and ``extra(env_steps)``),

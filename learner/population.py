@@ -31,7 +31,7 @@ from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
-from convoy.learner.core import TrainingCore
+from convoy.learner.core import TrainingCore, UpdateClock
 from convoy.learner.inprocess import TrainResult
 
 
@@ -62,7 +62,7 @@ class PopulationCore:
             TrainingCore(job, algo.member(k), out, make_eval_env, progress=progress and k == 0, counters=c)
             for k, (job, out, c) in enumerate(zip(jobs, dirs, counters or [None] * len(jobs), strict=True))
         ]
-        self.owed = 0.0
+        self.clock = UpdateClock(algo)
         self.replay = replay
 
     @property
@@ -96,15 +96,12 @@ class PopulationCore:
 
     def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
         """A chunk ``[T, R, B, …]`` of ``steps`` env steps per run; every run is owed ``updates_for(steps)``."""
-        self.algo.observe(chunk)
-        if self.algo.can_update():
-            self.owed += self.algo.updates_for(steps)
+        self.clock.observe(chunk, steps)
 
     def update(self) -> None:
-        while self.owed >= 1.0 and self.algo.can_update():
-            for core, figures in zip(self.cores, self.algo.update(), strict=True):  # type: ignore[arg-type]
-                core.log.update(figures)
-            self.owed -= 1.0
+        for figures in self.clock.updates():  # one batched update: each run's figures to its own log
+            for core, run_figures in zip(self.cores, figures, strict=True):
+                core.log.update(run_figures)
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> list[dict[str, Any]]:
         """The metric rows due at this step, one per run (all runs' fall due together), or none."""
