@@ -29,10 +29,12 @@ from convoy.config import JobConfig, job_config
 from convoy.envs.batched import EnvSpec
 
 FORMAT = 1
+PREVIOUS_CHECKPOINT = "checkpoint.previous.pt"  # a population's run keeps its checkpoint before the last
 BEST_CHECKPOINT = "best.pt"  # beside checkpoint.pt: the policy of the best point of the greedy learning curve
 REPLAY_FILE = "replay.npz"  # beside checkpoint.pt: the replay buffers at its env step, when small enough to keep
 __all__ = [
     "BEST_CHECKPOINT",
+    "PREVIOUS_CHECKPOINT",
     "REPLAY_FILE",
     "CheckpointError",
     "drop_replay",

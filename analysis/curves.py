@@ -7,33 +7,6 @@ from pathlib import Path
 from typing import Any
 
 
-def mean_ci(values: list[float]) -> dict[str, Any]:
-    """Mean and 95 % Student-t half-width of seeds' values (with ``n`` and the values themselves)."""
-    import numpy as np
-
-    from convoy.stats import ci95_half
-
-    x = np.asarray(values, dtype=np.float64)
-    if not len(x):
-        return {"mean": None, "ci95": None, "n": 0, "values": []}
-    return {"mean": float(x.mean()), "ci95": ci95_half(x, single=0.0), "n": len(x), "values": x.tolist()}
-
-
-def mean_curve(curves: list[tuple[Any, Any]]) -> dict[str, list]:
-    """Seeds' greedy curves (env steps, returns) as one: at the evaluation steps of the longest curve, the mean and
-    95 % CI over the seeds whose curve spans that step (``n`` of them), each interpolated there."""
-    import numpy as np
-
-    grid = max((s for s, _ in curves), key=len, default=np.zeros(0, np.int64))
-    mean, ci, count = [], [], []
-    for x in grid:
-        stats = mean_ci([float(np.interp(x, s, v)) for s, v in curves if s[0] <= x <= s[-1]])
-        mean.append(stats["mean"])
-        ci.append(stats["ci95"])
-        count.append(stats["n"])
-    return {"env_steps": [int(x) for x in grid], "mean": mean, "ci95": ci, "n": count}
-
-
 def plot_groups(
     groups: list[dict[str, Any]],
     path: str | Path,

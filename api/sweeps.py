@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from convoy.analysis.curves import mean_ci as _mean_ci
-from convoy.analysis.curves import mean_curve
 from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
 from convoy.config import ConfigError, JobConfig, algo_name
+from convoy.stats import mean_ci as _mean_ci
+from convoy.stats import mean_curve
 from convoy.validation import build_config
 
 

@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from convoy.algos.algorithm import Agent, Progress, epsilon_at
-from convoy.algos.checkpoint import BEST_CHECKPOINT, REPLAY_FILE, drop_replay, save_checkpoint, save_replay
+from convoy.algos.checkpoint import (
+    BEST_CHECKPOINT,
+    PREVIOUS_CHECKPOINT,
+    REPLAY_FILE,
+    drop_replay,
+    save_checkpoint,
+    save_replay,
+)
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
@@ -63,11 +70,14 @@ class TrainingCore:
         progress: bool = False,
         counters: dict[str, Any] | None = None,
         replay_bytes: int = 0,
+        keep_previous: bool = False,
     ) -> None:
         counters = counters or {}
         self.job, self.algo, self.cfg = job, algo, job.algo_config()
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.replay_bytes = replay_bytes
+        self.keep_previous = keep_previous  # a population's run: the checkpoint before stays, as PREVIOUS_CHECKPOINT
+        self.saved_at = -1  # the env step of the last checkpoint.pt this core wrote
         self.env_steps = int(counters.get("env_steps", 0))
         self.episodes = int(counters.get("episodes", 0))
         self.returns: list[float] = []  # this process's finished episodes (their mean over agents)
@@ -96,7 +106,8 @@ class TrainingCore:
         self.trackers: Trackers | None = None
         if self.out_dir is not None:  # the run's resolved config: what `convoy train --resume` reads back
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            (self.out_dir / "job.json").write_text(json.dumps(job.model_dump(mode="json"), indent=2) + "\n")
+            saved = job.model_dump(mode="json", exclude={"runtime": {"zenoh": {"password"}}})  # never a secret
+            (self.out_dir / "job.json").write_text(json.dumps(saved, indent=2) + "\n")
             config = {**job.model_dump(mode="json", exclude={"runtime"}), "hyper_parameters": self.cfg.model_dump()}
             resume_at = self.env_steps if counters else None
             self.trackers = Trackers(self.out_dir, config, tuple(job.loggers), resume_at=resume_at)
@@ -166,7 +177,13 @@ class TrainingCore:
             counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
         if name == "checkpoint.pt" and self.replay_bytes and replay:  # replay first: a crash leaves no mismatch
             save_replay(self.out_dir / REPLAY_FILE, self.algo, self.env_steps, self.replay_bytes)
-        save_checkpoint(self.out_dir / name, self.algo, self.job, counters)
+        path = self.out_dir / name
+        if name == "checkpoint.pt" and self.keep_previous and path.is_file() and self.saved_at != self.env_steps:
+            # a crash between two runs' checkpoints leaves them a step apart: the one before lets them resume together
+            path.replace(self.out_dir / PREVIOUS_CHECKPOINT)
+        save_checkpoint(path, self.algo, self.job, counters)
+        if name == "checkpoint.pt":
+            self.saved_at = self.env_steps
 
     def close(self) -> None:
         """The metric files (the trackers stay open for the summary: ``finish`` closes them)."""

@@ -59,7 +59,9 @@ class PopulationCore:
         self.jobs, self.algo = jobs, algo
         dirs = out_dirs or [None] * len(jobs)
         self.cores = [
-            TrainingCore(job, algo.member(k), out, make_eval_env, progress=progress and k == 0, counters=c)
+            TrainingCore(
+                job, algo.member(k), out, make_eval_env, progress=progress and k == 0, counters=c, keep_previous=True
+            )
             for k, (job, out, c) in enumerate(zip(jobs, dirs, counters or [None] * len(jobs), strict=True))
         ]
         self.clock = UpdateClock(algo)

@@ -15,7 +15,13 @@ from pathlib import Path
 from typing import Any
 
 from convoy.algos.algorithm import Agent
-from convoy.algos.checkpoint import REPLAY_FILE, CheckpointError, load_replay, read_checkpoint
+from convoy.algos.checkpoint import (
+    PREVIOUS_CHECKPOINT,
+    REPLAY_FILE,
+    CheckpointError,
+    load_replay,
+    read_checkpoint,
+)
 from convoy.config import ConfigError, JobConfig, job_config
 
 
@@ -27,9 +33,11 @@ def _unusable(path: Path, why: str, strict: bool) -> None:
     path.rename(path.with_suffix(".unreadable"))
 
 
-def _payload(out_dir: Path, job: JobConfig, strict: bool) -> dict[str, Any] | None:
-    path = out_dir / "checkpoint.pt"
+def _payload(out_dir: Path, job: JobConfig, strict: bool, name: str = "checkpoint.pt") -> dict[str, Any] | None:
+    path = out_dir / name
     if not path.is_file():
+        if name != "checkpoint.pt":
+            return None
         if strict:
             raise CheckpointError(f"{out_dir}: no checkpoint.pt to resume from; train the run first")
         return None
@@ -68,17 +76,23 @@ def restore_population(
     algo: Agent, jobs: list[JobConfig], dirs: list[Path], replay: Path, strict: bool = False
 ) -> list[dict[str, Any]] | None:
     """Run k's checkpoint (``dirs[k]``, job ``jobs[k]``) into run k of ``algo`` and the population's replay from
-    ``replay``; the runs' counters, or None unless every run has a checkpoint, all of one step."""
-    payloads = [_payload(d, job, strict) for d, job in zip(dirs, jobs, strict=True)]
-    if all(p is None for p in payloads):
+    ``replay``; the runs' counters, or None unless every run has a checkpoint of one step (its last, or the one
+    before it when a crash came between two runs' writes)."""
+    # each run's last checkpoint and the one before: a crash between two runs' writes leaves them a step apart
+    options = [[p for name in ("checkpoint.pt", PREVIOUS_CHECKPOINT) if (p := _payload(d, job, strict, name))]
+               for d, job in zip(dirs, jobs, strict=True)]  # fmt: skip
+    if all(not o for o in options):
         return None
-    steps = {int(p["counters"].get("env_steps", -1)) for p in payloads if p is not None}
-    if any(p is None for p in payloads) or len(steps) != 1:
+    by_step = [{int(p["counters"].get("env_steps", -1)): p for p in o} for o in options]
+    common = set.intersection(*(set(b) for b in by_step))
+    if not common:
         why = "the population's runs have no checkpoints of one step"
         if strict:
             raise CheckpointError(f"{replay.parent}: {why}; train afresh")
         print(f"learner: {why}; starting afresh", flush=True)
         return None
+    step = max(common)
+    payloads = [b[step] for b in by_step]
     try:
         for k, payload in enumerate(payloads):
             algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined,index]
@@ -88,5 +102,5 @@ def restore_population(
             raise CheckpointError(f"{replay.parent}: {why}") from None
         print(f"learner: {why}; starting afresh", flush=True)
         return None
-    rows = load_replay(replay, algo, steps.pop())
-    return [{**p["counters"], "replay_rows": rows} for p in payloads]  # type: ignore[index]
+    rows = load_replay(replay, algo, step)
+    return [{**p["counters"], "replay_rows": rows} for p in payloads]

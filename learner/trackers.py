@@ -15,7 +15,7 @@ import math
 from pathlib import Path
 from typing import Any, Protocol
 
-from convoy.validation import ConfigError
+from convoy.config import ConfigError
 
 TB_DIR = "tb"
 SPEED = ("env_steps_per_s", "updates_per_s", "actor_env_steps_per_s", "wall_s")

@@ -23,8 +23,8 @@ def load_group(path: Path) -> dict[str, Any]:
     curve with its CI, the final and best greedy returns over seeds, and the random reference."""
     import numpy as np
 
-    from convoy.analysis.curves import mean_ci, mean_curve
     from convoy.learner.metrics import read_rows
+    from convoy.stats import mean_ci, mean_curve
 
     folders = [f for f in run_folders(path) if (f / "metrics.jsonl").is_file()]
     if not folders:

@@ -20,8 +20,8 @@ from convoy.validation import ConfigError
 LOCK = ".convoy.lock"
 RUN_FILES = ("checkpoint.pt", "metrics.jsonl", "summary.json")  # what makes a directory hold a run
 # What a run writes, and all that --overwrite removes (never anything else a user keeps beside it).
-ARTEFACTS = (*RUN_FILES, "best.pt", "replay.npz", "replay.previous.npz", "metrics.csv", "curve.png",
-             "checkpoint.unreadable", "job.json")  # fmt: skip
+ARTEFACTS = (*RUN_FILES, "best.pt", "checkpoint.previous.pt", "replay.npz", "replay.previous.npz", "metrics.csv",
+             "curve.png", "checkpoint.unreadable", "job.json")  # fmt: skip
 
 
 def run_folders(path: Path) -> list[Path]:

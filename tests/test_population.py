@@ -275,3 +275,31 @@ def test_a_jobs_seeds_make_a_population_of_single_runs() -> None:
         with pytest.raises(ConfigError, match=words) as info:
             job_config(algo="idqn", **{"env": "referential", **bad})
         assert info.value.field == "seeds"
+
+
+def test_a_population_resumes_at_the_last_step_all_its_runs_saved(tmp_path: Path) -> None:
+    """A crash between two runs' checkpoint writes leaves them a step apart: each run keeps the checkpoint before
+    its last, and the population resumes where every run has one (here the step before the last)."""
+    import shutil
+
+    from convoy.algos.checkpoint import PREVIOUS_CHECKPOINT, read_checkpoint
+    from convoy.algos.registry import make_algorithm
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+    from convoy.learner.resume import restore_population
+    from convoy.services.cli import main
+
+    cfg = tmp_path / "job.json"
+    cfg.write_text(json.dumps({"algo": "idqn", "env": "referential", "steps": 3000, "num_envs": 8,
+                               "checkpoint_every": 1000, "eval_episodes": 4, "seeds": [0, 1],
+                               "algo_params": {"hidden": [16], "learning_starts": 100}}))  # fmt: skip
+    out = tmp_path / "pop"
+    assert main(["train", "--inprocess", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    last = read_checkpoint(out / "seed-1" / "checkpoint.pt")["counters"]["env_steps"]
+    before = read_checkpoint(out / "seed-1" / PREVIOUS_CHECKPOINT)["counters"]["env_steps"]
+    assert before < last
+    shutil.copy(out / "seed-1" / PREVIOUS_CHECKPOINT, out / "seed-1" / "checkpoint.pt")  # seed 1 never wrote its last
+    job = job_config(**json.loads(cfg.read_text()))
+    agent = make_algorithm("idqn", make_batched("referential", 1).spec, job.algo_config(), "cpu", [0, 1])
+    counters = restore_population(agent, job.members(), job.member_dirs(out), out / "replay.npz", strict=True)
+    assert [c["env_steps"] for c in counters] == [before, before]
