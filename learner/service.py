@@ -29,7 +29,7 @@ import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent
+from convoy.algos.algorithm import Agent, NetworkAgent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
@@ -165,14 +165,9 @@ class Learner:
         replay_bytes = job.runtime.replay_checkpoint_mb << 20
         if job.runs:
             dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
-            return PopulationCore(
-                job.members(),
-                algo,
-                dirs,
-                make_eval_env,
-                counters=counters or None,
-                replay=replay,  # type: ignore[arg-type]
-            )
+            population: NetworkAgent = algo  # type: ignore[assignment]  # a job with seeds builds one
+            return PopulationCore(job.members(), population, dirs, make_eval_env, counters=counters or None,
+                                  replay=replay)  # fmt: skip
         return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes)
 
     def _take(self, core: TrainingCore | PopulationCore, msg: wire.Message) -> str | None:
