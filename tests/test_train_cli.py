@@ -279,3 +279,17 @@ def test_a_tracker_that_is_not_installed_is_named_with_its_extra(tmp_path, capsy
     assert main(["train", "--algo", "idqn", *TINY, "--logger", logger, "--out", str(tmp_path / "run")]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert f"loggers: {logger} is not installed: pip install 'convoy[{logger}]'" in err, err
+
+
+def test_a_run_sends_its_rows_and_summary_to_wandb(tmp_path, monkeypatch) -> None:
+    """``--logger wandb`` (W&B offline: nothing leaves the machine) gets the rows TensorBoard gets and the final
+    summary, in a W&B run inside the run's folder."""
+    pytest.importorskip("wandb")
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    out = tmp_path / "run"
+    assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--logger", "wandb", "--out", str(out)]) == 0
+    logs = list((out / "wandb").glob("offline-run-*/run-*.wandb"))
+    assert len(logs) == 1
+    data = logs[0].read_bytes()
+    assert b"eval/return" in data and b"train/loss" in data and b"eval_return" in data  # rows, then the summary
