@@ -510,7 +510,7 @@ class NetworkAgent(ABC):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if self.runs is not None:
-            raise TypeError("a population does not load a single run's state (populations do not resume yet)")
+            raise TypeError("a population loads a single run's state per run: load_member_state(k, state)")
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])

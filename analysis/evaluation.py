@@ -8,7 +8,7 @@ accept only the true source, so a probe can never silently measure nothing.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Literal
@@ -53,21 +53,27 @@ def evaluate(env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: fl
     Every env contributes its *first* episode only (in rounds of B envs, reseeded each round): scoring the first
     episodes to finish would over-sample short ones, i.e. early crashes.
     """
-    out: list[np.ndarray] = []
-    for rnd in range(-(-episodes // env.num_envs)):
+
+    def play(rnd: int) -> np.ndarray:
         policy = AgentPolicy(algo, env.num_envs, epsilon)  # nothing in flight from an earlier round
-        out.append(rollout(env, policy, seed=seed + rnd, after_step=policy.after_step).mean_return)
-    return np.concatenate(out)[:episodes].astype(np.float64)
+        return rollout(env, policy, seed=seed + rnd, after_step=policy.after_step).mean_return
+
+    return first_episodes(env, episodes, play)
 
 
 def evaluate_random(env: BatchedEnv, episodes: int, seed: int) -> np.ndarray:
     """Per-episode returns of the uniform random policy (every agent's action uniform in its own range, no messages)
     on the episodes ``evaluate`` plays with ``seed``: the one random reference, whatever algorithm is compared to
     it (an algorithm at ε = 1 still sends its learned messages, so its "random" would differ by algorithm)."""
-    out: list[np.ndarray] = []
-    for rnd in range(-(-episodes // env.num_envs)):
-        out.append(rollout(env, random_policy(env.spec, seed + rnd), seed=seed + rnd).mean_return)
-    return np.concatenate(out)[:episodes].astype(np.float64)
+    return first_episodes(
+        env, episodes, lambda rnd: rollout(env, random_policy(env.spec, seed + rnd), seed=seed + rnd).mean_return
+    )
+
+
+def first_episodes(env: BatchedEnv, episodes: int, play: Callable[[int], np.ndarray]) -> np.ndarray:
+    """``episodes`` returns from rounds of ``env.num_envs`` first episodes, ``play(round)`` playing one round."""
+    rounds = [play(rnd) for rnd in range(-(-episodes // env.num_envs))]
+    return np.concatenate(rounds)[:episodes].astype(np.float64)
 
 
 def parse_channel(spec: str, seed: int | None = None) -> MessageChannel:

@@ -147,7 +147,7 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
                      busy_s=busy_seconds(spans), spec=sweep.spec)  # fmt: skip
 
 
-def _curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:
+def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:
     """A job's greedy curve: (env steps, return, wall seconds) of its evaluation rows, then its final evaluation."""
     points = [
         (int(r["env_steps"]), float(r["eval_return"]), float(r.get("wall_s", math.nan)))
@@ -179,7 +179,7 @@ def summarize_group(
         states[rec.state.value] = states.get(rec.state.value, 0) + 1
         final = rec.progress.get("final") if rec.state == JobState.completed else None
         rows = reader.metrics(job_id, names=["eval_return", "wall_s"])
-        steps, values, wall = _curve(rows, final, int(rec.progress.get("env_steps", 0) or 0))
+        steps, values, wall = greedy_curve(rows, final, int(rec.progress.get("env_steps", 0) or 0))
         if len(steps):
             curves.append((steps, values))
         if final and isinstance(final.get("eval_return"), int | float) and math.isfinite(final["eval_return"]):

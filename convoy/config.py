@@ -10,6 +10,7 @@ resolved, so a user who sets them explicitly always wins.
 from __future__ import annotations
 
 import itertools
+import json
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, get_args
 
@@ -586,6 +587,12 @@ class JobConfig(BaseModel):
     def members(self) -> list[JobConfig]:
         """One job per run: the single run of its seed, which run k of the population reproduces."""
         return [self.model_copy(update={"seed": s, "seeds": []}) for s in self.run_seeds()]
+
+    def write(self, path: str | Path) -> None:
+        """The job as JSON at ``path``, defaults resolved: what ``--config`` and ``--resume`` read back (never the
+        Zenoh password)."""
+        saved = self.model_dump(mode="json", exclude={"runtime": {"zenoh": {"password"}}})
+        Path(path).write_text(json.dumps(saved, indent=2) + "\n")
 
     def member_dirs(self, out_dir: str | Path) -> list[Path]:
         """Where each run writes: ``out_dir`` for a single run, ``out_dir/seed-N`` for each run of a population."""

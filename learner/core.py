@@ -8,7 +8,6 @@ policy (``best.pt``), one checkpoint cadence and one summary.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -106,8 +105,7 @@ class TrainingCore:
         self.trackers: Trackers | None = None
         if self.out_dir is not None:  # the run's resolved config: what `convoy train --resume` reads back
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            saved = job.model_dump(mode="json", exclude={"runtime": {"zenoh": {"password"}}})  # never a secret
-            (self.out_dir / "job.json").write_text(json.dumps(saved, indent=2) + "\n")
+            job.write(self.out_dir / "job.json")
             config = {**job.model_dump(mode="json", exclude={"runtime"}), "hyper_parameters": self.cfg.model_dump()}
             resume_at = self.env_steps if counters else None
             self.trackers = Trackers(self.out_dir, config, tuple(job.loggers), resume_at=resume_at)

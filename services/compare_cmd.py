@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +20,7 @@ console = Console()
 def load_group(path: Path) -> dict[str, Any]:
     """A run folder, or a population's (its ``seed-N`` runs as one group), as a group of seeds: the mean greedy
     curve with its CI, the final and best greedy returns over seeds, and the random reference."""
-    import numpy as np
-
+    from convoy.api.sweeps import greedy_curve
     from convoy.learner.metrics import read_rows
     from convoy.stats import mean_ci, mean_curve
 
@@ -32,11 +30,12 @@ def load_group(path: Path) -> dict[str, Any]:
                           "folder convoy train wrote")  # fmt: skip
     curves, summaries = [], []
     for folder in folders:
-        points = [r for r in read_rows(folder) if math.isfinite(r.get("eval_return", math.nan))]
-        if points:
-            curves.append((np.array([r["env_steps"] for r in points]), np.array([r["eval_return"] for r in points])))
-        if (folder / "summary.json").is_file():
-            summaries.append(json.loads((folder / "summary.json").read_text()))
+        summary = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").is_file() else None
+        steps, values, _ = greedy_curve(read_rows(folder), summary, int((summary or {}).get("env_steps", 0)))
+        if len(steps):
+            curves.append((steps, values))
+        if summary is not None:
+            summaries.append(summary)
 
     def over(key: str) -> dict[str, Any]:
         return mean_ci([float(s[key]) for s in summaries if isinstance(s.get(key), int | float)])

@@ -55,9 +55,7 @@ def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
     values.update(given(args, (*JOB_FLAGS, "seeds", "loggers", "device", "torch_threads")))
-    values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
-    if args.actors is not None:
-        values["runtime"]["actors"] = args.actors
+    with_runtime_flags(values, args)
     values["env_params"] = env_params(args, values.get("env_params"))
     values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
     return job_config(**values)
@@ -101,10 +99,15 @@ def resumed_job(args: argparse.Namespace) -> JobConfig:
                           "(only --steps, --device, --threads, --actors and --runtime)")  # fmt: skip
     values = json.loads(path.read_text())
     values.update(given(args, RESUME_FLAGS))
+    return job_config(**with_runtime_flags(values, args))
+
+
+def with_runtime_flags(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """``values`` with ``--runtime KEY=VALUE`` and ``--actors`` merged into its runtime table."""
     values["runtime"] = {**values.get("runtime", {}), **parse_pairs(args.runtime, "--runtime")}
     if args.actors is not None:
         values["runtime"]["actors"] = args.actors
-    return job_config(**values)
+    return values
 
 
 def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
@@ -124,7 +127,7 @@ def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> in
     )
     dirs = job.member_dirs(out)
     out.mkdir(parents=True, exist_ok=True)  # the population's own config (each run writes its own): for --resume
-    (out / "job.json").write_text(json.dumps(job.model_dump(mode="json"), indent=2) + "\n")
+    job.write(out / "job.json")
     if args.inprocess:
         pop = run_population(job.members(), dirs, not args.no_progress, root=out, resume=bool(args.resume))
         results = [r.as_dict() for r in pop]
