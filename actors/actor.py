@@ -25,7 +25,7 @@ from convoy.algos.algorithm import Agent, Progress, epsilon_at
 from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.protocol import keys, wire
-from convoy.protocol.exitcodes import STOPPED, ParentWatch
+from convoy.protocol.exitcodes import STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 
@@ -195,6 +195,7 @@ def _drop_counts(inboxes: tuple[Inbox, ...], bad_weights: int) -> dict[str, floa
 def run_actor(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int | None) -> int:
     """Process entry point (spawned by a host agent or run by ``convoy actor``); SIGTERM stops it cleanly."""
     actor = Actor(job_id, job, index, ident, settings, seed)
+    dump_stacks_on_sigusr1()
     signal.signal(signal.SIGTERM, actor.stop)
     signal.signal(signal.SIGINT, actor.stop)
     return actor.run()

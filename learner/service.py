@@ -38,7 +38,7 @@ from convoy.learner.population import PopulationCore, mean_row
 from convoy.learner.resume import restore
 from convoy.learner.runtime import configure_learner
 from convoy.protocol import keys, wire
-from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch
+from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 
@@ -287,6 +287,7 @@ class Learner:
 def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:
     """Process entry point (spawned by a host agent or run by ``convoy learner``); SIGTERM checkpoints and exits."""
     learner = Learner(job_id, job, out_dir, settings)
+    dump_stacks_on_sigusr1()
     signal.signal(signal.SIGTERM, learner.stop)
     signal.signal(signal.SIGINT, learner.stop)
     try:

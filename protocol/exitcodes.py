@@ -9,6 +9,7 @@ DONE = 0
 NO_DATA = 3  # the learner heard no chunk for runtime.data_timeout_s: a crash the supervisor handles and counts
 DIVERGED = 4  # non-finite losses in a row: a restart from the checkpoint would diverge again; the job fails
 STOPPED = 143
+ORPHAN_EXIT_S = 60.0  # how long an orphaned worker may take to save and close before it is made to exit
 
 
 class ParentWatch:
@@ -20,7 +21,7 @@ class ParentWatch:
     extend — re-parenting would never show. Anything else (``convoy actor`` from a shell) watches its parent PID.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, exit_after_s: float = ORPHAN_EXIT_S) -> None:
         import multiprocessing
         import os
         import time
@@ -29,6 +30,7 @@ class ParentWatch:
         self._mp_parent = multiprocessing.parent_process()
         self.parent = os.getppid()
         self._next = 0.0
+        self.exit_after_s = exit_after_s
 
     def orphaned(self) -> bool:
         """True once the parent is gone; checks at most once a second (cheap enough for a hot loop)."""
@@ -36,6 +38,21 @@ class ParentWatch:
         if now < self._next:
             return False
         self._next = now + 1.0
-        if self._mp_parent is not None:
-            return not self._mp_parent.is_alive()
-        return self._os.getppid() != self.parent
+        gone = not self._mp_parent.is_alive() if self._mp_parent is not None else self._os.getppid() != self.parent
+        if gone:
+            import faulthandler
+
+            # the worker now saves and closes; should anything hang there (a write on a starved disk, a transport
+            # that will not close), this C-level timer prints every thread's stack and exits without the GIL
+            faulthandler.dump_traceback_later(self.exit_after_s, exit=True)
+        return gone
+
+
+def dump_stacks_on_sigusr1() -> None:
+    """``kill -USR1 PID`` prints every thread's Python stack to the process's stderr (the job's log): how to see
+    where a worker that will not exit, or will not progress, is waiting."""
+    import faulthandler
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)

@@ -515,6 +515,18 @@ def _alive(pid: int) -> bool:
     return False
 
 
+def _describe(pids: list[int]) -> str:
+    """Each PID's command line, state and kernel wait channel, per thread."""
+    out = []
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:200]
+            state = Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0]
+            waits = sorted({(t / "wchan").read_text() for t in Path(f"/proc/{pid}/task").iterdir()})
+            out.append(f"{pid} [{state}] {cmd} waits in {waits}")
+    return "; ".join(out)
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
 def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
     """kill -9 of `convoy train`: its learner and actors (forks of its forkserver, which their open descriptors
@@ -532,8 +544,18 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
         proc.wait(5)
         # they notice within a second and exit after their last checkpoint; on a loaded 2-core machine that once
         # took over 60 s, so the bound is generous: the test is that they go, not how fast
-        gone_s = wait_for(lambda: not any(_alive(p) for p in roles), 240, "the orphaned processes to exit", every=0.1)
-        print(f"{len(roles)} processes gone {gone_s:.2f} s after kill -9 of the runner")
+        t0 = time.monotonic()
+        while any(_alive(p) for p in roles) and time.monotonic() - t0 < 240:
+            time.sleep(0.1)
+        lingering = [p for p in roles if _alive(p)]
+        if lingering:  # say which and where they wait: SIGUSR1 makes a role print its threads' stacks to the log
+            for pid in lingering:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGUSR1)
+            time.sleep(2)
+            pytest.fail(f"still running 240 s after kill -9 of the runner: {_describe(lingering)}\n"
+                        f"{(tmp_path / 'train.log').read_text()[-20_000:]}")  # fmt: skip
+        print(f"{len(roles)} processes gone {time.monotonic() - t0:.2f} s after kill -9 of the runner")
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)  # the whole session, by its leader's PID
@@ -586,3 +608,34 @@ def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_
     weights = [read_checkpoint(d / "checkpoint.pt")["state"]["online"] for d in dirs]
     first = next(iter(weights[0]))
     assert not torch.equal(weights[0][first], weights[1][first]), "runs of different seeds hold the same weights"
+
+
+def test_an_orphaned_worker_that_hangs_while_closing_is_made_to_exit_with_its_stacks(tmp_path: Path) -> None:
+    """ParentWatch arms a C-level timer when the parent goes: a worker stuck after that (here: asleep for ever)
+    prints its threads' stacks and exits instead of running on."""
+    child = (
+        "import time\n"
+        "from convoy.protocol.exitcodes import ParentWatch\n"
+        "watch = ParentWatch(exit_after_s=1.0)\n"
+        "print('watching', flush=True)\n"
+        "while not watch.orphaned():\n"
+        "    time.sleep(0.05)\n"
+        "time.sleep(1000)  # a close that never returns\n"
+    )
+    parent = (
+        "import subprocess, sys\n"
+        f"p = subprocess.Popen([sys.executable, '-c', {child!r}], stdout=subprocess.PIPE, stderr=sys.stderr)\n"
+        "print(p.pid, flush=True)\n"
+        "p.stdout.readline()\n"  # the child watches: the parent may go
+    )
+    log = tmp_path / "child.log"
+    with open(log, "w") as err:
+        out = subprocess.run([sys.executable, "-c", parent], stdout=subprocess.PIPE, stderr=err, text=True, timeout=120)
+    pid = int(out.stdout.split()[0])
+    try:
+        wait_for(lambda: not _alive(pid), 120, "the orphaned child to exit", every=0.1)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    text = log.read_text()
+    assert "Timeout" in text and "most recent call first" in text and "<module>" in text, text
