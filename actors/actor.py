@@ -27,7 +27,7 @@ from convoy.envs import make_batched
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
-from convoy.protocol.session import ZenohSettings, open_session
+from convoy.protocol.session import SessionAbandoned, ZenohSettings, open_session
 
 METRICS_EVERY_S = 1.0
 
@@ -73,7 +73,11 @@ class Actor:
             os.nice(self.job.runtime.actor_nice)  # the learner first where cores are shared (see RuntimeConfig)
         torch.set_num_threads(1)
         torch.manual_seed(self.seed)
-        session = open_session(self.settings)
+        watch = ParentWatch()
+        try:
+            session = open_session(self.settings, give_up=watch.orphaned)
+        except SessionAbandoned:
+            return STOPPED
         try:
             weights_in, budget_in, stop_in = Inbox({"weights"}, 4), Inbox({"budget"}, 16), Inbox({"command"}, 4)
             self._declared = [  # kept referenced: an undeclared token or subscriber would vanish
@@ -87,11 +91,13 @@ class Actor:
             block = zenoh.CongestionControl.BLOCK
             pub = session.declare_publisher(keys.exp(self.job_id, self.ident), congestion_control=block)
             metrics_pub = session.declare_publisher(keys.metrics(self.job_id, "actor", self.ident))
-            return self._loop(weights_in, budget_in, stop_in, pub, metrics_pub)
+            return self._loop(weights_in, budget_in, stop_in, pub, metrics_pub, watch)
         finally:
             session.close()
 
-    def _loop(self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any) -> int:
+    def _loop(
+        self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any, watch: ParentWatch
+    ) -> int:
         job, rt = self.job, self.job.runtime
         runs = job.runs
         env = make_batched(job.env, job.num_envs * (runs or 1), **job.env_params)
@@ -111,7 +117,6 @@ class Actor:
             chunk_runs: list[int] = []
             t_metrics = time.perf_counter()
             steps_at_metrics = 0
-            watch = ParentWatch()
             while not self.stopping:
                 if watch.orphaned():
                     break

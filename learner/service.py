@@ -40,7 +40,7 @@ from convoy.learner.runtime import configure_learner
 from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
-from convoy.protocol.session import ZenohSettings, open_session
+from convoy.protocol.session import SessionAbandoned, ZenohSettings, open_session
 
 WEIGHTS_EVERY_S = 1.0
 WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights
@@ -121,7 +121,11 @@ class Learner:
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
         if counters is None and job.runs:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
-        session = open_session(self.settings)
+        watch = ParentWatch()
+        try:
+            session = open_session(self.settings, give_up=watch.orphaned)
+        except SessionAbandoned:
+            return STOPPED  # nothing learnt since the last checkpoint: no session, no chunk
         import zenoh
 
         block = zenoh.CongestionControl.BLOCK
@@ -142,7 +146,7 @@ class Learner:
             }
             self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
         try:
-            return self._loop(algo, schema, inbox, counters)
+            return self._loop(algo, schema, inbox, counters, watch)
         finally:
             session.close()
 
@@ -192,7 +196,7 @@ class Learner:
         core.stepped(t_len * (b // runs), returns, return_runs)
         return None
 
-    def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: Any) -> int:
+    def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: Any, watch: ParentWatch) -> int:
         job, rt = self.job, self.job.runtime
         core = self._core(algo, counters)
         t_weights = t_budget = t_chunk = 0.0
@@ -218,7 +222,6 @@ class Learner:
             }
 
         try:
-            watch = ParentWatch()
             while not core.done and not self.stopping:
                 if watch.orphaned():
                     self.stopping = True

@@ -26,6 +26,8 @@ import json
 import os
 import secrets
 import socket
+import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -143,11 +145,39 @@ def zenoh_config(settings: ZenohSettings) -> Any:
     return conf
 
 
-def open_session(settings: ZenohSettings) -> Any:
-    """Open a Zenoh session with ``settings``."""
+class SessionAbandoned(RuntimeError):
+    """``open_session``'s ``give_up`` said to stop waiting for the session (its supervisor is gone)."""
+
+
+def open_session(settings: ZenohSettings, give_up: Callable[[], bool] | None = None) -> Any:
+    """Open a Zenoh session with ``settings``.
+
+    With ``give_up``, the session opens in a helper thread while this one polls ``give_up`` and raises
+    ``SessionAbandoned`` once it is true: a worker forked just before its supervisor was killed was seen blocked
+    in ``zenoh.open`` for minutes, its connect endpoint gone, where nothing else could tell it to exit.
+    """
     import zenoh
 
-    return zenoh.open(zenoh_config(settings))
+    conf = zenoh_config(settings)
+    if give_up is None:
+        return zenoh.open(conf)
+    result: dict[str, Any] = {}
+
+    def opener() -> None:
+        try:
+            result["session"] = zenoh.open(conf)
+        except BaseException as exc:  # raised again in the caller's thread
+            result["error"] = exc
+
+    thread = threading.Thread(target=opener, name="zenoh-open", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(0.1)
+        if thread.is_alive() and give_up():
+            raise SessionAbandoned("gave up opening the Zenoh session")
+    if "error" in result:
+        raise result["error"]
+    return result["session"]
 
 
 def write_credentials(path: str | Path, user: str) -> SecretStr:

@@ -639,3 +639,26 @@ def test_an_orphaned_worker_that_hangs_while_closing_is_made_to_exit_with_its_st
             os.kill(pid, signal.SIGKILL)
     text = log.read_text()
     assert "Timeout" in text and "most recent call first" in text and "<module>" in text, text
+
+
+def test_opening_a_session_gives_up_when_told_while_zenoh_open_hangs(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A role forked just before its supervisor died was seen blocked in zenoh.open for minutes: with give_up the
+    caller gets SessionAbandoned (and exits) while the open still hangs; errors of the open reach the caller."""
+    import zenoh
+
+    from convoy.protocol.session import SessionAbandoned, open_session
+
+    release = threading.Event()
+    monkeypatch.setattr(zenoh, "open", lambda conf: release.wait(60))
+    checks: list[float] = []
+    with pytest.raises(SessionAbandoned):
+        open_session(ZenohSettings(), give_up=lambda: checks.append(time.monotonic()) or len(checks) >= 3)
+    assert len(checks) == 3  # polled while the open hung, until it said so
+    release.set()
+
+    def refuse(conf: object) -> None:
+        raise zenoh.ZError("bad endpoint")
+
+    monkeypatch.setattr(zenoh, "open", refuse)
+    with pytest.raises(zenoh.ZError, match="bad endpoint"):
+        open_session(ZenohSettings(), give_up=lambda: False)
