@@ -33,7 +33,7 @@ run-distributed: $(STAMP)
 		--out $(OUT)-distributed --overwrite
 
 serve: $(STAMP)
-	$(BIN)/convoy serve --port $(or $(PORT),8000) --data runs/service
+	$(BIN)/convoy serve --port $(or $(PORT),8000) --data $(or $(DATA),runs/service)
 
 demo: $(STAMP)
 	$(BIN)/convoy env rollout --env treadmill --agents 3 --adversaries 1 --episodes 20 --policy scripted \

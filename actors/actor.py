@@ -75,7 +75,7 @@ class Actor:
         torch.manual_seed(self.seed)
         watch = ParentWatch()
         try:
-            session = open_session(self.settings, give_up=watch.orphaned)
+            session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())
         except SessionAbandoned:
             return STOPPED
         try:

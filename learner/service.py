@@ -123,7 +123,7 @@ class Learner:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
         watch = ParentWatch()
         try:
-            session = open_session(self.settings, give_up=watch.orphaned)
+            session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())
         except SessionAbandoned:
             return STOPPED  # nothing learnt since the last checkpoint: no session, no chunk
         import zenoh

@@ -1,0 +1,471 @@
+"""Every console command of README.md and docs/ runs as written, at a small budget, in a scratch directory.
+
+``test_docs_commands`` checks that they parse; here they execute: the ``convoy`` commands in this process (their
+``--steps``, episodes and samples shrunk, ``--actors`` at most 2), the benchmark scripts and the ``make`` targets as
+processes, the service sessions (README and docs/service.md: ``convoy serve``, then the ``curl``, ``convoy jobs``
+and ``convoy sweep`` lines in their order, with the ids the service really gave in place of the docs' examples), the
+many-hosts topology of docs/training.md on 127.0.0.1, and ``tensorboard`` on a run. A command the docs show
+refused must fail with the error they show; every other must succeed. Runs a command needs (``runs/demo``,
+``runs/glimpse`` …) come from the documented command that writes them. ``make test`` is the command that runs this.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from convoy.protocol.session import free_port
+from tests.service_fixture import Service
+from tests.test_docs_commands import COMMANDS, OUTPUT, expand
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[1]
+BY_WHERE = dict(COMMANDS)
+SERVICE = ("convoy serve", "convoy jobs", "convoy sweep", "curl ", "export ", "make serve")
+OWN_TESTS = (*SERVICE, "convoy router", "convoy host", "tensorboard", "make ", "TM=", "REF=")
+GENERIC = [(w, c) for w, c in COMMANDS if not c.startswith(OWN_TESTS)]
+# the runs other commands read, and the documented command that writes each
+PRODUCERS = {
+    "runs/demo": "make run",
+    "runs/demo-distributed": "make run-distributed",
+    "runs/glimpse": "algorithms.md:184",
+    "runs/v4/idqn-private": "benchmarks.md:25",
+    "runs/v4/idqn-team": "benchmarks.md:26",
+    "runs/resume-demo": "training.md:44",
+    # benchmarks/decentralized.py's MA-MeSN-MM run (3 agents on the small treadmill), which CoDBC distils
+    "runs/bench/decentralized/ma-mesn-mm-2": "convoy train --inprocess --algo ma-mesn-mm $TM --agents 3 "
+    "--out runs/bench/decentralized/ma-mesn-mm-2",
+}
+JOB_TOML = """# a small job for the docs' `--config job.toml` lines
+algo = "idqn"
+env = "referential"
+steps = 400
+num_envs = 8
+eval_episodes = 2
+algo_params = { hidden = [32], learning_starts = 64 }
+"""
+
+
+def small_steps(n: int) -> int:
+    """A few hundred steps, in the order of the docs' own (a resume asks for more than the run it continues)."""
+    return int(200 + 100 * math.log2(max(n, 1000) / 1000))
+
+
+def shrink(argv: list[str]) -> list[str]:
+    """The documented argv at a small budget."""
+    out, i = [], 0
+    while i < len(argv):
+        flag = argv[i]
+        value = argv[i + 1] if i + 1 < len(argv) else ""
+        if flag == "--steps":
+            out += [flag, str(small_steps(int(value)))]
+        elif flag in ("--episodes", "--eval-episodes", "--tune-episodes", "--final-episodes"):
+            out += [flag, str(min(int(value), 2))]
+        elif flag == "--samples":
+            out += [flag, str(min(int(value), 200))]
+        elif flag == "--actors" and value.isdigit():
+            out += [flag, str(min(int(value), 2))]
+        elif flag == "--eval-every":
+            out += [flag, "200"]
+        else:
+            out.append(flag)
+            i += 1
+            continue
+        i += 2
+    if out[:2] == ["convoy", "train"] and "--resume" not in out:
+        out += [] if "--eval-episodes" in out else ["--eval-episodes", "2"]
+        out += ["--no-progress"]
+    if out[:3] == ["convoy", "env", "rollout"] and "--episodes" not in out:
+        out += ["--episodes", "2"]
+    if out[:2] == ["convoy", "eval"] and "--episodes" not in out:
+        out += ["--episodes", "2"]
+    if out[:2] == ["convoy", "analyze"] and "--samples" not in out:
+        out += ["--samples", "200"]
+    return out
+
+
+def shrink_toml(text: str) -> str:
+    """A sweep file at a small budget: every ``steps`` shrunk, a few evaluation episodes, few checkpoints."""
+    text = re.sub(r"\b(steps\s*=\s*)([\d_]+)", lambda m: m[1] + str(small_steps(int(m[2].replace("_", "")))), text)
+    text = re.sub(r"\b(eval_episodes\s*=\s*)[\d_]+", r"\g<1>2", text)
+    return re.sub(r"\b(eval_every|log_every|checkpoint_every)(\s*=\s*)[\d_]+", r"\1\g<2>200", text)
+
+
+@pytest.fixture(scope="module")
+def ws(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """A scratch directory laid out like the repository's root: shrunk sweep files, a small ``job.toml``, the
+    benchmark scripts, ``docs/``."""
+    root = tmp_path_factory.mktemp("docs-run")
+    (root / "experiments").mkdir()
+    for path in (ROOT / "experiments").glob("*.toml"):
+        (root / "experiments" / path.name).write_text(shrink_toml(path.read_text()))
+    (root / "job.toml").write_text(JOB_TOML)
+    (root / "benchmarks").symlink_to(ROOT / "benchmarks")
+    (root / "docs").mkdir()
+    yield root
+
+
+def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """``convoy ARGV`` in this process with ``ws`` as the working directory: (exit code, stdout + stderr)."""
+    from convoy.services.cli import main
+
+    cwd = os.getcwd()
+    os.chdir(ws)
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    finally:
+        os.chdir(cwd)
+    out = capsys.readouterr()
+    return code or 0, out.out + out.err
+
+
+def run_make(target: str, ws: Path, **variables: str) -> subprocess.CompletedProcess[str]:
+    """``make TARGET`` of the repository (its venv as it is: never reinstalled here) with small variables."""
+    assigns = [f"{k}={v}" for k, v in variables.items()]
+    cmd = ["make", "-C", str(ROOT), "-o", ".venv/.convoy-installed", "BIN=" + str(Path(sys.executable).parent), target]
+    return subprocess.run([*cmd, *assigns], capture_output=True, text=True, timeout=600, cwd=ws)
+
+
+def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """Run one documented command (a ``convoy`` line, a benchmark script or a ``make`` target) at a small budget."""
+    argv = shrink(expand(command))
+    if argv[0] == "convoy":
+        for arg in argv:  # a run this command reads: made by the documented command that writes it
+            for path in PRODUCERS:
+                if arg == path or arg.startswith(path + "/"):
+                    ensure(path, ws, capsys)
+        return run_convoy(argv[1:], ws, capsys)
+    if argv[0] == "python":
+        budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
+                  "treadmill_references.py": ["--episodes", "2"],
+                  "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200"]}[Path(argv[1]).name]  # fmt: skip
+        done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
+                              cwd=ws)  # fmt: skip
+        return done.returncode, done.stdout + done.stderr
+    if argv[:2] == ["make", "run"]:
+        done = run_make("run", ws, STEPS=str(small_steps(30_000)), OUT=str(ws / "runs/demo"))
+    elif argv[:2] == ["make", "run-distributed"]:
+        done = run_make("run-distributed", ws, STEPS=str(small_steps(30_000)), OUT=str(ws / "runs/demo"))
+    else:
+        raise AssertionError(f"no rule to run {command!r}")
+    return done.returncode, done.stdout + done.stderr
+
+
+def ensure(path: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The run at ``ws/path``, made by its documented producer unless it is there."""
+    if (ws / path / "summary.json").is_file() or (ws / path / "seed-0" / "summary.json").is_file():
+        return
+    producer = PRODUCERS[path]
+    code, out = run_documented(BY_WHERE.get(producer, producer), ws, capsys)
+    assert code == 0, f"{producer} (which writes {path}) failed:\n{out[-4000:]}"
+
+
+def check(where: str, command: str, code: int, out: str) -> None:
+    shown = OUTPUT.get(where, "")
+    if shown.startswith("error: "):  # a documented refusal: that error, word for word
+        assert code != 0 and shown[len("error: ") :] in " ".join(out.split()), f"{where}: {out[-2000:]}"
+    else:
+        assert code == 0, f"{where}: `{command}` exited {code}:\n{out[-4000:]}"
+
+
+@pytest.mark.parametrize(("where", "command"), GENERIC, ids=[w for w, _ in GENERIC])
+def test_every_documented_command_runs(where: str, command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out = run_documented(command, ws, capsys)
+    check(where, command, code, out)
+
+
+@pytest.mark.parametrize("target", ["run", "run-distributed"])
+def test_the_documented_make_targets_run(target: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``make run`` (the quick start) and ``make run-distributed`` at a small STEPS; ``make serve`` runs in the
+    service session below and ``make test`` is what runs this."""
+    out = ws / "runs" / f"make-{target}"
+    done = run_make(target, ws, STEPS=str(small_steps(30_000)), OUT=str(out))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    folder = out if target == "run" else Path(f"{out}-distributed")
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["algo"] == "ma-mesn" and summary["env"] == "treadmill" and summary["env_steps"] >= 400
+
+
+def test_tensorboard_opens_a_run_as_documented(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """README: ``tensorboard --logdir runs/demo/tb`` serves the run's greedy curve."""
+    ensure("runs/demo", ws, capsys)
+    port = free_port()
+    argv = expand(BY_WHERE["README.md:160"])
+    assert argv[:2] == ["tensorboard", "--logdir"]
+    exe = Path(sys.executable).parent / "tensorboard"
+    with open(ws / "tensorboard.log", "w") as log:
+        proc = subprocess.Popen([str(exe), *argv[1:], "--port", str(port), "--host", "127.0.0.1"], cwd=ws, stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+    try:
+        tags: dict[str, Any] = {}
+        t_end = time.monotonic() + 180
+        while time.monotonic() < t_end and not tags:
+            with contextlib.suppress(httpx.HTTPError, json.JSONDecodeError):
+                tags = httpx.get(f"http://127.0.0.1:{port}/data/plugin/scalars/tags", timeout=10).json()
+            time.sleep(0.5)
+        assert any("eval/return" in run for run in tags.values()), (tags, (ws / "tensorboard.log").read_text())
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+
+
+def test_the_documented_hosts_run_a_job_through_a_router(ws: Path) -> None:
+    """docs/training.md's many-hosts lines on 127.0.0.1: a router, a learner host, an actor host; the job ends."""
+    lines = [BY_WHERE[w] for w in ("training.md:320", "training.md:321", "training.md:323")]
+    port = free_port()
+
+    def local(command: str) -> list[str]:
+        text = re.sub(r"tcp/[0-9.]+:7447", f"tcp/127.0.0.1:{port}", command)
+        return [sys.executable, "-m", "convoy.services.cli", *shrink(shlex.split(text))[1:]]
+
+    procs = []
+    try:
+        for i, command in enumerate(lines):
+            with open(ws / f"host-{i}.log", "w") as log:
+                procs.append(subprocess.Popen(local(command), cwd=ws, stdout=log, stderr=subprocess.STDOUT,
+                                              start_new_session=True))  # fmt: skip
+        learner = procs[1]
+        assert learner.wait(300) == 0, (ws / "host-1.log").read_text()[-4000:]
+        summary = json.loads((ws / "runs/run7/summary.json").read_text())
+        assert summary["env_steps"] >= 400
+    finally:
+        for proc in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGTERM)
+        for proc in procs:
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(10)
+
+
+class Session:
+    """A documented service session: ``convoy serve`` started as shown (on a free port), then each line in order,
+    the docs' example ids replaced by those the service gave."""
+
+    ID = re.compile(r"\b([a-z][a-z-]*?)-([0-9a-f]{6})\b")
+
+    def __init__(self, ws: Path, capsys: pytest.CaptureFixture[str], keep_steps: set[str] = frozenset()) -> None:
+        ws.mkdir()
+        shutil.copytree(ws.parent / "experiments", ws / "experiments")
+        self.ws, self.capsys, self.keep_steps = ws, capsys, keep_steps
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.env: dict[str, str] = {}
+        self.seen: dict[str, str] = {}
+        self.service: Service | None = None
+
+    @staticmethod
+    def lines(doc: str) -> list[tuple[str, str]]:
+        return [(w, c) for w, c in COMMANDS if w.startswith(doc + ":") and c.startswith(SERVICE)]
+
+    def auth(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.env['TOKEN']}"}
+
+    def post(self, path: str) -> None:
+        r = httpx.post(self.url + path, headers=self.auth(), timeout=60)
+        assert r.status_code < 400, r.text
+
+    def wait_state(self, name: str, states: set[str], timeout: float = 240) -> None:
+        t_end, state = time.monotonic() + timeout, None
+        while time.monotonic() < t_end:
+            state = httpx.get(f"{self.url}/jobs/{self.seen[name]}", timeout=30).json()["state"]
+            if state in states:
+                return
+            time.sleep(0.3)
+        raise AssertionError(f"{self.seen[name]} still {state} after {timeout:g} s")
+
+    def long_sweep(self) -> None:
+        """The referential sweep at the docs' budget, submitted as the guide does; on once its first job has a
+        checkpoint to evaluate."""
+        path = self.ws / "long" / "referential.toml"
+        path.parent.mkdir()
+        path.write_text((ROOT / "experiments/referential.toml").read_text())
+        self.run("service.md:270", f"convoy sweep submit {path.relative_to(self.ws)}")
+        job = self.seen["referential"] + "-000"
+        t_end = time.monotonic() + 240
+        while time.monotonic() < t_end:
+            if httpx.get(f"{self.url}/jobs/{job}/checkpoints", timeout=30).json().get("checkpoints"):
+                return
+            time.sleep(0.5)
+        raise AssertionError(f"{job} wrote no checkpoint in 240 s")
+
+    def substitute(self, command: str) -> str:
+        text = re.sub(r"(localhost|127\.0\.0\.1):8000", f"127.0.0.1:{self.port}", command)
+        text = text.replace("--port 8000", f"--port {self.port}")
+        text = text.replace("SWEEP_ID", self.seen.get("referential", "SWEEP_ID"))
+        text = re.sub(r"/evaluations/[0-9a-f]{6}", lambda m: f"/evaluations/{self.seen.get('evaluation', '')}", text)
+        return self.ID.sub(lambda m: self.seen.get(m[1], m[0]), text)
+
+    def remember(self, out: str) -> None:
+        for m in self.ID.finditer(out):
+            self.seen[m[1]] = m[0]
+        with contextlib.suppress(json.JSONDecodeError, AttributeError):
+            body = json.loads(out)
+            if isinstance(body, dict) and "request" in body and re.fullmatch(r"[0-9a-f]{6}", body.get("id", "")):
+                self.seen["evaluation"] = body["id"]
+
+    def serve(self, command: str) -> None:
+        """``convoy serve …`` / ``make serve`` as a process (its token written under --data, as a user's is)."""
+        data = self.ws / "runs/service"
+        if command.startswith("make"):
+            cmd = ["make", "-C", str(ROOT), "-o", ".venv/.convoy-installed", f"BIN={Path(sys.executable).parent}",
+                   "serve", f"PORT={self.port}", f"DATA={data}"]  # fmt: skip
+        else:
+            argv = shlex.split(self.substitute(command))
+            cmd = [sys.executable, "-m", "convoy.services.cli", *argv[1:]]
+        cmd_env = {k: v for k, v in os.environ.items() if k != "CONVOY_API_TOKEN"}
+        log = open(self.ws / "serve.log", "ab")  # noqa: SIM115
+        proc = subprocess.Popen([*cmd, "--max-processes", "12"] if cmd[0] != "make" else cmd, cwd=self.ws,
+                                env=cmd_env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+        log.close()
+        self.service = Service(data, port=self.port)
+        self.service.proc = proc
+        t_end = time.monotonic() + 120
+        while time.monotonic() < t_end:
+            with contextlib.suppress(httpx.TransportError):
+                if self.service.client.get("/healthz").status_code == 200:
+                    self.env["TOKEN"] = (data / "api_token").read_text().strip()  # the guide's TOKEN=$(cat …)
+                    return
+            assert proc.poll() is None, (self.ws / "serve.log").read_text()[-3000:]
+            time.sleep(0.2)
+        raise AssertionError("convoy serve did not answer within 120 s")
+
+    def stop(self) -> None:
+        if self.service is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.service.proc.pid, signal.SIGTERM)  # make serve: make and its convoy serve
+            self.service.stop()
+
+    def export(self, command: str) -> None:
+        token = (self.ws / "runs/service/api_token").read_text().strip()
+        for name, value in re.findall(r"(\w+)=(\S+)", command):
+            self.env[name] = token if value.startswith("$(cat") else value.replace(":8000", f":{self.port}")
+        self.env["TOKEN"] = token
+
+    def curl(self, command: str) -> tuple[int, str]:
+        """curl's flags the docs use (-s -X -H -d -o -N), sent with httpx; ``| grep X`` filters the answer."""
+        command, _, grep = command.partition(" | grep ")
+        text = re.sub(r"\$(\w+)", lambda m: self.env.get(m[1], ""), self.substitute(command))
+        argv = shlex.split(text)[1:]
+        method, headers, data, out, url = "GET", {}, None, None, ""
+        i = 0
+        while i < len(argv):
+            a = argv[i]
+            if a in ("-X", "-H", "-d", "-o"):
+                v = argv[i + 1]
+                i += 1
+                if a == "-X":
+                    method = v
+                elif a == "-H":
+                    k, _, hv = v.partition(":")
+                    headers[k.strip()] = hv.strip()
+                elif a == "-d":
+                    body = json.loads(v)
+                    data = json.dumps(body if body.get("name") in self.keep_steps else shrink_body(body))
+                    method = "POST" if method == "GET" else method
+                else:
+                    out = v
+            elif not a.startswith("-"):
+                url = a if a.startswith("http") else f"http://{a}"
+            i += 1
+        with httpx.Client(timeout=60) as client:
+            if "/events" in url:  # a live stream: it opens with its retry line
+                with client.stream(method, url, headers=headers) as r:
+                    first = next(line for line in r.iter_lines() if line)
+                    assert r.headers["content-type"].startswith("text/event-stream"), r.headers
+                    return r.status_code, first
+            r = client.request(method, url, headers=headers, content=data)
+        if out:
+            (self.ws / out).write_bytes(r.content)
+            return r.status_code, f"{len(r.content)} bytes"
+        body = r.text
+        if grep:
+            body = "\n".join(line for line in body.splitlines() if grep.strip() in line)
+        return r.status_code, body
+
+    def run(self, where: str, command: str) -> None:
+        if command.startswith(("convoy serve", "make serve")):
+            return self.serve(command)
+        if command.startswith("export "):
+            return self.export(command)
+        if command.startswith("curl "):
+            status, out = self.curl(command)
+            shown = OUTPUT.get(where, "")
+            refused = shown.startswith('{"field"')
+            assert (400 <= status < 500) if refused else status < 400, f"{where}: {status} {out[:2000]}"
+            assert out, f"{where}: an empty answer"
+            self.remember(out)
+            return None
+        argv = shrink(shlex.split(self.substitute(command)))
+        env = {"CONVOY_API_URL": self.url, "CONVOY_API_TOKEN": self.env.get("CONVOY_API_TOKEN", self.env["TOKEN"])}
+        old = {k: os.environ.get(k) for k in env}
+        os.environ.update(env)
+        try:
+            code, out = run_convoy(argv[1:], self.ws, self.capsys)
+        finally:
+            for k, v in old.items():
+                os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
+        assert code == 0, f"{where}: `{command}` exited {code}:\n{out[-3000:]}"
+        self.remember(out)
+        return None
+
+
+def shrink_body(body: Any) -> Any:
+    """A documented REST body at a small budget (its steps and episodes)."""
+    if isinstance(body, dict):
+        small = {"steps": lambda n: small_steps(n), "episodes": lambda n: min(n, 2)}
+        return {k: small[k](v) if k in small and isinstance(v, int) else shrink_body(v) for k, v in body.items()}
+    return body
+
+
+def test_the_readme_service_session_runs(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """README's service lines in their order against a real ``convoy serve`` (jobs and the sweep at small steps)."""
+    session = Session(ws / "readme", capsys)
+    try:
+        for where, command in session.lines("README.md"):
+            session.run(where, command)
+    finally:
+        session.stop()
+
+
+def test_the_service_guide_session_runs(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """docs/service.md's lines in their order. What the guide's story takes for granted is arranged between them:
+    the demo job keeps its 60,000 steps (the guide stops it itself) and is stopped once the guide is done with it;
+    a resume waits for "stopped", as the guide's comment says; the sweep job the guide evaluates and scales belongs
+    to a referential sweep at the docs' own budget that runs meanwhile (the guide submits one later) and is stopped
+    after."""
+    session = Session(ws / "guide", capsys, keep_steps={"demo"})
+    try:
+        for where, command in session.lines("service.md"):
+            if where == "service.md:88":
+                session.wait_state("demo", {"stopped"})
+            if where == "service.md:105":
+                session.long_sweep()
+            session.run(where, command)
+            if where == "service.md:104":
+                session.post(f"/jobs/{session.seen['demo']}/stop")
+            if where == "service.md:201":
+                session.post(f"/sweeps/{session.seen['referential']}/stop")
+    finally:
+        session.stop()
