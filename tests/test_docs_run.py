@@ -148,7 +148,8 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     """Run one documented command (a ``convoy`` line, a benchmark script or a ``make`` target) at a small budget."""
     argv = shrink(expand(command))
     if argv[0] == "convoy":
-        for arg in argv:  # a run this command reads: made by the documented command that writes it
+        outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
+        for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
             for path in PRODUCERS:
                 if arg == path or arg.startswith(path + "/"):
                     ensure(path, ws, capsys)

@@ -344,14 +344,16 @@ class TreadmillEngine:
 
     def _team_sightings(self, observed, rel_x, rel_y, speed) -> np.ndarray:
         """``[E, N, (C−1)·5]``: each other car that a teammate is (its position it can say) or that some agent
-        observes, in the agent's own frame — known flag, offset / road size, speed, adversary flag; zeros if unknown."""
+        observes, in the agent's own frame — known flag, offset / sensor range, speed, adversary flag; zeros if
+        unknown. The offsets share the scale of the agent's own neighbour slots: a car 10 cells behind reads the same
+        whether the agent sees it or a teammate tells it (over the road's size it read 0.1, six times smaller)."""
         cfg = self.cfg
         n, o = cfg.n_agents, self._others
         known = observed[:, o] | (o < n)  # [E, N, C−1]
         me = np.arange(n)[:, None]
-        l1, w1 = float(cfg.length - 1), float(cfg.width - 1)
+        r = np.float32(cfg.sensor_range)
         adversary = np.broadcast_to(o >= n, known.shape)
-        feats = [known, rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed[:, o] / cfg.max_speed, adversary]
+        feats = [known, rel_x[:, me, o] / r, rel_y[:, me, o] / r, speed[:, o] / cfg.max_speed, adversary]
         out = np.stack(feats, axis=3, dtype=np.float32) * known[..., None]
         return out.reshape(len(observed), n, -1)
 
