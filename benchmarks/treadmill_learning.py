@@ -80,10 +80,11 @@ def variant_flags(name: str) -> tuple[str, list[str]]:
 def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     """One ``convoy train --inprocess`` run in its own process (one torch thread); its summary."""
     algo, flags = variant_flags(name)
-    out = Path(args.out) / f"{name}-s{seed}"
+    out = Path(args.out).resolve() / f"{name}-s{seed}"  # the user's --out, wherever the runs start
     cmd = [sys.executable, "-m", "convoy.services.cli", "train", "--inprocess", "--algo", algo,
            "--steps", str(args.steps), "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress",
            "--eval-every", str(args.eval_every)]  # fmt: skip
+    cmd += ["--eval-episodes", str(args.eval_episodes)] if args.eval_episodes else []
     cmd += flags
     for hp in args.hp or []:
         cmd += ["--hp", hp]
@@ -152,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         "--eval-every", type=int, default=20_000, help="env steps between curve points (default %(default)s)"
     )
     p.add_argument("--episodes", type=int, default=500, help="held-out and reference episodes (default %(default)s)")
+    p.add_argument("--eval-episodes", type=int, help="episodes of each curve point (default: convoy train's)")
     p.add_argument("--hp", action="append", metavar="KEY=VALUE", help="hyper-parameter for every run, repeatable")
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help="treadmill rule for every run, repeatable")
     p.add_argument("--jobs", type=int, default=2, help="runs side by side (default %(default)s)")

@@ -89,6 +89,7 @@ def shrink(argv: list[str]) -> list[str]:
             continue
         i += 2
     if out[:2] == ["convoy", "train"] and "--resume" not in out:
+        out += [] if "--steps" in out else ["--steps", "300"]  # the defaults are 100,000s
         out += [] if "--eval-episodes" in out else ["--eval-episodes", "2"]
         out += ["--no-progress"]
     if out[:3] == ["convoy", "env", "rollout"] and "--episodes" not in out:
@@ -150,14 +151,16 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     if argv[0] == "convoy":
         outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
         for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
+            value = arg.rpartition("=")[2]  # a path or --hp teacher=PATH
             for path in PRODUCERS:
-                if arg == path or arg.startswith(path + "/"):
+                if value == path or value.startswith(path + "/"):
                     ensure(path, ws, capsys)
         return run_convoy(argv[1:], ws, capsys)
     if argv[0] == "python":
         budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
                   "treadmill_references.py": ["--episodes", "2"],
-                  "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200"]}[Path(argv[1]).name]  # fmt: skip
+                  "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
+                                                   "--analysis-samples", "2000"]}[Path(argv[1]).name]  # fmt: skip
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
                               cwd=ws)  # fmt: skip
         return done.returncode, done.stdout + done.stderr

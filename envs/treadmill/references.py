@@ -295,7 +295,7 @@ def _cycle_name(cycle: list[int]) -> str:
 def driver_grid(quick: bool = False) -> list:
     """The family's parameter grid (``drivers.DriverParams``): flee distance, how to hold a place, flee pace,
     braking for a car ahead (and, for team drivers, the flee distance of a known adversary)."""
-    from convoy.envs.treadmill.drivers import HOLDS, DriverParams
+    from convoy.envs.treadmill.scripted import HOLDS, DriverParams
 
     dangers = (8.0, 16.0, 32.0) if quick else (8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
     holds = ("straight", "circle") if quick else HOLDS
