@@ -291,28 +291,26 @@ class Session:
         assert r.status_code < 400, r.text
 
     def wait_state(self, name: str, states: set[str], timeout: float = 240) -> None:
+        """Until the job ``name`` names (a sweep's: its first job) is in one of ``states``."""
+        job = self.seen[name] + ("-000" if name == "referential" else "")
         t_end, state = time.monotonic() + timeout, None
         while time.monotonic() < t_end:
-            state = httpx.get(f"{self.url}/jobs/{self.seen[name]}", timeout=30).json()["state"]
+            state = httpx.get(f"{self.url}/jobs/{job}", timeout=30).json()["state"]
             if state in states:
                 return
             time.sleep(0.3)
-        raise AssertionError(f"{self.seen[name]} still {state} after {timeout:g} s")
+        raise AssertionError(f"{job} still {state} after {timeout:g} s")
 
-    def long_sweep(self) -> None:
-        """The referential sweep at the docs' budget, submitted as the guide does; on once its first job has a
-        checkpoint to evaluate."""
-        path = self.ws / "long" / "referential.toml"
-        path.parent.mkdir()
-        path.write_text((ROOT / "experiments/referential.toml").read_text())
-        self.run("service.md:270", f"convoy sweep submit {path.relative_to(self.ws)}")
-        job = self.seen["referential"] + "-000"
-        t_end = time.monotonic() + 240
-        while time.monotonic() < t_end:
-            if httpx.get(f"{self.url}/jobs/{job}/checkpoints", timeout=30).json().get("checkpoints"):
-                return
-            time.sleep(0.5)
-        raise AssertionError(f"{job} wrote no checkpoint in 240 s")
+    def sweep(self, path: str, running: bool = False) -> str:
+        """A referential sweep submitted as the guide does (``convoy sweep submit``): watched to its end, or on
+        once its first job runs; its id."""
+        self.run("service.md:270", f"convoy sweep submit {path}")
+        sweep = self.seen["referential"]
+        if running:
+            self.wait_state("referential", {"running"})  # the seen id is the sweep's; its first job:
+        else:
+            self.run("service.md:273", f"convoy sweep watch {sweep}")
+        return sweep
 
     def substitute(self, command: str) -> str:
         text = re.sub(r"(localhost|127\.0\.0\.1):8000", f"127.0.0.1:{self.port}", command)
@@ -455,21 +453,30 @@ def test_the_readme_service_session_runs(ws: Path, capsys: pytest.CaptureFixture
 
 def test_the_service_guide_session_runs(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """docs/service.md's lines in their order. What the guide's story takes for granted is arranged between them:
-    the demo job keeps its 60,000 steps (the guide stops it itself) and is stopped once the guide is done with it;
-    a resume waits for "stopped", as the guide's comment says; the sweep job the guide evaluates and scales belongs
-    to a referential sweep at the docs' own budget that runs meanwhile (the guide submits one later) and is stopped
-    after."""
+    the demo job keeps its 60,000 steps (the guide stops it) and is stopped once the guide is done with it; the
+    lines after its submission wait for "running" and its resume for "stopped", as the guide's comments say; the
+    sweep job it evaluates is one of a finished referential sweep, the one it scales one of a sweep at the docs'
+    own budget, running (stopped after)."""
     session = Session(ws / "guide", capsys, keep_steps={"demo"})
+    finished = running = ""
     try:
         for where, command in session.lines("service.md"):
-            if where == "service.md:88":
+            if where == "service.md:75":  # "6 s later": running
+                session.wait_state("demo", {"running"})
+            if where == "service.md:88":  # "then stopped …, checkpoint written"
                 session.wait_state("demo", {"stopped"})
             if where == "service.md:105":
-                session.long_sweep()
+                finished = session.sweep("experiments/referential.toml")
+            if where == "service.md:192":
+                (session.ws / "long").mkdir()
+                shutil.copy(ROOT / "experiments/referential.toml", session.ws / "long")
+                running = session.sweep("long/referential.toml", running=True)
+            if where == "service.md:201":
+                session.seen["referential"] = finished
             session.run(where, command)
             if where == "service.md:104":
                 session.post(f"/jobs/{session.seen['demo']}/stop")
-            if where == "service.md:201":
-                session.post(f"/sweeps/{session.seen['referential']}/stop")
+            if where == "service.md:192":
+                session.post(f"/sweeps/{running}/stop")
     finally:
         session.stop()
