@@ -46,7 +46,7 @@ PRODUCERS = {
     "runs/demo-distributed": "make run-distributed",
     "runs/glimpse": "algorithms.md:184",
     "runs/v4/idqn-private": "benchmarks.md:25",
-    "runs/v4/idqn-team": "benchmarks.md:26",
+    "runs/v6/idqn-team": "benchmarks.md:26",
     "runs/resume-demo": "training.md:44",
     # benchmarks/decentralized.py's MA-MeSN-MM run (3 agents on the small treadmill), which CoDBC distils
     "runs/bench/decentralized/ma-mesn-mm-2": "convoy train --inprocess --algo ma-mesn-mm $TM --agents 3 "

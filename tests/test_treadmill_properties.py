@@ -294,7 +294,7 @@ def test_team_sightings_tell_what_a_teammate_observes_in_the_agents_own_frame() 
     assert obs.shape[-1] == cfg.obs_dim and obs[0, 0, OWN_FEATURES] == 0  # agent 0 itself sees nothing
     told = obs[0, 0, -3 * SIGHTING_FEATURES :].reshape(3, SIGHTING_FEATURES)  # agent 0: cars 1, 2, 3
     assert told[0].tolist() == pytest.approx([1, -20 / 20, 0, 1 / 3, 0])  # a teammate: it can say where it is
-    assert told[1].tolist() == pytest.approx([1, -10 / 20, 2 / 20, 1 / 3, 1])  # seen by agent 1: an adversary (sensor scale)
+    assert told[1].tolist() == pytest.approx([1, -10 / 20, 2 / 20, 1 / 3, 1])  # seen by agent 1: an adversary
     assert (told[2] == 0).all()  # nobody observes it
 
 
