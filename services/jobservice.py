@@ -233,11 +233,11 @@ class JobService:
 
     def scale(self, job_id: str, actors: int) -> JobRecord:
         with self._lock:
-            if self._runner(job_id) != job_id:  # a packed seed scales with its population
+            rec = self.store.get(job_id)
+            if rec.state in ACTIVE_STATES and self._runner(job_id) != job_id:  # a packed seed: its population
                 self.scale(self._runner(job_id), actors)
                 return self.store.get(job_id)
-            rec = self.store.get(job_id)
-            if rec.state not in ACTIVE_STATES:
+            if rec.state not in ACTIVE_STATES:  # named as the caller named it (resuming a seed resumes its population)
                 raise StoreError(
                     f"job {job_id!r} is {rec.state}; scale it by resuming: POST /jobs/{job_id}/resume "
                     f'{{"actors": {actors}}}'
