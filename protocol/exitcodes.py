@@ -5,6 +5,8 @@ and is not restarted. ``STOPPED`` (143, the shell's code for SIGTERM) means a si
 supervisor that still wants the process starts it again, like after any other crash.
 """
 
+import sys
+
 DONE = 0
 NO_DATA = 3  # the learner heard no chunk for runtime.data_timeout_s: a crash the supervisor handles and counts
 DIVERGED = 4  # non-finite losses in a row: a restart from the checkpoint would diverge again; the job fails
@@ -44,7 +46,7 @@ class ParentWatch:
 
             # the worker now saves and closes; should anything hang there (a write on a starved disk, a transport
             # that will not close), this C-level timer prints every thread's stack and exits without the GIL
-            faulthandler.dump_traceback_later(self.exit_after_s, exit=True)
+            faulthandler.dump_traceback_later(self.exit_after_s, exit=True, file=sys.__stderr__)
         return gone
 
 
@@ -54,5 +56,5 @@ def dump_stacks_on_sigusr1() -> None:
     import faulthandler
     import signal
 
-    if hasattr(signal, "SIGUSR1"):
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    if hasattr(signal, "SIGUSR1"):  # to fd 2 itself: sys.stderr may be a stream without one (a test's capture)
+        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)
