@@ -25,6 +25,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import httpx
 import pytest
@@ -191,8 +192,9 @@ def ensure(path: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert code == 0, f"{producer} (which writes {path}) failed:\n{out[-4000:]}"
 
 
-def check(where: str, command: str, code: int, out: str) -> None:
-    shown = OUTPUT.get(where, "")
+def check(where: str, command: str, code: int, out: str, shown: str | None = None) -> None:
+    """Exit 0, or for a documented refusal the error the docs show (``shown``: their output line, ids filled in)."""
+    shown = OUTPUT.get(where, "") if shown is None else shown
     if shown.startswith("error: "):  # a documented refusal: that error, word for word
         assert code != 0 and shown[len("error: ") :] in " ".join(out.split()), f"{where}: {out[-2000:]}"
     else:
@@ -425,18 +427,9 @@ class Session:
             return None
         argv = shrink(shlex.split(self.substitute(command)))
         env = {"CONVOY_API_URL": self.url, "CONVOY_API_TOKEN": self.env.get("CONVOY_API_TOKEN", self.env["TOKEN"])}
-        old = {k: os.environ.get(k) for k in env}
-        os.environ.update(env)
-        try:
+        with mock.patch.dict(os.environ, env):
             code, out = run_convoy(argv[1:], self.ws, self.capsys)
-        finally:
-            for k, v in old.items():
-                os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
-        shown = self.substitute(OUTPUT.get(where, ""))
-        if shown.startswith("error: "):  # a documented refusal: that error, word for word (the ids the service gave)
-            assert code != 0 and shown[len("error: ") :] in " ".join(out.split()), f"{where}: {out[-2000:]}"
-        else:
-            assert code == 0, f"{where}: `{command}` exited {code}:\n{out[-3000:]}"
+        check(where, command, code, out, shown=self.substitute(OUTPUT.get(where, "")))  # the ids the service gave
         self.remember(out)
         return None
 
