@@ -643,12 +643,14 @@ class ReplayAgent(NetworkAgent):
         self.replay = JointReplay(cfg.replay_capacity, runs=runs)
         super().__init__(spec, cfg, device=device, seed=seed)
 
-    def observe(self, chunk: dict[str, np.ndarray]) -> None:
-        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run."""
+    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run; a
+        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN)."""
         if self.runs is None:
             self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
-        else:
-            self.replay.add({k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()})
+            return
+        runs = {k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()}
+        self.replay.add(runs, None if valid is None else valid.swapaxes(0, 1).reshape(self.runs, -1))
 
     def can_update(self) -> bool:
         return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)

@@ -160,6 +160,7 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
     for name, buf in buffers.items():
         state = buf.state_dict()
         arrays[f"{name}/next"] = np.asarray(state["next"])
+        arrays[f"{name}/size"] = np.asarray(state["size"])
         arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
     if path.is_file():  # the checkpoint on disk still points at this one until the next checkpoint is written
         path.replace(previous_replay(path))
@@ -204,7 +205,8 @@ def load_replay(path: str | Path, algo: Any, env_steps: int) -> int:
             buffers = replay_buffers(algo)
             states = {
                 name: {
-                    "next": int(data[f"{name}/next"]),
+                    "next": data[f"{name}/next"],
+                    **({"size": data[f"{name}/size"]} if f"{name}/size" in data.files else {}),
                     "data": {k.split("/", 2)[2]: data[k] for k in data.files if k.startswith(f"{name}/data/")},
                 }
                 for name in buffers

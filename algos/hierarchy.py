@@ -59,9 +59,19 @@ bootstraps.
 
 Acting vs learning. ``act`` decides option boundaries from observations alone, so greedy evaluation (which never
 calls ``observe``) acts exactly as in training; it stamps the goals, the option-start flag and the step count into
-``extras``. ``observe`` (every step, ``chunk_len = 1``) reruns the same critic on the stored transition, writes
-controller rows and keeps the per-env reward sums that become meta-transitions. ε applies to both levels; each
-``update`` takes one gradient step on each level that can learn.
+``extras``. The meta-controller acts for every env at every step and its goal counts where an option starts: so its
+exploration stream advances alike whichever envs start options, which a population needs (below). ``observe``
+(every step, ``chunk_len = 1``) reruns the same critic on the stored transition, writes controller rows and keeps
+the per-env reward sums that become meta-transitions. ε applies to both levels; each ``update`` takes one gradient
+step on each level that can learn. The meta level learns once its replay is warm, judged by a clock every run
+shares: ``goal_steps · (max(learning_starts, batch_size) + B)`` env steps observed (B envs per run), after which
+each run holds at least ``max(learning_starts, batch_size)`` meta-transitions (an option lasts ≤ ``goal_steps``).
+
+Populations. Given a job with ``seeds``, both levels are populations of R runs (``[R, B, …]`` observations,
+``[T, R, B, …]`` chunks) and run k is the single run of seed k: its meta-transitions go to run k's own ring
+(``JointReplay.add(rows, valid)``: runs end options at different steps), and the meta's warm-up clock above is the
+same for all runs, where "each run's replay holds enough rows" would start the runs' meta updates at different
+update counts. A DIAL meta-controller (fixed options released in lockstep chunks) trains one seed per process.
 """
 
 from __future__ import annotations
@@ -137,7 +147,8 @@ class HierState:
 
 
 def _take(state: Any, idx: np.ndarray) -> Any:
-    """Rows ``idx`` (envs) of a recurrent state made of tensors / arrays / containers of them."""
+    """Rows ``idx`` (envs: indices, or a boolean mask over the leading env dims) of a recurrent state made of
+    tensors / arrays / containers of them."""
     if state is None:
         return None
     if isinstance(state, Tensor):
@@ -152,7 +163,7 @@ def _take(state: Any, idx: np.ndarray) -> Any:
 
 
 def _put(state: Any, idx: np.ndarray, rows: Any) -> Any:
-    """A copy of ``state`` with rows ``idx`` replaced by ``rows`` (same structure)."""
+    """A copy of ``state`` with rows ``idx`` (as in ``_take``) replaced by ``rows`` (same structure)."""
     if state is None or rows is None:
         return state
     if isinstance(state, Tensor):
@@ -246,14 +257,11 @@ class HierarchicalAgent:
             n_actions=(N_GOALS,) * spec.n_agents,
             max_steps=math.ceil(spec.max_steps / self.goal_steps),
         )
-        self.meta: NetworkAgent = make_algorithm(job.algo, meta_spec, self.cfg, device=self.device, seed=job.seed)
-        n = spec.n_agents
-        base = {k: getattr(self.cfg, k) for k in AlgoConfig.model_fields}
-        base.update(
-            share_params=True,
-            batch_size=self.cfg.batch_size * n,
-            replay_capacity=self.cfg.replay_capacity * n,
-            learning_starts=self.cfg.learning_starts * n,
+        self.runs: int | None = job.runs
+        self.seeds: tuple[int, ...] = tuple(job.run_seeds())
+        population = list(self.seeds) if self.runs else None
+        self.meta: NetworkAgent = make_algorithm(
+            job.algo, meta_spec, self.cfg, device=self.device, seed=population or job.seed
         )
         ctrl_spec = EnvSpec(
             name=f"{spec.name}-controller",
@@ -262,11 +270,20 @@ class HierarchicalAgent:
             n_actions=(spec.max_actions,),
             max_steps=spec.max_steps,
         )
-        self.controller = IndependentDQN(ctrl_spec, IDQNConfig(**base), device=self.device, seed=job.seed + 1)
+        self.controller = IndependentDQN(
+            ctrl_spec,
+            self._controller_config(self.cfg),
+            device=self.device,
+            seed=[s + 1 for s in self.seeds] if self.runs else job.seed + 1,
+        )
         self.env_reward_scale = float(1.0 - self.cfg.gamma if env_reward_scale is None else env_reward_scale)
         self.name = f"h-{self.meta.name}"
         self.uses_messages = self.meta.uses_messages
         self.updates = 0
+        self.meta_steps = 0  # env steps observed per run: the meta level's warm-up clock
+        self._envs = 0  # envs per run, seen in the chunks
+        self.run_cfgs: list[AlgoConfig] = [self.cfg] * len(self.seeds)
+        self._members: dict[int, HierarchicalAgent] = {}
         self._progress = Progress()
         self._meta_extras: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None
         self._pending: dict[str, Any] = {}
@@ -274,6 +291,30 @@ class HierarchicalAgent:
         # meta algorithm gets variable-length options and an SMDP target
         self.fixed_options = self.meta.chunk_len > 1
         self._queue = LockstepQueue(self.meta.chunk_len, 2 * self.meta.chunk_len) if self.fixed_options else None
+        if self.fixed_options and self.runs:
+            raise ValueError("hierarchy: a DIAL meta-controller trains one seed per process (drop seeds)")
+
+    def _controller_config(self, cfg: AlgoConfig) -> IDQNConfig:
+        """The controller's config from the job's: shared weights over every (env, agent) row, and replay capacity,
+        batch and warm-up scaled by N so an update sees as many agent transitions as one of a joint algorithm."""
+        n = self.n_agents
+        base = {k: getattr(cfg, k) for k in AlgoConfig.model_fields}
+        base.update(
+            share_params=True,
+            batch_size=cfg.batch_size * n,
+            replay_capacity=cfg.replay_capacity * n,
+            learning_starts=cfg.learning_starts * n,
+        )
+        return IDQNConfig(**base)
+
+    def set_run_configs(self, configs: list[AlgoConfig]) -> None:
+        """Each run's own hyper-parameters (a population; as ``NetworkAgent.set_run_configs``), γ excepted: it sets
+        the controller's reward scale and the options' discount, one for the whole population here."""
+        if len({c.gamma for c in configs}) > 1:
+            raise ValueError("gamma: the runs of a hierarchical population share it; sweep it in separate jobs")
+        self.meta.set_run_configs(configs)
+        self.controller.set_run_configs([self._controller_config(c) for c in configs])
+        self.run_cfgs, self.cfg = list(configs), configs[0]
 
     # --- shared counters ---------------------------------------------------------------------------------------
     @property
@@ -292,12 +333,13 @@ class HierarchicalAgent:
 
     # --- acting ------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> HierState:
-        """Every env starts a new option at its first step."""
+        """Every env starts a new option at its first step (a population's: ``num_envs`` per run, ``[R, B, …]``)."""
+        lead = (num_envs,) if self.runs is None else (self.runs, num_envs)
         return HierState(
-            goal=np.zeros((num_envs, self.n_agents), dtype=np.int64),
-            anchor=np.zeros((num_envs, self.n_agents, self.obs_dim), dtype=np.float32),
-            steps=np.zeros(num_envs, dtype=np.int64),
-            fresh=np.ones(num_envs, dtype=bool),
+            goal=np.zeros((*lead, self.n_agents), dtype=np.int64),
+            anchor=np.zeros((*lead, self.n_agents, self.obs_dim), dtype=np.float32),
+            steps=np.zeros(lead, dtype=np.int64),
+            fresh=np.ones(lead, dtype=bool),
             meta=self.meta.initial_state(num_envs),
         )
 
@@ -309,15 +351,22 @@ class HierarchicalAgent:
         return replace(state, fresh=state.fresh | done, meta=self.meta.reset_state(state.meta, done))
 
     def controller_input(self, obs: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """``obs ⊕ one_hot(goal)`` as controller rows ``[B·N, 1, D + n_goals]``."""
+        """``obs ⊕ one_hot(goal)`` as controller rows ``[B·N, 1, D + n_goals]`` (a population's ``[R, B·N, …]``)."""
         x = np.concatenate([obs.astype(np.float32, copy=False), self.goal_eye[goal]], axis=-1)
-        return x.reshape(-1, 1, x.shape[-1])
+        return x.reshape(*obs.shape[:-3], -1, 1, x.shape[-1])
 
     def option_over(self, steps: np.ndarray, hit: np.ndarray) -> np.ndarray:
         """``[B]``: the env's option ends (before its episode does): ``goal_steps`` taken, or (variable options) some
         agent reached its goal."""
         over = steps >= self.goal_steps
-        return over if self.fixed_options else over | hit.any(axis=1)
+        return over if self.fixed_options else over | hit.any(axis=-1)
+
+    def _env_epsilon(self, epsilon: float | np.ndarray, lead: tuple[int, ...]) -> np.ndarray:
+        """ε per env ``lead`` from a scalar, one per env, or (a population) one per run ``[R]`` or per run and env."""
+        eps = np.asarray(epsilon, dtype=np.float64)
+        if self.runs is not None and eps.ndim == 1:
+            eps = eps[:, None]
+        return np.broadcast_to(eps, lead)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: HierState | None = None) -> ActOutput:
@@ -326,42 +375,29 @@ class HierarchicalAgent:
         Option boundaries are judged here from the observations alone, so acting without ``observe`` (evaluation)
         is the same as in training.
         """
-        b, n = obs.shape[0], self.n_agents
-        st = self.initial_state(b) if state is None else state
-        eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1), (b,))
-        hit = self.critic.reached(st.goal, st.anchor, obs) & ~st.fresh[:, None]
+        lead, n = obs.shape[:-2], self.n_agents
+        st = self.initial_state(lead[-1]) if state is None else state
+        eps = self._env_epsilon(epsilon, lead)
+        hit = self.critic.reached(st.goal, st.anchor, obs) & ~st.fresh[..., None]
         new = st.fresh | self.option_over(st.steps, hit)
-        goal, steps = st.goal.copy(), np.where(new, 0, st.steps) + 1
-        anchor = np.where((hit | new[:, None])[..., None], obs, st.anchor).astype(np.float32)
-        meta_state, messages = st.meta, st.messages
-        idx = np.flatnonzero(new)
-        meta_extras: dict[str, np.ndarray] = {}
-        if idx.size:
-            mo = self.meta.act(obs[idx], eps[idx], _take(st.meta, idx))
-            goal[idx] = mo.actions
-            meta_state = _put(st.meta, idx, mo.state)
-            if mo.messages is not None:
-                if messages is None or len(messages) != b:
-                    messages = np.zeros((b, *mo.messages.shape[1:]), dtype=mo.messages.dtype)
-                else:
-                    messages = messages.copy()
-                messages[idx] = mo.messages
-            if self._meta_extras is None:
-                self._meta_extras = {k: (v.shape[1:], v.dtype) for k, v in mo.extras.items()}
-            meta_extras = mo.extras
-        extras: dict[str, np.ndarray] = {}
-        for k, (shape, dtype) in (self._meta_extras or {}).items():
-            full = np.zeros((b, *shape), dtype=dtype)
-            if k in meta_extras:
-                full[idx] = meta_extras[k]
-            extras[META_PREFIX + k] = full
-        co = self.controller.act(self.controller_input(obs, goal), np.repeat(eps, n), None)
+        steps = np.where(new, 0, st.steps) + 1
+        anchor = np.where((hit | new[..., None])[..., None], obs, st.anchor).astype(np.float32)
+        mo = self.meta.act(obs, eps, st.meta)  # every env, every step: see the module docstring
+        goal = np.where(new[..., None], mo.actions, st.goal)
+        meta_state = _put(st.meta, new, _take(mo.state, new))
+        messages = st.messages
+        if mo.messages is not None:
+            fits = messages is not None and messages.shape == mo.messages.shape
+            messages = messages.copy() if fits else np.zeros_like(mo.messages)  # type: ignore[union-attr]
+            messages[new] = mo.messages[new]
+        extras = {META_PREFIX + k: v for k, v in mo.extras.items()}  # read where an option starts
+        co = self.controller.act(self.controller_input(obs, goal), np.repeat(eps, n, axis=-1), None)
         extras.update(h_goal=goal, h_start=new, h_steps=steps)
         return ActOutput(
-            actions=co.actions.reshape(b, n),
+            actions=co.actions.reshape(*lead, n),
             messages=None if messages is None else messages.copy(),
             extras=extras,
-            state=HierState(goal, anchor, steps, np.zeros(b, dtype=bool), meta_state, messages),
+            state=HierState(goal, anchor, steps, np.zeros(lead, dtype=bool), meta_state, messages),
         )
 
     # --- learning ----------------------------------------------------------------------------------------------
@@ -369,20 +405,22 @@ class HierarchicalAgent:
         """Controller rows for every step of a ``[T, B]`` chunk, meta-transitions for the options that ended."""
         for t in range(chunk["obs"].shape[0]):
             self._observe_step({k: np.asarray(v[t]) for k, v in chunk.items()})
+            self._envs = chunk["obs"].shape[-3]
+            self.meta_steps += self._envs
 
     def _open_options(self, s: dict[str, np.ndarray]) -> dict[str, Any]:
         """The learner's per-env option bookkeeping (first obs, critic anchors, reward sums, the meta's extras),
         reset where ``act`` started an option. An option still open there was cut short unseen and is dropped."""
-        b = s["obs"].shape[0]
+        lead = s["obs"].shape[:-2]
         p = self._pending
-        if not p or len(p["open"]) != b:
+        if not p or p["open"].shape != lead:
             p.clear()
             p.update(
-                open=np.zeros(b, dtype=bool),
+                open=np.zeros(lead, dtype=bool),
                 first=np.zeros_like(s["obs"], dtype=np.float32),
                 anchor=np.zeros_like(s["obs"], dtype=np.float32),
-                ret=np.zeros((b, self.n_agents), dtype=np.float32),
-                disc=np.ones(b, dtype=np.float32),
+                ret=np.zeros((*lead, self.n_agents), dtype=np.float32),
+                disc=np.ones(lead, dtype=np.float32),
                 extras={k: np.zeros_like(v) for k, v in s.items() if k.startswith(META_PREFIX)},
             )
         new = s["h_start"].astype(bool)
@@ -402,28 +440,29 @@ class HierarchicalAgent:
         obs, nxt = s["obs"], s["next_obs"]
         term, trunc = s["terminated"].astype(bool), s["truncated"].astype(bool)
         goal, reward = s["h_goal"].astype(np.int64), s["reward"].astype(np.float32)
-        b, n = goal.shape
-        episode = s.get("episode", np.zeros(b, dtype=np.int64))
-        hit = self.critic.reached(goal, p["anchor"], nxt) & ~term[:, None]
+        lead, n = goal.shape[:-1], goal.shape[-1]
+        rows = (*lead[:-1], -1)  # the controller's: one per (env, agent), per run
+        episode = s.get("episode", np.zeros(lead, dtype=np.int64))
+        hit = self.critic.reached(goal, p["anchor"], nxt) & ~term[..., None]
 
         ctrl = {
             "obs": self.controller_input(obs, goal),
-            "action": s["action"].reshape(-1, 1),
-            "reward": (hit + self.env_reward_scale * reward).reshape(-1, 1).astype(np.float32),
+            "action": s["action"].reshape(*rows, 1),
+            "reward": (hit + self.env_reward_scale * reward).reshape(*rows, 1).astype(np.float32),
             "next_obs": self.controller_input(nxt, goal),
-            "terminated": (hit | term[:, None]).reshape(-1),
-            "truncated": np.repeat(trunc, n),
-            "episode": np.repeat(episode, n),
+            "terminated": (hit | term[..., None]).reshape(rows),
+            "truncated": np.repeat(trunc, n, axis=-1),
+            "episode": np.repeat(episode, n, axis=-1),
         }
         self.controller.observe({k: v[None] for k, v in ctrl.items()})
         p["anchor"] = np.where(hit[..., None], nxt, p["anchor"])  # fixed options: the goal is pursued again
 
-        p["ret"] += p["disc"][:, None] * reward
+        p["ret"] += p["disc"][..., None] * reward
         p["disc"] *= float(self.meta.cfg.gamma)
         ended = p["open"] & (self.option_over(s["h_steps"], hit) | term | trunc)
         if not ended.any():
             return
-        e = np.flatnonzero(ended)
+        e = np.flatnonzero(ended) if self.runs is None else np.s_[...]  # a population: every row, ``valid`` below
         meta_rows = {
             "obs": p["first"][e],
             "action": goal[e],
@@ -435,8 +474,11 @@ class HierarchicalAgent:
             **({} if self.fixed_options else {"discount": p["disc"][e]}),
             **{k[len(META_PREFIX) :]: v[e] for k, v in p["extras"].items()},
         }
-        p["open"][e] = False
-        self._feed_meta(b, e, meta_rows)
+        p["open"][ended] = False
+        if self.runs is not None:
+            self.meta.observe({k: v[None] for k, v in meta_rows.items()}, valid=ended[None])  # type: ignore[call-arg]
+            return
+        self._feed_meta(lead[0], e, meta_rows)
 
     def _feed_meta(self, num_envs: int, envs: np.ndarray, rows: dict[str, np.ndarray]) -> None:
         """Hand meta-transitions to the meta-controller: ``[1, M]`` now, or ``[T, B]`` lockstep chunks for DIAL."""
@@ -447,26 +489,40 @@ class HierarchicalAgent:
         while (chunk := self._queue.pop()) is not None:
             self.meta.observe(chunk)
 
+    def meta_can_update(self) -> bool:
+        """The meta level learns once the clock every run shares says its replay is warm (module docstring); DIAL
+        by its own rule over its sequences."""
+        if self.fixed_options:
+            return self.meta.can_update()
+        cfg = self.meta.cfg
+        warm = self.goal_steps * (max(cfg.learning_starts, cfg.batch_size) + self._envs)
+        return self.meta_steps >= warm and len(self.meta.replay) > 0  # type: ignore[attr-defined]
+
     def can_update(self) -> bool:
-        return self.controller.can_update() or self.meta.can_update()
+        return self.controller.can_update() or self.meta_can_update()
 
     def updates_for(self, n_transitions: int) -> float:
         """Updates owed for ``n_transitions`` joint env steps: the controller's replay ratio over its N rows each."""
         return self.controller.updates_for(n_transitions * self.n_agents)
 
-    def update(self) -> dict[str, float]:
-        """One controller step and one meta step, each when its level can learn.
+    def update(self) -> dict[str, float] | list[dict[str, float]]:
+        """One controller step and one meta step, each when its level can learn (a population's figures per run).
 
         An option spans ≥ 1 steps, so the meta level receives at most as many meta-transitions as there are joint
         env steps; one meta step per call gives it at least the controller's replay ratio on its own (scarcer) data.
         """
-        info = {"loss": 0.0, "controller_loss": float("nan"), "meta_loss": float("nan")}
-        for level, algo in (("controller", self.controller), ("meta", self.meta)):
-            if algo.can_update():
-                info[f"{level}_loss"] = algo.update()["loss"]
-                info["loss"] += info[f"{level}_loss"]
+        rows = [{"loss": 0.0, "controller_loss": float("nan"), "meta_loss": float("nan")} for _ in self.seeds]
+        for level, algo, ready in (
+            ("controller", self.controller, self.controller.can_update()),
+            ("meta", self.meta, self.meta_can_update()),
+        ):
+            if ready:
+                out = algo.update()
+                for row, figures in zip(rows, [out] if isinstance(out, dict) else out, strict=True):
+                    row[f"{level}_loss"] = figures["loss"]
+                    row["loss"] += figures["loss"]
         self.updates += 1
-        return info
+        return rows[0] if self.runs is None else rows
 
     # --- persistence -------------------------------------------------------------------------------------------
     def policy_state(self) -> dict[str, Tensor]:
@@ -485,6 +541,7 @@ class HierarchicalAgent:
             "meta": self.meta.state_dict(),
             "controller": self.controller.state_dict(),
             "updates": self.updates,
+            "meta_steps": self.meta_steps,
             "goal_steps": self.goal_steps,
             "env_reward_scale": self.env_reward_scale,
         }
@@ -493,5 +550,33 @@ class HierarchicalAgent:
         self.goal_steps = int(state["goal_steps"])  # an option setting, not a network shape: the file wins
         self.meta.load_state_dict(state["meta"])
         self.controller.load_state_dict(state["controller"])
-        self.updates = int(state["updates"])
+        self._load_counters(state)
         self.env_reward_scale = float(state["env_reward_scale"])
+
+    def _load_counters(self, state: dict[str, Any]) -> None:
+        self.updates = int(state["updates"])
+        # a checkpoint written before the warm-up clock existed: its meta level was learning already
+        self.meta_steps = int(state.get("meta_steps", 1 << 62))
+
+    # --- a population's runs as single runs ----------------------------------------------------------------------
+    def member(self, k: int) -> HierarchicalAgent:
+        """Run k of a population as a single-run hierarchical agent of its seed, both levels holding the run's
+        current state (``NetworkAgent.member``): what its evaluation and checkpoints use."""
+        if self.runs is None:
+            return self
+        agent = self._members.get(k)
+        if agent is None:
+            agent = HierarchicalAgent(self.job.members()[k], self.spec, self.device, self.goal_steps,
+                                      self.env_reward_scale)  # fmt: skip
+            agent.cfg = self.run_cfgs[k]
+            self._members[k] = agent
+        agent.meta, agent.controller = self.meta.member(k), self.controller.member(k)
+        agent.updates, agent.meta_steps, agent._envs = self.updates, self.meta_steps, self._envs
+        agent._progress = agent.meta.progress
+        return agent
+
+    def load_member_state(self, k: int, state: dict[str, Any]) -> None:
+        """A single run's state (a checkpoint's) into run k of a population: how a population resumes."""
+        self.meta.load_member_state(k, state["meta"])
+        self.controller.load_member_state(k, state["controller"])
+        self._load_counters(state)

@@ -6,8 +6,10 @@ weighs by), plus whatever else an algorithm asked to keep (a fingerprint, receiv
 and read as whole slices, never one element at a time; arrays are allocated on the first insert, from its
 shapes and dtypes, and never grow past ``capacity``.
 
-A population of R runs keeps R rings in one array ``[R, capacity, …]``: its runs insert the same number of rows at
-the same times, so one write pointer serves all, and a sample draws each run's indices from that run's own stream.
+A population of R runs keeps R rings in one array ``[R, capacity, …]``, each with its own write pointer and size:
+usually every run inserts the same rows at the same times, but a hierarchical meta-controller gets a transition only
+where an option ended, so ``add(rows, valid)`` inserts each run's valid rows only. A sample draws each run's indices
+from that run's own stream, over that run's own rows, exactly as its single run's buffer would.
 """
 
 from __future__ import annotations
@@ -24,19 +26,23 @@ class JointReplay:
         self.capacity = capacity
         self.runs = runs
         self._data: dict[str, np.ndarray] = {}
-        self._next = 0
-        self._size = 0
+        self._next = np.zeros(runs or (), dtype=np.int64)  # a population's per run [R]
+        self._size = np.zeros(runs or (), dtype=np.int64)
 
     def __len__(self) -> int:
-        return self._size
+        """Rows held (a population's: the fewest any run holds)."""
+        return int(self._size.min())
 
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in self._data.values())
 
-    def add(self, rows: dict[str, np.ndarray]) -> None:
+    def add(self, rows: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
         """Append rows (every array shares the leading dim M; a population's ``[R, M, …]``); the oldest rows are
-        overwritten when full."""
+        overwritten when full. ``valid [R, M]`` (a population): only those rows, each run's in order, to its ring."""
+        if self.runs is not None and (valid is not None or (self._next != self._next[0]).any()):
+            self._add_valid(rows, np.ones(np.shape(next(iter(rows.values())))[:2], bool) if valid is None else valid)
+            return
         if self.runs is not None:
             rows = {k: np.moveaxis(np.asarray(v), 0, 1) for k, v in rows.items()}  # [M, R, …] for the ring logic
         sizes = {k: len(v) for k, v in rows.items()}
@@ -50,13 +56,36 @@ class JointReplay:
         if m > self.capacity:  # only the newest rows can survive
             rows = {k: v[-self.capacity :] for k, v in rows.items()}
             m = self.capacity
-        first = min(m, self.capacity - self._next)  # up to the end of the ring, then the wrapped rest: 2 slices
+        at = int(self._next.flat[0])  # one pointer for all runs here
+        first = min(m, self.capacity - at)  # up to the end of the ring, then the wrapped rest: 2 slices
         for k, v in rows.items():
             buf = self._data[k] if self.runs is None else np.moveaxis(self._data[k], 0, 1)  # a view [cap, R, …]
-            buf[self._next : self._next + first] = v[:first]
+            buf[at : at + first] = v[:first]
             buf[: m - first] = v[first:]
         self._next = (self._next + m) % self.capacity
-        self._size = min(self._size + m, self.capacity)
+        self._size = np.minimum(self._size + m, self.capacity)
+
+    def _add_valid(self, rows: dict[str, np.ndarray], valid: np.ndarray) -> None:
+        """A population's rows ``[R, M, …]`` where ``valid [R, M]``: run k's valid rows go to its ring in order, as
+        ``add`` of just those rows writes a single run's (the newest ``capacity`` of them when there are more)."""
+        valid = np.asarray(valid, dtype=bool)
+        rows = {k: np.asarray(v) for k, v in rows.items()}
+        if any(v.shape[:2] != valid.shape for v in rows.values()) or valid.shape[0] != self.runs:
+            shapes = {k: v.shape[:2] for k, v in rows.items()}
+            raise ValueError(f"rows: every field needs the leading shape of valid {valid.shape}, got {shapes}")
+        if not self._data:
+            self._data = {k: self._allocate(np.moveaxis(v, 0, 1)) for k, v in rows.items()}
+        elif set(rows) != set(self._data):
+            raise ValueError(f"rows: fields {sorted(rows)} differ from the buffer's {sorted(self._data)}")
+        count = valid.sum(axis=1)
+        skip = np.maximum(count - self.capacity, 0)  # only the newest rows can survive
+        rank = np.cumsum(valid, axis=1) - 1 - skip[:, None]
+        run, col = np.nonzero(valid & (rank >= 0))
+        dest = (self._next[run] + rank[run, col]) % self.capacity
+        for k, v in rows.items():
+            self._data[k][run, dest] = v[run, col]
+        self._next = (self._next + count - skip) % self.capacity
+        self._size = np.minimum(self._size + count, self.capacity)
 
     def _allocate(self, v: np.ndarray) -> np.ndarray:
         if self.runs is None:
@@ -66,22 +95,37 @@ class JointReplay:
     def sample(self, n: int, rng: np.random.Generator | list[np.random.Generator]) -> dict[str, np.ndarray]:
         """``n`` rows drawn uniformly with replacement; a population's ``[R, n, …]``, run k's rows drawn by
         ``rng[k]`` exactly as a single run's buffer would draw them."""
-        if self._size == 0:
+        if len(self) == 0:
             raise ValueError("sample() from an empty replay buffer")
         if self.runs is None:
-            idx = rng.integers(0, self._size, size=n)  # type: ignore[union-attr]
+            idx = rng.integers(0, int(self._size), size=n)  # type: ignore[union-attr]
             return {k: v[idx] for k, v in self._data.items()}
-        idx = np.stack([g.integers(0, self._size, size=n) for g in rng])  # type: ignore[union-attr]
+        idx = np.stack([g.integers(0, size, size=n) for g, size in zip(rng, self._size.tolist(), strict=True)])  # type: ignore[arg-type]
         run = np.arange(self.runs)[:, None]
         return {k: v[run, idx] for k, v in self._data.items()}
 
     def state_dict(self) -> dict:
-        """Contents for a full checkpoint (only the filled part)."""
-        filled = np.s_[: self._size] if self.runs is None else np.s_[:, : self._size]
-        return {"data": {k: v[filled].copy() for k, v in self._data.items()}, "next": self._next}
+        """Contents for a full checkpoint (only the filled part; a population's up to its fullest run's size)."""
+        top = int(self._size.max(initial=0))
+        filled = np.s_[:top] if self.runs is None else np.s_[:, :top]
+        return {"data": {k: v[filled].copy() for k, v in self._data.items()}, "next": self._next.copy(),
+                "size": self._size.copy()}  # fmt: skip
 
     def load_state_dict(self, state: dict) -> None:
-        self._data, self._size, self._next = {}, 0, 0
-        if state["data"]:
-            self.add(state["data"])
-            self._next = state["next"] % self.capacity
+        """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length)."""
+        self._data = {}
+        self._next = np.zeros(self.runs or (), dtype=np.int64)
+        self._size = np.zeros(self.runs or (), dtype=np.int64)
+        if not state["data"]:
+            return
+        data = {k: np.asarray(v) for k, v in state["data"].items()}
+        first = next(iter(data.values()))
+        rows = first.shape[0] if self.runs is None else first.shape[1]
+        if rows > self.capacity:
+            raise ValueError(f"replay: {rows} rows saved, more than the capacity {self.capacity}")
+        self._data = {k: self._allocate(v if self.runs is None else np.moveaxis(v, 0, 1)) for k, v in data.items()}
+        for k, v in data.items():
+            self._data[k][np.s_[:rows] if self.runs is None else np.s_[:, :rows]] = v
+        shape = self._size.shape
+        self._size = np.broadcast_to(np.asarray(state.get("size", rows), dtype=np.int64), shape).copy()
+        self._next = np.broadcast_to(np.asarray(state["next"], dtype=np.int64), shape) % self.capacity

@@ -89,13 +89,14 @@ def packs(jobs: list[SweepJob], most: int, fits: Callable[[JobConfig], bool]) ->
     """The sweep's jobs as process groups (indices into ``jobs``, each pack in grid order of its first job): each
     group's seeds in populations of at most ``most`` runs — fewer while ``fits`` refuses the population (the
     service's limits on envs and weights count every run) — and every other job alone (a group of one seed,
-    hierarchical DQN)."""
+    hierarchical DQN over DIAL)."""
     groups: dict[str, list[int]] = {}
     for i, job in enumerate(jobs):
         groups.setdefault(group_name(job.point), []).append(i)
     out: list[list[int]] = []
     for members in groups.values():
-        size = 1 if jobs[members[0]].config.hierarchical else min(most, len(members))
+        first = jobs[members[0]].config
+        size = 1 if first.hierarchical and first.algo == "dial" else min(most, len(members))
         while size > 1 and not fits(population([jobs[i].config for i in members[:size]])):
             size -= 1
         out += [members[i : i + size] for i in range(0, len(members), size)]

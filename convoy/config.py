@@ -569,8 +569,8 @@ class JobConfig(BaseModel):
             raise ConfigError("seeds", f"expected distinct seeds in [0, 2^31), got {seeds}")
         if "seed" in self.model_fields_set and self.seed != seeds[0]:
             raise ConfigError("seeds", "give either seed (one run) or seeds (a population), not both")
-        if self.hierarchical:
-            raise ConfigError("seeds", "hierarchical DQN trains one seed per process; drop hierarchical or seeds")
+        if self.hierarchical and self.algo == "dial" and len(seeds) > 1:
+            raise ConfigError("seeds", "hierarchical DQN over DIAL trains one seed per process; drop seeds")
         object.__setattr__(self, "seed", seeds[0])
         if len(seeds) == 1:  # a population of one is the single run of its seed
             object.__setattr__(self, "seeds", [])

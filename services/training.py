@@ -47,8 +47,8 @@ def run_population(
     """Train the jobs (one algorithm, one per seed; they may differ in the hyper-parameters a population lets runs
     differ in) as one population in this process; run k writes ``out_dirs[k]`` as a single run of its seed would,
     the population's replay goes to ``root/replay.npz`` with each checkpoint; ``resume`` goes on from there."""
+    from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import REPLAY_FILE
-    from convoy.algos.registry import make_algorithm
     from convoy.learner.population import PopulationTrainer
     from convoy.learner.resume import restore_population
     from convoy.learner.runtime import configure_learner
@@ -61,7 +61,8 @@ def run_population(
     replay = (root or out_dirs[0].parent) / REPLAY_FILE
     try:
         configs = [j.algo_config() for j in jobs]  # the runs may differ in lr, γ, target period, ε schedule
-        agent = make_algorithm(job.algo, env.spec, configs[0], job.device, [j.seed for j in jobs], configs)
+        population = job.model_copy(update={"seeds": [j.seed for j in jobs]})
+        agent = make_agent(population, env.spec, run_configs=configs)
         counters = restore_population(agent, jobs, out_dirs, replay, strict=True) if resume else None
         trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress,
                                     replay=replay, counters=counters)  # fmt: skip

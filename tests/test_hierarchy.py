@@ -327,3 +327,56 @@ def test_trains_and_reloads_on_cuda(algo: str, tmp_path) -> None:
     obs = env.reset(seed=2)
     a, b = agent.act(obs, 0.0, agent.initial_state(8)), loaded.act(obs, 0.0, loaded.initial_state(8))
     np.testing.assert_array_equal(a.actions, b.actions)
+
+
+@pytest.mark.parametrize("algo", ["idqn", "ma-mesn"])
+def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo: str) -> None:
+    """Run k of a population steps its envs, explores, chooses goals, ends options and fills both replays exactly
+    as the single run of seed k (runs end options at different steps: each run's meta-transitions go to its own
+    ring), and its updates match up to float32 rounding (tests/test_population.py says why a tolerance)."""
+    from convoy.actors.stepping import EnvStepper
+    from convoy.algos.nets import run_state
+
+    torch.set_num_threads(1)
+    seeds = [3, 8, 5]
+    hp = {**HP, "learning_starts": 40, "batch_size": 16, "replay_capacity": 300, "target_update": 20}
+    pop_job = job(algo, seed=seeds[0], seeds=seeds, num_envs=4, algo_params=hp)
+    env = make_env(pop_job, 4 * len(seeds))
+    pop = make_agent(pop_job, env.spec)
+    singles = [make_agent(j, env.spec) for j in pop_job.members()]
+    pop_stepper = EnvStepper(env, pop, seed=pop_job.seed)
+    steppers = [EnvStepper(make_env(j, 4), s, seed=j.seed) for j, s in zip(pop_job.members(), singles, strict=True)]
+    for _ in range(6):  # 6 chunks of 10 steps, no update yet: every act is bit for bit the single run's
+        for _ in range(10):
+            pop_stepper.step(0.5)
+            for st in steppers:
+                st.step(0.5)
+        chunk = pop_stepper.take_chunk()
+        pop.observe(chunk)
+        for k, (st, single) in enumerate(zip(steppers, singles, strict=True)):
+            own_chunk = st.take_chunk()
+            np.testing.assert_array_equal(chunk["h_goal"][:, k], own_chunk["h_goal"])
+            np.testing.assert_array_equal(chunk["action"][:, k], own_chunk["action"])
+            single.observe(own_chunk)
+    for level in ("controller", "meta"):
+        sizes = [len(getattr(s, level).replay) for s in singles]
+        if level == "meta":
+            assert len(set(sizes)) > 1, "the runs should end different numbers of options"
+        for k, single in enumerate(singles):
+            ours, theirs = getattr(pop, level).replay, getattr(single, level).replay
+            assert ours._size[k] == sizes[k]
+            for f, v in theirs.state_dict()["data"].items():
+                np.testing.assert_array_equal(ours._data[f][k, : sizes[k]], v, err_msg=f"{level} {f} run {k}")
+    assert pop.can_update() and pop.meta_can_update() and all(s.meta_can_update() for s in singles)
+    for _ in range(150):
+        rows = pop.update()
+        single_rows = [s.update() for s in singles]
+    for k, single in enumerate(singles):
+        assert rows[k]["meta_loss"] == pytest.approx(single_rows[k]["meta_loss"], rel=1e-4)
+        for level in ("controller", "meta"):
+            for n, w in run_state(getattr(pop, level).online, k).items():
+                torch.testing.assert_close(w, getattr(single, level).online.state_dict()[n], rtol=0, atol=1e-5)
+    member = pop.member(1)
+    assert member.updates == singles[1].updates and member.meta_steps == singles[1].meta_steps
+    obs = np.asarray(env.reset(11))[4:8]  # run 1's envs
+    np.testing.assert_array_equal(member.act(obs).actions, singles[1].act(obs).actions)

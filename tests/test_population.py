@@ -181,15 +181,23 @@ def test_stack_runs_refuses_a_layer_without_a_run_axis() -> None:
         torch.testing.assert_close(stacked(x)[k], layer(x[k]))
 
 
-def test_a_population_run_writes_each_seed_as_its_single_run(tmp_path: Path) -> None:
+SMALL_TREADMILL = ["--set", "n_agents=2", "--set", "length=30", "--set", "width=12", "--set", "max_steps=60"]
+
+
+@pytest.mark.parametrize(
+    "what, seeds",
+    [(["--env", "referential", "--steps", "1200"], [0, 1, 2, 3, 4]),
+     (["--env", "treadmill", "--hierarchical", "--steps", "2000", *SMALL_TREADMILL], [0, 1, 2])],
+    ids=["idqn", "hierarchical"],
+)  # fmt: skip
+def test_a_population_run_writes_each_seed_as_its_single_run(what: list[str], seeds: list[int], tmp_path: Path) -> None:
     """``convoy train --inprocess --seeds`` = one run folder per seed with what a single run of that seed writes
     (the same metric rows, curve and summary, up to float32 rounding; only timings differ)."""
     from convoy.services.cli import main
 
-    common = ["train", "--inprocess", "--algo", "idqn", "--env", "referential", "--steps", "1200", "--num-envs", "8",
-              "--eval-every", "400", "--eval-episodes", "20", "--log-every", "400", "--no-progress",
+    common = ["train", "--inprocess", "--algo", "idqn", *what, "--num-envs", "8", "--eval-every", "400",
+              "--eval-episodes", "20", "--log-every", "400", "--no-progress",
               "--hp", "hidden=32", "--hp", "learning_starts=100"]  # fmt: skip
-    seeds = [0, 1, 2, 3, 4]
     assert main([*common, "--seeds", *map(str, seeds), "--out", str(tmp_path / "pop")]) == 0
     timing = {"wall_s", "env_steps_per_s", "updates_per_s", "out_dir"}
     for s in seeds:
@@ -219,7 +227,10 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
     for extra, words in (
         (["--inprocess", "--seeds", "0", "0"], "distinct"),
         (["--inprocess", "--seeds", "0", "1", "--seed", "2"], "not both"),
-        (["--inprocess", "--seeds", "0", "1", "--env", "treadmill", "--hierarchical"], "one seed per process"),
+        (
+            ["--inprocess", "--seeds", "0", "1", "--env", "treadmill", "--hierarchical", "--algo", "dial"],
+            "one seed per process",
+        ),
     ):
         assert main([*base, *extra]) == 2
         err = " ".join(capsys.readouterr().err.split())
@@ -269,11 +280,11 @@ def test_a_jobs_seeds_make_a_population_of_single_runs() -> None:
     limits.check(pop, "test")
     with pytest.raises(ConfigError, match="3 runs"):
         limits.check(job_config(**{**pop.model_dump(), "num_envs": 9}), "test")
-    hierarchical = {"seeds": [1, 2], "env": "treadmill", "hierarchical": True}
+    hierarchical_dial = {"seeds": [1, 2], "env": "treadmill", "hierarchical": True, "algo": "dial"}
     for bad, words in (({"seeds": [1, 1]}, "distinct"), ({"seeds": [1, 2], "seed": 3}, "not both"),
-                       (hierarchical, "one seed per process")):  # fmt: skip
+                       (hierarchical_dial, "one seed per process")):  # fmt: skip
         with pytest.raises(ConfigError, match=words) as info:
-            job_config(algo="idqn", **{"env": "referential", **bad})
+            job_config(**{"algo": "idqn", "env": "referential", **bad})
         assert info.value.field == "seeds"
 
 

@@ -241,6 +241,12 @@ def test_a_sweeps_seeds_pack_into_populations_the_limits_allow() -> None:
     per_env = jobs[0].config.num_envs * jobs[0].config.agents_per_env()
     assert sorted(len(p) for p in packs(jobs, 3, fits(ResourceLimits(max_agent_envs=2 * per_env)))) == [1] * 2 + [2] * 4
     assert packs(jobs, 1, fits(ResourceLimits())) == [[i] for i in range(10)]
+    # hierarchical DQN packs too, save over DIAL (its options are released in lockstep chunks)
+    grid = {"algo": ["idqn", "dial"], "seed": [0, 1]}
+    hier = expand(SweepSubmit(**{**TINY, "base": {**TINY.get("base", {}), "env": "treadmill", "hierarchical": True},
+                                 "grid": grid}))  # fmt: skip
+    assert [[hier[i].config.algo for i in p] for p in packs(hier, 3, fits(ResourceLimits()))] == [
+        ["idqn", "idqn"], ["dial"], ["dial"]]  # fmt: skip
 
 
 def test_a_packed_sweeps_summary_reads_as_an_unpacked_ones(tmp_path: Path) -> None:
