@@ -35,7 +35,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from benchmarks.report import cpu_model, write_json  # noqa: E402
-from benchmarks.updates import ms_per_call  # noqa: E402
+from benchmarks.updates import DIAL_UNROLL, ms_per_call  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
 from convoy.algos.registry import algorithm_class, make_algorithm  # noqa: E402
 from convoy.config import resolve_algo  # noqa: E402
@@ -99,7 +99,10 @@ def training_throughput(algo: str, p: int, steps: int, cores: list[int], work: P
 def filled(algo: str, seeds: int | list[int], device: str = "cpu"):
     """``algo`` at the treadmill defaults (3 agents + 1 adversary) with 2,048 rows of random play per run."""
     env = make_batched("treadmill", 16 * (len(seeds) if isinstance(seeds, list) else 1), n_agents=3, n_adversaries=1)
-    cfg = resolve_algo(algo, "treadmill", {"learning_starts": 0, "replay_capacity": 4096})
+    params = {"learning_starts": 0, "replay_capacity": 4096}
+    if algo == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
+        params.update(replay=True, unroll=DIAL_UNROLL)
+    cfg = resolve_algo(algo, "treadmill", params)
     agent = make_algorithm(algo, env.spec, cfg, device=device, seed=seeds)
     stepper = EnvStepper(env, agent, 0)
     for _ in range(128):
@@ -157,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
                 run = training_throughput(algo, size, args.steps, cores, Path(tmp))
                 upd = update_cost(algo, size, len(cores))
                 rows[size] = {"training": run, "update": upd}
+                console.print(f"{algo} P = {size}: {run['ratio']:.2f}× separate processes, update {upd['ratio']:.2f}×")
+                if args.json:  # as it goes: a long run that fails later keeps what it measured
+                    write_json(args.json, figures)
                 table.add_row(
                     algo, str(size), f"{run['population_steps_per_s']:,.0f}", f"{run['separate_steps_per_s']:,.0f}",
                     f"{run['ratio']:.2f}×", f"{size * upd['single_ms']:.1f}", f"{upd['population_ms']:.1f}",

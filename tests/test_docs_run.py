@@ -158,17 +158,17 @@ def run_make(target: str, ws: Path, **variables: str) -> subprocess.CompletedPro
 def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """Run one documented command (a ``convoy`` line, a benchmark script or a ``make`` target) at a small budget."""
     argv = shrink(expand(command))
+    outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
+    for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
+        value = arg.rpartition("=")[2]  # a path or --hp teacher=PATH
+        for path in PRODUCERS:
+            if value == path or value.startswith(path + "/"):
+                ensure(path, ws, capsys)
     if argv[0] == "convoy":
-        outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
-        for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
-            value = arg.rpartition("=")[2]  # a path or --hp teacher=PATH
-            for path in PRODUCERS:
-                if value == path or value.startswith(path + "/"):
-                    ensure(path, ws, capsys)
         return run_convoy(argv[1:], ws, capsys)
     if argv[0] == "python":
         budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
-                  "treadmill_references.py": ["--episodes", "2"],
+                  "treadmill_references.py": ["--episodes", "2"], "treadmill_causes.py": ["--episodes", "2"],
                   "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
                                                    "--analysis-samples", "2000"]}[Path(argv[1]).name]  # fmt: skip
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,

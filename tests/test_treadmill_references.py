@@ -109,3 +109,20 @@ def test_16_bit_code_round_trips_a_window_cell() -> None:
         cars = near[b, i][np.isfinite(near_dist[b, i])]
         gap = np.hypot(e.x[b, cars] - cx[b, i], e.y[b, cars] - cy[b, i]).min()
         assert gap <= 1.0
+
+
+def test_how_episodes_end_tells_the_chaser_from_the_window() -> None:
+    """``benchmarks/treadmill_causes.py`` on fixed seeds: a car that only accelerates leaves the window; the tuned
+    private driver holds its place and is caught by the chaser (it sees no threat behind it)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.treadmill_causes import CAUSES, play
+
+    left, caught = CAUSES.index("left the window"), CAUSES.index("adversary")
+    _, floor_it = play("constant-5", 60, 3, {})
+    assert np.mean(floor_it == left) > 0.8
+    returns, driver = play("private-driver", 60, 3, {})
+    assert np.mean(driver == caught) > 0.6 and np.mean(driver == left) < 0.2
+    assert returns.mean() > 30  # it is the tuned driver, driving

@@ -94,6 +94,9 @@ class TreadmillEngine:
         self.speed = np.zeros(shape, np.int64)
         self.t = np.zeros(num_envs, np.int64)
         self.belt = np.full(num_envs, cfg.treadmill_speed, np.int64)  # cells the belt carries cars back this step
+        # which cars crashed in the last step [B, C] (an agent: a collision or leaving the window; an adversary: a
+        # collision with an agent): what a study of how episodes end reads (benchmarks/treadmill_causes.py)
+        self.last_crashed = np.zeros((num_envs, cfg.n_cars), bool)
         self._varying_belt = cfg.treadmill_speed_max is not None and cfg.treadmill_speed_max > cfg.treadmill_speed
         self._streams = rng.EnvStreams(num_envs)
         self._ep_return = np.zeros((num_envs, n), np.float64)
@@ -157,6 +160,7 @@ class TreadmillEngine:
         self.x = self.x - self.belt[:, None]
         outside = (self.x < 0) | (self.x >= cfg.length)
         crashed[:, :n] |= outside[:, :n]
+        self.last_crashed = crashed
         if cfg.n_adversaries:
             self._reenter(outside[:, n:])
         self.t += 1
