@@ -285,7 +285,6 @@ class HierarchicalAgent:
         self.run_cfgs: list[AlgoConfig] = [self.cfg] * len(self.seeds)
         self._members: dict[int, HierarchicalAgent] = {}
         self._progress = Progress()
-        self._meta_extras: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None
         self._pending: dict[str, Any] = {}
         # DIAL learns from [T, B] sequences: options of fixed length there (see the module docstring); every other
         # meta algorithm gets variable-length options and an SMDP target
