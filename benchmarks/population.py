@@ -9,7 +9,8 @@ env steps each) trained two ways, measured in the same run of this script:
 
 Aggregate env-steps/s = P × steps ÷ wall time, from the first process's start to the last one's end (start-up is a
 cost users pay too), and the ratio population ÷ separate. Then ms per ``update()`` in this process: a population
-of P against P single-run updates (the learner's share of the cost; 1 torch thread and C threads). With a CUDA
+of P against P single-run updates (the learner's share of the cost; 1 torch thread and C threads), and how close a
+single run's update already comes to one core's matmul peak (what bounds any population's gain on a CPU). With a CUDA
 device it also times P = 20 on the GPU against one single-run process on one CPU core, and the GPU update with and
 without a CUDA graph.
 
@@ -26,6 +27,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -121,6 +123,29 @@ def update_cost(algo: str, p: int, threads: int) -> dict[str, float]:
     return {"single_ms": one, "population_ms": many, "per_run_ms": many / p, "ratio": p * one / many}
 
 
+def core_peak_gflops() -> float:
+    """What one core's float32 matmul reaches at best (a 2048² × 2048² product, 1 thread): the ceiling of any
+    update's arithmetic on this CPU."""
+    torch.set_num_threads(1)
+    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+    return 2 * 2048**3 / ms_per_call(lambda: a @ b, 1.0) / 1e6
+
+
+def update_arithmetic(algo: str, peak_gflops: float) -> dict[str, float]:
+    """FLOPs of one single-run update and the share of one core's matmul peak it reaches on 1 thread. A population
+    does the same arithmetic per run, so on a CPU the most its update can gain over separate runs is peak ÷ that
+    rate: when the single run is near the peak, batching runs has little left to win."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    torch.set_num_threads(1)
+    single = filled(algo, 0)
+    with FlopCounterMode(display=False) as counter:
+        single.update()
+    flops = counter.get_total_flops()
+    gflops = flops / ms_per_call(single.update, 2.0) / 1e6
+    return {"mflop": flops / 1e6, "gflops": gflops, "peak_gflops": peak_gflops, "of_peak": gflops / peak_gflops}
+
+
 def cuda_figures(algo: str, steps: int, work: Path) -> dict[str, float]:
     """P = 20 on the GPU against one single-run process on one CPU core; GPU update ms at P = 1."""
     seeds = [str(s) for s in range(20)]
@@ -146,7 +171,9 @@ def main(argv: list[str] | None = None) -> int:
     cores = sorted(os.sched_getaffinity(0))
     console = Console()
     console.print(f"{cpu_model()}, {len(cores)} cores; {args.steps:,} env steps per run, treadmill defaults")
-    figures: dict[str, dict] = {"cores": len(cores), "cpu": cpu_model(), "steps": args.steps, "algos": {}}
+    peak = core_peak_gflops()
+    figures: dict[str, Any] = {"cores": len(cores), "cpu": cpu_model(), "steps": args.steps, "algos": {},
+                               "core_peak_gflops": peak}  # fmt: skip
     table = Table(title="P runs: one population process vs separate processes (aggregate env-steps/s)")
     for col in ("algo", "P", "population", "separate", "ratio", "update ms: P singles", "population", "ratio"):
         table.add_column(col, justify="right")
@@ -155,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
             if not algorithm_class(algo).population:
                 table.add_row(algo, "–", "one seed per process", "", "", "", "", "")
                 continue
-            rows = figures["algos"][algo] = {}
+            rows = figures["algos"][algo] = {"arithmetic": update_arithmetic(algo, peak)}
             for size in args.sizes:
                 run = training_throughput(algo, size, args.steps, cores, Path(tmp))
                 upd = update_cost(algo, size, len(cores))
@@ -172,6 +199,12 @@ def main(argv: list[str] | None = None) -> int:
                 figures["algos"][algo]["cuda"] = cuda_figures(algo, args.steps, Path(tmp))
     console.print(table)
     for algo, rows in figures["algos"].items():
+        a = rows["arithmetic"]
+        console.print(
+            f"{algo}: one update is {a['mflop']:.0f} MFLOP; a single run does it at {a['gflops']:.0f} GFLOPS on 1 "
+            f"thread, {a['of_peak']:.0%} of a core's matmul peak ({peak:.0f}): a population's update can beat P "
+            f"single updates by at most {1 / a['of_peak']:.2f}× on this CPU"
+        )
         if 5 in rows:
             r = rows[5]["training"]["ratio"]
             console.print(f"{algo}: P = 5 in one process {r:.2f}× the same runs as separate processes (goal ≥ 1.5×)")
