@@ -44,7 +44,7 @@ from convoy.config import resolve_algo  # noqa: E402
 from convoy.envs import make_batched  # noqa: E402
 
 ALGOS = ("idqn", "ma-mesn", "ma-bon", "dial", "ims")
-CONVOY = [sys.executable, "-m", "convoy.services.cli"]
+CONVOY = [sys.executable, "-m", "convoy.cli"]
 
 
 def train_args(algo: str, steps: int, out: Path) -> list[str]:

@@ -835,7 +835,7 @@ def time_to_threshold(cfg: Path, out: Path, inprocess: bool, args: argparse.Name
     cmd = [
         sys.executable,
         "-m",
-        "convoy.services.cli",
+        "convoy.cli.main",
         "train",
         "--config",
         str(cfg),

@@ -30,10 +30,10 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
+from convoy.cli.args import parse_pairs  # noqa: E402
 from convoy.envs.rollout import Policy  # noqa: E402
 from convoy.envs.treadmill.config import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.engine import TreadmillEngine  # noqa: E402
-from convoy.services.args import parse_pairs  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 from convoy.validation import build_config  # noqa: E402
 

@@ -81,7 +81,7 @@ def train(name: str, seed: int, args: argparse.Namespace) -> dict:
     """One ``convoy train --inprocess`` run in its own process (one torch thread); its summary."""
     algo, flags = variant_flags(name)
     out = Path(args.out).resolve() / f"{name}-s{seed}"  # the user's --out, wherever the runs start
-    cmd = [sys.executable, "-m", "convoy.services.cli", "train", "--inprocess", "--algo", algo,
+    cmd = [sys.executable, "-m", "convoy.cli", "train", "--inprocess", "--algo", algo,
            "--steps", str(args.steps), "--seed", str(seed), "--out", str(out), "--overwrite", "--no-progress",
            "--eval-every", str(args.eval_every)]  # fmt: skip
     cmd += ["--eval-episodes", str(args.eval_episodes)] if args.eval_episodes else []

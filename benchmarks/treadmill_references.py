@@ -30,9 +30,9 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
+from convoy.cli.args import parse_pairs  # noqa: E402
 from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.references import best_constant, evaluate_references, who_sees_the_threat  # noqa: E402
-from convoy.services.args import parse_pairs  # noqa: E402
 from convoy.validation import build_config  # noqa: E402
 
 

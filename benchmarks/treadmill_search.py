@@ -31,6 +31,7 @@ from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
+from convoy.cli.args import parse_pairs  # noqa: E402
 from convoy.envs.treadmill import TreadmillConfig  # noqa: E402
 from convoy.envs.treadmill.config import V2_RULES  # noqa: E402
 from convoy.envs.treadmill.references import (  # noqa: E402
@@ -44,7 +45,6 @@ from convoy.envs.treadmill.references import (  # noqa: E402
     sequence_returns,
     tune_driver,
 )
-from convoy.services.args import parse_pairs  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 from convoy.validation import build_config  # noqa: E402
 

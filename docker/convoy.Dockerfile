@@ -26,6 +26,7 @@ COPY analysis/ analysis/
 COPY learner/ learner/
 COPY api/ api/
 COPY services/ services/
+COPY cli/ cli/
 RUN pip install . && convoy --help > /dev/null
 
 # Not root. /runs is where compose mounts the learner's volume; a fresh named volume takes this owner.

@@ -1,1 +1,3 @@
-"""What runs: the ``convoy`` CLI and, later, the host agent and supervisor (the composition root)."""
+"""The runtime: the job service and its store, the processes of a job on this machine (spawn, respawn, scale),
+host agents, in-process training and background evaluations. The ``convoy`` command line that drives it is
+``convoy.cli``."""

@@ -84,7 +84,7 @@ def start(job_dir: Path, job_id: str, request: EvalRequest, running_elsewhere: i
                          f"wait for one (GET /jobs/{job_id}/evaluations)")  # fmt: skip
     folder = job_dir / "evaluations" / secrets.token_hex(3)
     folder.mkdir(parents=True)
-    cmd = [python, "-m", "convoy.services.cli", "eval", str(checkpoint), "--episodes", str(request.episodes),
+    cmd = [python, "-m", "convoy.cli", "eval", str(checkpoint), "--episodes", str(request.episodes),
            "--messages", request.messages, "--seed", str(request.seed), "--json", str(folder / "result.json"),
            "--device", "cpu"] + (["--channel", request.channel] if request.channel else [])  # fmt: skip
     with open(folder / "eval.log", "wb") as log:

@@ -498,7 +498,7 @@ class JobService:
         config["runtime"] = runtime
         (out / "job.json").write_text(json.dumps(config, indent=2))
         cmd = [
-            self.python, "-m", "convoy.services.cli", "host", "--job-id", rec.id, "--name", host_name(rec.id),
+            self.python, "-m", "convoy.cli", "host", "--job-id", rec.id, "--name", host_name(rec.id),
             "--roles", "learner,actor", "--actors", str(rec.actors), "--out", str(out),
             "--config", str(out / "job.json"),
         ]  # fmt: skip

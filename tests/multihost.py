@@ -94,7 +94,7 @@ class MultiHostJob:
 
     def _start(self, ns: str, name: str, args: list[str]) -> subprocess.Popen:
         fh = open(self.logs / f"{name}.log", "w")  # noqa: SIM115 (closed with the process)
-        cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "convoy.services.cli", *args]
+        cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "convoy.cli", *args]
         p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
         self.procs.append(p)
         return p

@@ -46,7 +46,7 @@ class Service:
         """Start ``convoy serve`` and wait for /healthz (a generous bound: a loaded 2-core machine can take a minute);
         a server that does not answer in time is killed, not left behind."""
         env = {**os.environ, "CONVOY_API_TOKEN": TOKEN}
-        cmd = [sys.executable, "-m", "convoy.services.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
+        cmd = [sys.executable, "-m", "convoy.cli", "serve", "--port", str(self.port), "--data", str(self.data)]
         cmd += ["--max-processes", str(self.max_processes)]
         log = open(self.data.parent / f"serve-{self.port}.log", "ab")  # noqa: SIM115
         self.data.mkdir(parents=True, exist_ok=True)

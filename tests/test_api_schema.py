@@ -160,7 +160,7 @@ def test_unknown_algorithm(service: Service) -> None:
 def test_the_catalogue_lists_every_parameter_the_errors_point_to(service: Service, capsys) -> None:
     """GET /envs and GET /algos list every env and algorithm with each parameter's default, range and meaning
     (the fields a 422 names are among them, and the 422 says where to look); convoy algos --json is the same."""
-    from convoy.services.cli import main
+    from convoy.cli.main import main
 
     envs = service.client.get("/envs").json()["envs"]
     algos = service.client.get("/algos").json()["algos"]

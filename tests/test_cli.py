@@ -7,8 +7,8 @@ import sys
 import pytest
 from PIL import Image
 
+from convoy.cli.main import build_parser, main
 from convoy.envs.treadmill import TreadmillConfig
-from convoy.services.cli import build_parser, main
 
 
 def test_rollout_writes_gif_summary_and_plot(tmp_path, capsys) -> None:
@@ -57,7 +57,7 @@ def test_rollout_runs_every_env(env, capsys) -> None:
 )
 def test_bad_input_prints_one_line_without_traceback(argv, needle) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "convoy.services.cli", "env", "rollout", *argv],
+        [sys.executable, "-m", "convoy.cli", "env", "rollout", *argv],
         capture_output=True,
         text=True,
         timeout=120,
@@ -93,13 +93,13 @@ def test_building_the_cli_imports_no_torch() -> None:
     import subprocess
     import sys
 
-    code = "import sys, services.cli; services.cli.build_parser(); print('torch' in sys.modules)"
+    code = "import sys, convoy.cli.main as cli; cli.build_parser(); print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
 
 def test_api_fixes_become_convoy_commands_at_the_command_line() -> None:
-    from convoy.services.jobs_cmd import cli_words
+    from convoy.cli.jobs import cli_words
 
     cases = {
         'scale it by resuming: POST /jobs/ma-1/resume {"actors": 4}': "`convoy jobs resume ma-1 --actors 4`",

@@ -161,7 +161,7 @@ def test_topology(config: dict[str, Any]) -> None:
 
 
 def test_api_service_runs_convoy_serve_with_the_real_cli(config: dict[str, Any]) -> None:
-    from convoy.services.cli import build_parser
+    from convoy.cli.main import build_parser
 
     api = config["services"]["api"]
     assert api["command"][0] == "convoy"
@@ -196,10 +196,10 @@ def test_host_commands_parse_with_the_real_cli(
 ) -> None:
     """Each host service's command, run by a shell as in its container, is a valid ``convoy host`` invocation;
     learner and actors describe the same job and get client-mode, shared-memory-off Zenoh settings."""
+    from convoy.cli.main import build_parser
+    from convoy.cli.roles import zenoh_from_args
+    from convoy.cli.train import job_from_args
     from convoy.protocol import keys
-    from convoy.services.cli import build_parser
-    from convoy.services.roles_cmd import zenoh_from_args
-    from convoy.services.train_cmd import job_from_args
 
     services = config["services"]
     parsed: dict[str, Any] = {}

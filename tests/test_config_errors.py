@@ -60,9 +60,9 @@ def test_the_rest_body_and_the_cli_take_the_job_fields_from_jobconfig() -> None:
     """One definition of each job field: the REST body's defaults, bounds and descriptions are JobConfig's (they
     once disagreed: 100 k vs 200 k default steps, num_envs ≤ 4,096 vs 65,536)."""
     from convoy.api.models import JobSubmit
+    from convoy.cli.jobs import submit_body
+    from convoy.cli.main import build_parser
     from convoy.config import JobConfig
-    from convoy.services.cli import build_parser
-    from convoy.services.jobs_cmd import submit_body
 
     shared = set(JobSubmit.model_fields) & set(JobConfig.model_fields) - {"runtime"}  # the body takes a part of it
     assert {"algo", "env", "steps", "num_envs", "seed", "eval_episodes", "eval_every", "log_every"} <= shared

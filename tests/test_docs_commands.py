@@ -83,8 +83,8 @@ def test_the_docs_show_commands() -> None:
 
 @pytest.mark.parametrize(("where", "command"), CONVOY, ids=[w for w, _ in CONVOY])
 def test_every_documented_convoy_command_parses(where: str, command: str) -> None:
-    from convoy.services.cli import build_parser
-    from convoy.services.train_cmd import job_from_args
+    from convoy.cli.main import build_parser
+    from convoy.cli.train import job_from_args
     from convoy.validation import ConfigError
 
     argv = expand(command)[1:]

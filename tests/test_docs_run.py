@@ -134,7 +134,7 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 
 def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """``convoy ARGV`` in this process with ``ws`` as the working directory: (exit code, stdout + stderr)."""
-    from convoy.services.cli import main
+    from convoy.cli.main import main
 
     cwd = os.getcwd()
     os.chdir(ws)
@@ -252,7 +252,7 @@ def test_the_documented_hosts_run_a_job_through_a_router(ws: Path) -> None:
 
     def local(command: str) -> list[str]:
         text = re.sub(r"tcp/[0-9.]+:7447", f"tcp/127.0.0.1:{port}", command)
-        return [sys.executable, "-m", "convoy.services.cli", *shrink(shlex.split(text))[1:]]
+        return [sys.executable, "-m", "convoy.cli", *shrink(shlex.split(text))[1:]]
 
     procs = []
     try:
@@ -342,7 +342,7 @@ class Session:
                    "serve", f"PORT={self.port}", f"DATA={data}"]  # fmt: skip
         else:
             argv = shlex.split(self.substitute(command))
-            cmd = [sys.executable, "-m", "convoy.services.cli", *argv[1:]]
+            cmd = [sys.executable, "-m", "convoy.cli", *argv[1:]]
         cmd_env = {k: v for k, v in os.environ.items() if k != "CONVOY_API_TOKEN"}
         log = open(self.ws / "serve.log", "ab")  # noqa: SIM115
         proc = subprocess.Popen([*cmd, "--max-processes", "12"] if cmd[0] != "make" else cmd, cwd=self.ws,

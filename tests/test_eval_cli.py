@@ -16,8 +16,8 @@ import pytest
 import torch
 from PIL import Image
 
+from convoy.cli.main import main
 from convoy.config import job_config
-from convoy.services.cli import main
 from convoy.services.training import run_inprocess
 
 GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 
 import pytest
 
+from convoy.cli.main import main
 from convoy.protocol.session import free_port
-from convoy.services.cli import main
 from tests.service_fixture import TOKEN, Service
 
 pytestmark = pytest.mark.timeout(240)
@@ -151,7 +151,7 @@ def test_evaluate_waits_for_the_background_evaluation(
 
 
 def test_dropped_messages_read_by_role_and_reason() -> None:
-    from convoy.services.jobs_cmd import dropped_text
+    from convoy.cli.jobs import dropped_text
 
     dropped = {"learner": {"action-range": 3, "non-finite": 6}, "actors": {"garbage": 1200, "overflow": 0}}
     assert dropped_text(dropped) == "learner: action-range 3, non-finite 6; actors: garbage 1,200"
@@ -241,7 +241,7 @@ def test_watch_of_a_failing_job_rewinds_and_exits_1(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Scripted answers (no server): running at step 5000, re-queued with its history cut to 3000, then failed."""
-    import convoy.services.jobs_cmd as jobs_cmd
+    import convoy.cli.jobs as jobs_cmd
 
     def view(state: str, env_steps: int, error: str | None = None) -> dict[str, object]:
         progress = {"env_steps": env_steps, "fraction": env_steps / 10_000, "return": 1.5, "updates": 7}

@@ -26,7 +26,7 @@ sys.meta_path = [f for f in sys.meta_path if "editable" not in getattr(f, "__mod
 sys.path_hooks = [h for h in sys.path_hooks if "editable" not in getattr(h, "__module__", "").lower()]
 sys.path_importer_cache.clear()
 sys.path.insert(0, sys.argv[1])
-import convoy.envs, convoy.learner, convoy.api, convoy.services.cli, convoy.algos.ma_mesn
+import convoy.envs, convoy.learner, convoy.api, convoy.cli.main, convoy.algos.ma_mesn
 assert convoy.envs.__file__.startswith(sys.argv[1]), convoy.envs.__file__
 assert convoy.api.__file__.startswith(sys.argv[1]), convoy.api.__file__
 for generic in ("api", "envs", "learner", "services", "protocol", "actors", "algos", "analysis"):

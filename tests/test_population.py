@@ -193,7 +193,7 @@ SMALL_TREADMILL = ["--set", "n_agents=2", "--set", "length=30", "--set", "width=
 def test_a_population_run_writes_each_seed_as_its_single_run(what: list[str], seeds: list[int], tmp_path: Path) -> None:
     """``convoy train --inprocess --seeds`` = one run folder per seed with what a single run of that seed writes
     (the same metric rows, curve and summary, up to float32 rounding; only timings differ)."""
-    from convoy.services.cli import main
+    from convoy.cli.main import main
 
     common = ["train", "--inprocess", "--algo", "idqn", *what, "--num-envs", "8", "--eval-every", "400",
               "--eval-episodes", "20", "--log-every", "400", "--no-progress",
@@ -221,7 +221,7 @@ def test_a_population_run_writes_each_seed_as_its_single_run(what: list[str], se
 
 
 def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) -> None:
-    from convoy.services.cli import main
+    from convoy.cli.main import main
 
     base = ["train", "--algo", "idqn", "--env", "referential", "--steps", "100"]
     for extra, words in (
@@ -295,10 +295,10 @@ def test_a_population_resumes_at_the_last_step_all_its_runs_saved(tmp_path: Path
 
     from convoy.algos.checkpoint import PREVIOUS_CHECKPOINT, read_checkpoint
     from convoy.algos.registry import make_algorithm
+    from convoy.cli.main import main
     from convoy.config import job_config
     from convoy.envs import make_batched
     from convoy.learner.resume import restore_population
-    from convoy.services.cli import main
 
     cfg = tmp_path / "job.json"
     cfg.write_text(json.dumps({"algo": "idqn", "env": "referential", "steps": 3000, "num_envs": 8,

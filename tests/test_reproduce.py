@@ -22,9 +22,9 @@ from convoy.analysis.verdicts import (
 )
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import expand, group_name
-from convoy.services.cli import main
-from convoy.services.reproduce_cmd import figure_files
-from convoy.services.sweep_file import sweep_body
+from convoy.cli.main import main
+from convoy.cli.reproduce import figure_files
+from convoy.cli.sweep_file import sweep_body
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -204,8 +204,8 @@ def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyP
 def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) -> None:
     """A figure's record keeps the treadmill rules it was measured on; the page flags one from earlier rules (in the
     overview and under its heading), and says nothing for the current rules or another env."""
+    from convoy.cli.reproduce import render
     from convoy.envs.treadmill.config import RULES
-    from convoy.services.reproduce_cmd import render
 
     docs = tmp_path / "reproduction"
     docs.mkdir()

@@ -82,10 +82,10 @@ def test_the_actor_budget_names_the_field_and_how_to_set_it(monkeypatch: pytest.
 
 def test_runtime_settings_come_from_the_cli_and_the_rest_body() -> None:
     from convoy.api.models import JobSubmit
+    from convoy.cli.jobs import submit_body
+    from convoy.cli.main import build_parser
+    from convoy.cli.train import job_from_args
     from convoy.config import ConfigError
-    from convoy.services.cli import build_parser
-    from convoy.services.jobs_cmd import submit_body
-    from convoy.services.train_cmd import job_from_args
 
     args = build_parser().parse_args(["train", "--runtime", "actor_max_restarts=500", "--runtime", "max_restarts=9"])
     job = job_from_args(args)

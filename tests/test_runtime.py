@@ -436,7 +436,7 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
     job_flags = "--job-id mh --env referential --steps 12000 --num-envs 32 --hp hidden=64 --hp learning_starts=256"
     job_flags = [*job_flags.split(), "--eval-episodes", "200", "--log-every", "2000"]
     net = ["--mode", "client", "--connect", endpoint, "--no-shm"]
-    cmd = [sys.executable, "-m", "convoy.services.cli"]
+    cmd = [sys.executable, "-m", "convoy.cli"]
     procs: list[subprocess.Popen] = []
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -533,7 +533,7 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
     keep alive) notice their supervisor is gone and exit, and the forkserver with them — nothing runs on."""
     cfg = tmp_path / "job.json"
     cfg.write_text(json.dumps({"algo": "idqn", "steps": 10_000_000, "runtime": {"actors": 2}, **TREADMILL}))
-    cmd = [sys.executable, "-m", "convoy.services.cli", "train", "--config", str(cfg), "--out", str(tmp_path / "run")]
+    cmd = [sys.executable, "-m", "convoy.cli", "train", "--config", str(cfg), "--out", str(tmp_path / "run")]
     with open(tmp_path / "train.log", "w") as log:
         proc = subprocess.Popen([*cmd, "--no-progress"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:

@@ -13,8 +13,8 @@ import pytest
 from scipy import stats
 
 from convoy.api.sweeps import busy_seconds
-from convoy.services.cli import main
-from convoy.services.sweep_file import load_sweep
+from convoy.cli.main import main
+from convoy.cli.sweep_file import load_sweep
 from convoy.validation import ConfigError
 from tests.service_fixture import AUTH, TOKEN, Service
 

@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from convoy.algos.checkpoint import load_checkpoint
-from convoy.services.cli import main
+from convoy.cli.main import main
 
 TINY = ["--inprocess", "--env", "referential", "--steps", "3000", "--num-envs", "32", "--log-every", "500",
         "--eval-episodes", "50", "--no-progress", "--hp", "hidden=32", "--hp", "learning_starts=64"]  # fmt: skip
@@ -135,7 +135,7 @@ def test_the_learning_curve_does_not_change_the_run_it_measures() -> None:
 
 
 def test_runs_never_share_a_directory_by_accident(tmp_path, capsys, monkeypatch) -> None:
-    from convoy.services.rundir import claim
+    from convoy.cli.rundir import claim
 
     out = tmp_path / "run"
     assert main(["train", "--algo", "idqn", *TINY, "--out", str(out)]) == 0
@@ -220,9 +220,9 @@ def test_a_policy_that_sends_one_message_is_said_to(tmp_path, capsys) -> None:
     nothing); one whose messages vary does not."""
     from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import save_checkpoint
+    from convoy.cli.train import warn_constant_messages
     from convoy.config import job_config
     from convoy.envs import make_batched
-    from convoy.services.train_cmd import warn_constant_messages
 
     job = job_config(algo="ma-mesn", env="referential", algo_params={"hidden": [16]}, device="cpu")
     algo = make_agent(job, make_batched("referential", 1).spec)

@@ -26,9 +26,9 @@ from rich.table import Table
 from rich.text import Text
 
 from convoy.api.models import MAX_ACTORS, JobSubmit
+from convoy.cli.args import add_command, add_model_flags, env_params, given, parse_pairs
+from convoy.cli.train import add_job_flags
 from convoy.config import MESSAGE_SOURCES
-from convoy.services.args import add_command, add_model_flags, env_params, given, parse_pairs
-from convoy.services.train_cmd import add_job_flags
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 FINAL_STATES = ("completed", "stopped", "failed")

@@ -10,9 +10,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from convoy.cli.train import add_job_arguments, job_from_args
 from convoy.protocol import keys
 from convoy.protocol.session import ZenohSettings
-from convoy.services.train_cmd import add_job_arguments, job_from_args
 from convoy.validation import ConfigError
 
 ZENOH_HELP = "Zenoh: flags override CONVOY_ZENOH_* environment variables, which override the job file."

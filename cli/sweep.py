@@ -17,8 +17,8 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from convoy.services.jobs_cmd import Api, CliError, add_client, fmt, plain, positive, print_json, run_client
-from convoy.services.sweep_file import load_sweep
+from convoy.cli.jobs import Api, CliError, add_client, fmt, plain, positive, print_json, run_client
+from convoy.cli.sweep_file import load_sweep
 from convoy.validation import ConfigError
 
 FINAL = ("completed", "stopped", "failed")

@@ -15,11 +15,11 @@ from rich.markup import escape
 from rich.table import Table
 
 from convoy.algos.errors import CheckpointError
+from convoy.cli.args import add_command, env_params
 from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
-from convoy.services.args import add_command, env_params
 from convoy.services.procs import JobFailed
 from convoy.validation import ConfigError, build_config
 
@@ -262,14 +262,14 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--plot", metavar="PATH", help="write a PNG bar chart of each agent's return per episode")
     ro.add_argument("--show", type=int, default=20, help="episodes listed in the table (default: %(default)s)")
 
-    from convoy.services.compare_cmd import add_compare_parser
-    from convoy.services.eval_cmd import add_eval_parsers
-    from convoy.services.jobs_cmd import add_jobs_parser
-    from convoy.services.reproduce_cmd import add_reproduce_parser
-    from convoy.services.roles_cmd import add_role_parsers
-    from convoy.services.serve_cmd import add_serve_parser
-    from convoy.services.sweep_cmd import add_sweep_parser
-    from convoy.services.train_cmd import add_train_parser
+    from convoy.cli.compare import add_compare_parser
+    from convoy.cli.evaluate import add_eval_parsers
+    from convoy.cli.jobs import add_jobs_parser
+    from convoy.cli.reproduce import add_reproduce_parser
+    from convoy.cli.roles import add_role_parsers
+    from convoy.cli.serve import add_serve_parser
+    from convoy.cli.sweep import add_sweep_parser
+    from convoy.cli.train import add_train_parser
 
     add_train_parser(sub)
     add_eval_parsers(sub)

@@ -12,15 +12,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from convoy.config import (
-    ALGO_CONFIGS,
-    ALGO_SUMMARIES,
-    AlgoConfig,
-    JobConfig,
-    env_default_note,
-    job_config,
-)
-from convoy.services.args import (
+from convoy.cli.args import (
     add_command,
     add_limit_flags,
     add_model_flags,
@@ -29,7 +21,15 @@ from convoy.services.args import (
     limits_from_args,
     parse_pairs,
 )
-from convoy.services.rundir import claim, free_default
+from convoy.cli.rundir import claim, free_default
+from convoy.config import (
+    ALGO_CONFIGS,
+    ALGO_SUMMARIES,
+    AlgoConfig,
+    JobConfig,
+    env_default_note,
+    job_config,
+)
 from convoy.validation import ConfigError
 
 console = Console()

@@ -10,8 +10,8 @@ from typing import Any
 
 from rich.console import Console
 
+from convoy.cli.args import add_command
 from convoy.config import MESSAGE_SOURCES
-from convoy.services.args import add_command
 from convoy.validation import ConfigError
 
 console = Console()

@@ -7,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-from convoy.services.args import add_command, add_limit_flags, limits_from_args
+from convoy.cli.args import add_command, add_limit_flags, limits_from_args
 from convoy.validation import ConfigError
 
 

@@ -29,10 +29,10 @@ from rich.console import Console
 
 from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
+from convoy.cli.args import add_command
+from convoy.cli.jobs import Api, CliError, plain
+from convoy.cli.sweep_file import read_file, sweep_body
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
-from convoy.services.args import add_command
-from convoy.services.jobs_cmd import Api, CliError, plain
-from convoy.services.sweep_file import read_file, sweep_body
 from convoy.validation import ConfigError, build_config
 
 FIGURES = ("fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1")
@@ -69,7 +69,7 @@ def local_service(data: Path, max_processes: int) -> Iterator[tuple[str, str]]:
 
     port, token = free_port(), secrets.token_urlsafe(16)
     data.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "convoy.services.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
+    cmd = [sys.executable, "-m", "convoy.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
            "--data", str(data), "--max-processes", str(max_processes)]  # fmt: skip
     with open(data / "serve.log", "ab") as log:
         proc = subprocess.Popen(cmd, env={**os.environ, "CONVOY_API_TOKEN": token}, stdout=log, stderr=log)

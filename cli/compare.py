@@ -10,8 +10,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from convoy.services.args import add_command
-from convoy.services.rundir import run_folders
+from convoy.cli.args import add_command
+from convoy.cli.rundir import run_folders
 from convoy.validation import ConfigError
 
 console = Console()

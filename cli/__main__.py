@@ -1,0 +1,7 @@
+"""``python -m convoy.cli …`` is the ``convoy`` command (what the job service spawns for hosts and evaluations)."""
+
+import sys
+
+from convoy.cli.main import main
+
+sys.exit(main())
