@@ -10,6 +10,7 @@ every way a file can be wrong (missing, truncated, not ours, from a newer format
 
 from __future__ import annotations
 
+import logging
 import os
 import pickle
 import tempfile
@@ -27,6 +28,8 @@ from convoy.algos.errors import CheckpointError
 from convoy.algos.replay import JointReplay
 from convoy.config import JobConfig, job_config
 from convoy.envs.batched import EnvSpec
+
+log = logging.getLogger(__name__)
 
 FORMAT = 1
 PREVIOUS_CHECKPOINT = "checkpoint.previous.pt"  # a population's run keeps its checkpoint before the last
@@ -189,7 +192,7 @@ def _replay_step(path: Path) -> int | None:
         with np.load(path) as data:
             return int(data["env_steps"])
     except (OSError, KeyError, ValueError) as exc:
-        print(f"learner: replay {path} unusable ({type(exc).__name__}: {exc}); refilling from actors", flush=True)
+        log.warning("replay %s unusable (%s: %s); refilling from actors", path, type(exc).__name__, exc)
         return None
 
 
@@ -214,7 +217,7 @@ def load_replay(path: str | Path, algo: Any, env_steps: int) -> int:
         for name, buf in buffers.items():
             buf.load_state_dict(states[name])
     except (OSError, KeyError, ValueError) as exc:
-        print(f"learner: replay {path} unusable ({type(exc).__name__}: {exc}); refilling from actors", flush=True)
+        log.warning("replay %s unusable (%s: %s); refilling from actors", path, type(exc).__name__, exc)
         for buf in replay_buffers(algo).values():
             buf.load_state_dict({"data": {}, "next": 0})
         return 0

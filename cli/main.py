@@ -20,6 +20,7 @@ from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
+from convoy.protocol.reports import setup_logging
 from convoy.services.procs import JobFailed
 from convoy.validation import ConfigError, build_config
 
@@ -283,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()  # the runtime's log lines to stdout; `convoy serve` and `convoy host` add their own
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

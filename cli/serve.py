@@ -37,6 +37,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from convoy.api.app import create_app
+    from convoy.protocol.reports import setup_logging
     from convoy.services.jobservice import JobService
 
     if not 1 <= args.port <= 65535:
@@ -44,6 +45,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.max_processes < 3:
         raise ConfigError("--max-processes", f"a job needs at least 3 processes (got {args.max_processes})")
     data = Path(args.data)
+    setup_logging(timestamps=True)  # the service's log: submissions, state changes and process events, timed
     token, origin = api_token(data)
     service = JobService(data, args.max_processes, limits=limits_from_args(args))
     app = create_app(service, token)

@@ -11,6 +11,7 @@ population's replay (``DIR/replay.npz``).
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +25,14 @@ from convoy.algos.checkpoint import (
 )
 from convoy.config import ConfigError, JobConfig, job_config
 
+log = logging.getLogger(__name__)
+
 
 def _unusable(path: Path, why: str, strict: bool) -> None:
     """Say why ``path`` cannot be used: an error (strict), or set it aside and say the run starts afresh."""
     if strict:
         raise CheckpointError(f"checkpoint {path}: {why}; resume from another folder or train afresh")
-    print(f"learner: checkpoint {path} unusable ({why}); starting from scratch", flush=True)
+    log.warning("checkpoint %s unusable (%s); starting from scratch", path, why)
     path.rename(path.with_suffix(".unreadable"))
 
 
@@ -89,7 +92,7 @@ def restore_population(
         why = "the population's runs have no checkpoints of one step"
         if strict:
             raise CheckpointError(f"{replay.parent}: {why}; train afresh")
-        print(f"learner: {why}; starting afresh", flush=True)
+        log.warning("%s; starting afresh", why)
         return None
     step = max(common)
     payloads = [b[step] for b in by_step]
@@ -100,7 +103,7 @@ def restore_population(
         why = f"the runs' checkpoints do not match the job's networks ({exc})"
         if strict:
             raise CheckpointError(f"{replay.parent}: {why}") from None
-        print(f"learner: {why}; starting afresh", flush=True)
+        log.warning("%s; starting afresh", why)
         return None
     rows = load_replay(replay, algo, step)
     return [{**p["counters"], "replay_rows": rows} for p in payloads]

@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import collections
+import logging
 import signal
 import time
 from pathlib import Path
@@ -41,6 +42,8 @@ from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import SessionAbandoned, ZenohSettings, open_session
+
+log = logging.getLogger(__name__)
 
 WEIGHTS_EVERY_S = 1.0
 WEIGHTS_IDLE_EVERY_S = 0.1  # while no chunk has come in for that long: an actor may be waiting for its first weights
@@ -238,11 +241,10 @@ class Learner:
                 if msg is None:
                     if now - max(t_chunk, t_start) > rt.data_timeout_s:
                         core.checkpoint()
-                        print(
-                            f"learner: no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
+                        log.error(
+                            f"no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
                             f"{job.steps:,} env steps; are the job's actors running? (convoy jobs logs ID, or "
-                            "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start",
-                            flush=True,
+                            "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start"
                         )
                         return NO_DATA
                     continue
@@ -296,5 +298,5 @@ def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettin
     try:
         return learner.run()
     except FloatingPointError as exc:  # Agent.update gave up after many non-finite losses in a row
-        print(f"learner: training diverged: {exc}", flush=True)
+        log.error("training diverged: %s", exc)
         return DIVERGED

@@ -10,6 +10,7 @@ learner has finished the job, or — on an actor host — when the learner's bud
 
 from __future__ import annotations
 
+import logging
 import signal
 import tempfile
 import time
@@ -19,8 +20,11 @@ from typing import Any
 from convoy.config import JobConfig
 from convoy.protocol import keys
 from convoy.protocol.inbox import Inbox
+from convoy.protocol.reports import REPORTS_FILE, setup_logging
 from convoy.protocol.session import ZenohSettings, open_session
 from convoy.services.procs import JobFailed, ProcessGroup
+
+log = logging.getLogger(__name__)
 
 
 class HostAgent:
@@ -73,7 +77,8 @@ class HostAgent:
                 if last is not None:
                     ingested = last.body["ingested_steps"]
                 for ev in group.poll(learner_has_data=ingested >= self.job.steps):
-                    print(f"[{self.name}] {ev.kind} {ev.ident} {ev.detail}".rstrip(), flush=True)
+                    extra = {"event": ev.kind, "source": ev.ident, "detail": ev.detail}  # also a report
+                    log.info(f"{ev.kind} {ev.ident} {ev.detail}".rstrip(), extra=extra)
                     if ev.kind == "failed":
                         raise JobFailed(ev.detail)
                 if self._done(group, ingested):
@@ -102,6 +107,7 @@ def run_host(
     settings: ZenohSettings,
 ) -> int:
     agent = HostAgent(name, job_id, job, roles, actors, out_dir, settings)
+    setup_logging(Path(out_dir) / REPORTS_FILE, name)  # its processes' events, for the job service
     signal.signal(signal.SIGTERM, agent.stop)
     signal.signal(signal.SIGINT, agent.stop)
     return agent.run()
@@ -114,7 +120,7 @@ def run_router(settings: ZenohSettings) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
     signal.signal(signal.SIGINT, lambda *_: stopping.append(1))
     session = open_session(settings.model_copy(update={"mode": "router"}))
-    print(f"router listening on {', '.join(settings.listen) or 'tcp/[::]:7447'}", flush=True)
+    log.info("router listening on %s", ", ".join(settings.listen) or "tcp/[::]:7447")
     try:
         while not stopping:
             time.sleep(0.1)

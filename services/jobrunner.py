@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import json
+import logging
 import math
 import tempfile
 import threading
@@ -25,6 +26,8 @@ from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
 from convoy.services.procs import Event, JobFailed, ProcessGroup
+
+log = logging.getLogger(__name__)
 
 
 class MetricReports:
@@ -201,10 +204,9 @@ class JobRunner:
         kind, values = self.reports.take(msg, live), msg.body["values"]
         if kind == "resumed":
             self.resumes.append(values)
-            print(
+            log.info(
                 f"[resumed] learner from its checkpoint: {values['resumed_env_steps']:,.0f} env steps, "
-                f"{values['resumed_updates']:,.0f} updates, {values.get('resumed_replay_rows', 0):,.0f} replay rows",
-                flush=True,
+                f"{values['resumed_updates']:,.0f} updates, {values.get('resumed_replay_rows', 0):,.0f} replay rows"
             )
         if kind != "row":
             return

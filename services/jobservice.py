@@ -32,8 +32,8 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
+import logging
 import os
-import re
 import secrets
 import shutil
 import signal
@@ -51,8 +51,9 @@ from convoy.api.models import EvalRequest, SweepSubmit
 from convoy.api.sweeps import expand, group_name, packs, population
 from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
-from convoy.protocol import keys, wire
+from convoy.protocol import keys, reports, wire
 from convoy.protocol.inbox import Inbox
+from convoy.protocol.reports import REPORTS_FILE, Report, ReportTail
 from convoy.protocol.session import (
     ZenohSettings,
     free_port,
@@ -66,18 +67,19 @@ from convoy.services.jobrunner import AliveSet, MetricReports
 from convoy.services.procs import pid_alive
 from convoy.services.store import JobStore
 
-EXCEPTION_LINE = re.compile(r"^[A-Za-z_.]*(Error|Exception|Interrupt)\b.*")  # a traceback's last line
-HOST_EVENT = re.compile(r"^\[h-[^\]]+\] ((?:crashed|respawned|backoff|failed) .*)")  # services/host.py's events
-SUPERVISOR_LINE = re.compile(r"^(\[[^\]]+\] |job failed: |Traceback |  )")  # events, the verdict, traceback frames
 PROGRESS_KEYS = ("env_steps", "updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s",
                  "policy_lag")  # fmt: skip
 STOP_GRACE_S = 20.0
 CREDENTIALS_FILE = "zenoh-credentials"  # in the job's directory: its usrpwd dictionary (0600)
 
 
+log = logging.getLogger(__name__)
+SAID = ("crashed", "respawned", "backoff", "failed")  # the host's process events the service's log repeats
+
+
 def say(line: str) -> None:
-    """One line of the service's own log (its stdout): job submissions and every state change, with the reason."""
-    print(f"{time.strftime('%H:%M:%S')} {line}", flush=True)
+    """One line of the service's own log: job submissions and every state change, with the reason."""
+    log.info(line)
 
 
 class Tracked:
@@ -92,21 +94,11 @@ class Tracked:
         self.stop_asked: float | None = None
         self.ckpt_mtime: dict[str, float] = {}  # per job: a population's are its seeds'
         self.reports = MetricReports()
-        log = Path(rec.out_dir or "") / "host.log"
-        self.log, self.log_offset = log, log.stat().st_size if log.is_file() else 0  # only what happens from now
+        self.reports = ReportTail(Path(rec.out_dir or "") / REPORTS_FILE)  # only what happens from now
 
     def process_events(self) -> list[str]:
-        """The host's new crash, respawn, back-off and failure lines (``[h-ID] crashed actor-3 exit code -9``)."""
-        try:
-            with self.log.open("rb") as fh:
-                fh.seek(self.log_offset)
-                data = fh.read()
-        except OSError:
-            return []
-        end = data.rfind(b"\n") + 1  # whole lines only; the rest next time
-        self.log_offset += end
-        lines = data[:end].decode(errors="replace").splitlines()
-        return [m[1] for m in map(HOST_EVENT.match, lines) if m]
+        """The host's new crash, respawn, back-off and failure events (``crashed h-ID.actor-3 exit code -9``)."""
+        return [f"{r.kind} {r.source} {r.detail}".rstrip() for r in self.reports.new() if r.kind in SAID]
 
     def exited(self) -> int | None:
         """The host's exit code once it has exited (−1 when it was not our child), else None."""
@@ -369,7 +361,7 @@ class JobService:
                 with self._lock:
                     self._tick()
             except Exception as exc:  # never let one bad tick kill the watcher; say why
-                print(f"jobservice: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+                log.exception("jobservice: %s: %s", type(exc).__name__, exc)
 
     def _tick(self) -> None:
         evaluations.reap()
@@ -587,7 +579,7 @@ class JobService:
             return []
 
     def _log_tail(self, job_id: str) -> str:
-        return failure_summary(job_id, self.logs(job_id, 400))
+        return failure_summary(job_id, reports.read(self._out(self._runner(job_id)) / REPORTS_FILE, last=400))
 
 
 def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
@@ -598,18 +590,17 @@ def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
     return keep
 
 
-def failure_summary(job_id: str, output: list[str]) -> str:
-    """Why a job failed, for its error field: the output's last line and the cause, where the last line is often
-    only "crashed N times": the exception that ended the last traceback, else the last line a job process printed
-    itself (not a supervisor's ``[host] event`` or ``job failed:`` line), e.g. the learner's "no chunk ..."."""
-    lines = [ln for ln in output if ln.strip()]
-    if not lines:
-        return "no output"
-    errors = [ln for ln in lines if EXCEPTION_LINE.match(ln)]
-    own = [ln for ln in lines if not SUPERVISOR_LINE.match(ln)]
-    cause = errors[-1] if errors else own[-1] if own else None
-    said = f" (cause: {cause[-300:]})" if cause and cause != lines[-1] else ""
-    return f"{lines[-1][-300:]}{said}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
+def failure_summary(job_id: str, records: list[Report]) -> str:
+    """Why a job failed, for its error field, from its processes' reports: the role that failed for good (or the
+    last crash) and the cause, the last error a process reported itself — an exception, or why it gave up (the
+    learner's "no chunk from any actor ...")."""
+    verdict = [r for r in records if r.kind == "failed"] or [r for r in records if r.kind == "crashed"]
+    errors = [r for r in records if r.kind == "error"]
+    if not verdict and not errors:
+        return f"its processes reported nothing; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
+    head = f"{verdict[-1].source} {verdict[-1].kind}: {verdict[-1].detail}" if verdict else "a process failed"
+    cause = f" (cause: {errors[-1].source}: {errors[-1].detail[:300]})" if errors else ""
+    return f"{head[:300]}{cause}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
 
 
 def host_name(job_id: str) -> str:

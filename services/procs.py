@@ -16,18 +16,21 @@ restarted.
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 import signal
 import time
 import zlib
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from convoy.config import JobConfig
 from convoy.protocol.exitcodes import DIVERGED
+from convoy.protocol.reports import REPORTS_FILE, setup_logging
 from convoy.protocol.session import ZenohSettings
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
@@ -37,6 +40,7 @@ PRELOAD = ["convoy.actors.actor", "convoy.algos.agent", "convoy.learner.service"
 EXIT_GRACE_S = 3.0  # how long an actor's exit 0 waits for the learner's word that the job has its data
 SHORT_LIFE_S = 10.0  # an actor that dies younger than this is crash-looping: its respawn backs off
 MAX_BACKOFF_S = 30.0
+log = logging.getLogger(__name__)
 
 
 def pid_alive(pid: int | None) -> bool:
@@ -64,16 +68,31 @@ def _context() -> Any:
 _CTX = _context()
 
 
-def _actor_main(job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int) -> None:
+def _role_main(ident: str, reports: str | None, run: Callable[[], int]) -> None:
+    """A role process: its log lines to stdout (the host's log), its errors also to the job's reports file, where
+    the job service reads why it died; an uncaught exception is logged once (traceback and report), exit code 1."""
+    setup_logging(reports, ident)
+    try:
+        code = run()
+    except Exception:
+        log.exception("%s died", ident)
+        code = 1
+    raise SystemExit(code)
+
+
+def _actor_main(
+    job_id: str, job: JobConfig, index: int, ident: str, settings: ZenohSettings, seed: int, reports: str | None
+) -> None:
     from convoy.actors.actor import run_actor
 
-    raise SystemExit(run_actor(job_id, job, index, ident, settings, seed))
+    _role_main(ident, reports, lambda: run_actor(job_id, job, index, ident, settings, seed))
 
 
-def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> None:
+def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings, ident: str,
+                  reports: str | None) -> None:  # fmt: skip
     from convoy.learner.service import run_learner
 
-    raise SystemExit(run_learner(job_id, job, out_dir, settings))
+    _role_main(ident, reports, lambda: run_learner(job_id, job, out_dir, settings))
 
 
 @dataclass
@@ -120,6 +139,7 @@ class ProcessGroup:
         """``host``: this machine's name in a multi-host job; it prefixes actor ids and salts their seeds, so actors
         of different hosts never share a key or a seed."""
         self.job_id, self.job, self.out_dir, self.settings, self.roles = job_id, job, out_dir, settings, roles
+        self.reports = str(Path(out_dir) / REPORTS_FILE) if out_dir else None  # what its processes report
         self.host = host
         self.actors: dict[int, Slot] = {}
         self.respawn_at: dict[int, tuple[float, int]] = {}  # actor index → (when, generation) of a pending respawn
@@ -138,14 +158,14 @@ class ProcessGroup:
         # after it dies (~20 MiB each), so churn grew the learner without bound. Chunks are small and few (tens of
         # KB, tens per second); TCP loopback carries them at a fraction of its capacity.
         settings = self.settings.model_copy(update={"shared_memory": False})
-        args = (self.job_id, self.job, index, slot.ident, settings, seed)
+        args = (self.job_id, self.job, index, slot.ident, settings, seed, self.reports)
         slot.proc = _CTX.Process(target=_actor_main, args=args, name=slot.ident, daemon=True)
         slot.proc.start()
         return slot
 
     def _spawn_learner(self, generation: int) -> Slot:
         slot = Slot("learner", 0, generation, None)
-        args = (self.job_id, self.job, self.out_dir, self.settings)
+        args = (self.job_id, self.job, self.out_dir, self.settings, slot.ident, self.reports)
         slot.proc = _CTX.Process(target=_learner_main, args=args, name=slot.ident, daemon=True)
         slot.proc.start()
         return slot

@@ -453,17 +453,16 @@ def test_the_schema_documents_the_error_body_the_server_sends(service: Service) 
 
 
 def test_a_failed_jobs_error_names_its_last_exception() -> None:
+    from convoy.protocol.reports import Report
     from convoy.services.jobservice import failure_summary
 
-    output = [
-        "[h-x] crashed learner-0 exit code 1",
-        "Traceback (most recent call last):",
-        '  File "learner/service.py", line 1, in run',
-        "torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 104.00 GiB",
-        "[h-x] failed learner-0.5 learner crashed 6 times within 60 s (last: learner-0.5 exit code 1)",
+    records = [
+        Report("crashed", "learner-0", "exit code 1"),
+        Report("error", "learner-0.5", "OutOfMemoryError: CUDA out of memory. Tried to allocate 104.00 GiB"),
+        Report("failed", "learner-0.5", "learner crashed 6 times within 60 s (last: learner-0.5 exit code 1)"),
     ]
-    text = failure_summary("x", output)
-    assert text.startswith("[h-x] failed learner-0.5 learner crashed 6 times")
-    assert "cause: torch.OutOfMemoryError: CUDA out of memory" in text
+    text = failure_summary("x", records)
+    assert text.startswith("learner-0.5 failed: learner crashed 6 times")
+    assert "cause: learner-0.5: OutOfMemoryError: CUDA out of memory" in text
     assert "convoy jobs logs x" in text
-    assert failure_summary("x", []) == "no output"
+    assert failure_summary("x", []).startswith("its processes reported nothing")

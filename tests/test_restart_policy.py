@@ -124,7 +124,7 @@ def test_a_diverged_learner_fails_the_job_at_once_with_the_fix(monkeypatch: pyte
 
 
 def test_the_learner_process_reports_divergence_by_its_exit_code(
-    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     from convoy.learner import service
     from convoy.protocol.exitcodes import DIVERGED
@@ -136,4 +136,4 @@ def test_the_learner_process_reports_divergence_by_its_exit_code(
     monkeypatch.setattr(service.signal, "signal", lambda *a: None)
     job = job_config(algo="idqn", env="referential", steps=1000)
     assert service.run_learner("diverge", job, "unused", ZenohSettings()) == DIVERGED
-    assert "training diverged: idqn: 100 updates in a row" in capsys.readouterr().out
+    assert "training diverged: idqn: 100 updates in a row" in caplog.text

@@ -562,7 +562,7 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
         proc.wait(5)
 
 
-def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """No actor ever sends a chunk: the learner checkpoints and exits NO_DATA after runtime.data_timeout_s."""
     from convoy.learner.service import Learner
     from convoy.protocol.exitcodes import NO_DATA
@@ -571,7 +571,7 @@ def test_a_learner_without_data_gives_up_with_the_reason(tmp_path: Path, capsys:
     code = Learner("nodata", job, tmp_path, ZenohSettings()).run()
     assert code == NO_DATA
     assert (tmp_path / "checkpoint.pt").is_file()
-    assert "no chunk from any actor for 1 s" in capsys.readouterr().out
+    assert "no chunk from any actor for 1 s" in caplog.text
 
 
 def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_killed_learner(
