@@ -28,13 +28,15 @@ from pathlib import Path
 
 import numpy as np
 
+from convoy.output import markdown_table, save_figure
+
 __all__ = [
     "MetricFigure",
     "cooccurrence_plot",
     "entropy",
     "instantaneous_coordination",
-    "markdown_table",
     "message_entropy",
+    "metrics_table",
     "mutual_information",
     "per_bit_mi",
     "plot_figures",
@@ -323,19 +325,12 @@ def _fmt(v: float | None, unit: str) -> str:
     return f"{v:.2f}" if unit in ("return", "L2") else f"{v:.3f}"
 
 
-def markdown_table(figures: list[MetricFigure], title: str = "") -> str:
-    """Table 1 of the paper ('Emergent Communication Metric Used | Value') plus the baselines that qualify it."""
-    header = [
-        "Emergent Communication Metric Used",
-        "Value",
-        "shuffled baseline",
-        "per bit",
-        "per bit (shuffled)",
-        "samples",
-        "note",
-    ]
-    lines = [f"### {title}", ""] if title else []
-    lines += ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * 5 + ["---"]) + "|"]
+def metrics_table(figures: list[MetricFigure], title: str = "") -> str:
+    """Table 1 of the paper ('Emergent Communication Metric Used | Value') plus the baselines that qualify it, as
+    Markdown."""
+    header = ["Emergent Communication Metric Used", "Value", "shuffled baseline", "per bit", "per bit (shuffled)",
+              "samples", "note"]  # fmt: skip
+    rows = []
     for f in figures:
         shuffled = _fmt(f.shuffled, f.unit)
         if shuffled and f.shuffled_std is not None:
@@ -349,8 +344,9 @@ def markdown_table(figures: list[MetricFigure], title: str = "") -> str:
             "" if f.samples is None else str(f.samples),
             f.note,
         ]
-        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append([c.replace("|", "\\|") for c in cells])
+    table = markdown_table(header, rows, right=[False, *[True] * 5, False])
+    return (f"### {title}\n\n" if title else "") + table + "\n"
 
 
 def _pyplot():
@@ -401,10 +397,7 @@ def plot_figures(figures: list[MetricFigure], path: str | Path, title: str = "")
         ax.legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def cooccurrence_plot(
@@ -441,7 +434,4 @@ def cooccurrence_plot(
     ax.set_title(
         f"top {len(top_x)}/{len(xu)} × {len(top_y)}/{len(yu)} values, {p.sum():.0%} of {len(xa)} samples", fontsize=9
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

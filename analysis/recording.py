@@ -34,8 +34,8 @@ from convoy.analysis.comm_metrics import (
     MetricFigure,
     cooccurrence_plot,
     instantaneous_coordination,
-    markdown_table,
     message_entropy,
+    metrics_table,
     plot_figures,
     speaker_consistency,
     symbols,
@@ -67,7 +67,7 @@ class Analysis:
         return f"Emergent communication of {self.algo} on {self.env}"
 
     def table(self) -> str:
-        return markdown_table(self.figures, title=self.title)
+        return metrics_table(self.figures, title=self.title)
 
     def as_dict(self) -> dict:
         return {"algo": self.algo, "env": self.env, "figures": [asdict(f) for f in self.figures], "files": self.files}

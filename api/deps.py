@@ -6,7 +6,6 @@ FastAPI dependencies, so each route module is a plain ``APIRouter``.
 
 from __future__ import annotations
 
-import math
 import secrets
 from pathlib import Path
 from typing import Any, Protocol
@@ -17,6 +16,7 @@ from convoy.api.errors import ApiError
 from convoy.api.lifecycle import JobReader, JobRecord, JobState, SweepRecord
 from convoy.api.models import EvalRequest, FinalEvaluation, JobView, Progress, SweepSubmit
 from convoy.config import JobConfig
+from convoy.output import json_safe
 
 PROGRESS_FIELDS = ("updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
@@ -44,17 +44,6 @@ class JobControl(Protocol):
     def stop_sweep(self, sweep_id: str) -> SweepRecord: ...
     def resume_sweep(self, sweep_id: str) -> SweepRecord: ...
     def delete_sweep(self, sweep_id: str) -> None: ...
-
-
-def finite(value: Any) -> Any:
-    """JSON has no NaN/inf: they travel as null."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [finite(v) for v in value]
-    return value
 
 
 def control_of(request: Request) -> JobControl:
@@ -93,7 +82,7 @@ def view(rec: JobRecord, control: JobControl) -> JobView:
         progress=Progress(
             env_steps=env_steps,
             fraction=min(1.0, env_steps / steps),
-            **{k: finite(prog.get(k)) for k in PROGRESS_FIELDS},
+            **{k: json_safe(prog.get(k)) for k in PROGRESS_FIELDS},
             dropped=prog.get("dropped") or {},
         ),
         created_at=rec.created_at,
@@ -101,8 +90,8 @@ def view(rec: JobRecord, control: JobControl) -> JobView:
         error=rec.error,
         last_checkpoint=rec.last_checkpoint,
         queue_position=control.store.queue_position(rec.id),
-        config=finite(cfg),
-        final=FinalEvaluation(**finite(prog["final"])) if isinstance(prog.get("final"), dict) else None,
+        config=json_safe(cfg),
+        final=FinalEvaluation(**json_safe(prog["final"])) if isinstance(prog.get("final"), dict) else None,
         population=prog.get("packed_in"),
         members=list(prog.get("members", [])),
     )

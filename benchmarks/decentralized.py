@@ -44,13 +44,14 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from benchmarks.report import save_figure, write_json  # noqa: E402
+from benchmarks.report import write_json  # noqa: E402
 from convoy.algos.agent import make_agent  # noqa: E402
 from convoy.algos.checkpoint import load_checkpoint  # noqa: E402
 from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
 from convoy.config import JobConfig, job_config  # noqa: E402
 from convoy.learner.inprocess import Trainer  # noqa: E402
 from convoy.learner.runtime import configure_learner  # noqa: E402
+from convoy.output import save_figure  # noqa: E402
 from convoy.services.training import make_env  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 

@@ -61,7 +61,8 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 from report import cpu_model  # noqa: E402 (benchmarks/report.py, next to this script)
-from report import markdown_table as format_table  # noqa: E402
+
+from convoy.output import markdown_table as format_table  # noqa: E402
 
 BATCH_SIZES = (1, 64, 1024)
 AGENT_COUNTS = (2, 4, 8, 16)

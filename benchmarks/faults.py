@@ -48,8 +48,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.report import cpu_model, markdown_table  # noqa: E402
+from benchmarks.report import cpu_model  # noqa: E402
 from convoy.config import job_config  # noqa: E402
+from convoy.output import markdown_table  # noqa: E402
 from convoy.services.jobrunner import JobRunner  # noqa: E402
 from tests.multihost import Hosts, MultiHostJob, available  # noqa: E402
 from tests.service_fixture import AUTH, SMALL_JOB, Service  # noqa: E402

@@ -1,4 +1,5 @@
-"""What every benchmark script writes: the machine it ran on, padded Markdown tables, JSON and PNG files."""
+"""What every benchmark script writes beside ``convoy.output``'s tables and figures: the machine it ran on, and
+JSON (numpy scalars as floats)."""
 
 from __future__ import annotations
 
@@ -19,29 +20,7 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def markdown_table(header: list[str], rows: list[list[str]], right: list[bool]) -> str:
-    """A padded Markdown table (numbers right-aligned), readable as printed."""
-    widths = [max(len(r[j]) for r in [header, *rows]) for j in range(len(header))]
-
-    def line(cells: list[str]) -> str:
-        padded = (s.rjust(w) if r else s.ljust(w) for s, w, r in zip(cells, widths, right, strict=True))
-        return "| " + " | ".join(padded) + " |"
-
-    rule = "|" + "|".join("-" * (w + 1) + ":" if r else "-" * (w + 2) for w, r in zip(widths, right, strict=True)) + "|"
-    return "\n".join([line(header), rule, *(line(r) for r in rows)])
-
-
 def write_json(path: str | Path, data: Any) -> None:
     """``data`` as indented JSON at ``path`` (folders made; numpy scalars as floats)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(data, indent=2, default=float) + "\n")
-
-
-def save_figure(fig: Any, path: str | Path) -> None:
-    """A matplotlib figure as a PNG at ``path``, laid out tight; the figure is closed."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -80,7 +80,10 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling helpers
-from report import cpu_model, markdown_table
+import numpy as np
+from report import cpu_model
+
+from convoy.output import json_safe, markdown_table
 
 ROOT = Path(__file__).resolve().parents[1]
 CTX = mp.get_context("spawn")
@@ -102,25 +105,6 @@ def rate(x: float) -> str:
     if math.isnan(x):
         return "—"
     return f"{x:,.0f}" if x >= 100 else f"{x:,.1f}" if x >= 10 else f"{x:,.2f}"
-
-
-def percentile(values: list[float], q: float) -> float:
-    """Linear-interpolated percentile (``q`` in 0–100) of a non-empty list."""
-    xs = sorted(values)
-    pos = (len(xs) - 1) * q / 100.0
-    lo, hi = math.floor(pos), math.ceil(pos)
-    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
-
-
-def no_nan(x: Any) -> Any:
-    """``x`` with every NaN float as None (strict JSON)."""
-    if isinstance(x, float) and math.isnan(x):
-        return None
-    if isinstance(x, dict):
-        return {k: no_nan(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [no_nan(v) for v in x]
-    return x
 
 
 def log(msg: str) -> None:
@@ -592,11 +576,11 @@ def broadcast_round(
             "subscribers": k,
             "broadcasts": len(ms),
             "lost": lost,
-            "p50_ms": percentile(ms, 50),
-            "p90_ms": percentile(ms, 90),
+            "p50_ms": float(np.percentile(ms, 50)),
+            "p90_ms": float(np.percentile(ms, 90)),
             "mean_ms": statistics.fmean(ms),
             "max_ms": max(ms),
-            "encode_p50_ms": percentile([1e3 * x for x in encode_s], 50),
+            "encode_p50_ms": float(np.percentile([1e3 * x for x in encode_s], 50)),
             "all_ms": ms,
         }
     finally:
@@ -1071,7 +1055,7 @@ def main(argv: list[str] | None = None) -> int:
         args.markdown.write_text("\n\n".join(sections) + "\n")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(no_nan(payload), indent=2, default=str) + "\n")
+        args.json.write_text(json.dumps(json_safe(payload), indent=2, default=str) + "\n")
     return 0
 
 

@@ -35,8 +35,9 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from benchmarks.report import save_figure, write_json  # noqa: E402
+from benchmarks.report import write_json  # noqa: E402
 from convoy.config import job_config  # noqa: E402
+from convoy.output import save_figure  # noqa: E402
 from convoy.services.training import run_inprocess  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 

@@ -38,11 +38,12 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 from torch import Tensor, nn  # noqa: E402
 
-from benchmarks.report import cpu_model, markdown_table, write_json  # noqa: E402
+from benchmarks.report import cpu_model, write_json  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
 from convoy.algos.registry import make_algorithm  # noqa: E402
 from convoy.config import PAPER_TREADMILL_HIDDEN, resolve_algo  # noqa: E402
 from convoy.envs import make_batched  # noqa: E402
+from convoy.output import markdown_table  # noqa: E402
 
 ALGOS = ("idqn", "dqn-ser", "dial", "ims", "ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm")
 SIZES = {"paper (4096, 12), batch 64": (PAPER_TREADMILL_HIDDEN, 64), "default (256, 256), batch 128": ((256, 256), 128)}

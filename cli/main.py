@@ -20,6 +20,7 @@ from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
 from convoy.envs.treadmill.references import REFERENCES
+from convoy.output import save_figure
 from convoy.protocol.reports import setup_logging
 from convoy.services.procs import JobFailed
 from convoy.validation import ConfigError, build_config
@@ -203,10 +204,7 @@ def _plot_returns(args: argparse.Namespace, agent_ids: tuple[str, ...], result: 
     ax.set_title(f"{args.env}, {args.policy} policy")
     ax.set_xticks(episodes + 0.4 - width / 2, [str(e) for e in episodes], fontsize=7)
     ax.legend(fontsize=8, ncol=len(agent_ids) + 1, loc="upper center", bbox_to_anchor=(0.5, -0.15))
-    fig.tight_layout()
-    Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.plot, dpi=100)
-    plt.close(fig)
+    save_figure(fig, args.plot, dpi=100)
     console.print(f"wrote {args.plot}")
 
 

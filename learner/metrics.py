@@ -10,6 +10,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from convoy.output import json_safe, save_figure
+
 
 class MetricsWriter:
     """Appends one row per call to ``metrics.jsonl`` and ``metrics.csv`` in ``out_dir`` (flushed each row).
@@ -32,8 +34,7 @@ class MetricsWriter:
 
     def write(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
-        clean = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
-        self._jsonl.write(json.dumps(clean) + "\n")
+        self._jsonl.write(json.dumps(json_safe(row)) + "\n")
         self._jsonl.flush()
         if self._csv is None or not set(row) <= set(self._csv.fieldnames):
             self._rewrite_csv()  # the first row, or a column that appears later (e.g. once updates begin)
@@ -106,7 +107,4 @@ def plot_curves(
     ax2.set_yscale("log")
     ax2.legend(loc="best", fontsize=8)
     ax2.set_title("speed")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -12,8 +12,8 @@ from convoy.analysis.comm_metrics import (
     cooccurrence_plot,
     entropy,
     instantaneous_coordination,
-    markdown_table,
     message_entropy,
+    metrics_table,
     mutual_information,
     per_bit_mi,
     plot_figures,
@@ -174,17 +174,18 @@ def _figures() -> list[MetricFigure]:
     ]
 
 
-def test_markdown_table() -> None:
+def test_metrics_table() -> None:
     figs = _figures()
-    table = markdown_table(figs, title="Run 1")
+    table = metrics_table(figs, title="Run 1")
     lines = table.strip().splitlines()
     assert lines[0] == "### Run 1"
     header = (
         "| Emergent Communication Metric Used | Value | shuffled baseline | per bit | per bit (shuffled) | samples"
         " | note |"
     )
-    assert header in lines
-    rows = lines[lines.index(header) + 2 :]
+    squeezed = [" ".join(line.split()) for line in lines]  # columns are padded to their widest cell
+    assert header in squeezed
+    rows = lines[squeezed.index(header) + 2 :]
     assert len(rows) == len(figs)
     assert all(f.name in row for f, row in zip(figs, rows, strict=True))
     assert "12.35 return" in rows[-1] and "a \\| b" in rows[-1]

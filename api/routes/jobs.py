@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
-from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite, view
+from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, view
 from convoy.api.lifecycle import JobState
 from convoy.api.models import (
     EvalRequest,
@@ -20,6 +20,7 @@ from convoy.api.models import (
     JobSubmit,
     JobView,
 )
+from convoy.output import json_safe
 
 router = APIRouter(tags=["jobs"])
 CONTROL = Depends(control_of)
@@ -100,13 +101,13 @@ def evaluate(
 ) -> EvaluationView:
     """Start greedy episodes of the job's checkpoint in their own process; follow them at the evaluation's URL."""
     control.store.get(job_id)
-    return EvaluationView(**finite(control.evaluate(job_id, body)))
+    return EvaluationView(**json_safe(control.evaluate(job_id, body)))
 
 
 @router.get("/jobs/{job_id}/evaluations", response_model=EvaluationList, tags=["jobs"])
 def evaluations(job_id: str = PathParam(..., pattern=JOB_ID), control: JobControl = CONTROL) -> EvaluationList:
     control.store.get(job_id)
-    return EvaluationList(evaluations=[EvaluationView(**finite(e)) for e in control.evaluations(job_id)])
+    return EvaluationList(evaluations=[EvaluationView(**json_safe(e)) for e in control.evaluations(job_id)])
 
 
 @router.get("/jobs/{job_id}/evaluations/{eval_id}", response_model=EvaluationView, tags=["jobs"])
@@ -116,4 +117,4 @@ def evaluation(
     control: JobControl = CONTROL,
 ) -> EvaluationView:
     control.store.get(job_id)
-    return EvaluationView(**finite(control.evaluation(job_id, eval_id)))
+    return EvaluationView(**json_safe(control.evaluation(job_id, eval_id)))

@@ -11,10 +11,11 @@ from fastapi import APIRouter, Depends, Header, Query
 from fastapi import Path as PathParam
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
-from convoy.api.deps import JOB_ID, JobControl, control_of, finite
+from convoy.api.deps import JOB_ID, JobControl, control_of
 from convoy.api.errors import ApiError
 from convoy.api.lifecycle import FINAL_STATES
 from convoy.api.models import MetricsPage
+from convoy.output import json_safe
 
 router = APIRouter()
 CONTROL = Depends(control_of)
@@ -31,7 +32,7 @@ def metrics(
     wanted = [n.strip() for n in names.split(",") if n.strip()] if names else None
     rows = control.store.metrics(job_id, since=since, names=wanted, limit=limit)
     last = rows[-1]["env_steps"] if rows else control.store.last_step(job_id)
-    return MetricsPage(job=job_id, rows=finite(rows), last_step=last)
+    return MetricsPage(job=job_id, rows=json_safe(rows), last_step=last)
 
 
 SSE_RETRY_MS = 2000  # how long a browser's EventSource waits before it reconnects
@@ -70,7 +71,7 @@ async def events(
             rows = control.store.metrics(job_id, since=last)
             if rows:
                 last = rows[-1]["env_steps"]
-                yield f"id: {last}\nevent: metrics\ndata: {json.dumps(finite(rows))}\n\n"
+                yield f"id: {last}\nevent: metrics\ndata: {json.dumps(json_safe(rows))}\n\n"
             if rec.state != state:
                 state = rec.state
                 body = json.dumps({"state": str(state), "error": rec.error})

@@ -6,9 +6,10 @@ from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import Response
 
-from convoy.api.deps import JOB_ID, JobControl, authorised, control_of, finite
+from convoy.api.deps import JOB_ID, JobControl, authorised, control_of
 from convoy.api.models import SweepList, SweepSubmit, SweepSummary, SweepView
 from convoy.api.sweeps import summarize, sweep_state, sweep_view
+from convoy.output import json_safe
 
 router = APIRouter(tags=["sweeps"])
 CONTROL = Depends(control_of)
@@ -42,7 +43,7 @@ def summary(
     greedy return and the time to the threshold."""
     sweep = control.store.sweep(sweep_id)
     limit = threshold if threshold is not None else sweep.spec.get("threshold")
-    groups = finite(summarize(sweep.jobs, control.store, limit))
+    groups = json_safe(summarize(sweep.jobs, control.store, limit))
     states: dict[str, int] = {}
     for group in groups:  # the jobs were read once, for their curves; their states come with them
         for name, n in group["states"].items():
