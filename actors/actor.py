@@ -98,91 +98,132 @@ class Actor:
     def _loop(
         self, weights_in: Inbox, budget_in: Inbox, stop_in: Inbox, pub: Any, metrics_pub: Any, watch: ParentWatch
     ) -> int:
-        job, rt = self.job, self.job.runtime
-        runs = job.runs
-        env = make_batched(job.env, job.num_envs * (runs or 1), **job.env_params)
-        # the actor's own seeds for exploration too (make_agent seeds the ε-greedy generators with the job's)
-        own = {"seed": self.seed, "seeds": self.seeds if runs else []}
-        algo = make_agent(job.model_copy(update=own), env.spec, device=rt.actor_device)
-        cfg = job.algo_config()
-        t_len = rt.chunk_len(algo.chunk_len)
-        version = -1
-        budget: wire.Message | None = None
-        sent_since_budget = 0
-        seq = 0
-        b = job.num_envs  # env steps of one run per env step (the budget counts each run's steps)
+        """Until the learner has the job's steps or a stop comes: the newest weights in, keep to the learner's
+        budget, step the envs, publish each full chunk, report metrics every second."""
+        job = self.job
+        env = make_batched(job.env, job.num_envs * (job.runs or 1), **job.env_params)
         try:
-            stepper = EnvStepper(env, algo, self.seed)
-            chunk_returns: list[float] = []
-            chunk_runs: list[int] = []
-            t_metrics = time.perf_counter()
-            steps_at_metrics = 0
-            while not self.stopping:
-                if watch.orphaned():
-                    break
+            s = self._start(env)
+            while not self.stopping and not watch.orphaned():
                 if stop_in.drain():
                     return 0
-                newest = weights_in.latest()
-                if newest is not None and newest.body["version"] != version:  # a restarted learner may go back
-                    try:
-                        load_weights(algo, newest.body["state"])
-                        version = newest.body["version"]
-                    except (RuntimeError, KeyError, ValueError, TypeError):  # well-formed, but not this job's nets
-                        self.bad_weights += 1
+                self._take_weights(weights_in, s)
                 for msg in budget_in.drain():
-                    budget, sent_since_budget = msg, 0
-                if version < 0 or budget is None:  # no weights yet: the learner is starting
+                    s.budget, s.sent_since_budget = msg, 0
+                if s.version < 0 or s.budget is None:  # no weights yet: the learner is starting
                     time.sleep(0.01)
                     continue
-                allowed, ingested = budget.body["allowed_steps"], budget.body["ingested_steps"]
-                if ingested >= job.steps:
+                if s.budget.body["ingested_steps"] >= job.steps:
                     return 0  # the learner has all the data the job asked for
-                if stepper.chunk_steps == 0 and ingested + sent_since_budget + t_len * b > allowed:
-                    t0 = time.perf_counter()
-                    msg = budget_in.get(timeout=0.05)
-                    if msg is not None:
-                        budget, sent_since_budget = msg, 0
-                    self.stats.throttled_s += time.perf_counter() - t0
+                if s.stepper.chunk_steps == 0 and self._over_budget(s):
+                    self._wait_for_budget(budget_in, s)
                     continue
-                algo.progress = Progress(
-                    ingested, stepper.episodes, job.steps, training=True
-                )  # schedules, fingerprints
-                eps = actor_epsilon(epsilon_at(cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
-                chunk_returns.extend(stepper.step(eps))
-                chunk_runs.extend(stepper.ended_runs.tolist())
-                if stepper.chunk_steps >= t_len:
-                    arrays = stepper.take_chunk()
-                    if runs:  # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
-                        arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in arrays.items()}
-                    body = wire.chunk_body(
-                        arrays, self.ident, version, t_len * b, chunk_returns, chunk_runs if runs else None
-                    )
-                    seq += 1
-                    pub.put(wire.encode("chunk", body, self.ident, seq))
-                    self.stats.env_steps += t_len * env.num_envs  # every run's: the actor's throughput
-                    self.stats.returns.extend(chunk_returns)
-                    sent_since_budget += t_len * b
-                    chunk_returns, chunk_runs = [], []
-                now = time.perf_counter()
-                if now - t_metrics >= METRICS_EVERY_S:
-                    lag = max(0, budget.body["version"] - version)
-                    values = {
-                        "env_steps": self.stats.env_steps,
-                        "env_steps_per_s": (self.stats.env_steps - steps_at_metrics) / (now - t_metrics),
-                        "policy_version": version,
-                        "policy_lag": lag,
-                        "episodes": stepper.episodes,
-                        "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
-                        "throttled_s": self.stats.throttled_s,
-                        "epsilon": eps,
-                        **_drop_counts((weights_in, budget_in, stop_in), self.bad_weights),
-                    }
-                    metrics_pub.put(wire.encode("metrics", wire.metrics_body("actor", self.ident, values), self.ident))
-                    self.stats.returns = []
-                    t_metrics, steps_at_metrics = now, self.stats.env_steps
+                self._step(s)
+                if s.stepper.chunk_steps >= s.t_len:
+                    self._publish_chunk(pub, s)
+                self._report(metrics_pub, (weights_in, budget_in, stop_in), s)
         finally:
             env.close()
         return STOPPED  # a signal, not the end of the job: a supervisor that still wants this actor respawns it
+
+    def _start(self, env: Any) -> _Acting:
+        """The acting policy (the actor's own seeds for exploration: make_agent seeds ε-greedy with the job's)."""
+        job = self.job
+        own = {"seed": self.seed, "seeds": self.seeds if job.runs else []}
+        algo = make_agent(job.model_copy(update=own), env.spec, device=job.runtime.actor_device)
+        t_len = job.runtime.chunk_len(algo.chunk_len)
+        return _Acting(algo, EnvStepper(env, algo, self.seed), t_len, job.num_envs, job.algo_config())
+
+    def _take_weights(self, weights_in: Inbox, s: _Acting) -> None:
+        """Only the newest weights matter; a restarted learner may go back a version."""
+        newest = weights_in.latest()
+        if newest is not None and newest.body["version"] != s.version:
+            try:
+                load_weights(s.algo, newest.body["state"])
+                s.version = newest.body["version"]
+            except (RuntimeError, KeyError, ValueError, TypeError):  # well-formed, but not this job's nets
+                self.bad_weights += 1
+
+    @staticmethod
+    def _over_budget(s: _Acting) -> bool:
+        """Whether a new chunk would take the actors past the steps the learner allows (checked between chunks)."""
+        assert s.budget is not None
+        allowed, ingested = s.budget.body["allowed_steps"], s.budget.body["ingested_steps"]
+        return ingested + s.sent_since_budget + s.t_len * s.b > allowed
+
+    def _wait_for_budget(self, budget_in: Inbox, s: _Acting) -> None:
+        t0 = time.perf_counter()
+        msg = budget_in.get(timeout=0.05)
+        if msg is not None:
+            s.budget, s.sent_since_budget = msg, 0
+        self.stats.throttled_s += time.perf_counter() - t0
+
+    def _step(self, s: _Acting) -> None:
+        """One step of every env with ε-greedy actions (the actor's own ε on the job's schedule)."""
+        job, rt = self.job, self.job.runtime
+        assert s.budget is not None
+        ingested = s.budget.body["ingested_steps"]
+        s.algo.progress = Progress(ingested, s.stepper.episodes, job.steps, training=True)  # schedules, fingerprints
+        s.eps = actor_epsilon(epsilon_at(s.cfg, ingested, job.steps), self.index, rt.actors, rt.epsilon_spread)
+        s.chunk_returns.extend(s.stepper.step(s.eps))
+        s.chunk_runs.extend(s.stepper.ended_runs.tolist())
+
+    def _publish_chunk(self, pub: Any, s: _Acting) -> None:
+        arrays = s.stepper.take_chunk()
+        runs = self.job.runs
+        if runs:  # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
+            arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in arrays.items()}
+        body = wire.chunk_body(
+            arrays, self.ident, s.version, s.t_len * s.b, s.chunk_returns, s.chunk_runs if runs else None
+        )
+        s.seq += 1
+        pub.put(wire.encode("chunk", body, self.ident, s.seq))
+        self.stats.env_steps += s.t_len * s.stepper.env.num_envs  # every run's: the actor's throughput
+        self.stats.returns.extend(s.chunk_returns)
+        s.sent_since_budget += s.t_len * s.b
+        s.chunk_returns, s.chunk_runs = [], []
+
+    def _report(self, metrics_pub: Any, inboxes: tuple[Inbox, ...], s: _Acting) -> None:
+        """Env-steps/s, policy lag, returns, throttling and drops, every ``METRICS_EVERY_S``."""
+        now = time.perf_counter()
+        if now - s.t_metrics < METRICS_EVERY_S:
+            return
+        assert s.budget is not None
+        values = {
+            "env_steps": self.stats.env_steps,
+            "env_steps_per_s": (self.stats.env_steps - s.steps_at_metrics) / (now - s.t_metrics),
+            "policy_version": s.version,
+            "policy_lag": max(0, s.budget.body["version"] - s.version),
+            "episodes": s.stepper.episodes,
+            "return": float(np.mean(self.stats.returns)) if self.stats.returns else float("nan"),
+            "throttled_s": self.stats.throttled_s,
+            "epsilon": s.eps,
+            **_drop_counts(inboxes, self.bad_weights),
+        }
+        metrics_pub.put(wire.encode("metrics", wire.metrics_body("actor", self.ident, values), self.ident))
+        self.stats.returns = []
+        s.t_metrics, s.steps_at_metrics = now, self.stats.env_steps
+
+
+@dataclass
+class _Acting:
+    """What the actor's loop keeps between steps: its policy and stepper, the weights version it acts with, the
+    learner's last budget and what was sent since, the chunk being filled, the metrics clock."""
+
+    algo: Agent
+    stepper: EnvStepper
+    t_len: int  # steps per chunk
+    b: int  # env steps of one run per env step (the budget counts each run's steps)
+    cfg: Any  # the job's algorithm config: its ε schedule
+    version: int = -1
+    budget: wire.Message | None = None
+    sent_since_budget: int = 0
+    seq: int = 0
+    eps: float = 1.0
+    chunk_returns: list[float] = field(default_factory=list)
+    chunk_runs: list[int] = field(default_factory=list)
+    t_metrics: float = field(default_factory=time.perf_counter)
+    steps_at_metrics: int = 0
 
 
 def _drop_counts(inboxes: tuple[Inbox, ...], bad_weights: int) -> dict[str, float]:

@@ -200,93 +200,117 @@ class Learner:
         return None
 
     def _loop(self, algo: Agent, schema: dict, inbox: Inbox, counters: Any, watch: ParentWatch) -> int:
+        """Until the job has its steps: keep actors fed with weights and budget, take in a chunk, train on it."""
         job, rt = self.job, self.job.runtime
-        core = self._core(algo, counters)
-        t_weights = t_budget = t_chunk = 0.0
-        t_start = time.perf_counter()
-        last_weights_version = -1
-        lags: list[float] = []
-        ingested_chunks = 0
-        chunk_steps = job.num_envs * rt.chunk_len(algo.chunk_len)
-        slack = rt.slack(job.num_envs, rt.chunk_len(algo.chunk_len))
-
-        def allowance() -> int:
-            """Steps actors may have sent: chunks still queued count as taken, so actors wait while the learner
-            catches up."""
-            return core.env_steps + max(0, slack - len(inbox) * chunk_steps)
-
-        def transport(_: int) -> dict[str, float]:
-            dropped = self.dropped_by_reason(inbox)
-            return {
-                "policy_lag": float(np.mean(lags)) if lags else 0.0,
-                "dropped": float(sum(dropped.values())),
-                "chunks": float(ingested_chunks),
-                **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in dropped.items()},
-            }
-
+        t_len = rt.chunk_len(algo.chunk_len)
+        s = _Ingest(self._core(algo, counters), job.num_envs * t_len, rt.slack(job.num_envs, t_len), inbox)
         try:
-            while not core.done and not self.stopping:
+            while not s.core.done and not self.stopping:
                 if watch.orphaned():
                     self.stopping = True
                     break
-                now = time.perf_counter()
-                heartbeat = WEIGHTS_IDLE_EVERY_S if now - t_chunk > WEIGHTS_IDLE_EVERY_S else WEIGHTS_EVERY_S
-                if algo.updates - last_weights_version >= rt.weights_every or now - t_weights >= heartbeat:
-                    self._publish_weights(algo)
-                    last_weights_version, t_weights = algo.updates, now
-                if now - t_budget >= BUDGET_EVERY_S:
-                    self._publish_budget(allowance(), core.env_steps, algo.updates)
-                    t_budget = now
+                self._heartbeat(algo, s)
                 msg = inbox.get(timeout=0.01)
                 if msg is None:
-                    if now - max(t_chunk, t_start) > rt.data_timeout_s:
-                        core.checkpoint()
-                        log.error(
-                            f"no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
-                            f"{job.steps:,} env steps; are the job's actors running? (convoy jobs logs ID, or "
-                            "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start"
-                        )
-                        return NO_DATA
+                    if time.perf_counter() - max(s.t_chunk, s.t_start) > rt.data_timeout_s:
+                        return self._give_up(s.core)
                     continue
-                problem = chunk_problem(msg.body["arrays"], schema, algo.spec.n_actions) or self._take(core, msg)
-                if problem is not None:
-                    self.rejected[problem] = self.rejected.get(problem, 0) + 1
-                    continue
-                t_len, b = msg.body["arrays"]["obs"].shape[:2]
-                chunk_steps = t_len * b // (job.runs or 1)
-                self._publish_budget(allowance(), core.env_steps, algo.updates)  # credit now, not after the updates
-                t_budget = t_chunk = time.perf_counter()
-                lags.append(algo.updates - msg.body["policy_version"])
-                ingested_chunks += 1
-                core.update()
-                row = core.row(transport)
-                if isinstance(row, list):  # a population's: its runs' mean (each run's rows are in its folder)
-                    row = mean_row(row) if row else None
-                if row is not None:
-                    self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
-                    lags = []
-                core.maybe_checkpoint()
+                if self._ingest(msg, schema, algo, s):
+                    self._train(s)
             if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
-                core.checkpoint()
+                s.core.checkpoint()
                 return STOPPED
-            self._publish_budget(job.steps, core.env_steps, algo.updates)  # tells actors the job has its data
+            self._publish_budget(job.steps, s.core.env_steps, algo.updates)  # tells actors the job has its data
         finally:
-            core.close()  # the metric files, whichever way the loop ends
-        dropped = self.dropped_by_reason(inbox)
+            s.core.close()  # the metric files, whichever way the loop ends
+        return self._finish(algo, s)
+
+    def _heartbeat(self, algo: Agent, s: _Ingest) -> None:
+        """Weights every ``weights_every`` updates and at least every second (every 0.1 s while no chunk comes),
+        the budget every ``BUDGET_EVERY_S``."""
+        now = time.perf_counter()
+        heartbeat = WEIGHTS_IDLE_EVERY_S if now - s.t_chunk > WEIGHTS_IDLE_EVERY_S else WEIGHTS_EVERY_S
+        if algo.updates - s.weights_version >= self.job.runtime.weights_every or now - s.t_weights >= heartbeat:
+            self._publish_weights(algo)
+            s.weights_version, s.t_weights = algo.updates, now
+        if now - s.t_budget >= BUDGET_EVERY_S:
+            self._publish_budget(s.allowance(), s.core.env_steps, algo.updates)
+            s.t_budget = now
+
+    def _give_up(self, core: TrainingCore | PopulationCore) -> int:
+        """No chunk for ``data_timeout_s``: keep what was learnt and say why (the job service reads the error)."""
+        rt, job = self.job.runtime, self.job
+        core.checkpoint()
+        log.error(
+            f"no chunk from any actor for {rt.data_timeout_s:g} s at {core.env_steps:,} of "
+            f"{job.steps:,} env steps; are the job's actors running? (convoy jobs logs ID, or "
+            "the actor hosts' logs) — raise runtime.data_timeout_s if they are slow to start"
+        )
+        return NO_DATA
+
+    def _ingest(self, msg: wire.Message, schema: dict, algo: Agent, s: _Ingest) -> bool:
+        """Take a chunk into the replay if it is this job's and its values are possible (else count why not), and
+        credit the actors at once, before the chunk's updates."""
+        problem = chunk_problem(msg.body["arrays"], schema, algo.spec.n_actions) or self._take(s.core, msg)
+        if problem is not None:
+            self.rejected[problem] = self.rejected.get(problem, 0) + 1
+            return False
+        self._publish_budget(s.allowance(), s.core.env_steps, algo.updates)
+        s.t_budget = s.t_chunk = time.perf_counter()
+        s.lags.append(algo.updates - msg.body["policy_version"])
+        s.chunks += 1
+        return True
+
+    def _train(self, s: _Ingest) -> None:
+        """The updates the new data owes, a metrics row when one is due, a checkpoint when one is due."""
+        s.core.update()
+        row = s.core.row(lambda _: s.transport(self.dropped_by_reason(s.inbox)))  # computed only for a row
+        if isinstance(row, list):  # a population's: its runs' mean (each run's rows are in its folder)
+            row = mean_row(row) if row else None
+        if row is not None:
+            self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
+            s.lags = []
+        s.core.maybe_checkpoint()
+
+    def _finish(self, algo: Agent, s: _Ingest) -> int:
+        """The final greedy evaluation and summary (each run's, for a population), then the last metrics row."""
+        job, core = self.job, s.core
+        dropped = self.dropped_by_reason(s.inbox)
         counts = {"dropped": sum(dropped.values()), "dropped_by_reason": dropped}
         if isinstance(core, PopulationCore):
             runs = core.finish(lambda j: f"{j.algo} on {j.env}, seed {j.seed} (distributed population)", **counts)
             eval_return = float(np.mean([r["eval_return"] for r in runs]))
         else:
             eval_return = core.finish(f"{job.algo} on {job.env} (distributed)", **counts)["eval_return"]
-        done = {
-            "done": 1.0,
-            "eval_return": eval_return,
-            "env_steps": core.env_steps,
-            "updates": algo.updates,
-        }
+        done = {"done": 1.0, "eval_return": eval_return, "env_steps": core.env_steps, "updates": algo.updates}
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
         return 0
+
+
+class _Ingest:
+    """What the learner's loop keeps between chunks: its core, clocks, the actors' credit and transport figures."""
+
+    def __init__(self, core: TrainingCore | PopulationCore, chunk_steps: int, slack: int, inbox: Inbox) -> None:
+        self.core, self.chunk_steps, self.slack, self.inbox = core, chunk_steps, slack, inbox
+        self.t_weights = self.t_budget = self.t_chunk = 0.0
+        self.t_start = time.perf_counter()
+        self.weights_version = -1
+        self.lags: list[float] = []
+        self.chunks = 0
+
+    def allowance(self) -> int:
+        """Steps actors may have sent: chunks still queued count as taken, so actors wait while the learner
+        catches up."""
+        return self.core.env_steps + max(0, self.slack - len(self.inbox) * self.chunk_steps)
+
+    def transport(self, dropped: dict[str, int]) -> dict[str, float]:
+        """The transport figures of a metrics row: policy lag, chunks taken, drops by reason."""
+        return {
+            "policy_lag": float(np.mean(self.lags)) if self.lags else 0.0,
+            "dropped": float(sum(dropped.values())),
+            "chunks": float(self.chunks),
+            **{f"{wire.DROPPED_PREFIX}{r}": float(n) for r, n in dropped.items()},
+        }
 
 
 def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:

@@ -94,11 +94,11 @@ class Tracked:
         self.stop_asked: float | None = None
         self.ckpt_mtime: dict[str, float] = {}  # per job: a population's are its seeds'
         self.reports = MetricReports()
-        self.reports = ReportTail(Path(rec.out_dir or "") / REPORTS_FILE)  # only what happens from now
+        self.events = ReportTail(Path(rec.out_dir or "") / REPORTS_FILE)  # its processes' reports from now on
 
     def process_events(self) -> list[str]:
         """The host's new crash, respawn, back-off and failure events (``crashed h-ID.actor-3 exit code -9``)."""
-        return [f"{r.kind} {r.source} {r.detail}".rstrip() for r in self.reports.new() if r.kind in SAID]
+        return [f"{r.kind} {r.source} {r.detail}".rstrip() for r in self.events.new() if r.kind in SAID]
 
     def exited(self) -> int | None:
         """The host's exit code once it has exited (−1 when it was not our child), else None."""
