@@ -42,6 +42,7 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	BIN=$(BIN) .ci/typecheck
 
 test: lint
 	@echo "make test: the dashboard tests need chromium on PATH and the multi-host test ip netns as root;"

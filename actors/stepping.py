@@ -66,7 +66,7 @@ class EnvStepper:
         """``[R·B, …]`` → ``[R, B, …]`` for a population; unchanged for a single run."""
         return x if self.runs is None else x.reshape(self.runs, -1, *x.shape[1:])
 
-    def step(self, epsilon: float) -> list[float]:
+    def step(self, epsilon: float | np.ndarray) -> list[float]:
         """One ε-greedy step of every env; the returns (mean over agents) of the episodes that just ended."""
         out = self.algo.act(self._split(self.obs), epsilon, self.state)
         res = self.env.step(out.actions.reshape(self.env.num_envs, -1))

@@ -73,7 +73,6 @@ class Loss(NamedTuple):
 class Agent(Protocol):
     """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
 
-    name: str
     spec: EnvSpec
     cfg: AlgoConfig
     device: torch.device
@@ -81,18 +80,30 @@ class Agent(Protocol):
     updates: int
     chunk_len: int
 
+    @property
+    def name(self) -> str: ...  # the registry's name (a class constant; the hierarchical wrapper's is per instance)
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput: ...
     def initial_state(self, num_envs: int) -> Any: ...
     def reset_state(self, state: Any, done: np.ndarray) -> Any: ...
     def observe(self, chunk: dict[str, np.ndarray]) -> None: ...
     def can_update(self) -> bool: ...
     def updates_for(self, n_transitions: int) -> float: ...
-    def update(self) -> dict[str, float]: ...
+    def update(self) -> dict[str, float] | list[dict[str, float]]: ...  # a population's: one per run
     def policy_state(self) -> dict[str, Tensor]: ...
     def load_policy_state(self, state: dict[str, Tensor]) -> None: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
     def n_parameters(self) -> int: ...
+
+
+class Population(Agent, Protocol):
+    """R runs of one algorithm trained as one agent (``seed`` a sequence): a ``NetworkAgent`` or the hierarchical
+    wrapper. What the population trainers call beyond ``Agent``."""
+
+    runs: int | None
+    seeds: tuple[int, ...]
+
+    def member(self, k: int) -> Agent: ...  # run k as the single run of its seed (evaluation, checkpoints)
 
 
 # --- the shared pieces ---------------------------------------------------------------------------------------------
@@ -229,7 +240,9 @@ class NetworkAgent(ABC):
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)
         population = not isinstance(seed, int | np.integer)
-        self.seeds: tuple[int, ...] = tuple(int(s) for s in seed) if population else (int(seed),)  # type: ignore[union-attr]
+        self.seeds: tuple[int, ...] = (
+            (int(seed),) if isinstance(seed, int | np.integer) else tuple(int(s) for s in seed)
+        )
         self.runs: int | None = len(self.seeds) if population else None
         if self.runs == 0:
             raise ValueError("seed: a population needs at least one seed")
@@ -602,7 +615,7 @@ class RunAdam(torch.optim.Optimizer):
         self.lrs = lrs
 
     @torch.no_grad()
-    def step(self, closure: Any = None) -> None:
+    def step(self, closure: Callable[[], float] | None = None) -> float | None:  # type: ignore[override]
         for group in self.param_groups:
             b1, b2 = group["betas"]
             for p in group["params"]:
@@ -619,6 +632,7 @@ class RunAdam(torch.optim.Optimizer):
                 denom = (st["exp_avg_sq"].sqrt() / math.sqrt(1 - b2**step)).add_(group["eps"])
                 lr = self.lrs.reshape(-1, *([1] * (p.dim() - 1)))
                 p.addcdiv_(st["exp_avg"] * (-lr / (1 - b1**step)), denom)
+        return None
 
 
 def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:
@@ -639,7 +653,7 @@ class ReplayAgent(NetworkAgent):
     def __init__(
         self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
     ) -> None:
-        runs = None if isinstance(seed, int | np.integer) else len(seed)  # type: ignore[arg-type]
+        runs = None if isinstance(seed, int | np.integer) else len(seed)
         self.replay = JointReplay(cfg.replay_capacity, runs=runs)
         super().__init__(spec, cfg, device=device, seed=seed)
 

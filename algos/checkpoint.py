@@ -123,7 +123,7 @@ def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Agent, JobC
     try:
         job = job_config(**payload["job"])
         spec_d = payload["spec"]
-        spec = EnvSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec_d.items()})
+        spec = EnvSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec_d.items()})  # type: ignore[arg-type]
         algo = make_agent(job, spec, device=device)
         algo.load_state_dict(payload["state"])
         counters = payload.get("counters", {})
@@ -167,7 +167,7 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
         arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
     if path.is_file():  # the checkpoint on disk still points at this one until the next checkpoint is written
         path.replace(previous_replay(path))
-    _write_atomically(path, lambda fh: np.savez(fh, **arrays))
+    _write_atomically(path, lambda fh: np.savez(fh, **arrays))  # type: ignore[arg-type]  # numpy's stub: allow_pickle
     return size
 
 

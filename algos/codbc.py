@@ -21,7 +21,7 @@ How it learns here (choices where the paper says only "imitation learning"):
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, ReplayAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
-from convoy.config import CoDBCConfig
+from convoy.config import AlgoConfig, CoDBCConfig
 from convoy.validation import ConfigError
 
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
@@ -40,7 +40,8 @@ class CoDBC(ReplayAgent):
     """A decentralised student per agent, trained to reproduce the teacher's greedy actions."""
 
     name = "codbc"
-    config_model = CoDBCConfig
+    config_model: ClassVar[type[AlgoConfig]] = CoDBCConfig
+    cfg: CoDBCConfig
     syncs_by_updates = False  # no bootstrapping: no target to sync
     population = True  # the runs share one frozen teacher
 
@@ -48,7 +49,7 @@ class CoDBC(ReplayAgent):
         groups = 1 if self.shared else self.n_agents
         self._teacher: NetworkAgent | None = None
         return {
-            "policy": GroupMLP(groups, self.obs_dim + id_width(self.n_agents, self.shared), self.cfg.hidden, self.n_act)
+            "policy": GroupMLP(groups, self.obs_dim + id_width(self.n_agents, self.shared), self.cfg.widths, self.n_act)
         }
 
     @property
@@ -57,11 +58,13 @@ class CoDBC(ReplayAgent):
         if self._teacher is None:
             from convoy.algos.checkpoint import CheckpointError, load_checkpoint
 
+            if self.cfg.teacher is None:
+                raise ConfigError("teacher", "CoDBC needs a teacher checkpoint: algo_params.teacher=PATH")
             try:
                 algo, job, _ = load_checkpoint(self.cfg.teacher, device=str(self.device))
             except CheckpointError as exc:
                 raise ConfigError("teacher", str(exc)) from None
-            if job.hierarchical or algo.name not in TEACHERS:
+            if job.hierarchical or algo.name not in TEACHERS or not isinstance(algo, NetworkAgent):
                 kind = "hierarchical " + job.algo if job.hierarchical else algo.name
                 raise ConfigError(
                     "teacher",
@@ -101,7 +104,7 @@ class CoDBC(ReplayAgent):
         beta = self.teacher_share()
         if beta > 0:  # each run draws its envs from its own stream, after its exploration draws
             if self.runs is None:
-                drive = self.rng.random(obs.shape[0]) < beta
+                drive = np.asarray(self.rng.random(obs.shape[0]) < beta)
             else:
                 drive = np.stack([rng.random(obs.shape[1]) < beta for rng in self.rngs])
             if drive.any():

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ from convoy.algos.algorithm import (
 )
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
-from convoy.config import DIALConfig
+from convoy.config import AlgoConfig, DIALConfig, resolved
 from convoy.envs.batched import EnvSpec
 
 # Fields of an observed chunk that learning needs (anything else the trainer adds is not kept).
@@ -63,11 +63,11 @@ class DIAL(NetworkAgent):
     """Differentiable inter-agent learning; all agents' C-Nets evaluated in one batched pass per time step."""
 
     name = "dial"
-    config_model = DIALConfig
+    config_model: ClassVar[type[AlgoConfig]] = DIALConfig
+    cfg: DIALConfig
     uses_messages = True
     syncs_by_updates = False  # targets follow finished episodes (``observe``), each run's own in a population
     population = True
-    cfg: DIALConfig
 
     def __init__(
         self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
@@ -91,11 +91,11 @@ class DIAL(NetworkAgent):
 
     # --- networks ----------------------------------------------------------------------------------------------
     def build(self) -> dict[str, nn.Module]:
-        self.bits: int = int(self.cfg.message_bits)
+        self.bits = resolved(self.cfg.message_bits, "message_bits")
         self.peers = others_index(self.n_agents).to(self.device)
         groups = 1 if self.shared else self.n_agents
         width = self.obs_dim + id_width(self.n_agents, self.shared) + (self.n_agents - 1) * self.bits
-        return {"cnet": GroupMLP(groups, width, self.cfg.hidden, self.n_act + self.bits)}
+        return {"cnet": GroupMLP(groups, width, self.cfg.widths, self.n_act + self.bits)}
 
     def cnet(self, nets: nn.ModuleDict, obs: Tensor, heard: Tensor) -> tuple[Tensor, Tensor]:
         """Q-values ``[..., N, A]`` and message logits ``[..., N, bits]`` from obs and received messages."""

@@ -10,7 +10,7 @@ every agent's input — which the ``fingerprint`` switch adds on top.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ from torch import Tensor
 
 from convoy.algos.algorithm import Batch, Loss, epsilon_at, td_loss
 from convoy.algos.idqn import IndependentDQN
-from convoy.config import SERConfig
+from convoy.config import AlgoConfig, SERConfig
 
 
 def age_weights(episode: Tensor, episodes: int | Tensor, horizon: int) -> Tensor:
@@ -32,7 +32,8 @@ class DQNSER(IndependentDQN):
 
     name = "dqn-ser"
     population = True
-    config_model = SERConfig
+    config_model: ClassVar[type[AlgoConfig]] = SERConfig
+    cfg: SERConfig
     FP_DIM = 2
 
     def input_width(self) -> int:
@@ -70,8 +71,9 @@ class DQNSER(IndependentDQN):
         counts the episodes collected since (in a population, each run's own episodes).
         """
         err = td_loss(*self.q_and_y(batch), self.cfg)
-        now = self.progress.episodes
-        if self.runs is not None:
-            now = torch.as_tensor(now, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own clock
+        if self.runs is None:
+            now: int | Tensor = int(self.progress.episodes)
+        else:
+            now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
         w = age_weights(batch["episode"], now, self.cfg.ser_horizon)
         return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))

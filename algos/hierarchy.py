@@ -171,9 +171,9 @@ def _put(state: Any, idx: np.ndarray, rows: Any) -> Any:
         out[torch.as_tensor(idx, device=state.device)] = rows.to(out.dtype)
         return out
     if isinstance(state, np.ndarray):
-        out = state.copy()
-        out[idx] = rows
-        return out
+        arr = state.copy()
+        arr[idx] = rows
+        return arr
     if isinstance(state, (tuple, list)):
         return type(state)(_put(s, idx, r) for s, r in zip(state, rows, strict=True))
     if isinstance(state, dict):
@@ -270,7 +270,7 @@ class HierarchicalAgent:
             n_actions=(spec.max_actions,),
             max_steps=spec.max_steps,
         )
-        self.controller = IndependentDQN(
+        self.controller: NetworkAgent = IndependentDQN(
             ctrl_spec,
             self._controller_config(self.cfg),
             device=self.device,
@@ -461,7 +461,7 @@ class HierarchicalAgent:
         ended = p["open"] & (self.option_over(s["h_steps"], hit) | term | trunc)
         if not ended.any():
             return
-        e = np.flatnonzero(ended) if self.runs is None else np.s_[...]  # a population: every row, ``valid`` below
+        e: Any = np.flatnonzero(ended) if self.runs is None else np.s_[...]  # a population: every row, ``valid`` below
         meta_rows = {
             "obs": p["first"][e],
             "action": goal[e],

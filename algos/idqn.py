@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
-from convoy.config import IDQNConfig
+from convoy.config import AlgoConfig, IDQNConfig
 
 
 class IndependentDQN(ReplayAgent):
@@ -16,7 +16,8 @@ class IndependentDQN(ReplayAgent):
 
     name = "idqn"
     population = True
-    config_model = IDQNConfig
+    config_model: ClassVar[type[AlgoConfig]] = IDQNConfig
+    cfg: IDQNConfig
 
     def input_width(self) -> int:
         return self.obs_dim + id_width(self.n_agents, self.shared)
@@ -27,7 +28,7 @@ class IndependentDQN(ReplayAgent):
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
-        return {"q": GroupMLP(groups, self.input_width(), self.cfg.hidden, self.n_act)}
+        return {"q": GroupMLP(groups, self.input_width(), self.cfg.widths, self.n_act)}
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.online["q"](self.features(obs)), None, None

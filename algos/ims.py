@@ -25,7 +25,7 @@ Choices made where the paper and CommNet leave room:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar, cast
 
 import torch
 import torch.nn.functional as F
@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
-from convoy.config import IMSConfig
+from convoy.config import AlgoConfig, IMSConfig
 
 
 def mean_of_others(sent: Tensor) -> Tensor:
@@ -76,7 +76,8 @@ class IMS(ReplayAgent):
 
     name = "ims"
     population = True
-    config_model = IMSConfig
+    config_model: ClassVar[type[AlgoConfig]] = IMSConfig
+    cfg: IMSConfig
     uses_messages = True
 
     def build(self) -> dict[str, nn.Module]:
@@ -85,7 +86,7 @@ class IMS(ReplayAgent):
         self.bits: int = int(self.cfg.message_bits)
         self.rounds: int = int(self.cfg.comm_iterations)
         groups = 1 if self.shared else self.n_agents
-        hidden = tuple(self.cfg.hidden)
+        hidden = self.cfg.widths
         width = hidden[-1]
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         return {
@@ -120,9 +121,10 @@ class IMS(ReplayAgent):
         y = self.bootstrap(self.q_values, batch)
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
 
-    def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, Tensor]]:
+    def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, float | Tensor]]:
         """The positive-signalling term (``signalling_coef``) on the first round's discrete messages."""
         if not (self.cfg.discrete and self.cfg.signalling_coef):
             return None, {}
         h0 = F.relu(self.online["encoder"](with_agent_id(batch["obs"], self.shared)))
-        return signalling_loss(self.online["comm"].speak(h0), self.bits, self.cfg, self.runs)
+        comm = cast(CommStep, self.online["comm"])
+        return signalling_loss(comm.speak(h0), self.bits, self.cfg, self.runs)

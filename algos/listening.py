@@ -91,6 +91,7 @@ class HearsMessages:
 
     listening: Listening | None = None
     senders: int  # messages each agent hears per step (MA-MeSN: N − 1 peers, MA-BoN: 1 broadcast)
+    online: nn.ModuleDict  # the algorithm's networks (the mixin sits on a NetworkAgent)
     runs: int | None
     bits: int
 
@@ -104,11 +105,11 @@ class HearsMessages:
         """Every sender's message logits ``[..., senders, 2·bits]`` from the raw observations ``[..., N, D]``."""
         raise NotImplementedError
 
-    def signalling(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, Tensor]]:
+    def signalling(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float | Tensor]]:
         """The positive-signalling term, −coef × I(observation; message) on this batch (``signalling_coef``)."""
         if not self.cfg.signalling_coef:  # type: ignore[attr-defined]
             return None, {}
-        logits = self.message_logits(self.online, batch["obs"])  # type: ignore[attr-defined]
+        logits = self.message_logits(self.online, batch["obs"])
         return signalling_loss(logits, self.bits, self.cfg, self.runs)  # type: ignore[attr-defined]
 
     def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:

@@ -22,7 +22,7 @@ Choices made where the paper is silent:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -32,7 +32,7 @@ from convoy.algos.algorithm import ReplayAgent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
-from convoy.config import BoNConfig
+from convoy.config import AlgoConfig, BoNConfig
 
 
 class MABoN(HearsMessages, ReplayAgent):
@@ -40,7 +40,8 @@ class MABoN(HearsMessages, ReplayAgent):
 
     name = "ma-bon"
     population = True
-    config_model = BoNConfig
+    config_model: ClassVar[type[AlgoConfig]] = BoNConfig
+    cfg: BoNConfig
     uses_messages = True
 
     def build(self) -> dict[str, nn.Module]:
@@ -54,8 +55,8 @@ class MABoN(HearsMessages, ReplayAgent):
         enc = int(self.cfg.encoding)
         return {
             "encoder": GroupMLP(groups, obs_in, (), enc),  # e_i (ReLU applied in forward)
-            "message": GroupMLP(1, self.n_agents * enc, self.cfg.hidden, 2 * self.bits),  # f′: one broadcast
-            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.hidden, self.n_act),  # g′
+            "message": GroupMLP(1, self.n_agents * enc, self.cfg.widths, 2 * self.bits),  # f′: one broadcast
+            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.widths, self.n_act),  # g′
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

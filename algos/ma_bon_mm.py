@@ -6,9 +6,11 @@ broadcast, the agent's own prediction of it (no channel), or the broadcast with 
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 from convoy.algos.ma_bon import MABoN
 from convoy.algos.memory import MemoryModule
-from convoy.config import BoNMMConfig
+from convoy.config import AlgoConfig, BoNMMConfig
 
 
 class MABoNMM(MemoryModule, MABoN):
@@ -16,4 +18,5 @@ class MABoNMM(MemoryModule, MABoN):
 
     name = "ma-bon-mm"
     population = True
-    config_model = BoNMMConfig
+    config_model: ClassVar[type[AlgoConfig]] = BoNMMConfig
+    cfg: BoNMMConfig

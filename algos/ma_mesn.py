@@ -10,7 +10,7 @@ of both networks, synced every C updates.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
-from convoy.config import MeSNConfig
+from convoy.config import AlgoConfig, MeSNConfig, resolved
 
 
 class MAMeSN(HearsMessages, ReplayAgent):
@@ -26,19 +26,20 @@ class MAMeSN(HearsMessages, ReplayAgent):
 
     name = "ma-mesn"
     population = True
-    config_model = MeSNConfig
+    config_model: ClassVar[type[AlgoConfig]] = MeSNConfig
+    cfg: MeSNConfig
     uses_messages = True
 
     def build(self) -> dict[str, nn.Module]:
-        self.bits: int = int(self.cfg.message_bits)
+        self.bits = resolved(self.cfg.message_bits, "message_bits")
         self.peers = others_index(self.n_agents).to(self.device)
         self.senders = self.n_agents - 1
         groups = 1 if self.shared else self.n_agents
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         msg_in = (self.n_agents - 1) * self.bits
         return {
-            "message": GroupMLP(groups, obs_in, self.cfg.hidden, 2 * self.bits),  # f′
-            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.hidden, self.n_act),  # f″
+            "message": GroupMLP(groups, obs_in, self.cfg.widths, 2 * self.bits),  # f′
+            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.widths, self.n_act),  # f″
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

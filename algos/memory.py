@@ -25,6 +25,7 @@ appended when shared), all agents in one batched call.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,13 +46,17 @@ class GroupLSTM(nn.Module):
     agents in one batched matmul per step.
     """
 
+    lstm: nn.LSTM  # shared weights
+    inp: GroupLinear  # per-agent weights: the input and recurrent maps of the grouped cell
+    rec: GroupLinear
+
     def __init__(self, groups: int, in_features: int, hidden: int, out_features: int) -> None:
         super().__init__()
         self.hidden, self.groups = hidden, groups
         if groups == 1:
             self.lstm = nn.LSTM(in_features, hidden, batch_first=True)
-            gate_bias = self.lstm.bias_ih_l0
-            self.lstm.bias_hh_l0.data.zero_()
+            gate_bias = self.lstm.get_parameter("bias_ih_l0")
+            self.lstm.get_parameter("bias_hh_l0").data.zero_()
         else:
             self.inp = GroupLinear(groups, in_features, 4 * hidden)
             self.rec = GroupLinear(groups, hidden, 4 * hidden)
@@ -86,16 +91,21 @@ class GroupLSTM(nn.Module):
         if self.groups > 1:
             gates_in = self.inp(seq)
             h = seq.new_zeros(r, m, n, self.hidden)
-            rec = self.rec
+            rec: Callable[[Tensor], Tensor] = self.rec
         else:
             lstm = self.lstm
             flat = seq.reshape(r, -1, width)  # [R, M·L·N, in]
-            gates_in = torch.baddbmm(lstm.bias_ih_l0.unsqueeze(1), flat, lstm.weight_ih_l0.transpose(1, 2))
+            gates_in = torch.baddbmm(
+                lstm.get_parameter("bias_ih_l0").unsqueeze(1), flat, lstm.get_parameter("weight_ih_l0").transpose(1, 2)
+            )
             gates_in = gates_in.reshape(r, m, steps, n, 4 * self.hidden)
             h = seq.new_zeros(r, m, n, self.hidden)
-            w_hh, b_hh = lstm.weight_hh_l0.transpose(1, 2), lstm.bias_hh_l0.unsqueeze(1)
+            w_hh, b_hh = (
+                lstm.get_parameter("weight_hh_l0").transpose(1, 2),
+                lstm.get_parameter("bias_hh_l0").unsqueeze(1),
+            )
 
-            def rec(h: Tensor) -> Tensor:
+            def rec(h: Tensor) -> Tensor:  # the shared weights' recurrence, stepped by hand
                 return torch.baddbmm(b_hh, h.reshape(r, -1, self.hidden), w_hh).reshape(r, m, n, 4 * self.hidden)
 
         c = torch.zeros_like(h)
@@ -193,4 +203,4 @@ class MemoryModule:
             "memory_bit_acc": right.float().mean(dim=per_run),
             "memory_msg_acc": msg_right.float().mean(dim=tuple(range(1 if self.runs else 0, msg_right.dim()))),
         }
-        return self.cfg.memory_coef * bce, stats  # type: ignore[attr-defined]
+        return self.cfg.memory_coef * bce, stats

@@ -11,12 +11,14 @@ from __future__ import annotations
 import copy
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from convoy.config import resolved
 
 if TYPE_CHECKING:
     from convoy.config import GumbelConfig
@@ -77,7 +79,7 @@ class GroupLinear(nn.Module):
         return n
 
 
-def stack_runs(modules: list[nn.Module]) -> nn.Module:
+def stack_runs(modules: Sequence[nn.Module]) -> nn.Module:
     """One module holding R = len(modules) runs of the same architecture: every ``GroupLinear``'s weights stacked on
     a leading run axis, so run k computes exactly what ``modules[k]`` computes, all runs in one batched call.
 
@@ -95,7 +97,7 @@ def stack_runs(modules: list[nn.Module]) -> nn.Module:
                 f"population training: layer {name or 'root'} ({type(layer).__name__}) has no run axis; "
                 "train this algorithm one seed per process"
             )
-        layer.runs = len(modules)  # type: ignore[assignment]
+        layer.runs = len(modules)
         for pname, _ in list(layer.named_parameters(recurse=False)):
             value = torch.stack([getattr(n[name], pname).detach() for n in named])
             setattr(layer, pname, nn.Parameter(value))
@@ -201,7 +203,7 @@ def channel_information(diff: Tensor, runs: int | None = None) -> Tensor:
 
 def signalling_loss(
     logits: Tensor, bits: int, cfg: GumbelConfig, runs: int | None = None
-) -> tuple[Tensor | None, dict[str, Tensor]]:
+) -> tuple[Tensor | None, dict[str, float | Tensor]]:
     """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off); per
     run ``[R]`` with ``runs``."""
     if not cfg.signalling_coef:
@@ -214,7 +216,8 @@ def gumbel_bits(
     logits: Tensor, bits: int, train: bool, cfg: GumbelConfig, rand: Callable[[Tensor], Tensor] = torch.rand_like
 ) -> Tensor:
     """``message_bits`` with the temperature, noise and logit bound of an algorithm's (resolved) config."""
-    return message_bits(logits, bits, train, cfg.gumbel_tau, cfg.gumbel_noise, cfg.message_logit_bound, rand)
+    noise = resolved(cfg.gumbel_noise, "gumbel_noise")
+    return message_bits(logits, bits, train, cfg.gumbel_tau, noise, cfg.message_logit_bound, rand)
 
 
 def others_index(n_agents: int) -> Tensor:

@@ -79,8 +79,8 @@ def plot_final_by(
         xs, ys, cs = zip(*sorted(pts), strict=True)
         ax.errorbar(xs, ys, yerr=cs, marker="o", capsize=3, label=name)
     for i, (name, by_x) in enumerate(refs.items()):
-        xs = sorted(by_x)
-        ax.plot(xs, [by_x[v] for v in xs], linestyle="--", color=f"C{7 + i % 3}", linewidth=1, label=name)
+        at = sorted(by_x)
+        ax.plot(at, [by_x[v] for v in at], linestyle="--", color=f"C{7 + i % 3}", linewidth=1, label=name)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_xscale("log", base=2)

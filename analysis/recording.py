@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import NetworkAgent
+from convoy.algos.algorithm import Agent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.memory import MemoryModule
 from convoy.analysis.comm_metrics import (
@@ -73,17 +73,19 @@ class Analysis:
         return {"algo": self.algo, "env": self.env, "figures": [asdict(f) for f in self.figures], "files": self.files}
 
 
-def check_analysable(algo: NetworkAgent) -> None:
+def check_analysable(algo: Agent) -> HearsMessages:
+    """``algo`` as a listener of discrete per-agent messages, or a ConfigError that says which algorithms are."""
     if not isinstance(algo, HearsMessages):
         raise ConfigError(
             "checkpoint",
             f"{algo.name} sends no discrete per-agent messages to analyse; analyse ma-mesn, ma-bon or their -mm "
             "variants",
         )
+    return algo
 
 
 @torch.no_grad()
-def record(algo: NetworkAgent, env: BatchedEnv, steps: int, seed: int) -> Recording:
+def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
     """``steps`` greedy steps of every env (auto-reset), recording messages and actions."""
     check_analysable(algo)
     stepper = EnvStepper(env, algo, seed, record=False)
@@ -96,11 +98,11 @@ def record(algo: NetworkAgent, env: BatchedEnv, steps: int, seed: int) -> Record
     return Recording(np.stack(msgs).round().astype(np.int8), np.stack(acts))
 
 
-def message_input_norm(algo: NetworkAgent) -> MetricFigure:
+def message_input_norm(algo: Agent) -> MetricFigure:
     """L2 norm of the policy network's first-layer weights on its message inputs (mean over listener groups)."""
-    check_analysable(algo)
-    first = algo.online["policy"].layers[0].weight.detach()  # [G, inputs, out]; messages are the last inputs
-    width = algo.senders * algo.bits
+    listener = check_analysable(algo)
+    first = listener.online["policy"].get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
+    width = listener.senders * listener.bits
     msg_w, obs_w = first[:, -width:], first[:, :-width]
     msg_norm = float(msg_w.flatten(1).norm(dim=1).mean())
     obs_norm = float(obs_w.flatten(1).norm(dim=1).mean())
@@ -115,7 +117,7 @@ def message_input_norm(algo: NetworkAgent) -> MetricFigure:
     )
 
 
-def return_figures(algo: NetworkAgent, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
+def return_figures(algo: Agent, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
     """Greedy return with the true messages, with white noise in their place and (memory modules) predicted."""
     sources = ["sent", "noise"] + (["predicted"] if isinstance(algo, MemoryModule) else [])
     names = {
@@ -140,7 +142,7 @@ def return_figures(algo: NetworkAgent, env: BatchedEnv, episodes: int, seed: int
 
 
 def analyze(
-    algo: NetworkAgent,
+    algo: Agent,
     env: BatchedEnv,
     env_name: str,
     steps: int,

@@ -98,10 +98,10 @@ def _tested(text: str, paper: str, ours: str, diff: float, p: float) -> Verdict:
 def holm(verdicts: list[Verdict]) -> list[Verdict]:
     """Holm's correction over the tested claims: each *reproduced* one keeps its verdict only if its adjusted
     p-value is below ``ALPHA``; the others are unchanged."""
-    tested = sorted((v for v in verdicts if v.p is not None), key=lambda v: v.p)
+    tested = sorted(((v.p, v) for v in verdicts if v.p is not None), key=lambda pv: pv[0])
     m, running = len(tested), 0.0
-    for rank, v in enumerate(tested):
-        running = max(running, min(1.0, (m - rank) * v.p))
+    for rank, (p, v) in enumerate(tested):
+        running = max(running, min(1.0, (m - rank) * p))
         if v.verdict != REPRODUCED or m == 1:
             continue
         if running < ALPHA:

@@ -54,6 +54,7 @@ def _bound_actors_in_schema(app: FastAPI, limit: int) -> None:
                 for variant in (field, *field.get("anyOf", ())):  # JobResume's is integer | null
                     if variant.get("type") == "integer":
                         variant["maximum"] = min(variant.get("maximum", limit), limit)
+            app.openapi_schema = schema
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -25,7 +25,9 @@ JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
 class JobControl(Protocol):
     """What the app needs from whoever runs jobs (``services.jobservice.JobService``)."""
 
-    store: JobReader
+    @property
+    def store(self) -> JobReader: ...
+
     max_processes: int  # a job takes actors + 2: the schema's bound on actors follows it
 
     def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord: ...

@@ -8,7 +8,7 @@ store's refusals into that shape; ``BodyLimit`` refuses an over-large body befor
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, cast
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -116,7 +116,7 @@ def install_error_handlers(app: FastAPI) -> None:
         field = ".".join(loc) or "body"
         if err.get("type") == "json_invalid":
             return error_response(400, "body", "the body is not valid JSON", "send a JSON object")
-        ctx = err.get("ctx") or {}
+        ctx = cast(dict[str, Any], err.get("ctx") or {})
         if isinstance(ctx.get("error"), ConfigError):  # a model's own check: it names the field and the fix
             cause = ctx["error"]
             return error_response(422, cause.field, str(cause).split(": ", 1)[-1], "change this field")

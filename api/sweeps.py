@@ -53,7 +53,8 @@ def expand(spec: SweepSubmit) -> list[SweepJob]:
     for values in itertools.product(*(spec.grid[axis] for axis in axes)):
         point = dict(zip(axes, values, strict=True))
         body = copy.deepcopy(spec.base)
-        own = spec.algos.get(_canonical(point.get("algo", body.get("algo", JobConfig.model_fields["algo"].default))))
+        algo = _canonical(point.get("algo", body.get("algo", JobConfig.model_fields["algo"].default)))
+        own = spec.algos.get(algo) if algo else None
         if own:  # this algorithm's own hyper-parameters, under the grid's
             body["algo_params"] = {**body.get("algo_params", {}), **own}
         for axis, value in point.items():
@@ -161,8 +162,8 @@ def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_s
         points.append((end_step, float(last), wall))
     if not points:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
-    steps, values, wall = zip(*points, strict=True)
-    return np.array(steps, np.int64), np.array(values), np.array(wall)
+    steps, values, walls = zip(*points, strict=True)
+    return np.array(steps, np.int64), np.array(values), np.array(walls)
 
 
 def summarize_group(

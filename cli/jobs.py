@@ -447,7 +447,7 @@ def cmd_watch(api: Api, args: argparse.Namespace, out: Console) -> int:
                 cursor, last = page["last_step"], {}  # a resume cut the history back to its checkpoint: rewind
             prog = job["progress"]
             done = min(prog["env_steps"], job["steps"])
-            fields = {
+            fields: dict[str, Any] = {
                 "state": state_text(job),
                 "ret": fmt(first(last.get("return"), prog.get("return"))),
                 "speed": fmt(first(last.get("env_steps_per_s"), prog.get("env_steps_per_s")), 3),

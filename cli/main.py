@@ -124,7 +124,7 @@ def cmd_env_rollout(args: argparse.Namespace) -> int:
         if args.gif:
             render = lambda: render_frame(env.x[0], env.y[0], env.heading[0], cfg.n_agents, cfg.length, cfg.width)  # noqa: E731
     else:
-        env = make_batched(args.env, args.episodes, **params)
+        env = make_batched(args.env, args.episodes, **params)  # type: ignore[assignment]  # not a treadmill: no GIF
     policy = reference_policy(args.policy, env, args.seed) if is_treadmill else random_policy(env.spec, args.seed)
     result = rollout(env, policy, seed=args.seed, render=render)
     _print_rollout(args, env.spec.agent_ids, result)

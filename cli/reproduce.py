@@ -23,7 +23,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from rich.console import Console
 
@@ -207,7 +207,9 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
     from convoy.analysis.curves import plot_final_by, plot_groups
 
     groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
-    refs = next((g["references"] for g in groups if g["references"]), {})  # the first group that measured them
+    refs: dict[str, Any] = next(
+        (g["references"] for g in groups if g["references"]), {}
+    )  # the first group that measured them
     png = ctx.docs / f"{fig}.png"
     if meta.get("plot") == "final_by":
         plot_final_by(groups, png, meta["title"], meta["x"], meta["lines"], xlabel=meta.get("xlabel", meta["x"]),
@@ -378,7 +380,7 @@ def render(docs: Path, page: Path) -> None:
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
                 row = f"| {g['group']} | {mean_ci(g['final']['values'])} | {states} |"
                 if head:
-                    diff, p = p_above(g["final"]["values"], float(ref))
+                    diff, p = p_above(g["final"]["values"], float(cast(float, ref)))
                     mean = "" if one_env else f"{ref:.3g}, "  # each group's own random when envs differ
                     row += f" {'yes' if significant(diff, p) else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)

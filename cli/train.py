@@ -9,6 +9,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -142,7 +143,9 @@ def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> in
         best = f"{r['best_eval_return']:.3f} ({r['best_eval_step']:,})" if r["best_eval_step"] >= 0 else "–"
         table.add_row(str(s), f"{r['eval_return']:.3f} ± {r['eval_ci95']:.3f}", best, f"{r['final_return']:.3f}")
     finals = [r["eval_return"] for r in results]
-    table.add_row("[bold]mean over seeds[/]", f"{sum(finals) / len(finals):.3f} ± {ci95_half(finals):.3f}", "", "")
+    table.add_row(
+        "[bold]mean over seeds[/]", f"{sum(finals) / len(finals):.3f} ± {ci95_half(np.asarray(finals)):.3f}", "", ""
+    )
     console.print(table)
     wall = results[0]["wall_s"]
     steps = sum(r["env_steps"] for r in results)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import itertools
 import json
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal, get_args
+from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -25,6 +25,16 @@ DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's an
 
 MessageSource = Literal["sent", "predicted", "noise"]
 MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (algos/listening.py)
+
+
+T = TypeVar("T")
+
+
+def resolved(value: T | None, field: str) -> T:
+    """A field that the env's defaults fill (None = "the env's default") once the config is resolved."""
+    if value is None:
+        raise ConfigError(field, "not resolved: build algorithm configs with resolve_algo (the env's defaults)")
+    return value
 
 
 class AlgoConfig(BaseModel):
@@ -54,6 +64,12 @@ class AlgoConfig(BaseModel):
     share_params: bool | None = Field(
         None, description="One network for all agents (agent id appended to the input); None = the env's default."
     )
+
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """The hidden widths once resolved (``resolve_algo`` fills ``hidden`` from the env's defaults)."""
+        return resolved(self.hidden, "hidden")
+
     advantage_learning: float = Field(
         0.0,
         ge=0,
@@ -129,7 +145,7 @@ class IDQNConfig(AlgoConfig):
     """Independent DQN: every agent learns from its own observation only."""
 
 
-class SERConfig(AlgoConfig):
+class SERConfig(IDQNConfig):
     """DQN with stabilised experience replay (the paper's linearly decaying per-sample weight)."""
 
     ser_horizon: int = Field(

@@ -68,8 +68,9 @@ class MessageChannel:
         """With ``latency=1`` the previous call's messages (zeros at first, or when the layout changed)."""
         if not self.cfg.latency:
             return msg
-        fresh = self._pending is None or self._pending.shape != msg.shape
-        sent, self._pending = (np.zeros_like(msg) if fresh else self._pending), msg.copy()
+        pending = self._pending
+        sent = np.zeros_like(msg) if pending is None or pending.shape != msg.shape else pending
+        self._pending = msg.copy()
         return sent
 
     def _impair(self, heard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,8 @@ vectorised, batch-independent and fast.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from convoy.envs.batched import env_seeds
@@ -64,7 +66,7 @@ class EnvStreams:
 
     def seed(self, seed: int | np.ndarray | None) -> None:
         if seed is None and not self._seeded:
-            seed = int(np.random.SeedSequence().entropy % (1 << 62))
+            seed = cast(int, np.random.SeedSequence().entropy) % (1 << 62)  # fresh OS entropy: an int
         if seed is not None:
             self.keys = env_keys(env_seeds(seed, len(self.keys)))
             self.ticks[:] = 0

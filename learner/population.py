@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import NetworkAgent, Progress
+from convoy.algos.algorithm import Population, Progress
 from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
@@ -43,12 +43,12 @@ class PopulationCore:
     def __init__(
         self,
         jobs: list[JobConfig],
-        algo: NetworkAgent,
-        out_dirs: list[Path] | None,
+        algo: Population,
+        out_dirs: list[Path] | list[Path | None] | None,
         make_eval_env: Callable[[int], BatchedEnv] | None,
         *,
         progress: bool = False,
-        counters: list[dict[str, Any]] | None = None,
+        counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
         replay: tuple[Path, int] | None = None,
     ) -> None:
         """``jobs[k]`` is run k's job (its seed ``algo.seeds[k]``); ``out_dirs[k]`` its folder; ``counters[k]``
@@ -167,12 +167,12 @@ class PopulationTrainer:
         self,
         jobs: list[JobConfig],
         env: BatchedEnv,
-        algo: NetworkAgent,
+        algo: Population,
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
-        out_dirs: list[Path] | None = None,
+        out_dirs: list[Path] | list[Path | None] | None = None,
         progress: bool = True,
         replay: Path | None = None,
-        counters: list[dict[str, Any]] | None = None,
+        counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
     ) -> None:
         """``replay``: where the population's replay goes with each checkpoint; ``counters``: the runs'
         checkpoints' when ``algo`` resumes from them (``learner/resume.py``)."""

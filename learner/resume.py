@@ -98,7 +98,7 @@ def restore_population(
     payloads = [b[step] for b in by_step]
     try:
         for k, payload in enumerate(payloads):
-            algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined,index]
+            algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined]
     except Exception as exc:  # the networks differ (other sizes)
         why = f"the runs' checkpoints do not match the job's networks ({exc})"
         if strict:

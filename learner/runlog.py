@@ -14,12 +14,13 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from convoy.algos.listening import HearsMessages
 from convoy.analysis.evaluation import evaluate, evaluate_random, listening, listening_for
+from convoy.config import MessageSource
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.metrics import MetricsWriter, plot_curves
 from convoy.stats import ci95_half
@@ -152,7 +153,7 @@ class Evaluator:
             self._env = self.make_env(min(self.episodes, 256))
         training = algo.progress
         algo.progress = dataclasses.replace(training, training=False)
-        hearing = self.messages if epsilon < 1.0 and isinstance(algo, HearsMessages) else "sent"
+        hearing = cast(MessageSource, self.messages) if epsilon < 1.0 and isinstance(algo, HearsMessages) else "sent"
         try:
             with listening(algo, listening_for(algo, hearing, seed=self.seed)):
                 return evaluate(self._env, algo, self.episodes, seed=self.seed, epsilon=epsilon)

@@ -23,14 +23,14 @@ import logging
 import signal
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent, NetworkAgent
+from convoy.algos.algorithm import Agent, Population
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
@@ -172,7 +172,7 @@ class Learner:
         replay_bytes = job.runtime.replay_checkpoint_mb << 20
         if job.runs:
             dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
-            population: NetworkAgent = algo  # type: ignore[assignment]  # a job with seeds builds one
+            population = cast(Population, algo)  # a job with seeds builds one
             return PopulationCore(job.members(), population, dirs, make_eval_env, counters=counters or None,
                                   replay=replay)  # fmt: skip
         return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes)
@@ -276,7 +276,7 @@ class Learner:
         """The final greedy evaluation and summary (each run's, for a population), then the last metrics row."""
         job, core = self.job, s.core
         dropped = self.dropped_by_reason(s.inbox)
-        counts = {"dropped": sum(dropped.values()), "dropped_by_reason": dropped}
+        counts: dict[str, Any] = {"dropped": sum(dropped.values()), "dropped_by_reason": dropped}
         if isinstance(core, PopulationCore):
             runs = core.finish(lambda j: f"{j.algo} on {j.env}, seed {j.seed} (distributed population)", **counts)
             eval_return = float(np.mean([r["eval_return"] for r in runs]))

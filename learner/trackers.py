@@ -12,6 +12,7 @@ metric files do. W&B and MLflow get the same rows and summary; each is an option
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -143,7 +144,7 @@ class Trackers:
         out = Path(out_dir)
         self.config = config
         self.all: list[Tracker] = [TensorBoard(out, resume_at)]
-        kinds = {"wandb": WandB, "mlflow": MLflow}
+        kinds: dict[str, Callable[[Path, dict[str, Any]], Tracker]] = {"wandb": WandB, "mlflow": MLflow}
         self.all += [kinds[name](out, config) for name in loggers]
 
     def row(self, row: dict[str, Any]) -> None:

@@ -46,7 +46,7 @@ class ParentWatch:
 
             # the worker now saves and closes; should anything hang there (a write on a starved disk, a transport
             # that will not close), this C-level timer prints every thread's stack and exits without the GIL
-            faulthandler.dump_traceback_later(self.exit_after_s, exit=True, file=sys.__stderr__)
+            faulthandler.dump_traceback_later(self.exit_after_s, exit=True, file=sys.__stderr__ or 2)
         return gone
 
 
@@ -57,4 +57,4 @@ def dump_stacks_on_sigusr1() -> None:
     import signal
 
     if hasattr(signal, "SIGUSR1"):  # to fd 2 itself: sys.stderr may be a stream without one (a test's capture)
-        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__, all_threads=True)
+        faulthandler.register(signal.SIGUSR1, file=sys.__stderr__ or 2, all_threads=True)

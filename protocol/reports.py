@@ -16,6 +16,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 REPORTS_FILE = "reports.jsonl"
 EVENTS = ("exited", "crashed", "backoff", "respawned", "failed")  # a supervisor's events about its processes
@@ -118,8 +119,8 @@ class _Stdout(logging.StreamHandler):
     def __init__(self) -> None:
         super().__init__(sys.stdout)
 
-    @property  # type: ignore[override]
-    def stream(self):
+    @property
+    def stream(self) -> Any:
         return sys.stdout
 
     @stream.setter

@@ -64,7 +64,7 @@ def _default(obj: Any) -> Any:
             raise TypeError(f"array dtype {arr.dtype} is not sent on the wire; use one of {sorted(DTYPES)}")
         if arr.ndim > MAX_DIMS:
             raise TypeError(f"array with {arr.ndim} dims is not sent on the wire (at most {MAX_DIMS})")
-        raw = memoryview(arr).cast("B") if arr.size else b""
+        raw = memoryview(arr).cast("B") if arr.size else b""  # type: ignore[arg-type]  # numpy arrays are buffers
         return msgpack.ExtType(ARRAY_EXT, msgpack.packb([arr.dtype.str, list(arr.shape), raw]))
     if isinstance(obj, np.generic):
         return obj.item()
@@ -129,7 +129,7 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
     if not isinstance(body, dict):
         raise WireError("bad-envelope", "body is not a map")
     validate(kind, body)
-    return Message(kind, sender, int(seq), float(t), body)
+    return Message(kind, sender, int(seq), float(t), body)  # type: ignore[arg-type]  # checked above
 
 
 # -------------------------------------------------------------------------------------------------- validation

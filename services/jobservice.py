@@ -163,7 +163,7 @@ class JobService:
         ids = [f"{sweep_id}-{i:03d}" for i in range(len(jobs))]
         outs = [self.data_dir / "jobs" / job_id for job_id in ids]
         progress: dict[str, dict[str, Any]] = {}
-        populations = []
+        populations: list[tuple[str, dict[str, Any], int, str]] = []
         for pack in (p for p in packs(jobs, spec.pack, self._fits) if len(p) > 1):
             pop_id, config = f"{sweep_id}-pop{len(populations):02d}", population([jobs[i].config for i in pack])
             pop_out = self.data_dir / "jobs" / pop_id
@@ -584,7 +584,7 @@ class JobService:
 
 def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
     """What a finished run's ``summary.json`` adds to its job's progress: the headline figures and ``final``."""
-    keep = {k: summary[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in summary}
+    keep: dict[str, Any] = {k: summary[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in summary}
     final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
     keep["final"] = {k: summary[k] for k in final if k in summary}
     return keep

@@ -245,14 +245,15 @@ class ProcessGroup:
             if code is None:
                 continue
             slot.proc.join(0)
-            left_early = code == 0 and self.learner is not None and not learner_has_data
-            if left_early and self.learner.proc.exitcode is None:
+            learner = self.learner
+            left_early = code == 0 and learner is not None and not learner_has_data
+            if left_early and learner is not None and learner.proc.exitcode is None:
                 # the learner tells actors it has all its data just before its last row: that row (or the learner's
                 # own exit 0) may still be on its way. Wait for it a little before calling the exit a crash.
                 slot.exited_at = slot.exited_at or time.monotonic()
                 if time.monotonic() - slot.exited_at < EXIT_GRACE_S:
                     continue
-            if left_early and self.learner.proc.exitcode == 0:
+            if left_early and learner is not None and learner.proc.exitcode == 0:
                 left_early = False  # the learner finished: the actor left because the job has its data
             if code == 0 and not left_early:
                 events.append(Event("exited", "actor", slot.ident))

@@ -45,6 +45,7 @@ dropping below its cursor tells it so).
 
 from __future__ import annotations
 
+import builtins
 import json
 import operator
 import sqlite3
@@ -352,8 +353,9 @@ class JobStore:
         crash leaves either the whole sweep or nothing. ``progress[id]``: a job's first progress; ``extra``: jobs
         that run for the sweep without being its grid points (``(id, config, actors, out_dir)``: its populations)."""
         progress = progress or {}
+        heads = [(job_id, config, actors, out_dir) for job_id, config, actors, out_dir, _ in jobs] + (extra or [])
         rows = [self._job_row(job_id, config, actors, out_dir, JobState.queued, progress.get(job_id))
-                for job_id, config, actors, out_dir, *_ in [*jobs, *(extra or [])]]  # fmt: skip
+                for job_id, config, actors, out_dir in heads]  # fmt: skip
         members = _dumps([{"id": j[0], "point": j[4]} for j in jobs], f"jobs of sweep {sweep_id!r}")
         with self._write() as conn:
             if conn.execute("SELECT 1 FROM sweeps WHERE id = ?", (sweep_id,)).fetchone() is not None:
@@ -395,7 +397,7 @@ class JobStore:
         with self._read() as conn:
             return conn.execute("SELECT 1 FROM jobs WHERE id = ?", (job_id,)).fetchone() is not None
 
-    def list(self, state: JobState | str | None = None) -> list[JobRecord]:
+    def list(self, state: JobState | str | None = None) -> builtins.list[JobRecord]:
         """All jobs, or those in ``state``, oldest first (ties broken by id so the order is stable)."""
         with self._read() as conn:
             if state is None:
@@ -433,7 +435,7 @@ class JobStore:
             )
             return self._get(conn, job_id)
 
-    def transitions(self, job_id: str) -> list[dict[str, Any]]:
+    def transitions(self, job_id: str) -> builtins.list[dict[str, Any]]:
         """The job's history, oldest first: ``at``, ``from_state`` (None for creation), ``to_state``, ``reason``."""
         with self._read() as conn:
             self._require(conn, job_id)
@@ -514,7 +516,7 @@ class JobStore:
 
     # -- metrics ---------------------------------------------------------------------------------------------------
 
-    def append_metrics(self, job_id: str, rows: list[dict[str, Any]]) -> int:
+    def append_metrics(self, job_id: str, rows: builtins.list[dict[str, Any]]) -> int:
         """Store metric rows keyed by their ``env_steps``; a step already stored is replaced (a resumed learner
         re-emits its steps). All rows are checked before any is written. Returns the number of distinct steps
         written (a step repeated within one batch counts once; the last copy wins)."""
@@ -547,16 +549,16 @@ class JobStore:
         self,
         job_id: str,
         since: int | None = None,
-        names: list[str] | None = None,
+        names: builtins.list[str] | None = None,
         limit: int | None = None,
-    ) -> list[dict[str, Any]]:
+    ) -> builtins.list[dict[str, Any]]:
         """Rows with step > ``since`` in ascending step order, at most ``limit`` of them.
 
         With ``names`` each row keeps ``env_steps`` plus those keys (keys a row lacks are simply absent). Polling with
         ``since`` = the last step received gives every row exactly once (see the module docstring).
         """
-        clauses: list[str] = ["job_id = ?"]
-        params: list[Any] = [job_id]
+        clauses: builtins.list[str] = ["job_id = ?"]
+        params: builtins.list[Any] = [job_id]
         if since is not None:
             clauses.append("step > ?")
             params.append(_as_int(since, "since"))
@@ -568,7 +570,7 @@ class JobStore:
         with self._read() as conn:
             self._require(conn, job_id)
             texts = [r[0] for r in conn.execute(sql, params)]
-        out: list[dict[str, Any]] = []
+        out: builtins.list[dict[str, Any]] = []
         for text in texts:
             row = json.loads(text)
             if wanted is not None:

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from convoy.config import JobConfig
 from convoy.envs import make_batched
 from convoy.envs.batched import BatchedEnv
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
+    from convoy.algos.algorithm import Population
     from convoy.learner.inprocess import TrainResult
 
 
@@ -64,8 +65,8 @@ def run_population(
         population = job.model_copy(update={"seeds": [j.seed for j in jobs]})
         agent = make_agent(population, env.spec, run_configs=configs)
         counters = restore_population(agent, jobs, out_dirs, replay, strict=True) if resume else None
-        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress,
-                                    replay=replay, counters=counters)  # fmt: skip
+        trainer = PopulationTrainer(jobs, env, cast("Population", agent), lambda n: make_env(job, n), out_dirs,
+                                    progress=progress, replay=replay, counters=counters)  # fmt: skip
         return trainer.run()
     finally:
         env.close()

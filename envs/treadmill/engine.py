@@ -183,7 +183,7 @@ class TreadmillEngine:
             obs = final_obs.copy()
             self._spawn(done)
             obs[done] = self._observe(done)[0]
-        return StepResult(obs, reward, terminated, truncated, final_obs, info)
+        return StepResult(obs, reward, np.asarray(terminated), truncated, final_obs, info)
 
     def _adversary_actions(self) -> np.ndarray:
         """Chase the closest agent with probability ``aggression``, else act uniformly at random."""
@@ -207,6 +207,7 @@ class TreadmillEngine:
     def _belt_draw(self, u: np.ndarray) -> np.ndarray:
         """A belt speed in treadmill_speed … treadmill_speed_max, uniform, from uniforms ``u`` in [0, 1)."""
         lo, hi = self.cfg.treadmill_speed, self.cfg.treadmill_speed_max
+        assert hi is not None  # only a varying belt draws
         return lo + (u * (hi - lo + 1)).astype(np.int64)
 
     def _reenter(self, out: np.ndarray) -> None:

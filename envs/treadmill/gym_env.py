@@ -8,7 +8,7 @@ default is the paper's single-agent setting (appendix A.3): one agent and one ad
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -24,7 +24,7 @@ from convoy.validation import build_config
 class TreadmillGymEnv(gym.Env):
     """One learning car on the treadmill highway."""
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 15}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 15}  # noqa: RUF012  (gymnasium's instance attribute)
 
     def __init__(self, render_mode: str | None = None, config: TreadmillConfig | None = None, **params: Any) -> None:
         if render_mode not in (None, "rgb_array"):

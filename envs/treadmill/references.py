@@ -215,7 +215,7 @@ def search_cycles(
         idx = np.flatnonzero(periods == p)
         first[idx] = sequence_returns(cfg, table[idx, :p], screen, seed + 7919).mean(axis=1)
     top = np.argsort(-first, kind="stable")[:keep]
-    second = np.array([sequence_returns(cfg, [fam[i]], episodes, seed).mean() for i in top])
+    second = np.array([sequence_returns(cfg, np.asarray([fam[i]]), episodes, seed).mean() for i in top])
     order = np.argsort(-second, kind="stable")
     return [(fam[top[i]], float(second[i])) for i in order]
 
@@ -281,7 +281,9 @@ def open_loop_search(
 
 
 def _cycle_name(cycle: list[int]) -> str:
-    blocks, prev, count = [], cycle[0], 0
+    blocks: list[str] = []
+    prev: int | None = cycle[0]
+    count = 0
     for a in [*cycle, None]:
         if a == prev:
             count += 1
