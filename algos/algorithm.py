@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from convoy.algos.nets import pick_device, run_state, stack_runs
 from convoy.algos.replay import JointReplay
-from convoy.config import AlgoConfig
+from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
 
 # Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
@@ -213,7 +213,6 @@ class NetworkAgent(ABC):
     ``updates_for``, ``sample``)."""
 
     name: ClassVar[str]
-    config_model: ClassVar[type[AlgoConfig]]
     chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
     uses_messages: ClassVar[bool] = False
     # whether R runs of it train as one population (``seed`` a sequence): every layer a GroupLinear, losses reduced
@@ -231,8 +230,9 @@ class NetworkAgent(ABC):
         weights, replay draws, exploration and message noise are that single run's), all updated by one batched
         step. A population acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` returns one
         dict of figures per run."""
-        if not isinstance(cfg, self.config_model):
-            raise TypeError(f"{self.name} needs a {self.config_model.__name__}, got {type(cfg).__name__}")
+        model = ALGORITHMS[self.name].config
+        if not isinstance(cfg, model):
+            raise TypeError(f"{self.name} needs a {model.__name__}, got {type(cfg).__name__}")
         if cfg.hidden is None or cfg.share_params is None:
             raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.spec, self.cfg = spec, cfg

@@ -21,7 +21,7 @@ How it learns here (choices where the paper says only "imitation learning"):
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, ReplayAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
-from convoy.config import AlgoConfig, CoDBCConfig
+from convoy.config import CoDBCConfig
 from convoy.validation import ConfigError
 
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
@@ -40,7 +40,6 @@ class CoDBC(ReplayAgent):
     """A decentralised student per agent, trained to reproduce the teacher's greedy actions."""
 
     name = "codbc"
-    config_model: ClassVar[type[AlgoConfig]] = CoDBCConfig
     cfg: CoDBCConfig
     syncs_by_updates = False  # no bootstrapping: no target to sync
     population = True  # the runs share one frozen teacher

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ from convoy.algos.algorithm import (
 )
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
-from convoy.config import AlgoConfig, DIALConfig, resolved
+from convoy.config import DIALConfig, resolved
 from convoy.envs.batched import EnvSpec
 
 # Fields of an observed chunk that learning needs (anything else the trainer adds is not kept).
@@ -63,7 +63,6 @@ class DIAL(NetworkAgent):
     """Differentiable inter-agent learning; all agents' C-Nets evaluated in one batched pass per time step."""
 
     name = "dial"
-    config_model: ClassVar[type[AlgoConfig]] = DIALConfig
     cfg: DIALConfig
     uses_messages = True
     syncs_by_updates = False  # targets follow finished episodes (``observe``), each run's own in a population

@@ -10,7 +10,7 @@ every agent's input — which the ``fingerprint`` switch adds on top.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ from torch import Tensor
 
 from convoy.algos.algorithm import Batch, Loss, epsilon_at, td_loss
 from convoy.algos.idqn import IndependentDQN
-from convoy.config import AlgoConfig, SERConfig
+from convoy.config import SERConfig
 
 
 def age_weights(episode: Tensor, episodes: int | Tensor, horizon: int) -> Tensor:
@@ -32,7 +32,6 @@ class DQNSER(IndependentDQN):
 
     name = "dqn-ser"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = SERConfig
     cfg: SERConfig
     FP_DIM = 2
 

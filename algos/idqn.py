@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
-from convoy.config import AlgoConfig, IDQNConfig
+from convoy.config import IDQNConfig
 
 
 class IndependentDQN(ReplayAgent):
@@ -16,7 +16,6 @@ class IndependentDQN(ReplayAgent):
 
     name = "idqn"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = IDQNConfig
     cfg: IDQNConfig
 
     def input_width(self) -> int:

@@ -25,7 +25,7 @@ Choices made where the paper and CommNet leave room:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, ClassVar, cast
+from typing import Any, cast
 
 import torch
 import torch.nn.functional as F
@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
-from convoy.config import AlgoConfig, IMSConfig
+from convoy.config import IMSConfig
 
 
 def mean_of_others(sent: Tensor) -> Tensor:
@@ -76,7 +76,6 @@ class IMS(ReplayAgent):
 
     name = "ims"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = IMSConfig
     cfg: IMSConfig
     uses_messages = True
 

@@ -22,7 +22,7 @@ Choices made where the paper is silent:
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -32,7 +32,7 @@ from convoy.algos.algorithm import ReplayAgent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
-from convoy.config import AlgoConfig, BoNConfig
+from convoy.config import BoNConfig
 
 
 class MABoN(HearsMessages, ReplayAgent):
@@ -40,7 +40,6 @@ class MABoN(HearsMessages, ReplayAgent):
 
     name = "ma-bon"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = BoNConfig
     cfg: BoNConfig
     uses_messages = True
 

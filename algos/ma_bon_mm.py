@@ -6,11 +6,9 @@ broadcast, the agent's own prediction of it (no channel), or the broadcast with 
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 from convoy.algos.ma_bon import MABoN
 from convoy.algos.memory import MemoryModule
-from convoy.config import AlgoConfig, BoNMMConfig
+from convoy.config import BoNMMConfig
 
 
 class MABoNMM(MemoryModule, MABoN):
@@ -18,5 +16,4 @@ class MABoNMM(MemoryModule, MABoN):
 
     name = "ma-bon-mm"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = BoNMMConfig
     cfg: BoNMMConfig

@@ -10,7 +10,7 @@ of both networks, synced every C updates.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
-from convoy.config import AlgoConfig, MeSNConfig, resolved
+from convoy.config import MeSNConfig, resolved
 
 
 class MAMeSN(HearsMessages, ReplayAgent):
@@ -26,7 +26,6 @@ class MAMeSN(HearsMessages, ReplayAgent):
 
     name = "ma-mesn"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = MeSNConfig
     cfg: MeSNConfig
     uses_messages = True
 

@@ -8,11 +8,9 @@ the true messages with the lost ones replaced by predictions (a lossy channel) â
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.memory import MemoryModule
-from convoy.config import AlgoConfig, MeSNMMConfig
+from convoy.config import MeSNMMConfig
 
 
 class MAMeSNMM(MemoryModule, MAMeSN):
@@ -20,5 +18,4 @@ class MAMeSNMM(MemoryModule, MAMeSN):
 
     name = "ma-mesn-mm"
     population = True
-    config_model: ClassVar[type[AlgoConfig]] = MeSNMMConfig
     cfg: MeSNMMConfig

@@ -1,4 +1,4 @@
-"""Algorithm names → classes, imported on first use (one module per algorithm under ``algos/``)."""
+"""Algorithm names → classes (``convoy.config.ALGORITHMS``), imported on first use: one module per algorithm."""
 
 from __future__ import annotations
 
@@ -8,24 +8,12 @@ from collections.abc import Sequence
 import torch
 
 from convoy.algos.algorithm import NetworkAgent
-from convoy.config import AlgoConfig, algo_name
+from convoy.config import ALGORITHMS, AlgoConfig, algo_name
 from convoy.envs.batched import EnvSpec
-
-ALGORITHMS: dict[str, str] = {
-    "idqn": "convoy.algos.idqn:IndependentDQN",
-    "dqn-ser": "convoy.algos.dqn_ser:DQNSER",
-    "dial": "convoy.algos.dial:DIAL",
-    "ims": "convoy.algos.ims:IMS",
-    "ma-mesn": "convoy.algos.ma_mesn:MAMeSN",
-    "ma-bon": "convoy.algos.ma_bon:MABoN",
-    "ma-mesn-mm": "convoy.algos.ma_mesn_mm:MAMeSNMM",
-    "ma-bon-mm": "convoy.algos.ma_bon_mm:MABoNMM",
-    "codbc": "convoy.algos.codbc:CoDBC",
-}
 
 
 def algorithm_class(name: str) -> type[NetworkAgent]:
-    module, _, attr = ALGORITHMS[algo_name(name)].partition(":")
+    module, _, attr = ALGORITHMS[algo_name(name)].impl.partition(":")
     return getattr(importlib.import_module(module), attr)
 
 

@@ -14,7 +14,7 @@ from typing import Any, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from convoy.config import (
-    ALGO_CONFIGS,
+    ALGORITHMS,
     MAX_POPULATION,
     ConfigError,
     JobConfig,
@@ -169,7 +169,7 @@ class SweepSubmit(JsonBody):
                 canonical = algo_name(name)
             except ConfigError as exc:
                 raise ConfigError(f"algos.{name}", str(exc).split(": ", 1)[-1]) from None
-            if canonical != name or name not in ALGO_CONFIGS:
+            if canonical != name or name not in ALGORITHMS:
                 raise ConfigError(f"algos.{name}", f"name the algorithm as the grid does: {canonical}")
         return algos
 

@@ -24,8 +24,7 @@ from convoy.cli.args import (
 )
 from convoy.cli.rundir import claim, free_default
 from convoy.config import (
-    ALGO_CONFIGS,
-    ALGO_SUMMARIES,
+    ALGORITHMS,
     AlgoConfig,
     JobConfig,
     env_default_note,
@@ -231,17 +230,17 @@ def warn_constant_messages(checkpoint: Path, steps: int = 100, envs: int = 16) -
 
 def _algo_epilog() -> str:
     lines = ["algorithms (--algo):"]
-    lines += [f"  {name:9} {ALGO_SUMMARIES[name]}" for name in ALGO_CONFIGS]
+    lines += [f"  {name:9} {ALGORITHMS[name].summary}" for name in ALGORITHMS]
     lines.append("\nhyper-parameters (--hp KEY=VALUE; the algorithms that have a field in parentheses):")
     for name, info in AlgoConfig.model_fields.items():
         lines.append(f"  {name} (default {info.default!r}{env_default_note(name)}): {info.description}")
     extras: dict[str, list[str]] = {}
-    for algo, model in ALGO_CONFIGS.items():
+    for algo, model in ((n, a.config) for n, a in ALGORITHMS.items()):
         for name in model.model_fields:
             if name not in AlgoConfig.model_fields:
                 extras.setdefault(name, []).append(algo)
     for name, algos in extras.items():
-        info = ALGO_CONFIGS[algos[0]].model_fields[name]
+        info = ALGORITHMS[algos[0]].config.model_fields[name]
         note = env_default_note(name)
         lines.append(f"  {name} ({', '.join(algos)}; default {info.default!r}{note}): {info.description}")
     lines.append("\nenv parameters (--set KEY=VALUE): convoy env list --params")

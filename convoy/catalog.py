@@ -8,7 +8,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from convoy.config import ALGO_CONFIGS, ALGO_SUMMARIES, ENV_DEFAULTS, AlgoConfig, env_defaults
+from convoy.config import ALGORITHMS, ENV_DEFAULTS, AlgoConfig, env_defaults
 from convoy.validation import allowed_range
 
 
@@ -36,10 +36,10 @@ def algos() -> dict[str, dict[str, Any]]:
     """Every algorithm: what it is, its hyper-parameters (``algo_params``, ``--hp KEY=VALUE``; the common ones and
     its own) and the values each env sets where the job sets nothing."""
     out = {}
-    for name, model in ALGO_CONFIGS.items():
+    for name, model in ((n, a.config) for n, a in ALGORITHMS.items()):
         own = [k for k in model.model_fields if k not in AlgoConfig.model_fields]
         per_env = {env: env_defaults(name, env) for env in ENV_DEFAULTS}
-        out[name] = {"summary": ALGO_SUMMARIES[name], "params": parameters(model), "own": own,
+        out[name] = {"summary": ALGORITHMS[name].summary, "params": parameters(model), "own": own,
                      "env_defaults": {env: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
                                       for env, d in per_env.items()}}  # fmt: skip
     return out

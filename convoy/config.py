@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 
@@ -242,28 +243,38 @@ class CoDBCConfig(AlgoConfig):
         return self
 
 
-ALGO_CONFIGS: dict[str, type[AlgoConfig]] = {
-    "idqn": IDQNConfig,
-    "dqn-ser": SERConfig,
-    "dial": DIALConfig,
-    "ims": IMSConfig,
-    "ma-mesn": MeSNConfig,
-    "ma-bon": BoNConfig,
-    "ma-mesn-mm": MeSNMMConfig,
-    "ma-bon-mm": BoNMMConfig,
-    "codbc": CoDBCConfig,
-}
-ALGO_SUMMARIES: dict[str, str] = {
-    "idqn": "independent DQN, no communication",
-    "dqn-ser": "independent DQN with stabilised experience replay (+ fingerprint option)",
-    "dial": "DIAL: differentiable inter-agent learning, DRU messages from t−1",
-    "ims": "IMS / CommNet: P iterations of averaged messages",
-    "ma-mesn": "MA-MeSN: message networks + policy networks (Algorithm 1)",
-    "ma-bon": "MA-BoN: one broadcast message, all agents in one pass",
-    "ma-mesn-mm": "MA-MeSN + LSTM memory modules: runs with no channel (decentralised)",
-    "ma-bon-mm": "MA-BoN + LSTM memory modules: runs with no channel (decentralised)",
-    "codbc": "CoDBC: per-agent behaviour cloning of a trained centralised policy",
-}
+@dataclass(frozen=True)
+class Algorithm:
+    """One row of the algorithm table: everything the rest of Convoy needs to know about an algorithm by name."""
+
+    config: type[AlgoConfig]  # its hyper-parameters (CLI flags, REST bodies and defaults come from this model)
+    impl: str  # ``module:Class`` of its implementation, imported on first use (``convoy.algos.registry``)
+    summary: str  # one line for ``--help`` and the catalog
+    listens: bool = False  # it hears discrete per-agent messages that an evaluation may replace (noise, predicted)
+    needs_messages: bool = False  # it cannot act without its teammates' messages (no "predicted" evaluation)
+
+
+# The one table of algorithms: adding one is a row here and its module under algos/ (docs/algorithms.md).
+ALGORITHMS: dict[str, Algorithm] = {
+    "idqn": Algorithm(IDQNConfig, "convoy.algos.idqn:IndependentDQN", "independent DQN, no communication"),
+    "dqn-ser": Algorithm(SERConfig, "convoy.algos.dqn_ser:DQNSER",
+                         "independent DQN with stabilised experience replay (+ fingerprint option)"),
+    "dial": Algorithm(DIALConfig, "convoy.algos.dial:DIAL",
+                      "DIAL: differentiable inter-agent learning, DRU messages from t−1", needs_messages=True),
+    "ims": Algorithm(IMSConfig, "convoy.algos.ims:IMS", "IMS / CommNet: P iterations of averaged messages",
+                     needs_messages=True),
+    "ma-mesn": Algorithm(MeSNConfig, "convoy.algos.ma_mesn:MAMeSN",
+                         "MA-MeSN: message networks + policy networks (Algorithm 1)", listens=True,
+                         needs_messages=True),
+    "ma-bon": Algorithm(BoNConfig, "convoy.algos.ma_bon:MABoN", "MA-BoN: one broadcast message, all agents in one pass",
+                        listens=True, needs_messages=True),
+    "ma-mesn-mm": Algorithm(MeSNMMConfig, "convoy.algos.ma_mesn_mm:MAMeSNMM",
+                            "MA-MeSN + LSTM memory modules: runs with no channel (decentralised)", listens=True),
+    "ma-bon-mm": Algorithm(BoNMMConfig, "convoy.algos.ma_bon_mm:MABoNMM",
+                           "MA-BoN + LSTM memory modules: runs with no channel (decentralised)", listens=True),
+    "codbc": Algorithm(CoDBCConfig, "convoy.algos.codbc:CoDBC",
+                       "CoDBC: per-agent behaviour cloning of a trained centralised policy"),
+}  # fmt: skip
 
 # Per environment: what the paper fixes (network sizes, message width, IMS iterations, sharing) and the training
 # settings measured to work there (docs/training.md); applied to every field the user does not set.
@@ -336,8 +347,8 @@ def paper_treadmill_hidden(algo: str) -> tuple[int, ...]:
 def algo_name(name: str) -> str:
     """Canonical algorithm name (case and ``_`` forgiven), or a ConfigError listing the known ones."""
     key = name.strip().lower().replace("_", "-")
-    if key not in ALGO_CONFIGS:
-        raise ConfigError("algo", f"unknown algorithm {name!r}; choose one of: {', '.join(ALGO_CONFIGS)}")
+    if key not in ALGORITHMS:
+        raise ConfigError("algo", f"unknown algorithm {name!r}; choose one of: {', '.join(ALGORITHMS)}")
     return key
 
 
@@ -382,7 +393,7 @@ def env_defaults(algo: str, env: str) -> dict[str, Any]:
     """The hyper-parameters ``env`` sets for ``algo`` where the user sets nothing."""
     key = algo_name(algo)
     defaults = {**ENV_DEFAULTS.get(env, ENV_DEFAULTS["referential"]), **ALGO_ENV_DEFAULTS.get((key, env), {})}
-    return {k: v for k, v in defaults.items() if k in ALGO_CONFIGS[key].model_fields}
+    return {k: v for k, v in defaults.items() if k in ALGORITHMS[key].config.model_fields}
 
 
 def env_default_note(field: str) -> str:
@@ -399,7 +410,7 @@ def _show(value: Any) -> str:
 def resolve_algo(algo: str, env: str, params: dict[str, Any] | None = None) -> AlgoConfig:
     """The algorithm's validated config: what the user set, and the env's defaults for everything else."""
     given = {k: v for k, v in (params or {}).items() if v is not None}
-    return build_config(ALGO_CONFIGS[algo_name(algo)], **{**env_defaults(algo, env), **given})
+    return build_config(ALGORITHMS[algo_name(algo)].config, **{**env_defaults(algo, env), **given})
 
 
 class RuntimeConfig(BaseModel):
@@ -493,9 +504,9 @@ class JobConfig(BaseModel):
     """One training job: which algorithm on which env, for how long, and how to report."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    ALGOS: ClassVar[tuple[str, ...]] = tuple(ALGO_CONFIGS)
+    ALGOS: ClassVar[tuple[str, ...]] = tuple(ALGORITHMS)
 
-    algo: str = Field("ma-mesn", max_length=32, description=f"Algorithm: {', '.join(ALGO_CONFIGS)}.")
+    algo: str = Field("ma-mesn", max_length=32, description=f"Algorithm: {', '.join(ALGORITHMS)}.")
     env: str = Field("treadmill", max_length=32, description="Environment name (see `convoy env list`).")
     env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
     algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
@@ -553,7 +564,7 @@ class JobConfig(BaseModel):
         entry = env_entry(self.env)
         object.__setattr__(self, "env", next(k for k, v in _env_table().items() if v is entry))
         build_config(entry.config(), **self.env_params)
-        model = ALGO_CONFIGS[self.algo]
+        model = ALGORITHMS[self.algo].config
         given = build_config(model, **self.algo_params)  # validates; then store a JSON-stable normal form
         object.__setattr__(self, "algo_params", given.model_dump(mode="json", exclude_unset=True))
         if self.steps < self.num_envs:
@@ -562,10 +573,10 @@ class JobConfig(BaseModel):
                 f"{self.steps:,} is less than one step of the {self.num_envs:,} envs stepped together "
                 f"({self.num_envs:,} env steps); raise steps or lower num_envs",
             )
-        hears = {"ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm"}  # algorithms whose messages a probe can replace
-        if self.eval_messages == "noise" and self.algo not in hears:
+        row = ALGORITHMS[self.algo]
+        if self.eval_messages == "noise" and not row.listens:
             raise ConfigError("eval_messages", f"{self.algo} has no message channel to fill with noise; use sent")
-        if self.eval_messages == "predicted" and self.algo in {"dial", "ims", "ma-mesn", "ma-bon"}:
+        if self.eval_messages == "predicted" and row.needs_messages:
             raise ConfigError(
                 "eval_messages",
                 f"{self.algo} cannot act without its teammates' messages; train ma-mesn-mm or ma-bon-mm to predict "

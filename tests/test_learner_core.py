@@ -13,9 +13,9 @@ import torch
 from convoy.algos.algorithm import epsilon_at, td_target
 from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from convoy.algos.dqn_ser import age_weights
-from convoy.algos.registry import ALGORITHMS, make_algorithm
+from convoy.algos.registry import make_algorithm
 from convoy.algos.replay import JointReplay
-from convoy.config import job_config, resolve_algo
+from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError

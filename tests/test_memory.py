@@ -28,7 +28,7 @@ from convoy.algos.listening import Listening
 from convoy.algos.memory import HISTORY, MemoryModule
 from convoy.algos.registry import make_algorithm
 from convoy.analysis.evaluation import evaluate, listening, listening_for
-from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
+from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
 from convoy.services.training import run_inprocess
@@ -47,7 +47,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) -> NetworkAgent:
     """A tiny CPU algorithm (message and memory sizes only where the algorithm has them)."""
     torch.manual_seed(seed)
-    fields = ALGO_CONFIGS[name].model_fields
+    fields = ALGORITHMS[name].config.model_fields
     base = {k: v for k, v in {**TINY, **TINY_MEMORY}.items() if k in fields}  # what this algorithm has
     cfg = resolve_algo(name, "referential", {**base, **params})
     return make_algorithm(name, spec or synthetic_spec(), cfg, device="cpu", seed=seed)

@@ -24,12 +24,12 @@ from convoy.algos.algorithm import Progress
 from convoy.algos.checkpoint import save_checkpoint
 from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
-from convoy.config import ALGO_CONFIGS, job_config, resolve_algo
+from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs.batched import EnvSpec
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
 SEEDS = [3, 7, 11]
-POPULATION_ALGOS = [n for n in ALGO_CONFIGS if algorithm_class(n).population]
+POPULATION_ALGOS = [n for n in ALGORITHMS if algorithm_class(n).population]
 T, B = 8, 4
 WINDOW = 4  # the -mm variants' observation window
 
