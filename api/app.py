@@ -2,7 +2,8 @@
 (``JobReader``).
 
 The app only validates, authorises, reads the store and asks the control to act; it never starts a process itself
-(``services.jobservice`` does, the composition root passes it in — ``api`` imports nothing but ``protocol``). Every
+(``services.jobservice`` does; ``convoy serve`` passes it in — ``api`` imports the job config, the catalog and the
+shared helpers, never the runtime: docs/architecture.md's import graph, tested). Every
 error is JSON ``{"field", "problem", "fix"}`` with a 4xx status (``api/errors.py``); mutating routes need
 ``Authorization: Bearer <token>`` (``api/deps.py``); request bodies are capped at 64 KiB. The routes are
 ``api/routes/``: jobs, metrics, service, sweeps. Reads are cheap indexed queries of the SQLite store, so polling metrics

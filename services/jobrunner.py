@@ -1,10 +1,11 @@
-"""Run one distributed job on this machine: a learner and N actors as processes, connected by Zenoh (peer mode on
-loopback), watched until the learner has finished — what ``convoy train`` does by default.
+"""Run one distributed job on this machine: a learner and N actors as processes, connected by Zenoh on loopback,
+watched until the learner has finished — what ``convoy train`` does by default.
 
-The runner opens the root Zenoh session (listening on a free loopback port; its children connect to it and gossip
-connects them to each other), starts the processes through a :class:`~services.procs.ProcessGroup`, follows their
-liveliness tokens and metrics, shows progress (steps, return, updates/s, policy lag, actors alive), reacts to
-crashes (respawn / restart / fail with the reason) and takes live scaling requests (``scale``).
+The runner opens the job's root Zenoh session (a router on a free loopback port; its children are clients of it
+that listen on nothing, so every link is opened once, by one side: docs/architecture.md), starts the processes
+through a :class:`~services.procs.ProcessGroup`, follows their liveliness tokens and metrics, shows progress
+(steps, return, updates/s, policy lag, actors alive), reacts to crashes (respawn / restart / fail with the reason)
+and takes live scaling requests (``scale``).
 """
 
 from __future__ import annotations
