@@ -3,8 +3,8 @@ store current — the ``JobControl`` that ``api.app`` drives.
 
 How a job runs. Each job is one ``convoy host`` process (the host agent of the distributed runtime, roles learner
 + actors) that roots the job's own Zenoh network (a router on loopback, its processes clients), started in its own
-session (``start_new_session``) with its PID recorded in the store. The service opens one Zenoh session per job, listening
-on a loopback port recorded in the store, which the host links to: through it the service hears the job's metrics
+session (``start_new_session``) with its PID recorded in the store. The service opens one Zenoh session per job,
+listening on a loopback port recorded in the store, which the host links to: through it the service hears the job's metrics
 and liveliness tokens and sends it ``scale``/``stop`` commands — the same wire messages a multi-host deployment
 uses. Every session of a job, the service's included, authenticates with the job's own user/password and admits
 only holders of it (a usrpwd dictionary, 0600, in the job's directory; the password reaches the host through its
