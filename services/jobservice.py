@@ -1,19 +1,19 @@
 """What runs the job service's jobs: ``JobService`` starts, watches, scales, stops and resumes them, and keeps the
 store current — the ``JobControl`` that ``api.app`` drives.
 
-How a job runs. Each job is one ``convoy host`` process (the host agent of the distributed runtime, roles learner
-+ actors) that roots the job's own Zenoh network (a router on loopback, its processes clients), started in its own
+How a job runs. Each job is one ``convoy host`` process (the host agent of the distributed runtime, roles learner +
+actors) that roots the job's own Zenoh network (a router on loopback, its processes clients), started in its own
 session (``start_new_session``) with its PID recorded in the store. The service opens one Zenoh session per job,
-listening on a loopback port recorded in the store, which the host links to: through it the service hears the job's metrics
-and liveliness tokens and sends it ``scale``/``stop`` commands — the same wire messages a multi-host deployment
-uses. Every session of a job, the service's included, authenticates with the job's own user/password and admits
-only holders of it (a usrpwd dictionary, 0600, in the job's directory; the password reaches the host through its
-environment, never a file it writes): a process without the credential cannot connect to the job, so it cannot
-publish a command or data that bypasses the API's token. The job's traffic never passes through the service:
-killing the service leaves the job running; a restarted service reopens the job's session on the same port, the
-host links to it again by itself, the service finds the PID alive and *reattaches*, back-filling the metric rows it
-missed from the job's ``metrics.jsonl``. A job whose processes died meanwhile is failed with the reason and queued
-again, so it resumes from its last checkpoint: no job is forgotten.
+listening on a loopback port recorded in the store, which the host links to: through it the service hears the job's
+metrics and liveliness tokens and sends it ``scale``/``stop`` commands — the same wire messages a multi-host
+deployment uses. Every session of a job, the service's included, authenticates with the job's own user/password and
+admits only holders of it (a usrpwd dictionary, 0600, in the job's directory; the password reaches the host through
+its environment, never a file it writes): a process without the credential cannot connect to the job, so it cannot
+publish a command or data that bypasses the API's token. The job's traffic never passes through the service: killing
+the service leaves the job running; a restarted service reopens the job's session on the same port, the host links
+to it again by itself, the service finds the PID alive and *reattaches*, back-filling the metric rows it missed from
+the job's ``metrics.jsonl``. A job whose processes died meanwhile is failed with the reason and queued again, so it
+resumes from its last checkpoint: no job is forgotten.
 
 Scheduling: a job needs ``actors + 2`` processes (learner, host agent, actors); jobs start in submission order
 while the ``max_processes`` budget allows, the others wait with a visible queue position.
