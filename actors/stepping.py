@@ -15,23 +15,14 @@ import numpy as np
 
 from convoy.algos.algorithm import ActOutput, Agent
 from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
+from convoy.transition import ENV_MAJOR, record
 
 
 def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:
-    """One step of B envs as the joint transition every algorithm's ``observe`` expects (plus the act's extras)."""
-    return {
-        "obs": obs,
-        "action": out.actions,
-        "reward": res.reward.astype(np.float32),
-        "next_obs": res.final_obs,
-        "terminated": res.terminated,
-        "truncated": res.truncated,
-        "episode": episode.copy(),
-        **out.extras,
-    }
-
-
-SPLIT = ("obs", "reward", "next_obs", "terminated", "truncated", "episode")  # env-major fields; the act's are [R, B]
+    """One step of B envs as the joint transition (``convoy.transition``) every algorithm's ``observe`` expects."""
+    return record(
+        obs, out.actions, res.reward, res.final_obs, res.terminated, res.truncated, episode.copy(), out.extras
+    )
 
 
 class EnvStepper:
@@ -73,7 +64,7 @@ class EnvStepper:
         self.last = out
         if self.record:
             for k, v in transition(self.obs, out, res, self.episode_id).items():
-                self._chunk.setdefault(k, []).append(self._split(v) if k in SPLIT else v)
+                self._chunk.setdefault(k, []).append(self._split(v) if k in ENV_MAJOR else v)
         self.ep_ret += res.reward
         done = res.done
         returns: list[float] = []

@@ -42,6 +42,8 @@ from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import SessionAbandoned, ZenohSettings, open_session
+from convoy.transition import TRANSITION
+from convoy.transition import schema as declared_schema
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +53,9 @@ BUDGET_EVERY_S = 0.02
 
 
 def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple[int, ...]]]:
-    """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: from one probe step (one
-    env per run; a population's chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
+    """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: the declared transition
+    (``convoy.transition``) for this env, and the algorithm's extras from one probe step (one env per run; a
+    population's chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
     env = make_batched(job.env, job.runs or 1, **job.env_params)
     try:
         stepper = EnvStepper(env, algo, seed=0)
@@ -61,7 +64,8 @@ def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple
     finally:
         env.close()
     skip = 3 if job.runs else 2
-    return {k: (v.dtype.str, v.shape[skip:]) for k, v in chunk.items()}
+    extras = {k: (v.dtype.str, v.shape[skip:]) for k, v in chunk.items() if k not in TRANSITION}
+    return {**declared_schema(algo.spec.n_agents, algo.spec.obs_dim), **extras}
 
 
 # Finite floats beyond this are hostile or broken on every env here (rewards and observations are O(1)–O(crash

@@ -30,13 +30,15 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from convoy.transition import TRANSITION
+
 VERSION = 1
 ARRAY_EXT = 1
 MAX_DIMS = 8
 DTYPES = frozenset(
     np.dtype(t).str for t in ("bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64")
 ) | frozenset(np.dtype(t).str for t in ("float16", "float32", "float64"))
-CHUNK_FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "episode")
+CHUNK_FIELDS = tuple(TRANSITION)  # every chunk carries the declared transition; algorithms may add fields
 
 
 class WireError(ValueError):
