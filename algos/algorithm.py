@@ -2,10 +2,10 @@
 learner is made of (ε-greedy acting, the double-Q TD target, the TD loss, target sync, a guarded gradient step).
 
 Each algorithm file reads top to bottom beside its paper: its networks (``build``), how it acts (``greedy_q``)
-and its ``loss(batch)`` written out in Algorithm 1's order. Two small bases hold the plumbing so that no file
-repeats it: :class:`NetworkAgent` (online and target networks, Adam, ε-greedy ``act``, one guarded ``update`` of
-``loss``, checkpoints) and :class:`ReplayAgent` (the joint replay every step-based learner samples from). DIAL
-learns from sequences and brings its own data path; hierarchical DQN wraps two agents; both fit :class:`Agent`.
+and its ``loss(batch)`` written out in Algorithm 1's order. One base holds the plumbing so that no file repeats
+it: :class:`NetworkAgent` (online and target networks, Adam, ε-greedy ``act``, the joint replay every step-based
+learner samples from, one guarded ``update`` of ``loss``, checkpoints). DIAL learns from sequences and overrides
+the data path; hierarchical DQN wraps two agents; both fit :class:`Agent`.
 """
 
 from __future__ import annotations
@@ -236,6 +236,8 @@ class NetworkAgent(ABC):
         if cfg.hidden is None or cfg.share_params is None:
             raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.spec, self.cfg = spec, cfg
+        # the joint replay every step-based learner samples from: rows are allocated on the first chunk
+        self.replay = JointReplay(cfg.replay_capacity, runs=None if isinstance(seed, int | np.integer) else len(seed))
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)
@@ -325,20 +327,28 @@ class NetworkAgent(ABC):
     def loss(self, batch: Batch) -> Loss:
         """The batch's loss, in the order of the algorithm's paper."""
 
-    @abstractmethod
-    def observe(self, chunk: dict[str, np.ndarray]) -> None:
-        """Take in a chunk of joint transitions ``[T, B, …]``."""
+    # --- data: the joint replay (DIAL brings its own sequences) ------------------------------------------------
+    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run; a
+        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN)."""
+        if self.runs is None:
+            self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
+            return
+        runs = {k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()}
+        self.replay.add(runs, None if valid is None else valid.swapaxes(0, 1).reshape(self.runs, -1))
 
-    @abstractmethod
-    def can_update(self) -> bool: ...
+    def can_update(self) -> bool:
+        """Whether the replay holds enough transitions to learn from."""
+        return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
 
-    @abstractmethod
     def updates_for(self, n_transitions: int) -> float:
-        """Updates owed for ``n_transitions`` newly observed joint transitions."""
+        """Updates owed for ``n_transitions`` newly observed joint transitions: ``replay_ratio`` samples each."""
+        return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
 
-    @abstractmethod
     def sample(self) -> Batch:
-        """The next training batch, on the device."""
+        """The next training batch (``batch_size`` joint transitions, each run's from its own replay), on the device."""
+        batch = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
+        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
@@ -644,34 +654,3 @@ def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:
     for g in grads:
         g.mul_(coef.reshape(-1, *([1] * (g.dim() - 1))))
     return total
-
-
-class ReplayAgent(NetworkAgent):
-    """A step-based learner: chunks are flattened into the joint replay; ``batch_size`` transitions per update,
-    ``replay_ratio`` sampled per inserted transition."""
-
-    def __init__(
-        self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
-    ) -> None:
-        runs = None if isinstance(seed, int | np.integer) else len(seed)
-        self.replay = JointReplay(cfg.replay_capacity, runs=runs)
-        super().__init__(spec, cfg, device=device, seed=seed)
-
-    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
-        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run; a
-        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN)."""
-        if self.runs is None:
-            self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
-            return
-        runs = {k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()}
-        self.replay.add(runs, None if valid is None else valid.swapaxes(0, 1).reshape(self.runs, -1))
-
-    def can_update(self) -> bool:
-        return len(self.replay) >= max(self.cfg.learning_starts, self.cfg.batch_size)
-
-    def updates_for(self, n_transitions: int) -> float:
-        return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
-
-    def sample(self) -> Batch:
-        batch = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
-        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, ReplayAgent, decay_progress
+from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import CoDBCConfig
 from convoy.validation import ConfigError
@@ -36,7 +36,7 @@ from convoy.validation import ConfigError
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
 
 
-class CoDBC(ReplayAgent):
+class CoDBC(NetworkAgent):
     """A decentralised student per agent, trained to reproduce the teacher's greedy actions."""
 
     name = "codbc"

@@ -159,8 +159,10 @@ class DIAL(NetworkAgent):
         return ActOutput(actions=actions, messages=sent.cpu().numpy(), extras=extras, state=sent)
 
     # --- data --------------------------------------------------------------------------------------------------
-    def observe(self, chunk: dict[str, np.ndarray]) -> None:
+    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
         """Count finished episodes (target sync), then queue the chunk (on-policy) or store its sequences."""
+        if valid is not None:
+            raise ValueError("valid: DIAL takes whole chunks (hierarchical DIAL trains one seed per process)")
         keys = (*SEQ_KEYS, "mu") if self.cfg.replay else SEQ_KEYS
         missing = [k for k in keys if k not in chunk]
         if missing:

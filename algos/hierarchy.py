@@ -475,7 +475,7 @@ class HierarchicalAgent:
         }
         p["open"][ended] = False
         if self.runs is not None:
-            self.meta.observe({k: v[None] for k, v in meta_rows.items()}, valid=ended[None])  # type: ignore[call-arg]
+            self.meta.observe({k: v[None] for k, v in meta_rows.items()}, valid=ended[None])
             return
         self._feed_meta(lead[0], e, meta_rows)
 
@@ -495,7 +495,7 @@ class HierarchicalAgent:
             return self.meta.can_update()
         cfg = self.meta.cfg
         warm = self.goal_steps * (max(cfg.learning_starts, cfg.batch_size) + self._envs)
-        return self.meta_steps >= warm and len(self.meta.replay) > 0  # type: ignore[attr-defined]
+        return self.meta_steps >= warm and len(self.meta.replay) > 0
 
     def can_update(self) -> bool:
         return self.controller.can_update() or self.meta_can_update()

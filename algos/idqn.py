@@ -6,12 +6,12 @@ from typing import Any
 
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import IDQNConfig
 
 
-class IndependentDQN(ReplayAgent):
+class IndependentDQN(NetworkAgent):
     """N independent (double) DQNs, evaluated in one batched pass; shared weights when ``share_params``."""
 
     name = "idqn"

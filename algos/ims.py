@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
 from convoy.config import IMSConfig
 
@@ -71,7 +71,7 @@ class CommStep(nn.Module):
         return F.relu(self.recur(h) + self.listen(heard) + h0), sent
 
 
-class IMS(ReplayAgent):
+class IMS(NetworkAgent):
     """CommNet with P rounds of averaged messages; every round is one batched pass over all agents."""
 
     name = "ims"

@@ -28,14 +28,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import ReplayAgent
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.listening import HearsMessages
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
 from convoy.config import BoNConfig
 
 
-class MABoN(HearsMessages, ReplayAgent):
+class MABoN(HearsMessages, NetworkAgent):
     """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
 
     name = "ma-bon"

@@ -15,13 +15,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, ReplayAgent, taken, td_loss
+from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
 from convoy.config import MeSNConfig, resolved
 
 
-class MAMeSN(HearsMessages, ReplayAgent):
+class MAMeSN(HearsMessages, NetworkAgent):
     """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
 
     name = "ma-mesn"

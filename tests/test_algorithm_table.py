@@ -19,6 +19,8 @@ def test_each_row_names_its_class_and_says_what_it_hears(name: str) -> None:
     assert row.listens == issubclass(cls, HearsMessages)
     assert row.needs_messages == (cls.uses_messages and not issubclass(cls, MemoryModule))
     assert row.summary and set(row.config.model_fields) >= {"lr", "gamma", "hidden"}
+    # a reader follows at most two levels of inheritance to the shared base (mixins aside)
+    assert len([c for c in cls.__mro__ if issubclass(c, NetworkAgent)]) <= 3, cls.__mro__
 
 
 def test_evaluation_probes_follow_the_table() -> None:
