@@ -1,0 +1,145 @@
+"""The figures the README and docs quote from a benchmark's JSON, rendered into them: one source for each figure.
+
+A rendered block sits between ``<!-- figures:NAME -->`` and ``<!-- /figures -->`` in a Markdown file; NAME says
+which renderer fills it, from which JSON in ``docs/figures/`` (written by the benchmark named there). After
+re-running a benchmark, ``python benchmarks/doc_figures.py`` rewrites every block; ``--check`` exits 1, naming the
+stale blocks, when a file does not show what its JSON holds (``tests/test_doc_figures.py`` runs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from convoy.output import markdown_table  # noqa: E402
+
+FIGURES = ROOT / "docs" / "figures"
+FILES = ("README.md", "docs/treadmill.md", "docs/benchmarks.md")
+BLOCK = re.compile(r"(<!-- figures:([\w-]+) -->\n)(.*?)(<!-- /figures -->)", re.S)
+
+
+def _ci(p: dict[str, Any], bold: bool = False) -> str:
+    text = f"{p['mean']:.1f} ± {p['ci95']:.1f}"
+    return f"**{text}**" if bold else text
+
+
+def references(search: dict[str, Any]) -> str:
+    """README: the references a learner is judged against (``benchmarks/treadmill_search.py --json``)."""
+    p = search["policies"]
+    rows = [
+        ["random", _ci(p["random"])],
+        ["best open-loop policy found (constants, cycles to period 32, cross-entropy over 200-step sequences)",
+         _ci(max((v for k, v in p.items() if k.startswith("open-loop")), key=lambda v: v["mean"]))],
+        ["tuned private driver (its own sensor)", _ci(p["private driver"])],
+        ["16-bit team driver (hears a hand-written 16-bit code per teammate)", _ci(p["team16 driver"])],
+        ["team driver (told what its teammates observe)", _ci(p["team driver"])],
+        ["full information (every car, and who is an adversary)", _ci(p["full information"])],
+    ]  # fmt: skip
+    header = [f"policy ({search['episodes']} scoring episodes; tuned on others)", "return per agent (95 % CI)"]
+    return markdown_table(header, rows, [False, True])
+
+
+def search_table(search: dict[str, Any]) -> str:
+    """docs/treadmill.md: every searched reference with what it was chosen on, and the paired ratios."""
+    p, r = search["policies"], search["ratios"]
+
+    def tuning(name: str) -> str:
+        return p[name]["note"].split(";")[0]
+
+    cycle = next(k for k in p if k.startswith("open-loop: best cycle"))
+    constant = next(k for k in p if k.startswith("open-loop: constant"))
+    rows = [
+        ["random", _ci(p["random"]), ""],
+        [f"best constant (action {constant.rsplit('-', 1)[1]})", _ci(p[constant]), tuning(constant)],
+        [f"best cycle {cycle.split('cycle ', 1)[1]}", _ci(p[cycle]), tuning(cycle)],
+        ["cross-entropy, one sequence for all agents", _ci(p["open-loop: CEM shared"]),
+         tuning("open-loop: CEM shared") + " (it overfits its 16 episodes)"],
+        ["cross-entropy, one sequence per agent", _ci(p["open-loop: CEM per agent"]),
+         tuning("open-loop: CEM per agent")],
+        ["**tuned private driver**", _ci(p["private driver"], bold=True), tuning("private driver")],
+        ["**team driver**", _ci(p["team driver"], bold=True), tuning("team driver")],
+        ["**16-bit team driver**", _ci(p["team16 driver"], bold=True), tuning("team16 driver")],
+        ["full information", _ci(p["full information"]), ""],
+    ]  # fmt: skip
+    header = [f"policy ({search['episodes']} scoring episodes, seed 0)", "return per agent (95 % CI)",
+              "chosen on the tuning episodes"]  # fmt: skip
+    table = markdown_table(header, rows, [False, True, False])
+
+    def ratio(key: str) -> str:
+        x = r[key]
+        return f"**{x['ratio']:.2f} ± {x['ratio_ci95']:.2f}** (difference {x['diff']:+.1f} ± {x['diff_ci95']:.1f})"
+
+    paired = (
+        (
+            "Paired over the same episodes (ratio CI by the delta method, difference by Student's t): best open loop "
+            f"÷ private {ratio('best open-loop ÷ private')}; team ÷ private {ratio('team ÷ private')}; 16-bit team ÷ "
+            f"private {ratio('team16 ÷ private')}."
+        )
+        .replace("-", "−")
+        .replace("open−loop", "open-loop")
+        .replace("16−bit", "16-bit")
+    )
+    return table + "\n\n" + paired
+
+
+def reference_line(search: dict[str, Any]) -> str:
+    """docs/benchmarks.md: the references in one line."""
+    p = search["policies"]
+    best = max((v for k, v in p.items() if k.startswith("open-loop")), key=lambda v: v["mean"])
+    return (f"References on the same rules ({search['episodes']} scoring episodes): searched open loop "
+            f"{best['mean']:.1f}, tuned private driver {p['private driver']['mean']:.1f}, 16-bit team driver "
+            f"{p['team16 driver']['mean']:.1f}, team driver {p['team driver']['mean']:.1f}, full information "
+            f"{p['full information']['mean']:.1f} per agent.")  # fmt: skip
+
+
+RENDERERS: dict[str, tuple[str, Callable[[dict[str, Any]], str]]] = {
+    "treadmill-references": ("treadmill_search.json", references),
+    "treadmill-search": ("treadmill_search.json", search_table),
+    "treadmill-reference-line": ("treadmill_search.json", reference_line),
+}
+
+
+def rendered(text: str) -> str:
+    """``text`` with every figures block filled from its JSON."""
+
+    def fill(m: re.Match[str]) -> str:
+        name = m.group(2)
+        if name not in RENDERERS:
+            raise KeyError(f"figures block {name!r}: no renderer; known: {', '.join(RENDERERS)}")
+        source, render = RENDERERS[name]
+        data = json.loads((FIGURES / source).read_text())
+        return f"{m.group(1)}{render(data)}\n{m.group(4)}"
+
+    return BLOCK.sub(fill, text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--check", action="store_true", help="only report stale blocks (exit 1 if any)")
+    args = p.parse_args(argv)
+    stale = []
+    for name in FILES:
+        path = ROOT / name
+        text = path.read_text()
+        new = rendered(text)
+        if new != text:
+            stale.append(name)
+            if not args.check:
+                path.write_text(new)
+    if args.check and stale:
+        print(f"stale figures in {', '.join(stale)}: run python benchmarks/doc_figures.py", file=sys.stderr)
+        return 1
+    print(("rewrote " + ", ".join(stale)) if stale else "every figures block is current")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
