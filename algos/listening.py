@@ -11,7 +11,14 @@ messages are discrete bits (MA-MeSN, MA-BoN and their ``-mm`` variants) exposes 
   A dropped message arrives as zeros — or, for a memory-module algorithm, as the module's prediction: that is the
   "mix" of true and predicted messages when the channel loses packets.
 * ``predicted``: no channel at all; every message is the memory module's prediction (fully decentralised).
-* ``noise``: uniformly random bits in place of every message (Table 1's "reward with white noise").
+* ``noise``: uniformly random bits in place of every message (Table 1's "reward with white noise"). Out of
+  distribution: a listener may fail on bits no speaker ever sends, whether or not it uses what they say.
+* ``shuffled``: each env hears the messages sent in another env at the same step (a random derangement of the
+  envs each step): real messages, their content unrelated to this env. In distribution.
+* ``modal``: every receiver hears each sender's most frequent message so far in the evaluation: a real, constant
+  message that carries nothing. In distribution.
+
+"Listeners use the messages" means true messages beat ``shuffled`` and ``modal``, not only ``noise``.
 
 ``fill_lost="zeros"`` makes a memory-module algorithm hear zeros for lost messages, like a plain MA-MeSN/MA-BoN: the
 same trained policy with and without its memory, for the channel-robustness comparison.
@@ -50,6 +57,7 @@ class Listening:
             raise ConfigError("channel", f"a channel carries true messages; it does not apply to messages={source}")
         self.source, self.channel, self.fill_lost = source, channel, fill_lost
         self._gen = torch.Generator().manual_seed(int(np.random.SeedSequence(seed).generate_state(1)[0]))
+        self._counts: dict[tuple[int, int], dict[int, int]] = {}  # (receiver, sender) → message code → times sent
 
     @property
     def needs_prediction(self) -> bool:
@@ -60,6 +68,10 @@ class Listening:
         """What every receiver hears, ``[B, R, S, bits]`` in 0/1, from the true messages of the same layout."""
         if self.source == "noise":
             return torch.randint(0, 2, true.shape, generator=self._gen).to(true)
+        if self.source == "shuffled":
+            return true[self._derangement(true.shape[0]).to(true.device)]
+        if self.source == "modal":
+            return self._modal(true)
         if self.source == "predicted":
             if predicted is None:
                 raise ConfigError(
@@ -74,6 +86,33 @@ class Listening:
             return heard  # lost messages stay zeros
         delivered = torch.as_tensor(got.delivered, device=true.device).unsqueeze(-1)
         return torch.where(delivered, heard, predicted)
+
+    def _derangement(self, n: int) -> Tensor:
+        """A random permutation of ``n`` envs with no env mapped to itself (a random cycle through all of them)."""
+        if n < 2:
+            raise ConfigError("messages", "shuffled messages need at least 2 envs evaluated together")
+        order = torch.randperm(n, generator=self._gen)
+        perm = torch.empty_like(order)
+        perm[order] = order.roll(-1)
+        return perm
+
+    def _modal(self, true: Tensor) -> Tensor:
+        """Each sender's most frequent message so far (counted per receiver, this step's included), for every env."""
+        bits = true.shape[-1]
+        if bits > 62:
+            raise ConfigError("messages", f"modal messages are counted as integers: at most 62 bits (got {bits})")
+        weights = 2 ** torch.arange(bits, device=true.device, dtype=torch.int64)
+        codes = (true.round().long() * weights).sum(-1).cpu()  # [B, receivers, senders]
+        modal = torch.empty(codes.shape[1:], dtype=torch.int64)
+        for r in range(codes.shape[1]):
+            for s in range(codes.shape[2]):
+                seen = self._counts.setdefault((r, s), {})
+                values, counts = torch.unique(codes[:, r, s], return_counts=True)
+                for v, c in zip(values.tolist(), counts.tolist(), strict=True):
+                    seen[v] = seen.get(v, 0) + c
+                modal[r, s] = max(seen, key=lambda v: (seen[v], -v))
+        heard = (modal.unsqueeze(-1) >> torch.arange(bits)) & 1  # [receivers, senders, bits]
+        return heard.to(true).expand_as(true).clone()
 
     def reset(self, done: np.ndarray) -> None:
         """Forget in-flight messages of envs whose episode ended (channel latency)."""

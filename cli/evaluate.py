@@ -36,7 +36,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     """Evaluate a checkpoint's greedy policy (message source, channel, GIF).
 
     Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % confidence
-    interval, next to the random policy's. --messages and --channel probe the communication: white noise in
+    interval, next to the random policy's. --messages and --channel probe the communication: messages shuffled
+    across envs or each sender's modal message (in distribution: real messages, no content), white noise in
     place of messages, the memory module's predictions (no channel, -mm algorithms), or a lossy channel.
     """
     from convoy.analysis.evaluation import evaluate_policy, evaluate_random, parse_channel
@@ -113,8 +114,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
     Record the greedy policy's messages and actions and report speaker consistency, instantaneous coordination
     (plug-in mutual information in nats, each next to its shuffled-pairs baseline and per message bit), message
-    entropy, the message-input norm and the return with true messages vs white noise (and predicted messages for
-    -mm algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
+    entropy, the message-input norm and the return with true messages vs messages shuffled across envs, each
+    sender's modal message and white noise, each paired with the true messages (and predicted messages for -mm
+    algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
     """
     from convoy.analysis.recording import analyze
     from convoy.services.training import make_env
@@ -145,8 +147,9 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
         "--messages",
         choices=MESSAGE_SOURCES,
         default="sent",
-        help="what the agents hear: sent (the true messages), predicted (the memory module's predictions, no "
-        "channel: -mm algorithms) or noise (uniform random bits) (default: %(default)s)",
+        help="what the agents hear: sent (the true messages), shuffled (another env's messages of the step), modal "
+        "(each sender's most frequent message so far), noise (uniform random bits) or predicted (the memory "
+        "module's predictions, no channel: -mm algorithms) (default: %(default)s)",
     )
     ev.add_argument("--channel", metavar="SPEC", help=CHANNEL_HELP)
     ev.add_argument("--gif", metavar="PATH", help="also write an animated GIF of one greedy episode (treadmill)")

@@ -24,8 +24,8 @@ Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when pr
 Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a discount
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
 
-MessageSource = Literal["sent", "predicted", "noise"]
-MESSAGE_SOURCES: tuple[str, ...] = ("sent", "predicted", "noise")  # what agents hear at evaluation (algos/listening.py)
+MessageSource = Literal["sent", "predicted", "noise", "shuffled", "modal"]
+MESSAGE_SOURCES: tuple[str, ...] = get_args(MessageSource)  # what agents hear at evaluation (algos/listening.py)
 
 
 T = TypeVar("T")
@@ -574,8 +574,10 @@ class JobConfig(BaseModel):
                 f"({self.num_envs:,} env steps); raise steps or lower num_envs",
             )
         row = ALGORITHMS[self.algo]
-        if self.eval_messages == "noise" and not row.listens:
-            raise ConfigError("eval_messages", f"{self.algo} has no message channel to fill with noise; use sent")
+        if self.eval_messages in ("noise", "shuffled", "modal") and not row.listens:
+            raise ConfigError(
+                "eval_messages", f"{self.algo} has no message channel to replace ({self.eval_messages}); use sent"
+            )
         if self.eval_messages == "predicted" and row.needs_messages:
             raise ConfigError(
                 "eval_messages",

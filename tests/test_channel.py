@@ -57,3 +57,27 @@ def test_latency_delivers_the_previous_step() -> None:
 def test_from_spec_parses_cli_syntax() -> None:
     ch = MessageChannel.from_spec("drop=0.3, flip=0.01,latency=1")
     assert ch.cfg == ChannelConfig(drop=0.3, flip=0.01, latency=1)
+
+
+def test_shuffled_messages_come_from_other_envs_and_modal_is_each_senders_most_common() -> None:
+    """The in-distribution controls: shuffled hears another env's real messages of this step (no env its own);
+    modal hears each sender's most frequent message so far, the same in every env."""
+    import torch
+
+    from convoy.algos.listening import Listening
+
+    true = torch.zeros(6, 2, 1, 3)  # [B, receivers, senders, bits]
+    true[:, 0, 0] = torch.tensor(
+        [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=torch.float32
+    )
+    true[:, 1, 0] = torch.tensor([1.0, 1.0, 1.0])
+    shuffled = Listening("shuffled", seed=0).hear(true)
+    rows = [tuple(r.tolist()) for r in shuffled[:, 0, 0]]
+    assert sorted(rows) == sorted(tuple(r.tolist()) for r in true[:, 0, 0])  # the same messages, reassigned
+    assert all((shuffled[b] != true[b]).any() for b in range(6))  # no env hears its own
+    modal = Listening("modal", seed=0)
+    first = modal.hear(true)
+    assert (first[:, 1, 0] == 1).all()  # receiver 1 always heard 111
+    again = true.clone()
+    again[:, 0, 0] = torch.tensor([0.0, 1.0, 1.0])  # 011 now the most frequent for receiver 0 (1 + 6 times)
+    assert (modal.hear(again)[:, 0, 0] == torch.tensor([0.0, 1.0, 1.0])).all()

@@ -57,6 +57,24 @@ def test_independent_dqn_cannot_beat_chance_on_the_referential_game() -> None:
     assert abs(result.eval_return - 1 / K) < 0.1, f"idqn success {result.eval_return:.3f} should stay near 1/K"
 
 
+def test_in_distribution_controls_show_the_referential_listener_uses_what_messages_say() -> None:
+    """A listener that solves the game with the true messages falls to chance when it hears real messages from
+    another env (shuffled) or the speaker's most common message (modal): in-distribution controls, not only white
+    noise, so the loss is the content's, not a reaction to bits no speaker sends."""
+    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.services.training import make_env
+
+    job = job_config(algo="ma-mesn", env="referential", env_params={"n_targets": K}, algo_params=REFERENTIAL_HP,
+                     steps=25_000, num_envs=64, seed=0, eval_episodes=0)  # fmt: skip
+    agent = _train(job)
+    env = make_env(job, 64)
+    success = {src: evaluate_policy(agent, env, 500, seed=1, messages=src).mean
+               for src in ("sent", "shuffled", "modal", "noise")}  # fmt: skip
+    print(success)
+    assert success["sent"] >= 0.9, success
+    assert success["shuffled"] < 0.5 and success["modal"] < 0.5, success  # chance: 1/K = 0.25
+
+
 # 2 agents on a 40 × 40 window, 50 steps: scripted 24.7, team-information 29.7, random 2.8
 # (python benchmarks/treadmill_references.py --set n_agents=2 --set length=40 --set width=40 --set max_steps=50)
 # the previous rules (TreadmillConfig.v2) on a small window: the thresholds below were measured there, and these
