@@ -280,19 +280,19 @@ ALGORITHMS: dict[str, Algorithm] = {
 # settings measured to work there (docs/training.md); applied to every field the user does not set.
 ENV_DEFAULTS: dict[str, dict[str, Any]] = {
     "treadmill": {  # docs/training.md has the measurements behind the training settings
-        "hidden": (256, 256),  # the paper's (4096, 12) learns nothing in our budgets (greedy 19.8 ≈ random at 100 k)
+        "hidden": (256, 256),  # the paper's (4096, 12) learns nothing in our budgets (docs/training.md)
         "message_bits": 16,
         "comm_iterations": 5,
-        # deterministic straight-through bits: with Gumbel noise MA-MeSN declines after ~100 k steps like independent
-        # DQN (38.9, 34.7 at 300 k); without it, 70.4 ± 12.5 over 5 seeds (docs/benchmarks.md)
+        # deterministic straight-through bits: with Gumbel noise MA-MeSN declined after ~100 k steps like independent
+        # DQN, without it not (docs/training.md, the figures in docs/benchmarks.md)
         "gumbel_noise": 0.0,
         "share_params": True,
         "lr": 1e-4,
         "batch_size": 128,
         "replay_ratio": 32.0,
         "replay_capacity": 1_000_000,
-        # 1,000 collapsed every seed of independent DQN once ε fell (19.5 ± 6.8 at 200 k, best points ~67); 8,000 holds
-        # all five at or above their best at 150 k (88.1 ± 22.5 held out; docs/benchmarks.md#treadmill-learners)
+        # 1,000 collapsed every seed of independent DQN once ε fell; 8,000 holds all five at or above their best
+        # point (docs/benchmarks.md#treadmill-learners has the figures)
         "target_update": 8_000,
         "gamma": 0.95,
         "eps_end": 0.01,
