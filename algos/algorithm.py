@@ -236,18 +236,20 @@ class NetworkAgent(ABC):
         if cfg.hidden is None or cfg.share_params is None:
             raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.spec, self.cfg = spec, cfg
-        # the joint replay every step-based learner samples from: rows are allocated on the first chunk
-        self.replay = JointReplay(cfg.replay_capacity, runs=None if isinstance(seed, int | np.integer) else len(seed))
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)
-        population = not isinstance(seed, int | np.integer)
-        self.seeds: tuple[int, ...] = (
-            (int(seed),) if isinstance(seed, int | np.integer) else tuple(int(s) for s in seed)
-        )
-        self.runs: int | None = len(self.seeds) if population else None
+        self.seeds: tuple[int, ...]
+        self.runs: int | None
+        if isinstance(seed, int | np.integer):
+            self.seeds, self.runs = (int(seed),), None
+        else:
+            self.seeds = tuple(int(s) for s in seed)
+            self.runs = len(self.seeds)
         if self.runs == 0:
             raise ValueError("seed: a population needs at least one seed")
+        # the joint replay every step-based learner samples from: rows are allocated on the first chunk
+        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs)
         # explicit streams per run: replay draws and exploration (numpy), message noise (torch) — never global state
         self.rngs = [np.random.default_rng(s) for s in self.seeds]
         self.rng = self.rngs[0]
