@@ -57,7 +57,8 @@ class Listening:
             raise ConfigError("channel", f"a channel carries true messages; it does not apply to messages={source}")
         self.source, self.channel, self.fill_lost = source, channel, fill_lost
         self._gen = torch.Generator().manual_seed(int(np.random.SeedSequence(seed).generate_state(1)[0]))
-        self._counts: dict[tuple[int, int], dict[int, int]] = {}  # (receiver, sender) → message code → times sent
+        self._counts: dict[tuple[int, int, int], int] = {}  # (receiver, sender, message code) → times sent
+        self._modes: dict[tuple[int, int], int] = {}  # (receiver, sender) → its most frequent code so far
 
     @property
     def needs_prediction(self) -> bool:
@@ -103,14 +104,16 @@ class Listening:
             raise ConfigError("messages", f"modal messages are counted as integers: at most 62 bits (got {bits})")
         weights = 2 ** torch.arange(bits, device=true.device, dtype=torch.int64)
         codes = (true.round().long() * weights).sum(-1).cpu()  # [B, receivers, senders]
-        modal = torch.empty(codes.shape[1:], dtype=torch.int64)
-        for r in range(codes.shape[1]):
-            for s in range(codes.shape[2]):
-                seen = self._counts.setdefault((r, s), {})
-                values, counts = torch.unique(codes[:, r, s], return_counts=True)
-                for v, c in zip(values.tolist(), counts.tolist(), strict=True):
-                    seen[v] = seen.get(v, 0) + c
-                modal[r, s] = max(seen, key=lambda v: (seen[v], -v))
+        b, receivers, senders = codes.shape
+        pair = torch.stack(torch.meshgrid(torch.arange(receivers), torch.arange(senders), indexing="ij"), -1)
+        triples, counts = torch.unique(torch.cat([pair.expand(b, -1, -1, -1), codes.unsqueeze(-1)], -1).reshape(-1, 3),
+                                       dim=0, return_counts=True)  # fmt: skip
+        for (r, s, v), c in zip(triples.tolist(), counts.tolist(), strict=True):
+            n = self._counts[r, s, v] = self._counts.get((r, s, v), 0) + c
+            best = self._modes.get((r, s))  # counts only grow: the mode is the old one or a message seen this step
+            if best is None or (n, -v) > (self._counts[r, s, best], -best):
+                self._modes[r, s] = v
+        modal = torch.tensor([[self._modes[r, s] for s in range(senders)] for r in range(receivers)])
         heard = (modal.unsqueeze(-1) >> torch.arange(bits)) & 1  # [receivers, senders, bits]
         return heard.to(true).expand_as(true).clone()
 
