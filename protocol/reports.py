@@ -62,11 +62,14 @@ def append(path: str | Path, report: Report) -> None:
 def read(path: str | Path, last: int | None = None) -> list[Report]:
     """The records of a reports file (the ``last`` ones), skipping lines that are not records."""
     try:
-        lines = Path(path).read_text(errors="replace").splitlines()
+        found = _records(Path(path).read_text(errors="replace"))
     except OSError:
         return []
-    found = [r for r in map(Report.parse, lines) if r is not None]
     return found[-last:] if last else found
+
+
+def _records(text: str) -> list[Report]:
+    return [r for r in map(Report.parse, text.splitlines()) if r is not None]
 
 
 class ReportTail:
@@ -86,7 +89,7 @@ class ReportTail:
             return []
         end = data.rfind(b"\n") + 1
         self.offset += end
-        return [r for r in map(Report.parse, data[:end].decode(errors="replace").splitlines()) if r is not None]
+        return _records(data[:end].decode(errors="replace"))
 
 
 class ReportHandler(logging.Handler):
