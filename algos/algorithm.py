@@ -26,6 +26,7 @@ from convoy.algos.nets import pick_device, run_state, stack_runs
 from convoy.algos.replay import JointReplay
 from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
+from convoy.transition import schema
 
 # Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
 # many means the weights or the data are broken and going on would only hide it.
@@ -248,8 +249,9 @@ class NetworkAgent(ABC):
             self.runs = len(self.seeds)
         if self.runs == 0:
             raise ValueError("seed: a population needs at least one seed")
-        # the joint replay every step-based learner samples from: rows are allocated on the first chunk
-        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs)
+        # the joint replay every step-based learner samples from: rows hold the declared transition (and the act's
+        # extras), allocated on the first chunk
+        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=schema(self.n_agents, self.obs_dim))
         # explicit streams per run: replay draws and exploration (numpy), message noise (torch) — never global state
         self.rngs = [np.random.default_rng(s) for s in self.seeds]
         self.rng = self.rngs[0]

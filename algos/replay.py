@@ -4,7 +4,8 @@ Centralized algorithms need every agent's view of the same step, so one row hold
 and t+1, their actions and rewards, the termination flag and the episode id (what stabilised experience replay
 weighs by), plus whatever else an algorithm asked to keep (a fingerprint, received messages). Rows are written
 and read as whole slices, never one element at a time; arrays are allocated on the first insert, from its
-shapes and dtypes, and never grow past ``capacity``.
+shapes and dtypes, and never grow past ``capacity``. Given the declared transition (``convoy.transition.schema``),
+every insert is held to it: a declared field missing, or of another dtype or shape, is refused with its name.
 
 A population of R runs keeps R rings in one array ``[R, capacity, …]``, each with its own write pointer and size:
 usually every run inserts the same rows at the same times, but a hierarchical meta-controller gets a transition only
@@ -20,11 +21,14 @@ import numpy as np
 class JointReplay:
     """Fixed-capacity ring of transitions; ``add`` takes any number of rows, ``sample`` returns a dict of arrays."""
 
-    def __init__(self, capacity: int, runs: int | None = None) -> None:
+    def __init__(
+        self, capacity: int, runs: int | None = None, declared: dict[str, tuple[str, tuple[int, ...]]] | None = None
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"capacity: must be ≥ 1 (got {capacity})")
         self.capacity = capacity
         self.runs = runs
+        self.declared = declared or {}  # field → (dtype, per-row shape) every insert must hold
         self._data: dict[str, np.ndarray] = {}
         self._next = np.zeros(runs or (), dtype=np.int64)  # a population's per run [R]
         self._size = np.zeros(runs or (), dtype=np.int64)
@@ -40,6 +44,7 @@ class JointReplay:
     def add(self, rows: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
         """Append rows (every array shares the leading dim M; a population's ``[R, M, …]``); the oldest rows are
         overwritten when full. ``valid [R, M]`` (a population): only those rows, each run's in order, to its ring."""
+        self._check_declared(rows)
         if self.runs is not None and (valid is not None or (self._next != self._next[0]).any()):
             self._add_valid(rows, np.ones(np.shape(next(iter(rows.values())))[:2], bool) if valid is None else valid)
             return
@@ -64,6 +69,16 @@ class JointReplay:
             buf[: m - first] = v[first:]
         self._next = (self._next + m) % self.capacity
         self._size = np.minimum(self._size + m, self.capacity)
+
+    def _check_declared(self, rows: dict[str, np.ndarray]) -> None:
+        lead = 1 if self.runs is None else 2
+        for name, (dtype, shape) in self.declared.items():
+            if name not in rows:
+                raise ValueError(f"rows: no {name!r}, a field of the declared transition (convoy.transition)")
+            v = rows[name]
+            if v.dtype.str != dtype or v.shape[lead:] != shape:
+                raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[lead:]} per row; the declared "
+                                 f"transition holds {dtype} {shape}")  # fmt: skip
 
     def _add_valid(self, rows: dict[str, np.ndarray], valid: np.ndarray) -> None:
         """A population's rows ``[R, M, …]`` where ``valid [R, M]``: run k's valid rows go to its ring in order, as

@@ -5,7 +5,8 @@ A step of B envs with N agents is one transition per env; a chunk stacks T steps
 dtypes and per-step shapes (``N`` agents, ``D`` the observation width), plus whatever an algorithm's act adds
 (``ActOutput.extras``: DIAL's heard messages, a memory module's history, the hierarchical agent's goals), which
 its own ``observe`` reads. The acting loop builds transitions with :func:`record`, the wire requires these
-fields in every chunk, and the learner checks each chunk it receives against :func:`schema`.
+fields in every chunk, the learner checks each chunk it receives against :func:`schema`, and the joint replay
+refuses rows that do not hold it.
 """
 
 from __future__ import annotations

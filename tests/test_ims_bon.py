@@ -15,6 +15,7 @@ from convoy.algos.ims import mean_of_others
 from convoy.algos.registry import make_algorithm
 from convoy.config import resolve_algo
 from convoy.envs import EnvSpec, make_batched
+from convoy.transition import record
 from tests.conftest import synthetic_spec
 
 SMALL = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
@@ -209,16 +210,9 @@ def train_referential(algo_name: str, seed: int = 0, iterations: int = 300) -> t
     for it in range(iterations):
         out = algo.act(obs, max(0.05, 1.0 - it / 100))
         res = env.step(out.actions)
-        algo.observe(
-            {
-                "obs": obs[None],
-                "action": out.actions[None],
-                "reward": res.reward[None],
-                "next_obs": res.final_obs[None],
-                "terminated": res.terminated[None],
-                "episode": np.zeros((1, num_envs), np.int64),
-            }
-        )
+        step = record(obs, out.actions, res.reward, res.final_obs, res.terminated, res.truncated,
+                      np.zeros(num_envs, np.int64), out.extras)  # fmt: skip
+        algo.observe({k: v[None] for k, v in step.items()})
         obs = res.obs
         if algo.can_update():
             for _ in range(2):

@@ -32,6 +32,7 @@ def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> dict[str, torch.T
         "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(m, n))),
         "reward": torch.as_tensor(g.normal(size=(m, n)), dtype=torch.float32),
         "terminated": torch.as_tensor(g.random(m) < 0.2),
+        "truncated": torch.zeros(m, dtype=torch.bool),
         "episode": torch.zeros(m, dtype=torch.long),
     }
 

@@ -8,6 +8,7 @@ import pytest
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
+from convoy.algos.replay import JointReplay
 from convoy.config import ALGORITHMS, job_config
 from convoy.envs import make_batched
 from convoy.learner.service import transition_schema
@@ -44,3 +45,19 @@ def test_record_casts_to_the_declared_dtypes_and_keeps_extras_apart() -> None:
     assert {k: v.dtype.str for k, v in got.items()} == {**{k: f.dtype for k, f in TRANSITION.items()}, "mu": "<f4"}
     with pytest.raises(ValueError, match="reward"):
         record(*[got[k] for k in TRANSITION], extras={"reward": got["reward"]})
+
+
+def test_the_replay_holds_rows_to_the_declared_transition() -> None:
+    b, n, d = 4, 2, 3
+    rows = record(np.zeros((b, n, d)), np.zeros((b, n)), np.zeros((b, n)), np.zeros((b, n, d)), np.zeros(b, bool),
+                  np.zeros(b, bool), np.zeros(b), {"fingerprint": np.zeros((b, 2), np.float32)})  # fmt: skip
+    replay = JointReplay(16, declared=schema(n, d))
+    replay.add(rows)  # the declared fields and an extra
+    assert len(replay) == b
+    with pytest.raises(ValueError, match="'truncated'"):
+        replay.add({k: v for k, v in rows.items() if k != "truncated"})
+    with pytest.raises(ValueError, match=r"'obs' is <f8 \(2, 3\) per row; the declared transition holds <f4"):
+        replay.add({**rows, "obs": rows["obs"].astype(np.float64)})
+    with pytest.raises(ValueError, match="'next_obs' is <f4 \\(2, 4\\)"):
+        replay.add({**rows, "next_obs": np.zeros((b, n, 4), np.float32)})
+    assert len(replay) == b  # nothing refused was written
