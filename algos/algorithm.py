@@ -192,6 +192,34 @@ def bootstrap_target(q_fn: QFn, online: nn.ModuleDict, target: nn.ModuleDict, ba
     return y
 
 
+def n_step_rows(chunk: dict[str, np.ndarray], n: int, gamma: float | np.ndarray) -> dict[str, np.ndarray]:
+    """A chunk ``[T, …]`` of one-step transitions as multi-step ones: step t's reward becomes
+    ``Σ_k γ^k r_{t+k}`` over the m ≤ n steps up to the first that ended its episode or the chunk's last, its
+    ``next_obs``, ``terminated`` and ``truncated`` those of step t+m−1, and ``discount = γ^m`` for the bootstrap
+    (a per-sample discount, as an option's). ``gamma`` may be one per run, ``[R]`` for a population's
+    ``[T, R, B, …]``. Chunks hold consecutive steps of the same envs, so no step's return reaches past them."""
+    reward, done = chunk["reward"], chunk["terminated"] | chunk["truncated"]
+    t_len, lead = reward.shape[0], done.shape[1:]
+    g = np.asarray(gamma, dtype=np.float32).reshape(-1, *([1] * (len(lead) - 1))) if np.ndim(gamma) else gamma
+    ret = np.zeros_like(reward)
+    discount = np.ones((t_len, *lead), dtype=np.float32)  # γ^k of the next step to add, then γ^m
+    last = np.broadcast_to(np.arange(t_len).reshape(-1, *([1] * len(lead))), (t_len, *lead)).copy()
+    alive = np.ones((t_len, *lead), dtype=bool)  # no step before t+k ended the episode
+    for k in range(min(n, t_len)):
+        use = alive[: t_len - k]
+        ret[: t_len - k] += np.where(use, discount[: t_len - k], 0.0)[..., None] * reward[k:]
+        last[: t_len - k] = np.where(use, np.arange(k, t_len).reshape(-1, *([1] * len(lead))), last[: t_len - k])
+        discount[: t_len - k] = np.where(use, discount[: t_len - k] * g, discount[: t_len - k])
+        alive[: t_len - k] &= ~done[k:]
+
+    def at_last(v: np.ndarray) -> np.ndarray:
+        idx = last.reshape(*last.shape, *([1] * (v.ndim - last.ndim)))
+        return np.take_along_axis(v, idx, axis=0)
+
+    return {**chunk, "reward": ret, "next_obs": at_last(chunk["next_obs"]), "terminated": at_last(chunk["terminated"]),
+            "truncated": at_last(chunk["truncated"]), "discount": discount}  # fmt: skip
+
+
 def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
     """Elementwise TD loss: Huber (clipped error) or the paper's squared error, per the ``huber`` switch."""
     return F.smooth_l1_loss(q, y, reduction="none") if cfg.huber else 0.5 * (q - y) ** 2
@@ -334,7 +362,11 @@ class NetworkAgent(ABC):
     # --- data: the joint replay (DIAL brings its own sequences) ------------------------------------------------
     def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
         """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run; a
-        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN)."""
+        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN).
+        With ``n_step`` > 1 the rows are multi-step transitions (``n_step_rows``)."""
+        if self.cfg.n_step > 1:
+            gamma = self.gamma.cpu().numpy().reshape(-1) if isinstance(self.gamma, Tensor) else self.gamma
+            chunk = n_step_rows(chunk, self.cfg.n_step, gamma)
         if self.runs is None:
             self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
             return

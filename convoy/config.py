@@ -79,6 +79,15 @@ class AlgoConfig(BaseModel):
         "Q̄(s, a)) with the target network Q̄, widening the gap between the best action and the rest so that the "
         "greedy policy stops flipping on small Q errors; 0 = plain Q-learning (the paper). Not applied by DIAL.",
     )
+    n_step: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="Multi-step returns (Sutton 1988; Rainbow): a transition's target sums up to n steps of "
+        "discounted reward, stopping at the episode's end or its chunk's (runtime.publish_steps steps), and "
+        "bootstraps with γ^m for the m steps it spans. A frozen target network lets value travel one step per "
+        "sync; n-step, n steps. 1 = one-step Q-learning (the paper). Not DIAL or hierarchical DQN.",
+    )
     double_q: bool = Field(True, description="Double Q-learning: online argmax, target value (paper: on).")
     huber: bool = Field(True, description="Huber TD loss (clipped error) instead of the squared TD error.")
     grad_clip: float = Field(10.0, gt=0, description="Global gradient-norm clip.")
@@ -586,6 +595,9 @@ class JobConfig(BaseModel):
             )
         if self.hierarchical and self.env != "treadmill":
             raise ConfigError("hierarchical", f"goals are defined for the treadmill only (env is {self.env!r})")
+        if self.algo_params.get("n_step", 1) != 1 and (self.hierarchical or self.algo == "dial"):
+            why = "hierarchical DQN's options span many steps" if self.hierarchical else "DIAL learns from sequences"
+            raise ConfigError("algo_params.n_step", f"{why}; drop n_step (one-step returns) for this job")
         self._check_seeds()
         return self
 
