@@ -242,7 +242,9 @@ class NetworkAgent(ABC):
     ``updates_for``, ``sample``)."""
 
     name: ClassVar[str]
-    chunk_len: int = 1  # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll)
+    # steps per ``observe`` chunk the trainer should collect (DIAL: its unroll; n-step returns: 4·n, so that three
+    # rows in four span all n steps — a return never reaches past its chunk)
+    chunk_len: int = 1
     uses_messages: ClassVar[bool] = False
     # whether R runs of it train as one population (``seed`` a sequence): every layer a GroupLinear, losses reduced
     # over the batch dim −2, per-run state only where ``member`` carries it
@@ -265,6 +267,8 @@ class NetworkAgent(ABC):
         if cfg.hidden is None or cfg.share_params is None:
             raise ValueError("config: resolve env defaults first (convoy.config.resolve_algo)")
         self.spec, self.cfg = spec, cfg
+        if cfg.n_step > 1:
+            self.chunk_len = 4 * cfg.n_step
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)

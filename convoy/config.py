@@ -84,7 +84,7 @@ class AlgoConfig(BaseModel):
         ge=1,
         le=64,
         description="Multi-step returns (Sutton 1988; Rainbow): a transition's target sums up to n steps of "
-        "discounted reward, stopping at the episode's end or its chunk's (runtime.publish_steps steps), and "
+        "discounted reward, stopping at the episode's end or its chunk's (4·n steps), and "
         "bootstraps with γ^m for the m steps it spans. A frozen target network lets value travel one step per "
         "sync; n-step, n steps. 1 = one-step Q-learning (the paper). Not DIAL or hierarchical DQN.",
     )

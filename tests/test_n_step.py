@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import n_step_rows
 from convoy.algos.registry import make_algorithm
 from convoy.config import job_config, resolve_algo
@@ -79,3 +80,21 @@ def test_an_agent_learns_from_n_step_rows_and_keeps_them_apart_from_one_step() -
 def test_jobs_that_cannot_use_n_step_say_so(algo: str, hierarchical: bool) -> None:
     with pytest.raises(ConfigError, match="n_step"):
         job_config(algo=algo, env="treadmill", hierarchical=hierarchical, algo_params={"n_step": 3})
+
+
+def test_the_trainer_collects_chunks_long_enough_for_n_steps(tmp_path) -> None:
+    from convoy.learner.inprocess import Trainer
+    from convoy.services.training import make_env
+
+    job = job_config(algo="idqn", env="treadmill", env_params={"n_agents": 2, "max_steps": 50}, steps=400,
+                     num_envs=4, eval_every=0, eval_episodes=2, device="cpu",
+                     algo_params={"hidden": [8], "n_step": 3, "learning_starts": 0, "gamma": 0.5})  # fmt: skip
+    env = make_env(job)
+    algo = make_agent(job, env.spec)
+    assert algo.chunk_len == 12
+    try:
+        Trainer(job, env, algo, make_eval_env=lambda n: make_env(job, n), out_dir=tmp_path, progress=False).run()
+    finally:
+        env.close()
+    discount = algo.replay.sample(256, algo.rng)["discount"]
+    assert np.mean(np.isclose(discount, 0.125)) > 0.5  # most rows span all three steps: γ³
