@@ -31,6 +31,11 @@ def _ci(p: dict[str, Any], bold: bool = False) -> str:
     return f"**{text}**" if bold else text
 
 
+def _signed(x: float) -> str:
+    """``+3.5`` or ``−3.5`` (a typographic minus, as the docs write it)."""
+    return f"{x:+.1f}".replace("-", "−")
+
+
 def references(search: dict[str, Any]) -> str:
     """README: the references a learner is judged against (``benchmarks/treadmill_search.py --json``)."""
     p = search["policies"]
@@ -100,10 +105,97 @@ def reference_line(search: dict[str, Any]) -> str:
             f"{p['full information']['mean']:.1f} per agent.")  # fmt: skip
 
 
-RENDERERS: dict[str, tuple[str, Callable[[dict[str, Any]], str]]] = {
-    "treadmill-references": ("treadmill_search.json", references),
-    "treadmill-search": ("treadmill_search.json", search_table),
-    "treadmill-reference-line": ("treadmill_search.json", reference_line),
+def _seeds(values: list[float], fmt: str = "{:.1f}") -> str:
+    """Each seed's figure for up to five seeds, else their range."""
+    if len(values) <= 5:
+        return ", ".join(fmt.format(v) for v in values)
+    return f"{fmt.format(min(values))}–{fmt.format(max(values))}"
+
+
+def learners(scores: dict[str, Any]) -> str:
+    """docs/benchmarks.md: every scored learner group, last and best policies held out
+    (``benchmarks/learner_scores.py``)."""
+    rows = [
+        [label, f"{len(g['seeds'])}", f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f} ({_seeds(g['last'])})",
+         f"{g['best_mean']:.1f} ± {g['best_ci95']:.1f}", _seeds(g["last_over_best"], "{:.2f}")]
+        for label, g in scores["groups"].items()
+    ]  # fmt: skip
+    header = ["run", "seeds", f"last policy, {scores['episodes']} held-out episodes (each seed)", "best.pt, held out",
+              "last ÷ best, per seed"]  # fmt: skip
+    return markdown_table(header, rows, [False, True, True, True, False]) + "\n\n" + learner_comparisons(scores)
+
+
+def learner_comparisons(scores: dict[str, Any]) -> str:
+    """README and docs: the learner comparisons that ask whether teammates' knowledge pays, with Welch's test."""
+    groups = scores["groups"]
+    rows = [
+        [f"{c['a']} vs {c['b']}", f"{groups[c['a']]['last_mean']:.1f} vs {groups[c['b']]['last_mean']:.1f}",
+         f"{_signed(c['diff'])} [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]", f"{c['p']:.2f}"]
+        for c in scores["comparisons"]
+    ]  # fmt: skip
+    header = ["last policies, held out", "mean per agent", "difference (95 % CI)", "Welch p"]
+    return markdown_table(header, rows, [False, True, True, True])
+
+
+def _ratio(search: dict[str, Any], key: str) -> str:
+    return f"{search['ratios'][key]['ratio']:.2f} ×"
+
+
+def properties(search: dict[str, Any]) -> str:
+    """docs/treadmill.md: the three properties of the rules, with the search's paired ratios."""
+    return (
+        "1. **no open-loop policy is competitive** — the best open-loop policy a search finds (constant\n"
+        "   actions, every cycle up to period 32, cross-entropy over whole 200-step sequences) scores\n"
+        f"   **{_ratio(search, 'best open-loop ÷ private')}** a tuned private-observation driver (goal ≤ 0.5);\n"
+        "2. **what teammates observe pays** — the same family of drivers, tuned the same way, scores\n"
+        f"   **{_ratio(search, 'team ÷ private')}** when told what its teammates observe, and "
+        f"**{_ratio(search, 'team16 ÷ private')}** when it hears only a fixed,\n"
+        "   hand-written 16-bit code per teammate (goals ≥ 1.3 and ≥ 1.2; paired over the same episodes,\n"
+        "   CIs excluding 1): knowledge that sits with teammates, and fits the paper's 2-byte channel;\n"
+        "3. **cooperation matters** — one agent's crash ends the episode for every agent."
+    )
+
+
+def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
+    """README: what the treadmill shows, from the reference search and the learners' scores."""
+    g = scores["groups"][HEADLINE[1]]
+    c = next(c for c in scores["comparisons"] if (c["a"], c["b"]) == HEADLINE)
+    return (
+        "**What it shows.** On the treadmill ([docs/treadmill.md](docs/treadmill.md): cars enter and leave\n"
+        "a moving window whose speed changes, sensors have a range and a rear blind spot, chasers come from\n"
+        f"behind) a searched open-loop policy scores {_ratio(search, 'best open-loop ÷ private')} a tuned "
+        "private-observation driver, and the same\n"
+        f"driver told what its teammates observe scores {_ratio(search, 'team ÷ private')} "
+        f"({_ratio(search, 'team16 ÷ private')} through a hand-written 16-bit code per\n"
+        "teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. Independent\n"
+        f"DQN on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
+        f"({g['env_steps'] // 1000} k steps, last policies on held-out\nepisodes, {len(g['seeds'])} seeds; tuned "
+        "private driver "
+        f"{search['policies']['private driver']['mean']:.1f}); told every car its teammates see, "
+        f"{scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
+        f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
+        + (
+            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules "
+            if c["diff_low"] <= 0
+            else "the learner turns teammates' knowledge\ninto reward "
+        )
+        + "([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). The paper's figures in\n"
+        "[docs/reproduction.md](docs/reproduction.md) were measured on the previous rules."
+    )
+
+
+# the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
+HEADLINE = ("+ team sightings, 150 k", "own, 150 k")
+
+SEARCH, SCORES = "treadmill_search.json", "treadmill_learners.json"
+RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
+    "treadmill-references": ((SEARCH,), references),
+    "treadmill-search": ((SEARCH,), search_table),
+    "treadmill-reference-line": ((SEARCH,), reference_line),
+    "treadmill-properties": ((SEARCH,), properties),
+    "readme-summary": ((SEARCH, SCORES), readme_summary),
+    "treadmill-learners": ((SCORES,), learners),
+    "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
 }
 
 
@@ -114,9 +206,9 @@ def rendered(text: str) -> str:
         name = m.group(2)
         if name not in RENDERERS:
             raise KeyError(f"figures block {name!r}: no renderer; known: {', '.join(RENDERERS)}")
-        source, render = RENDERERS[name]
-        data = json.loads((FIGURES / source).read_text())
-        return f"{m.group(1)}{render(data)}\n{m.group(4)}"
+        sources, render = RENDERERS[name]
+        data = [json.loads((FIGURES / source).read_text()) for source in sources]
+        return f"{m.group(1)}{render(*data)}\n{m.group(4)}"
 
     return BLOCK.sub(fill, text)
 

@@ -1,0 +1,138 @@
+"""Trained treadmill learners re-scored on held-out episodes: the figures the docs quote about learners.
+
+Each ``--group LABEL=DIR[,DIR…]`` is a population run or several (``convoy train --seeds …``, one ``DIR/seed-N/``
+per seed). Every
+seed's last policy (``checkpoint.pt``) and best point of its greedy curve (``best.pt``, chosen on the training run's
+own evaluation episodes) are played greedily on ``--episodes`` episodes of seed ``--seed`` — episodes neither was
+chosen on — and the group gets the mean over seeds with its 95 % t-CI, each seed's last ÷ best (below 1: the policy
+fell from its best point). ``--compare A B`` adds Welch's t-test of A's last policies against B's (seeds are
+independent runs, so unpaired). The JSON (``--json``, default ``docs/figures/treadmill_learners.json``) keeps the
+groups of earlier calls, so groups can be scored as their runs finish; ``python benchmarks/doc_figures.py`` renders
+it into docs/benchmarks.md.
+
+Run: ``python benchmarks/learner_scores.py --group "own, 150 k"=runs/v4/idqn-private`` (~20 s per seed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import json  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy import stats  # noqa: E402
+
+from benchmarks.report import write_json  # noqa: E402
+from convoy.stats import ci95_half  # noqa: E402
+
+DEFAULT_JSON = ROOT / "docs" / "figures" / "treadmill_learners.json"
+
+
+def seed_dirs(run_dir: Path) -> list[tuple[int, Path]]:
+    """``(seed, DIR/seed-N)`` of a population run, in seed order; a clear error when there are none."""
+    found = sorted((int(p.name.split("-", 1)[1]), p) for p in run_dir.glob("seed-*") if p.name[5:].isdigit())
+    if not found:
+        raise SystemExit(f"--group: {run_dir} has no seed-N/ folders; give the --out of a convoy train --seeds run")
+    return found
+
+
+def score(path: Path, episodes: int, seed: int) -> tuple[float, Any, dict[str, Any]]:
+    """Mean greedy return per agent of one checkpoint over ``episodes`` episodes of ``seed``; its job and
+    counters."""
+    from convoy.algos.checkpoint import load_checkpoint
+    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.services.training import make_env
+
+    algo, job, counters = load_checkpoint(path, device="auto")
+    env = make_env(job, min(episodes, 256))
+    try:
+        return evaluate_policy(algo, env, episodes, seed=seed).mean, job, counters
+    finally:
+        env.close()
+
+
+def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any]:
+    """Every seed's last and best policy held out, the runs' settings, and the means with CIs over seeds."""
+    seeds, last, best = [], [], []
+    for s, d in (sd for run_dir in run_dirs for sd in seed_dirs(run_dir)):
+        seeds.append(s)
+        mean, job, counters = score(d / "checkpoint.pt", episodes, seed)
+        last.append(mean)
+        best.append(score(d / "best.pt", episodes, seed)[0])
+        print(f"  {d}: last {last[-1]:.1f}, best.pt {best[-1]:.1f}", flush=True)
+    x, b = np.asarray(last), np.asarray(best)
+    return {
+        "dirs": [str(d) for d in run_dirs],
+        "algo": job.algo,
+        "env_params": job.env_params,
+        "hyper_parameters": job.algo_params,  # the ones set on the command line; the rest are the env's defaults
+        "env_steps": counters.get("env_steps", job.steps),
+        "seeds": seeds,
+        "last": last,
+        "best": best,
+        "last_mean": float(x.mean()),
+        "last_ci95": ci95_half(x, single=0.0),
+        "best_mean": float(b.mean()),
+        "best_ci95": ci95_half(b, single=0.0),
+        "last_over_best": (x / b).tolist(),
+    }
+
+
+def compare(a: dict[str, Any], b: dict[str, Any]) -> dict[str, float]:
+    """Welch's t-test of group a's last policies against group b's, and the difference of means with its 95 % CI."""
+    x, y = np.asarray(a["last"]), np.asarray(b["last"])
+    test = stats.ttest_ind(x, y, equal_var=False)
+    ci = test.confidence_interval(0.95)
+    return {"diff": float(x.mean() - y.mean()), "diff_low": float(ci.low), "diff_high": float(ci.high),
+            "p": float(test.pvalue)}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--group", action="append", default=[], metavar="LABEL=DIR[,DIR…]",
+                   help="population runs (comma-separated) to score under LABEL, repeatable")  # fmt: skip
+    p.add_argument("--compare", nargs=2, action="append", default=[], metavar=("A", "B"),
+                   help="Welch's test of group A's last policies against group B's, repeatable")  # fmt: skip
+    p.add_argument("--episodes", type=int, default=200, help="held-out episodes per policy (default %(default)s)")
+    p.add_argument("--seed", type=int, default=777, help="seed of the held-out episodes (default %(default)s)")
+    p.add_argument("--json", default=str(DEFAULT_JSON), help="figures file, updated in place (default %(default)s)")
+    args = p.parse_args(argv)
+
+    path = Path(args.json)
+    data: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
+    if data and (data["episodes"], data["seed"]) != (args.episodes, args.seed):
+        raise SystemExit(f"{path} holds scores on {data['episodes']} episodes of seed {data['seed']}; score with "
+                         "the same --episodes and --seed, or write another --json")  # fmt: skip
+    data.update(episodes=args.episodes, seed=args.seed)
+    groups: dict[str, Any] = data.setdefault("groups", {})
+    for spec in args.group:
+        label, sep, dirs = spec.rpartition("=")
+        if not sep or not label or not dirs:
+            raise SystemExit(f"--group {spec!r}: write LABEL=DIR or LABEL=DIR,DIR")
+        print(f"{label}: {dirs}", flush=True)
+        groups[label] = score_group([Path(d) for d in dirs.split(",")], args.episodes, args.seed)
+        g = groups[label]
+        print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
+              f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds", flush=True)  # fmt: skip
+    comparisons: list[dict[str, Any]] = data.setdefault("comparisons", [])
+    for a, b in args.compare:
+        missing = [g for g in (a, b) if g not in groups]
+        if missing:
+            raise SystemExit(f"--compare: no group {missing[0]!r}; scored: {', '.join(groups) or 'none'}")
+        comparisons[:] = [c for c in comparisons if (c["a"], c["b"]) != (a, b)]
+        comparisons.append({"a": a, "b": b, **compare(groups[a], groups[b])})
+        c = comparisons[-1]
+        print(f"{a} − {b}: {c['diff']:+.1f} [{c['diff_low']:+.1f}, {c['diff_high']:+.1f}], Welch p = {c['p']:.2f}")
+    write_json(path, data)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
