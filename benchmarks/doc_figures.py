@@ -115,14 +115,19 @@ def _seeds(values: list[float], fmt: str = "{:.1f}") -> str:
 def learners(scores: dict[str, Any]) -> str:
     """docs/benchmarks.md: every scored learner group, last and best policies held out
     (``benchmarks/learner_scores.py``)."""
+
+    def start(g: dict[str, Any]) -> str:
+        v = g["start_values"]
+        return f"{sum(x['q'] for x in v) / len(v):.1f} / {sum(x['discounted_return'] for x in v) / len(v):.1f}"
+
     rows = [
         [label, f"{len(g['seeds'])}", f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f} ({_seeds(g['last'])})",
-         f"{g['best_mean']:.1f} ± {g['best_ci95']:.1f}", _seeds(g["last_over_best"], "{:.2f}")]
+         f"{g['best_mean']:.1f} ± {g['best_ci95']:.1f}", _seeds(g["last_over_best"], "{:.2f}"), start(g)]
         for label, g in scores["groups"].items()
     ]  # fmt: skip
     header = ["run", "seeds", f"last policy, {scores['episodes']} held-out episodes (each seed)", "best.pt, held out",
-              "last ÷ best, per seed"]  # fmt: skip
-    return markdown_table(header, rows, [False, True, True, True, False]) + "\n\n" + learner_comparisons(scores)
+              "last ÷ best, per seed", "at the start: max Q / discounted return"]  # fmt: skip
+    return markdown_table(header, rows, [False, True, True, True, False, True]) + "\n\n" + learner_comparisons(scores)
 
 
 def learner_comparisons(scores: dict[str, Any]) -> str:

@@ -42,9 +42,9 @@ def seed_dirs(run_dir: Path) -> list[tuple[int, Path]]:
     return found
 
 
-def score(path: Path, episodes: int, seed: int) -> tuple[float, Any, dict[str, Any]]:
-    """Mean greedy return per agent of one checkpoint over ``episodes`` episodes of ``seed``; its job and
-    counters."""
+def score(path: Path, episodes: int, seed: int) -> tuple[float, tuple[float, float], Any, dict[str, Any]]:
+    """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``,
+    its job and counters."""
     from convoy.algos.checkpoint import load_checkpoint
     from convoy.analysis.evaluation import evaluate_policy
     from convoy.services.training import make_env
@@ -52,20 +52,45 @@ def score(path: Path, episodes: int, seed: int) -> tuple[float, Any, dict[str, A
     algo, job, counters = load_checkpoint(path, device="auto")
     env = make_env(job, min(episodes, 256))
     try:
-        return evaluate_policy(algo, env, episodes, seed=seed).mean, job, counters
+        return evaluate_policy(algo, env, episodes, seed=seed).mean, start_values(algo, env, seed), job, counters
     finally:
         env.close()
 
 
+def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
+    """At every env's first state: the value the learner believes it holds (max_a Q, mean over agents) and the
+    discounted return its greedy policy then collects (γ of its own config, up to the episode's end). A Q far below
+    the return means the Q-function sees only a few steps ahead: each target sync lets value travel one bootstrap
+    (or ``n_step`` steps) further."""
+    import numpy as np
+    import torch
+
+    obs, state = env.reset(seed=seed), algo.initial_state(env.num_envs)
+    with torch.no_grad():
+        q, _, _ = algo.greedy_q(torch.as_tensor(obs, dtype=torch.float32, device=algo.device), state)
+    believed = float(q.max(dim=-1).values.mean())
+    gamma = float(algo.cfg.gamma)
+    collected, weight = np.zeros(env.num_envs), np.ones(env.num_envs)
+    while weight.any():
+        out = algo.act(obs, 0.0, state)
+        result = env.step(out.actions)
+        collected += weight * result.reward.mean(axis=-1)
+        weight = np.where(result.terminated | result.truncated, 0.0, weight * gamma)
+        obs, state = result.obs, algo.reset_state(out.state, result.terminated | result.truncated)
+    return believed, float(collected.mean())
+
+
 def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any]:
     """Every seed's last and best policy held out, the runs' settings, and the means with CIs over seeds."""
-    seeds, last, best = [], [], []
+    seeds, last, best, values = [], [], [], []
     for s, d in (sd for run_dir in run_dirs for sd in seed_dirs(run_dir)):
         seeds.append(s)
-        mean, job, counters = score(d / "checkpoint.pt", episodes, seed)
+        mean, (q, v), job, counters = score(d / "checkpoint.pt", episodes, seed)
         last.append(mean)
+        values.append({"q": q, "discounted_return": v})
         best.append(score(d / "best.pt", episodes, seed)[0])
-        print(f"  {d}: last {last[-1]:.1f}, best.pt {best[-1]:.1f}", flush=True)
+        print(f"  {d}: last {mean:.1f} (start: Q {q:.1f}, discounted return {v:.1f}), best.pt {best[-1]:.1f}",
+              flush=True)  # fmt: skip
     x, b = np.asarray(last), np.asarray(best)
     return {
         "dirs": [str(d) for d in run_dirs],
@@ -81,6 +106,7 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any
         "best_mean": float(b.mean()),
         "best_ci95": ci95_half(b, single=0.0),
         "last_over_best": (x / b).tolist(),
+        "start_values": values,  # the last policy's, per seed
     }
 
 
