@@ -135,7 +135,8 @@ def learner_comparisons(scores: dict[str, Any]) -> str:
     groups = scores["groups"]
     rows = [
         [f"{c['a']} vs {c['b']}", f"{groups[c['a']]['last_mean']:.1f} vs {groups[c['b']]['last_mean']:.1f}",
-         f"{_signed(c['diff'])} [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]", f"{c['p']:.2f}"]
+         f"{_signed(c['diff'])} [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]",
+         f"{c['p']:.2f}" if c["p"] >= 0.01 else f"{c['p']:.1e}"]
         for c in scores["comparisons"]
     ]  # fmt: skip
     header = ["last policies, held out", "mean per agent", "difference (95 % CI)", "Welch p"]
