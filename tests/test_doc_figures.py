@@ -18,9 +18,13 @@ def test_every_figures_block_shows_its_json() -> None:
 
 
 def test_a_changed_figure_makes_its_block_stale(tmp_path: Path, monkeypatch) -> None:
-    data = json.loads((doc_figures.FIGURES / "treadmill_search.json").read_text())
-    data["policies"]["private driver"]["mean"] = 12.345
-    (tmp_path / "treadmill_search.json").write_text(json.dumps(data))
+    data = {p.name: json.loads(p.read_text()) for p in doc_figures.FIGURES.glob("*.json")}
+    data["treadmill_search.json"]["policies"]["private driver"]["mean"] = 12.345
+    group = data["treadmill_learners.json"]["groups"][doc_figures.HEADLINE[1]]
+    group["last_mean"] = 23.456
+    for name, values in data.items():
+        (tmp_path / name).write_text(json.dumps(values))
     monkeypatch.setattr(doc_figures, "FIGURES", tmp_path)
     readme = (ROOT / "README.md").read_text()
     assert "12.3 ± 3.9" not in readme and "12.3 ± 3.9 |" in doc_figures.rendered(readme)
+    assert "scores 23.5 ±" not in readme and "scores 23.5 ±" in doc_figures.rendered(readme)
