@@ -181,7 +181,9 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"{scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
         + (
-            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules "
+            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (the default "
+            "learner looks only a few steps ahead; a far-sighted one\ngains from the sightings but does not hold its "
+            "policy) "
             if c["diff_low"] <= 0
             else "the learner turns teammates' knowledge\ninto reward "
         )
