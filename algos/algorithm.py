@@ -203,12 +203,13 @@ def n_step_rows(chunk: dict[str, np.ndarray], n: int, gamma: float | np.ndarray)
     g = np.asarray(gamma, dtype=np.float32).reshape(-1, *([1] * (len(lead) - 1))) if np.ndim(gamma) else gamma
     ret = np.zeros_like(reward)
     discount = np.ones((t_len, *lead), dtype=np.float32)  # γ^k of the next step to add, then γ^m
-    last = np.broadcast_to(np.arange(t_len).reshape(-1, *([1] * len(lead))), (t_len, *lead)).copy()
+    steps = np.arange(t_len).reshape(-1, *([1] * len(lead)))
+    last = np.zeros((t_len, *lead), dtype=np.int64)  # the step whose next_obs a row bootstraps from (k = 0 sets it)
     alive = np.ones((t_len, *lead), dtype=bool)  # no step before t+k ended the episode
     for k in range(min(n, t_len)):
         use = alive[: t_len - k]
         ret[: t_len - k] += np.where(use, discount[: t_len - k], 0.0)[..., None] * reward[k:]
-        last[: t_len - k] = np.where(use, np.arange(k, t_len).reshape(-1, *([1] * len(lead))), last[: t_len - k])
+        last[: t_len - k] = np.where(use, steps[k:], last[: t_len - k])
         discount[: t_len - k] = np.where(use, discount[: t_len - k] * g, discount[: t_len - k])
         alive[: t_len - k] &= ~done[k:]
 
