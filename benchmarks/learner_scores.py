@@ -16,14 +16,13 @@ Run: ``python benchmarks/learner_scores.py --group "own, 150 k"=runs/v4/idqn-pri
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-import json  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
@@ -42,9 +41,11 @@ def seed_dirs(run_dir: Path) -> list[tuple[int, Path]]:
     return found
 
 
-def score(path: Path, episodes: int, seed: int) -> tuple[float, tuple[float, float], Any, dict[str, Any]]:
-    """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``,
-    its job and counters."""
+def score(
+    path: Path, episodes: int, seed: int, values: bool = False
+) -> tuple[float, tuple[float, float] | None, Any, dict[str, Any]]:
+    """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``
+    (when ``values``), its job and counters."""
     from convoy.algos.checkpoint import load_checkpoint
     from convoy.analysis.evaluation import evaluate_policy
     from convoy.services.training import make_env
@@ -52,7 +53,8 @@ def score(path: Path, episodes: int, seed: int) -> tuple[float, tuple[float, flo
     algo, job, counters = load_checkpoint(path, device="auto")
     env = make_env(job, min(episodes, 256))
     try:
-        return evaluate_policy(algo, env, episodes, seed=seed).mean, start_values(algo, env, seed), job, counters
+        mean = evaluate_policy(algo, env, episodes, seed=seed).mean
+        return mean, start_values(algo, env, seed) if values else None, job, counters
     finally:
         env.close()
 
@@ -62,7 +64,6 @@ def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
     discounted return its greedy policy then collects (γ of its own config, up to the episode's end). A Q far below
     the return means the Q-function sees only a few steps ahead: each target sync lets value travel one bootstrap
     (or ``n_step`` steps) further."""
-    import numpy as np
     import torch
 
     obs, state = env.reset(seed=seed), algo.initial_state(env.num_envs)
@@ -85,7 +86,9 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any
     seeds, last, best, values = [], [], [], []
     for s, d in (sd for run_dir in run_dirs for sd in seed_dirs(run_dir)):
         seeds.append(s)
-        mean, (q, v), job, counters = score(d / "checkpoint.pt", episodes, seed)
+        mean, start, job, counters = score(d / "checkpoint.pt", episodes, seed, values=True)
+        assert start is not None
+        q, v = start
         last.append(mean)
         values.append({"q": q, "discounted_return": v})
         best.append(score(d / "best.pt", episodes, seed)[0])
