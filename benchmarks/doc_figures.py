@@ -175,10 +175,9 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"({_ratio(search, 'team16 ÷ private')} through a hand-written 16-bit code per\n"
         "teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. Independent\n"
         f"DQN on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
-        f"({g['env_steps'] // 1000} k steps, last policies on held-out\nepisodes, {len(g['seeds'])} seeds; tuned "
-        "private driver "
-        f"{search['policies']['private driver']['mean']:.1f}); told every car its teammates see, "
-        f"{scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
+        f"({g['env_steps'] // 1000} k steps, last policies on held-out\nepisodes, {len(g['seeds'])} seeds; "
+        f"tuned private driver {search['policies']['private driver']['mean']:.1f}); told every car its teammates "
+        f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
         + (
             "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (the default "
