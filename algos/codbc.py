@@ -48,7 +48,13 @@ class CoDBC(NetworkAgent):
         groups = 1 if self.shared else self.n_agents
         self._teacher: NetworkAgent | None = None
         return {
-            "policy": GroupMLP(groups, self.obs_dim + id_width(self.n_agents, self.shared), self.cfg.widths, self.n_act)
+            "policy": GroupMLP(
+                groups,
+                self.obs_dim + id_width(self.n_agents, self.shared),
+                self.cfg.widths,
+                self.n_act,
+                norm=self.cfg.layer_norm,
+            )
         }
 
     @property

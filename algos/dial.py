@@ -94,7 +94,7 @@ class DIAL(NetworkAgent):
         self.peers = others_index(self.n_agents).to(self.device)
         groups = 1 if self.shared else self.n_agents
         width = self.obs_dim + id_width(self.n_agents, self.shared) + (self.n_agents - 1) * self.bits
-        return {"cnet": GroupMLP(groups, width, self.cfg.widths, self.n_act + self.bits)}
+        return {"cnet": GroupMLP(groups, width, self.cfg.widths, self.n_act + self.bits, norm=self.cfg.layer_norm)}
 
     def cnet(self, nets: nn.ModuleDict, obs: Tensor, heard: Tensor) -> tuple[Tensor, Tensor]:
         """Q-values ``[..., N, A]`` and message logits ``[..., N, bits]`` from obs and received messages."""

@@ -27,7 +27,7 @@ class IndependentDQN(NetworkAgent):
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
-        return {"q": GroupMLP(groups, self.input_width(), self.cfg.widths, self.n_act)}
+        return {"q": GroupMLP(groups, self.input_width(), self.cfg.widths, self.n_act, norm=self.cfg.layer_norm)}
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.online["q"](self.features(obs)), None, None

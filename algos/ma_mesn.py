@@ -37,8 +37,8 @@ class MAMeSN(HearsMessages, NetworkAgent):
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         msg_in = (self.n_agents - 1) * self.bits
         return {
-            "message": GroupMLP(groups, obs_in, self.cfg.widths, 2 * self.bits),  # f′
-            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.widths, self.n_act),  # f″
+            "message": GroupMLP(groups, obs_in, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm),  # f′
+            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.widths, self.n_act, norm=self.cfg.layer_norm),  # f″
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

@@ -110,16 +110,26 @@ def run_state(stacked: nn.Module, run: int) -> dict[str, Tensor]:
 
 
 class GroupMLP(nn.Module):
-    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits)."""
+    """ReLU MLP of ``GroupLinear`` layers; the last layer is linear (Q-values or message logits).
 
-    def __init__(self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int) -> None:
+    ``norm`` layer-normalises each hidden pre-activation without a learned scale or shift: no parameters, so stacked
+    runs need nothing extra, and the next layer's weights can rescale what they need.
+    """
+
+    def __init__(
+        self, groups: int, in_features: int, hidden: tuple[int, ...], out_features: int, norm: bool = False
+    ) -> None:
         super().__init__()
         sizes = [in_features, *hidden, out_features]
         self.layers = nn.ModuleList(GroupLinear(groups, a, b) for a, b in itertools.pairwise(sizes))
+        self.norm = norm
 
     def forward(self, x: Tensor) -> Tensor:
         for layer in self.layers[:-1]:
-            x = torch.relu(layer(x))
+            x = layer(x)
+            if self.norm:
+                x = F.layer_norm(x, x.shape[-1:])
+            x = torch.relu(x)
         return self.layers[-1](x)
 
 

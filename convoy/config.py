@@ -65,6 +65,12 @@ class AlgoConfig(BaseModel):
     share_params: bool | None = Field(
         None, description="One network for all agents (agent id appended to the input); None = the env's default."
     )
+    layer_norm: bool = Field(
+        False,
+        description="Normalise every hidden layer's pre-activations (LayerNorm without learned scale): bounds the "
+        "features a TD target bootstraps from, which keeps Q-learning with a fast-moving target from diverging "
+        "(Gallici et al. 2024, PQN). False = plain MLPs (the paper).",
+    )
 
     @property
     def widths(self) -> tuple[int, ...]:
