@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
 from convoy.algos.nets import GroupMLP
+from convoy.algos.registry import make_algorithm
+from convoy.config import ALGORITHMS, resolve_algo
+from convoy.envs.batched import EnvSpec
 
 
+@pytest.mark.parametrize("norm", [False, True], ids=["plain", "layer-norm"])
 @pytest.mark.parametrize("groups", [1, 3])
 @pytest.mark.parametrize("hidden", [(), (64,), (64, 12), (5, 40, 7)])  # widening, narrowing and equal layers
-def test_group_mlp_is_linear_relu_with_one_weight_set_per_agent_group(groups: int, hidden: tuple[int, ...]) -> None:
-    """``Linear → ReLU → … → Linear``: with one group every agent uses the same weights, with N groups agent i uses
-    group i's."""
+def test_group_mlp_is_linear_relu_with_one_weight_set_per_agent_group(
+    groups: int, hidden: tuple[int, ...], norm: bool
+) -> None:
+    """``Linear → [LayerNorm →] ReLU → … → Linear``: with one group every agent uses the same weights, with N groups
+    agent i uses group i's; ``norm`` standardises each hidden pre-activation over its units (no learned scale)."""
     torch.manual_seed(0)
-    m = GroupMLP(groups, 9, hidden, 4).double()
+    m = GroupMLP(groups, 9, hidden, 4, norm=norm).double()
     x = torch.randn(6, 3, 9, dtype=torch.double)
     got = m(x)
     assert got.shape == (6, 3, 4)
@@ -23,7 +31,10 @@ def test_group_mlp_is_linear_relu_with_one_weight_set_per_agent_group(groups: in
         h = x[:, agent]
         for i, layer in enumerate(m.layers):
             h = h @ layer.weight[g] + layer.bias[g]
-            h = torch.relu(h) if i < len(m.layers) - 1 else h
+            if i < len(m.layers) - 1:
+                if norm:
+                    h = (h - h.mean(-1, keepdim=True)) / torch.sqrt(h.var(-1, unbiased=False, keepdim=True) + 1e-5)
+                h = torch.relu(h)
         torch.testing.assert_close(got[:, agent], h)
 
 
@@ -45,3 +56,16 @@ def test_group_mlp_keeps_the_state_dict_layout_checkpoints_hold() -> None:
     again.load_state_dict(state)
     x = torch.randn(5, 3, 9)
     torch.testing.assert_close(again(x), original(x), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_layer_norm_reaches_every_mlp_of_every_algorithm(name: str, tmp_path: Path) -> None:
+    """``layer_norm`` is an ``AlgoConfig`` field, so no algorithm may take it and silently build plain MLPs."""
+    spec = EnvSpec(name="toy", agent_ids=("a", "b"), obs_dims=(6, 6), n_actions=(5, 5), max_steps=10)
+    hp: dict[str, object] = {"hidden": (16, 16), "layer_norm": True}
+    if name == "codbc":  # the teacher is loaded when it first acts, not to build the student
+        hp["teacher"] = str(tmp_path / "teacher.pt")
+    algo = make_algorithm(name, spec, resolve_algo(name, "treadmill", hp), device="cpu", seed=0)
+    mlps = [m for m in algo.online.modules() if isinstance(m, GroupMLP) and len(m.layers) > 1]
+    assert mlps, f"{name} builds no GroupMLP with a hidden layer"
+    assert all(m.norm for m in mlps), f"{name}: an MLP ignores layer_norm"

@@ -170,6 +170,22 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
         torch.testing.assert_close(w, single.online.state_dict()[n], rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("share", [False, True], ids=["per-agent", "shared"])
+def test_a_layer_normalised_population_stays_its_single_runs(share: bool) -> None:
+    """LayerNorm normalises each row over its own units, so stacking runs must not mix one run's rows into
+    another's statistics."""
+    torch.set_num_threads(1)
+    cfg = config("idqn", share, layer_norm=True, target_tau=0.01)
+    pop = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS)
+    singles = [make_algorithm("idqn", SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
+    feed(pop, singles, np.random.default_rng(1))
+    for _ in range(100):
+        pop.update()
+        for s in singles:
+            s.update()
+    assert max_weight_gap(pop, singles) < 1e-5
+
+
 def test_stack_runs_refuses_a_layer_without_a_run_axis() -> None:
     plain = torch.nn.ModuleDict({"layer": torch.nn.Linear(3, 4)})
     with pytest.raises(NotImplementedError, match="no run axis"):
