@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.nets import signalling_loss
 from convoy.config import MessageSource
 from convoy.envs.channel import MessageChannel
 from convoy.validation import ConfigError
@@ -146,13 +145,6 @@ class HearsMessages:
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
         """Every sender's message logits ``[..., senders, 2·bits]`` from the raw observations ``[..., N, D]``."""
         raise NotImplementedError
-
-    def signalling(self, batch: dict[str, Tensor]) -> tuple[Tensor | None, dict[str, float | Tensor]]:
-        """The positive-signalling term, −coef × I(observation; message) on this batch (``signalling_coef``)."""
-        if not self.cfg.signalling_coef:  # type: ignore[attr-defined]
-            return None, {}
-        logits = self.message_logits(self.online, batch["obs"])
-        return signalling_loss(logits, self.bits, self.cfg, self.runs)  # type: ignore[attr-defined]
 
     def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:
         if self.listening is None:

@@ -17,7 +17,15 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
 from convoy.algos.listening import HearsMessages
-from convoy.algos.nets import GroupMLP, gather_others, gumbel_bits, id_width, others_index, with_agent_id
+from convoy.algos.nets import (
+    GroupMLP,
+    gather_others,
+    gumbel_bits,
+    id_width,
+    others_index,
+    signalling_loss,
+    with_agent_id,
+)
 from convoy.config import MeSNConfig, resolved
 
 
@@ -77,4 +85,10 @@ class MAMeSN(HearsMessages, NetworkAgent):
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
         y = self.bootstrap(self.q_values, batch)
         # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
-        return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
+        td = td_loss(q, y, self.cfg).mean(dim=-2)
+        if not self.cfg.signalling_coef:
+            return Loss(td)
+        # positive signalling (off on the treadmill): −coef·I(o; m) over the batch, from f′'s logits
+        return Loss(
+            td, *signalling_loss(self.message_logits(self.online, batch["obs"]), self.bits, self.cfg, self.runs)
+        )
