@@ -1,1 +1,1 @@
-"""The FastAPI job service (the job-service issue)."""
+"""The job service's HTTP API (FastAPI): routes, bodies, the job lifecycle and sweeps; it runs no job itself."""

@@ -270,7 +270,7 @@ class JobView(BaseModel):
     """A job as ``GET /jobs/{id}`` shows it."""
 
     id: str
-    state: str = Field(description="queued, starting, running, completed, stopped or failed.")
+    state: str = Field(description="queued, starting, running, stopping, completed, stopped or failed.")
     algo: str
     env: str
     actors: int = Field(description="Actor processes requested.")
@@ -281,7 +281,7 @@ class JobView(BaseModel):
     updated_at: float = Field(description="Unix time of the last state change or progress report.")
     error: str | None = Field(None, description="Why a failed job failed: the cause and what to do.")
     last_checkpoint: str | None = Field(None, description="Path of the newest checkpoint on the service's host.")
-    queue_position: int | None = Field(None, description="Place in the queue of a queued job (0 = next).")
+    queue_position: int | None = Field(None, description="Place in the queue of a queued job (1 = next).")
     config: dict[str, Any] = Field(description="The job's full configuration, defaults filled in.")
     final: FinalEvaluation | None = Field(None, description="The greedy evaluation of a completed job.")
     population: str | None = Field(

@@ -1,4 +1,5 @@
-"""Command-line values shared by ``convoy env rollout`` and ``convoy train``: ``KEY=VALUE`` pairs and env params."""
+"""What the commands share: ``add_command`` (a command's ``--help`` is its function's docstring), flags drawn from
+the config models and the resource limits, ``KEY=VALUE`` pairs and env params."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""``convoy jobs``: the command-line client of the job service (``convoy serve``), one subcommand per API route.
+"""``convoy jobs``: the command-line client of the job service (``convoy serve``), one subcommand per action.
 
-``submit``, ``list``, ``status``, ``scale``, ``stop``, ``resume``, ``delete``, ``logs``, ``evaluate`` and
-``watch`` speak HTTP to ``--url`` (``CONVOY_API_URL``, default http://127.0.0.1:8000) with ``--token``
+``submit``, ``list``, ``status``, ``scale``, ``stop``, ``resume``, ``delete``, ``metrics``, ``logs``, ``evaluate``
+and ``watch`` speak HTTP to ``--url`` (``CONVOY_API_URL``, default http://127.0.0.1:8000) with ``--token``
 (``CONVOY_API_TOKEN``) as the bearer token of the mutating routes. Every error the API answers is printed as one
 line ``error: <field>: <problem> — <fix>`` with exit code 2; a service that does not answer is ``error: cannot
 reach <url> (...)``, also exit 2.
@@ -526,8 +526,8 @@ def cmd_jobs(args: argparse.Namespace) -> int:
     """Submit, watch and control the jobs of a running `convoy serve`.
 
     Talk to the job service started by `convoy serve` (its REST API, OpenAPI at URL/docs). Reading commands need
-    no token; submit, scale, stop, resume and delete send 'Authorization: Bearer TOKEN'. API errors are printed
-    as 'error: FIELD: PROBLEM — FIX' with exit code 2.
+    no token; submit, scale, stop, resume, delete and evaluate send 'Authorization: Bearer TOKEN'. API errors are
+    printed as 'error: FIELD: PROBLEM — FIX' with exit code 2.
     """
     return run_client(args, COMMANDS[args.jobs_command])
 

@@ -5,7 +5,7 @@ paper shows and which claims to check (``analysis/verdicts.py``). A sweep figure
 local ``convoy serve`` on this machine unless ``--service URL``), followed until its jobs end and summarised; a
 benchmark figure (Fig. 4b, inference time) runs its benchmark script here; an analysis figure (Table 1) analyses
 the checkpoints of another figure's sweep. A sweep already in the service with the same request is reused (resumed
-when it was stopped), so running the command again continues where it stopped. Each figure's figures go to
+when it was stopped or failed), so running the command again continues where it stopped. Each figure's figures go to
 ``docs/reproduction/ID.json`` and ``ID.png``; ``docs/reproduction.md`` is rendered from every JSON there, so figures
 measured in separate runs share one page.
 """

@@ -55,8 +55,8 @@ class TrainingCore:
     """Counts env steps and episodes, runs the owed updates, logs rows, evaluates, checkpoints and summarises.
 
     ``counters`` (a checkpoint's) resume a run where it stopped: the metric history is cut at its step and the
-    best greedy return so far is kept. ``replay_bytes`` > 0 also writes the replay beside every ``checkpoint.pt``
-    (the learner process, whose restarts should not start from an empty buffer).
+    best greedy return so far is kept. ``replay_bytes`` > 0 also writes the replay beside every ``checkpoint.pt``,
+    so that a restarted learner or ``convoy train --resume`` does not start from an empty buffer.
     """
 
     def __init__(

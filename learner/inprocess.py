@@ -1,9 +1,9 @@
 """The in-process reference trainer: batched envs and learner updates in one loop, one process.
 
-This is the baseline the distributed runtime has to beat, and what the learning tests run. It talks to the
-algorithm only through its public calls (act / observe / updates_for / can_update / update), exactly as the
-learner process will, and to the env only through the batched interface, so the env is built by the caller
-(``services``) and this module imports no environment code.
+This is the baseline the distributed runtime has to beat, and what the learning tests run. It acts through the
+actors' loop (``actors/stepping.py``) and feeds the trainer core the learner process feeds (``learner/core.py``), so
+the algorithm sees the same calls either way; it reaches the env only through the batched interface
+(``envs.batched``): the caller (``services.training``) builds the env, and this module imports no particular env.
 """
 
 from __future__ import annotations

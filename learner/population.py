@@ -53,7 +53,7 @@ class PopulationCore:
     ) -> None:
         """``jobs[k]`` is run k's job (its seed ``algo.seeds[k]``); ``out_dirs[k]`` its folder; ``counters[k]``
         its checkpoint's counters when the population resumes; ``replay`` = (file, max bytes): the population's
-        replay is written there before each checkpoint (the learner process, as ``TrainingCore`` does)."""
+        replay is written there before each checkpoint, as ``TrainingCore`` writes a single run's."""
         if algo.runs != len(jobs) or [j.seed for j in jobs] != list(algo.seeds):
             raise ValueError("jobs: one job per run of the population, with the run's seed")
         self.jobs, self.algo = jobs, algo

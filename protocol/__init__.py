@@ -1,4 +1,3 @@
-"""What every Convoy process agrees on: job and algorithm configs, Zenoh key expressions, the wire schema.
-
-Filled in by the distributed-runtime issue; the environment configs it will embed live in ``envs``.
+"""What every Convoy process agrees on: the wire schema, Zenoh key expressions and sessions, inboxes, exit codes and
+process reports. No env code (the job config lives in ``convoy.config``), so the API and actors' wire stay light.
 """

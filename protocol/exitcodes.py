@@ -1,8 +1,9 @@
 """Exit codes of Convoy's worker processes, which supervisors (``services.procs``) act on.
 
-0 means the process finished its part of the job (actor: the learner has all the data; learner: the job is done)
-and is not restarted. ``STOPPED`` (143, the shell's code for SIGTERM) means a signal stopped it before that — a
-supervisor that still wants the process starts it again, like after any other crash.
+0 means the process finished its part of the job (actor: the learner has all the data, or a stop came; learner: the
+job is done) and is not restarted — except an actor that exits 0 while its local learner lacks the job's steps (a
+forged stop or budget): it is respawned (``services.procs``). ``STOPPED`` (143, the shell's code for SIGTERM) means a
+signal stopped it before that — a supervisor that still wants the process starts it again, like after any other crash.
 """
 
 import sys

@@ -74,5 +74,5 @@ def parse_alive(key: str) -> tuple[str, str, str] | None:
 
 
 def host(name: str, what: str) -> str:
-    """A host agent's endpoints (``cmd`` for start/stop/scale requests, ``status``)."""
+    """A host agent's endpoint ``what``: ``cmd``, where it takes ``scale`` and ``stop`` commands."""
     return f"{PREFIX}/hosts/{check_id(name, 'host name')}/{check_id(what, 'host endpoint')}"

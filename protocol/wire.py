@@ -14,10 +14,11 @@ Kinds and their bodies:
   with T = its unroll length, so one kind serves transition batches and episode batches. A population's chunk
   holds its R runs' envs run by run (B = R × envs per run) and says each return's run in ``return_runs``.
 * ``weights`` (learner → actors): ``version``, ``algo``, ``state`` (name → array).
-* ``budget`` (learner → actors): ``allowed_steps`` (env steps the learner will take in total before it has done
-  the updates they are owed), ``ingested_steps``, ``version`` — the samples-per-insert throttle.
+* ``budget`` (learner → actors): ``allowed_steps`` (env steps the actors may have sent in all: those ingested, plus
+  the slack, less what still waits in the learner's queue; the job's ``steps`` once it has them), ``ingested_steps``,
+  ``version`` — the samples-per-insert throttle.
 * ``metrics`` (any → supervisor/API): ``role``, ``id``, ``values`` (name → number).
-* ``command`` (supervisor/API → host agents): ``op`` and ``args``.
+* ``command`` (supervisor/API → host agents; a job runner's ``stop`` → its actors): ``op`` and ``args``.
 """
 
 from __future__ import annotations

@@ -7,11 +7,12 @@ by side at start-up, and a crashed actor is back in a fraction of a second. Fork
 option (fork after a Zenoh session is open loses every message); where the platform has no forkserver the ``spawn``
 method is used. Processes get plain-data arguments (job config, Zenoh settings) and are tracked by PID. A crashed
 actor is respawned under a new id (its seed advanced, so it does not replay the same episodes); a crashed learner is
-restarted and resumes from its checkpoint. Each role has its own budget within ``restart_window_s``: a few learner
-crashes (``max_restarts``: each costs a resume) and many actor deaths (``actor_max_restarts``: actors come and go),
-past which the job fails with the reason. An actor that keeps dying at start (a crash loop, not churn) is respawned
-after a doubling delay (``restart_backoff_s``). Exit code 0 means a process finished its part of the job and is not
-restarted.
+restarted and resumes from its checkpoint, except one that diverged (``DIVERGED``: a restart would diverge again),
+which fails the job at once. Each role has its own budget within ``restart_window_s``: a few learner crashes
+(``max_restarts``: each costs a resume) and many actor deaths (``actor_max_restarts``: actors come and go), past
+which the job fails with the reason. An actor that keeps dying at start (a crash loop, not churn) is respawned after
+a doubling delay (``restart_backoff_s``). Exit code 0 means a process finished its part of the job and is not
+restarted, unless an actor leaves while its local learner still lacks the job's steps (then it is respawned: ``poll``).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The job service's persistence: jobs, their state transitions (``api/lifecycle.py``) and their metric history in
-one SQLite file.
+"""The job service's persistence: jobs, their state transitions (``api/lifecycle.py``), their metric history and the
+sweeps that group them, in one SQLite file.
 
 Why SQLite, and why this shape
 ------------------------------
@@ -172,7 +172,7 @@ def _as_opt_str(value: Any, what: str) -> str | None:
 
 
 class JobStore:
-    """Jobs, transitions and metric history in one SQLite file (WAL); every method is thread-safe.
+    """Jobs, transitions, metric history and sweeps in one SQLite file (WAL); every method is thread-safe.
 
     Use it as a context manager, or call ``close()`` when done. ``":memory:"`` gives a private in-memory store.
     """

@@ -1,4 +1,5 @@
-"""Composition of a training run: build the job's env and agent, hand them to the in-process trainer."""
+"""Composition of a training run: in this process (the job's env and agent handed to the in-process or population
+trainer) or as learner and actor processes on this machine (``run_distributed``: a ``JobRunner``)."""
 
 from __future__ import annotations
 

@@ -1,1 +1,1 @@
-"""The API's routes, one ``APIRouter`` per module: jobs, metrics, service."""
+"""The API's routes, one ``APIRouter`` per module: jobs, metrics, service, sweeps."""

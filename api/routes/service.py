@@ -1,4 +1,4 @@
-"""The service itself: its health and the dashboard page."""
+"""The service itself: its health, the env and algorithm catalogues (``/envs``, ``/algos``) and the dashboard."""
 
 from __future__ import annotations
 
