@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     except JobFailed as exc:
         err_console.print(f"[bold red]job failed:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 1
-    except FloatingPointError as exc:  # the in-process trainer's Algorithm.update gave up on non-finite losses
+    except FloatingPointError as exc:  # the in-process trainer's NetworkAgent.update gave up on non-finite losses
         err_console.print(
             f"[bold red]job failed:[/] training diverged: {escape(str(exc))}", highlight=False, soft_wrap=True
         )
