@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from convoy.envs.treadmill import TreadmillConfig
+from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.envs.treadmill.references import CONSTANTS, best_constant, evaluate_references, who_sees_the_threat
 
 
@@ -112,17 +113,45 @@ def test_16_bit_code_round_trips_a_window_cell() -> None:
 
 
 def test_how_episodes_end_tells_the_chaser_from_the_window() -> None:
-    """``benchmarks/treadmill_causes.py`` on fixed seeds: a car that only accelerates leaves the window; the tuned
-    private driver holds its place and is caught by the chaser (it sees no threat behind it)."""
+    """``benchmarks/treadmill_causes.py`` on fixed seeds: a car that only accelerates leaves the window (by the front
+    when it starts facing forward); the tuned private driver holds its place and is caught by the chaser (it sees no
+    threat behind it)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from benchmarks.treadmill_causes import CAUSES, play
+    from benchmarks.treadmill_causes import CAUSES, LEFT, play
 
-    left, caught = CAUSES.index("left the window"), CAUSES.index("adversary")
-    _, floor_it = play("constant-5", 60, 3, {})
-    assert np.mean(floor_it == left) > 0.8
-    returns, driver = play("private-driver", 60, 3, {})
-    assert np.mean(driver == caught) > 0.6 and np.mean(driver == left) < 0.2
-    assert returns.mean() > 30  # it is the tuned driver, driving
+    front, back, caught = CAUSES.index("out the front"), CAUSES.index("out the back"), CAUSES.index("adversary")
+    left = [CAUSES.index(c) for c in LEFT]
+    floor_it = play("constant-5", 60, 3, {})
+    assert np.isin(floor_it.cause, left).mean() > 0.8
+    assert np.isnan(floor_it.belief).all()  # a reference policy has no Q-function to ask
+    # all facing forward: flooring it leaves by the front, standing still (brake) is carried out of the back
+    assert np.mean(play("constant-5", 60, 3, {"spawn_heading_spread": 0}).cause == front) > 0.8
+    assert np.mean(play("constant-3", 60, 3, {"spawn_heading_spread": 0}).cause == back) > 0.4
+    driver = play("private-driver", 60, 3, {})
+    assert np.mean(driver.cause == caught) > 0.6 and np.isin(driver.cause, left).mean() < 0.2
+    assert driver.returns.mean() > 30  # it is the tuned driver, driving
+
+
+def test_how_episodes_end_reads_a_checkpoints_belief_before_it_leaves_the_window(tmp_path) -> None:
+    """For a checkpoint the benchmark also reports the max Q of the agent that left the window, at its last act:
+    there for exactly the episodes that ended that way."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.treadmill_causes import CAUSES, LEFT, play
+    from convoy.algos.checkpoint import save_checkpoint
+    from convoy.algos.registry import make_algorithm
+    from convoy.config import job_config
+
+    job = job_config(algo="idqn", env="treadmill", algo_params={"hidden": (16,)}, device="cpu", seed=0)
+    spec = TreadmillEngine(TreadmillConfig(), 1).spec
+    agent = make_algorithm("idqn", spec, job.algo_config(), device="cpu", seed=0)
+    path = save_checkpoint(tmp_path / "untrained.pt", agent, job, {"env_steps": 0, "episodes": 0, "updates": 0})
+    ends = play(str(path), 40, 3, {})
+    left = np.isin(ends.cause, [CAUSES.index(c) for c in LEFT])
+    assert left.any(), "an untrained policy drives off the window in some of 40 episodes"
+    assert np.isfinite(ends.belief[left]).all() and np.isnan(ends.belief[~left]).all()
