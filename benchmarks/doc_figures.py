@@ -191,10 +191,25 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     )
 
 
+def causes(ends: dict[str, Any]) -> str:
+    """docs/treadmill.md: how episodes end, per policy, and a learner's belief before it leaves the window
+    (``benchmarks/treadmill_causes.py``)."""
+    edges = ("out the front", "out the back", "off a side")
+    cols = ("survived", "adversary", "teammate", *edges)
+    rows = [
+        [label, f"{f['return']:.1f} ± {f['ci95']:.1f}", *(f"{f[c]:.0%}" for c in cols),
+         "—" if f["max_q_before_leaving"] is None else f"{f['max_q_before_leaving']:.1f}"]
+        for label, f in ends.items()
+    ]  # fmt: skip
+    header = ["policy", "return", "survived 200 steps", "caught by the adversary", "hit a teammate", *edges,
+              "max Q at the last act before leaving"]  # fmt: skip
+    return markdown_table(header, rows, [False, *[True] * 8])
+
+
 # the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
 HEADLINE = ("+ team sightings, 150 k", "own, 150 k")
 
-SEARCH, SCORES = "treadmill_search.json", "treadmill_learners.json"
+SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-references": ((SEARCH,), references),
     "treadmill-search": ((SEARCH,), search_table),
@@ -203,6 +218,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "readme-summary": ((SEARCH, SCORES), readme_summary),
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
+    "treadmill-causes": ((CAUSES,), causes),
 }
 
 

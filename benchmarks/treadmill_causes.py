@@ -135,7 +135,12 @@ def play(what: str, episodes: int, seed: int, sets: dict[str, object]) -> Ends:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("policies", nargs="+", metavar="POLICY", help="a reference policy's name or a checkpoint.pt")
+    p.add_argument(
+        "policies",
+        nargs="+",
+        metavar="[LABEL=]POLICY",
+        help="a reference policy's name or a checkpoint.pt, optionally named LABEL in the table and the JSON",
+    )
     p.add_argument("--episodes", type=int, default=200, help="episodes per policy (default %(default)s)")
     p.add_argument("--seed", type=int, default=777, help="episode seed (default %(default)s, convoy eval's held out)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="rules of the reference policies, repeatable")
@@ -147,16 +152,19 @@ def main(argv: list[str] | None = None) -> None:
     for col in ("return (95 % CI)", *CAUSES, "max Q before leaving"):
         table.add_column(col, justify="right")
     figures = {}
-    for what in args.policies:
+    for arg in args.policies:
+        label, _, what = arg.rpartition("=")
+        label = label or what
         ends = play(what, args.episodes, args.seed, sets)
         shares = np.bincount(ends.cause, minlength=len(CAUSES)) / len(ends.cause)
         share = dict(zip(CAUSES, shares.tolist(), strict=True))
         believed = ends.belief[np.isfinite(ends.belief)]
         q = float(believed.mean()) if believed.size else None
         r = ends.returns
-        figures[what] = {"return": float(r.mean()), "ci95": ci95_half(r), **share, "max_q_before_leaving": q}
+        figures[label] = {"policy": what, "return": float(r.mean()), "ci95": ci95_half(r), **share}
+        figures[label]["max_q_before_leaving"] = q
         cells = (f"{s:.0%}" for s in shares)
-        table.add_row(what, f"{r.mean():.1f} ± {ci95_half(r):.1f}", *cells, "—" if q is None else f"{q:.1f}")
+        table.add_row(label, f"{r.mean():.1f} ± {ci95_half(r):.1f}", *cells, "—" if q is None else f"{q:.1f}")
     Console().print(table)
     if args.json:
         write_json(args.json, figures)
