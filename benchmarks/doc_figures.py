@@ -1,9 +1,11 @@
 """The figures the README and docs quote from a benchmark's JSON, rendered into them: one source for each figure.
 
 A rendered block sits between ``<!-- figures:NAME -->`` and ``<!-- /figures -->`` in a Markdown file; NAME says
-which renderer fills it, from which JSON in ``docs/figures/`` (written by the benchmark named there). After
-re-running a benchmark, ``python benchmarks/doc_figures.py`` rewrites every block; ``--check`` exits 1, naming the
-stale blocks, when a file does not show what its JSON holds (``tests/test_doc_figures.py`` runs it).
+which renderer fills it, from which JSON in ``docs/figures/`` (written by the benchmark named there) or from every
+figure ``convoy reproduce`` wrote to ``docs/reproduction/`` (the JSONs ``docs/reproduction.md`` is rendered from,
+verdicts included). After re-running a benchmark or ``convoy reproduce``, ``python benchmarks/doc_figures.py``
+rewrites every block; ``--check`` exits 1, naming the stale blocks, when a file does not show what its JSON holds
+(``tests/test_doc_figures.py`` runs it).
 """
 
 from __future__ import annotations
@@ -19,9 +21,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from convoy.analysis.verdicts import NOT, REPRODUCED, p_above, significant  # noqa: E402
 from convoy.output import markdown_table  # noqa: E402
+from convoy.stats import mean_ci  # noqa: E402
 
 FIGURES = ROOT / "docs" / "figures"
+REPRODUCTION = ROOT / "docs" / "reproduction"
 FILES = ("README.md", "docs/treadmill.md", "docs/benchmarks.md")
 BLOCK = re.compile(r"(<!-- figures:([\w-]+) -->\n)(.*?)(<!-- /figures -->)", re.S)
 
@@ -206,10 +211,149 @@ def causes(ends: dict[str, Any]) -> str:
     return markdown_table(header, rows, [False, *[True] * 8])
 
 
+# --- the paper's figures, from `convoy reproduce`'s JSON (docs/reproduction/ID.json) ------------------------------
+
+
+def _pm(mean: float, ci: float) -> str:
+    """``−11.2 ± 1.7`` (a typographic minus)."""
+    return f"{mean:.1f} ± {ci:.1f}".replace("-", "−")
+
+
+def _final(r: dict[str, Any], group: str) -> str:
+    """A group's final greedy return over seeds, as ``convoy reproduce`` summarised it."""
+    final = next(g["final"] for g in r["groups"] if g["group"] == group)
+    return _pm(final["mean"], final["ci95"])
+
+
+def _verdict(r: dict[str, Any], claim: str) -> dict[str, Any]:
+    """The verdict ``convoy reproduce`` gave ``claim`` (its text in the figure file)."""
+    for v in r["verdicts"]:
+        if v["claim"] == claim:
+            return v
+    raise KeyError(f"{r['id']}: no claim {claim!r}; its claims: {', '.join(v['claim'] for v in r['verdicts'])}")
+
+
+def _p(p: float) -> str:
+    return "p < 0.001" if p < 0.001 else f"p = {p:.1g}" if p < 0.01 else f"p = {p:.2f}"
+
+
+def _outcome(v: dict[str, Any]) -> str:
+    """``, p = 0.005: reproduced`` or ``: not reproduced at this budget``, after the two returns compared."""
+    if v["verdict"] == REPRODUCED:
+        return f", {_p(v['p'])}: reproduced"
+    return f": {v['verdict']} at this budget"
+
+
+def _span(values: set[int]) -> str:
+    """``5``, or ``3–5`` when they differ."""
+    return f"{min(values)}–{max(values)}" if len(values) > 1 else f"{min(values)}"
+
+
+def _steps(r: dict[str, Any]) -> str | None:
+    """``30 k``: the env steps per run that the figure's note states (``5 seeds × 30 k env steps …``)."""
+    m = re.search(r"seeds × ([\d.,]+ [kM]) env steps", r["note"])
+    return m.group(1) if m else None
+
+
+def _budget(r: dict[str, Any]) -> str:
+    """``5 seeds × 30 k steps``: the seeds the figure's groups have and the env steps its note states."""
+    steps = _steps(r)
+    return f"{_span({g['final']['n'] for g in r['groups']})} seeds" + (f" × {steps} steps" if steps else "")
+
+
+def _where(r: dict[str, Any]) -> str:
+    """A link to the figure's section of docs/reproduction.md (the anchor that page's headings get)."""
+    anchor = "".join(c for c in r["title"].lower().replace(" ", "-") if c.isalnum() or c == "-")
+    return f"[docs/reproduction.md](docs/reproduction.md#{anchor})"
+
+
+def _none_above_random(r: dict[str, Any]) -> bool:
+    """Whether no group ends significantly above the random policy on its env (docs/reproduction.md's *above
+    random?* column, the same test)."""
+    tested = [(g["final"]["values"], (g.get("references") or r["references"] or {}).get("random")) for g in r["groups"]]
+    tested = [(values, ref) for values, ref in tested if ref is not None]
+    return bool(tested) and not any(significant(*p_above(values, float(ref))) for values, ref in tested)
+
+
+def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, Any]]) -> str:
+    """README: the results table's rows with a JSON behind them: the treadmill search's headline ratio and the
+    paper's figures as ``convoy reproduce`` measured and judged them."""
+    open_loop = search["ratios"]["best open-loop ÷ private"]
+    rows = [[f"treadmill: best open-loop policy found ÷ tuned private driver (paired, {search['episodes']} episodes)",
+             f"{open_loop['ratio']:.2f} ± {open_loop['ratio_ci95']:.2f} (goal ≤ 0.5)",
+             "[docs/treadmill.md](docs/treadmill.md)"]]  # fmt: skip
+
+    fig3 = records["fig3"]
+    head = _verdict(fig3, "MA-MeSN ends above independent DQN")
+    also = [f"{v['claim'].replace(' ends above ', ' > ')}, {_p(v['p'])}" for v in fig3["verdicts"]
+            if v is not head and v["verdict"] == REPRODUCED]  # fmt: skip
+    also.append(f"tuned private driver {fig3['references']['private-driver']:.1f} on the same episodes")
+    rows.append([f"Fig. 3 at the {fig3['scale']} scale ({_budget(fig3)}): MA-MeSN vs independent DQN",
+                 f"{_final(fig3, 'algo=ma-mesn')} vs {_final(fig3, 'algo=idqn')}{_outcome(head)} ({'; '.join(also)})",
+                 _where(fig3)])  # fmt: skip
+
+    ordered = [records[k] for k in sorted(records)]
+    labels = [r["title"].split(":")[0] for r in ordered]
+    figs = [label.removeprefix("Fig. ") for label in labels if label.startswith("Fig. ")]
+    tables = [label for label in labels if not label.startswith("Fig. ")]
+    seeds = _span({g["final"]["n"] for r in ordered for g in r["groups"]})
+    numbers = [re.sub(r"[a-z]+$", "", f) for f in figs]  # 4a, 4b → 4
+    scales = sorted({r["scale"] for r in ordered})
+    minutes = [r["minutes"] for r in ordered]
+    verdicts = []
+    for i, (r, label) in enumerate(zip(ordered, labels, strict=True)):
+        short = label if i == 0 or not label.startswith("Fig. ") else label.removeprefix("Fig. ")
+        word = "not" if r["verdict"] == NOT else r["verdict"]
+        at = f" at {_steps(r)} steps" if _steps(r) else ""
+        why = f" (no learner above random{at})" if _none_above_random(r) else ""
+        verdicts.append(f"{short} {word}{why}")
+    rows.append([f"Figs. {numbers[0]}–{numbers[-1]}{''.join(' and ' + t for t in tables)} at the "
+                 f"{' and '.join(scales)} scale ({seeds} seeds each, ≤ {max(minutes):.0f} min a "
+                 f"figure, {sum(minutes):.0f} min in all)",
+                 " · ".join(verdicts), "[docs/reproduction.md](docs/reproduction.md)"])  # fmt: skip
+
+    fig5 = records["fig5"]
+    named = {"ma-mesn-mm": "MA-MeSN-MM", "codbc": "CoDBC", "dqn-ser": "DQN + SER", "idqn": "DQN"}
+    held = [f"{v['claim'].replace(' ends above ', ' > ')}, {_p(v['p'])}" for v in fig5["verdicts"]
+            if v["verdict"] == REPRODUCED]  # fmt: skip
+    rows.append([f"Fig. 5 at the {fig5['scale']} scale, decentralised execution: {' / '.join(named.values())}",
+                 " / ".join(_final(fig5, f"algo={k}") for k in named)
+                 + (f": {'; '.join(held)}" if held else ": no difference at this budget"), _where(fig5)])  # fmt: skip
+
+    table1 = records["table1"]
+    analysis = table1["analysis"]
+    returns = {"return_sent": "true messages", "return_shuffled": "shuffled across envs",
+               "return_modal": "each sender's modal message", "return_noise": "white noise"}  # fmt: skip
+    noise = _verdict(table1, "white noise for messages lowers the return")
+    consistency = analysis["speaker_consistency"]
+    shown = [mean_ci(analysis[k]["value"]) for k in returns]
+    rows.append([f"Table 1 at the {table1['scale']} scale, MA-MeSN's return with {' / '.join(returns.values())}",
+                 " / ".join(_pm(s["mean"], s["ci95"]) for s in shown) + ": "
+                 + (f"white noise lowers the return, {_p(noise['p'])}" if noise["verdict"] == REPRODUCED
+                    else "the listeners do not use what the messages say at this budget")
+                 + f" (speaker consistency {mean_ci(consistency['value'])['mean']:.2f} vs shuffled "
+                 f"{mean_ci(consistency['shuffled'])['mean']:.2f})", _where(table1)])  # fmt: skip
+
+    fig8 = records["fig8"]
+    head = _verdict(fig8, "MA-MeSN ends above independent DQN")
+    others: dict[str, list[str]] = {}
+    for v in fig8["verdicts"]:
+        if v is not head and v["claim"].endswith(" ends above independent DQN"):
+            others.setdefault(v["verdict"], []).append(v["claim"].removesuffix(" ends above independent DQN"))
+    rest = "; ".join(f"{' and '.join(names)} {'not' if verdict == NOT else verdict}"
+                     for verdict, names in others.items())  # fmt: skip
+    rows.append([f"Fig. 8 at the {fig8['scale']} scale ({_budget(fig8)}): MA-MeSN vs independent DQN on "
+                 "speaker-listener",
+                 f"{_final(fig8, 'algo=ma-mesn')} vs {_final(fig8, 'algo=idqn')}{_outcome(head)}"
+                 + (f"; {rest}" if rest else ""), _where(fig8)])  # fmt: skip
+    return markdown_table(["what", "figure", "where"], rows, [False, False, False])
+
+
 # the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
 HEADLINE = ("+ team sightings, 150 k", "own, 150 k")
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
+REPRODUCED_FIGURES = "reproduction/*.json"  # every figure in REPRODUCTION, by id
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-references": ((SEARCH,), references),
     "treadmill-search": ((SEARCH,), search_table),
@@ -219,7 +363,16 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
     "treadmill-causes": ((CAUSES,), causes),
+    "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),
 }
+
+
+def load(source: str) -> Any:
+    """A renderer's source: a JSON in FIGURES, or (REPRODUCED_FIGURES) every ``convoy reproduce`` record by id."""
+    if source == REPRODUCED_FIGURES:
+        records = (json.loads(p.read_text()) for p in sorted(REPRODUCTION.glob("*.json")))
+        return {r["id"]: r for r in records}
+    return json.loads((FIGURES / source).read_text())
 
 
 def rendered(text: str) -> str:
@@ -230,7 +383,7 @@ def rendered(text: str) -> str:
         if name not in RENDERERS:
             raise KeyError(f"figures block {name!r}: no renderer; known: {', '.join(RENDERERS)}")
         sources, render = RENDERERS[name]
-        data = [json.loads((FIGURES / source).read_text()) for source in sources]
+        data = [load(source) for source in sources]
         return f"{m.group(1)}{render(*data)}\n{m.group(4)}"
 
     return BLOCK.sub(fill, text)

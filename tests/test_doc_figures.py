@@ -28,3 +28,21 @@ def test_a_changed_figure_makes_its_block_stale(tmp_path: Path, monkeypatch) -> 
     readme = (ROOT / "README.md").read_text()
     assert "12.3 ± 3.9" not in readme and "12.3 ± 3.9 |" in doc_figures.rendered(readme)
     assert "scores 23.5 ±" not in readme and "scores 23.5 ±" in doc_figures.rendered(readme)
+
+
+def test_a_changed_reproduction_figure_makes_the_readme_results_stale(tmp_path: Path, monkeypatch) -> None:
+    records = {p.name: json.loads(p.read_text()) for p in doc_figures.REPRODUCTION.glob("*.json")}
+    fig8 = records["fig8.json"]
+    next(g for g in fig8["groups"] if g["group"] == "algo=idqn")["final"]["mean"] = -15.55
+    next(v for v in fig8["verdicts"] if v["claim"] == "MA-MeSN ends above independent DQN")["verdict"] = "partly"
+    records["fig6.json"]["verdict"] = "reproduced"
+    records["fig5.json"]["minutes"] += 6.2  # the longest figure: 40.4 min, 108.9 in all
+    for name, values in records.items():
+        (tmp_path / name).write_text(json.dumps(values))
+    monkeypatch.setattr(doc_figures, "REPRODUCTION", tmp_path)
+    readme = (ROOT / "README.md").read_text()
+    new = doc_figures.rendered(readme)
+    for shown in ("−11.2 ± 1.7 vs −15.6 ± 1.0: partly at this budget", "· 6 reproduced ·",
+                  "≤ 40 min a figure, 109 min in all"):  # fmt: skip
+        assert shown not in readme and shown in new
+    assert "vs −17.4 ± 1.0, p < 0.001: reproduced" in readme and "−17.4 ± 1.0" not in new
