@@ -185,14 +185,14 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
         + (
-            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (the default "
-            "learner looks only a few steps ahead; a far-sighted one\ngains from the sightings but does not hold its "
-            "policy) "
+            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (told where "
+            "every car is, it flees the chaser and drives off the\nwindow: no learner has learned where the window "
+            "ends) "
             if c["diff_low"] <= 0
             else "the learner turns teammates' knowledge\ninto reward "
         )
-        + "([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). The paper's figures in\n"
-        "[docs/reproduction.md](docs/reproduction.md) were measured on the previous rules."
+        + "([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). The paper's figures at the quick\n"
+        "scale, on these rules: [docs/reproduction.md](docs/reproduction.md)."
     )
 
 
