@@ -185,9 +185,9 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
         + (
-            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (told where "
-            "every car is, it flees the chaser and drives off the\nwindow: no learner has learned where the window "
-            "ends) "
+            "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (with the "
+            "Huber loss it never learns where the window ends, and\ntold where every car is it flees off the window; "
+            "learners that know the edge lead with the\nsightings, CIs still overlapping) "
             if c["diff_low"] <= 0
             else "the learner turns teammates' knowledge\ninto reward "
         )
