@@ -89,9 +89,8 @@ class IMS(NetworkAgent):
         width = hidden[-1]
         obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
         return {
-            "encoder": GroupMLP(
-                groups, obs_in, hidden[:-1], width, norm=self.cfg.layer_norm
-            ),  # h⁰ (ReLU applied in forward)
+            # h⁰ (ReLU applied in forward)
+            "encoder": GroupMLP(groups, obs_in, hidden[:-1], width, norm=self.cfg.layer_norm),
             "comm": CommStep(groups, width, self.bits, self.cfg),
             "head": GroupLinear(groups, width, self.n_act),
         }

@@ -54,10 +54,10 @@ class MABoN(HearsMessages, NetworkAgent):
         enc = int(self.cfg.encoding)
         return {
             "encoder": GroupMLP(groups, obs_in, (), enc),  # e_i (ReLU applied in forward)
-            "message": GroupMLP(
-                1, self.n_agents * enc, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm
-            ),  # f′: one broadcast
-            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.widths, self.n_act, norm=self.cfg.layer_norm),  # g′
+            # f′: one broadcast
+            "message": GroupMLP(1, self.n_agents * enc, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm),
+            # g′
+            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.widths, self.n_act, norm=self.cfg.layer_norm),
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
