@@ -32,7 +32,8 @@ BLOCK = re.compile(r"(<!-- figures:([\w-]+) -->\n)(.*?)(<!-- /figures -->)", re.
 
 
 def _ci(p: dict[str, Any], bold: bool = False) -> str:
-    text = f"{p['mean']:.1f} ± {p['ci95']:.1f}"
+    """``−11.2 ± 1.7`` from a ``mean`` and ``ci95`` (a typographic minus, as the docs write it)."""
+    text = f"{p['mean']:.1f} ± {p['ci95']:.1f}".replace("-", "−")
     return f"**{text}**" if bold else text
 
 
@@ -214,15 +215,10 @@ def causes(ends: dict[str, Any]) -> str:
 # --- the paper's figures, from `convoy reproduce`'s JSON (docs/reproduction/ID.json) ------------------------------
 
 
-def _pm(mean: float, ci: float) -> str:
-    """``−11.2 ± 1.7`` (a typographic minus)."""
-    return f"{mean:.1f} ± {ci:.1f}".replace("-", "−")
-
-
 def _final(r: dict[str, Any], group: str) -> str:
     """A group's final greedy return over seeds, as ``convoy reproduce`` summarised it."""
     final = next(g["final"] for g in r["groups"] if g["group"] == group)
-    return _pm(final["mean"], final["ci95"])
+    return _ci(final)
 
 
 def _verdict(r: dict[str, Any], claim: str) -> dict[str, Any]:
@@ -328,7 +324,7 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
     consistency = analysis["speaker_consistency"]
     shown = [mean_ci(analysis[k]["value"]) for k in returns]
     rows.append([f"Table 1 at the {table1['scale']} scale, MA-MeSN's return with {' / '.join(returns.values())}",
-                 " / ".join(_pm(s["mean"], s["ci95"]) for s in shown) + ": "
+                 " / ".join(_ci(s) for s in shown) + ": "
                  + (f"white noise lowers the return, {_p(noise['p'])}" if noise["verdict"] == REPRODUCED
                     else "the listeners do not use what the messages say at this budget")
                  + f" (speaker consistency {mean_ci(consistency['value'])['mean']:.2f} vs shuffled "
