@@ -22,6 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from convoy.analysis.verdicts import NOT, REPRODUCED, p_above, significant  # noqa: E402
+from convoy.cli.reproduce import heading_anchor  # noqa: E402
 from convoy.output import markdown_table  # noqa: E402
 from convoy.stats import mean_ci  # noqa: E402
 
@@ -259,8 +260,7 @@ def _budget(r: dict[str, Any]) -> str:
 
 def _where(r: dict[str, Any]) -> str:
     """A link to the figure's section of docs/reproduction.md (the anchor that page's headings get)."""
-    anchor = "".join(c for c in r["title"].lower().replace(" ", "-") if c.isalnum() or c == "-")
-    return f"[docs/reproduction.md](docs/reproduction.md#{anchor})"
+    return f"[docs/reproduction.md](docs/reproduction.md#{heading_anchor(r['title'])})"
 
 
 def _none_above_random(r: dict[str, Any]) -> bool:

@@ -327,6 +327,12 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
 # --- the page ----------------------------------------------------------------------------------------------------
 
 
+def heading_anchor(title: str) -> str:
+    """The link anchor a Markdown heading ``title`` gets on this page (lower case, spaces as dashes, no
+    punctuation)."""
+    return "".join(c for c in title.lower().replace(" ", "-") if c.isalnum() or c == "-")
+
+
 def render(docs: Path, page: Path) -> None:
     """``page`` from every figure's JSON in ``docs``: an overview table, then one section per figure."""
     records = {r["id"]: r for r in (json.loads(p.read_text()) for p in sorted(docs.glob("*.json")))}
@@ -351,8 +357,7 @@ def render(docs: Path, page: Path) -> None:
     for fig in FIGURES:
         if fig in records:
             r = records[fig]
-            anchor = r["title"].lower().replace(" ", "-")
-            lines.append(f"| [{r['title']}](#{''.join(c for c in anchor if c.isalnum() or c == '-')}) | "
+            lines.append(f"| [{r['title']}](#{heading_anchor(r['title'])}) | "
                          f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
