@@ -345,10 +345,66 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
     return markdown_table(["what", "figure", "where"], rows, [False, False, False])
 
 
+def population_table(bench: dict[str, Any]) -> str:
+    """docs/benchmarks.md: population vs separate processes per algorithm and size (``benchmarks/population.py
+    --json``), the goal's size (P = 5) in bold."""
+    rows = []
+    for algo, sizes in bench["algos"].items():
+        for size, f in sizes.items():
+            train, upd = f["training"], f["update"]
+            ratio = f"{train['ratio']:.2f}×"
+            rows.append([algo, size, f"{train['population_steps_per_s']:,.0f}", f"{train['separate_steps_per_s']:,.0f}",
+                         f"**{ratio}**" if size == "5" else ratio, f"{int(size) * upd['single_ms']:.1f}",
+                         f"{upd['population_ms']:.1f}", f"{upd['ratio']:.2f}×"])  # fmt: skip
+    header = ["algo", "P", "population env-steps/s", "separate", "ratio", "update ms: P singles", "population", "ratio"]
+    return markdown_table(header, rows, [False, True, True, True, True, True, True, True])
+
+
+def soak_table(soak: dict[str, Any]) -> str:
+    """docs/benchmarks.md: what the soak (``benchmarks/soak.py --json``) submitted, kept and used."""
+
+    def growth(f: dict[str, float], unit: str) -> str:
+        return f"{f['first']:.0f} → {f['last']:.0f}{unit} (max {f['max']:.0f}): {f['ratio']:.2f}×"
+
+    rows = [
+        ["jobs submitted / in the store / completed",
+         f"{soak['submitted']} / {soak['present']} / {soak['states'].get('completed', 0)} ({soak['lost']} lost, "
+         f"{soak['refused_while_down']} refused while down)", "nothing lost"],
+        [f"SQLite `integrity_check` after {soak['kills']} kills", soak["integrity"], "ok"],
+        ["service RSS, first → last", growth(soak["rss_mb"], " MB"), "≤ 1.10×"],
+        ["service open file descriptors, first → last", growth(soak["fds"], ""), "≤ 1.10×"],
+    ]  # fmt: skip
+    return markdown_table(["figure", "result", "goal"], rows, [False, False, False])
+
+
+def engineering_results(population: dict[str, Any], population_all: dict[str, Any], soak: dict[str, Any]) -> str:
+    """README: the service's own figures (population training, the soak), from the same JSONs as docs/benchmarks.md."""
+    at5 = {algo: sizes["5"]["training"]["ratio"] for algo, sizes in population["algos"].items() if "5" in sizes}
+    every5 = [sizes["5"]["training"]["ratio"] for sizes in population_all["algos"].values() if "5" in sizes]
+    below = [algo for algo, r in at5.items() if r < 1.5]
+    pop = (f"{population['cores']} cores, P = 5: "
+           + ", ".join(f"{r:.2f}× ({algo})" for algo, r in at5.items())
+           + f" at {population['steps'] // 1000} k steps a run; {min(every5):.2f}–{max(every5):.2f}× over all "
+           f"{len(every5)} algorithms at {population_all['steps'] // 1000} k"
+           + (f" — below the 1.5× goal for {' and '.join(below)}" if below else ""))  # fmt: skip
+    total = soak["states"].get("completed", 0)
+    rows = [
+        ["population training: 5 seeds in one process vs 5 separate processes, aggregate env-steps/s", pop,
+         "[docs/benchmarks.md](docs/benchmarks.md#population-training)"],
+        [f"soak: {soak['submitted']} jobs ({soak['submitted'] - soak['alone']} of them in {soak['sweeps']} sweeps) "
+         f"over {soak['minutes']:.0f} min, the service killed with `kill -9` {soak['kills']} times",
+         f"{soak['lost']} lost, {total} completed, SQLite {soak['integrity']}, RSS {soak['rss_mb']['ratio']:.2f}× and "
+         f"open files {soak['fds']['ratio']:.2f}× first to last",
+         "[docs/benchmarks.md](docs/benchmarks.md#soak-python-benchmarkssoakpy)"],
+    ]  # fmt: skip
+    return markdown_table(["what", "figure", "where"], rows, [False, False, False])
+
+
 # the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
 HEADLINE = ("+ team sightings, 150 k", "own, 150 k")
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
+POPULATION, POPULATION_ALL, SOAK = "population.json", "population_all.json", "soak.json"
 REPRODUCED_FIGURES = "reproduction/*.json"  # every figure in REPRODUCTION, by id
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-references": ((SEARCH,), references),
@@ -360,6 +416,10 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
     "treadmill-causes": ((CAUSES,), causes),
     "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),
+    "population": ((POPULATION,), population_table),
+    "population-all": ((POPULATION_ALL,), population_table),
+    "soak": ((SOAK,), soak_table),
+    "engineering-results": ((POPULATION, POPULATION_ALL, SOAK), engineering_results),
 }
 
 

@@ -138,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         states[listing[j]] = states.get(listing[j], 0) + 1
     warm = [s for s in samples if s[0] >= min(60.0, span / 4)] or samples
     figures = {
-        "minutes": args.minutes, "kills": kills, "submitted": len(wanted), "refused_while_down": refused,
+        "minutes": args.minutes, "kills": kills, "submitted": len(wanted), "alone": len(jobs),
+        "sweeps": len(sweeps), "refused_while_down": refused,
         "present": len(present), "lost": len(wanted) - len(present), "states": states, "integrity": integrity,
         "rss_mb": {"first": warm[0][1], "last": warm[-1][1], "max": max(s[1] for s in warm),
                    "ratio": warm[-1][1] / warm[0][1]},

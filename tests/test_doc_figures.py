@@ -46,3 +46,19 @@ def test_a_changed_reproduction_figure_makes_the_readme_results_stale(tmp_path: 
                   "≤ 40 min a figure, 109 min in all"):  # fmt: skip
         assert shown not in readme and shown in new
     assert "vs −17.4 ± 1.0, p < 0.001: reproduced" in readme and "−17.4 ± 1.0" not in new
+
+
+def test_the_service_figures_come_from_the_population_and_soak_json(tmp_path: Path, monkeypatch) -> None:
+    data = {p.name: json.loads(p.read_text()) for p in doc_figures.FIGURES.glob("*.json")}
+    data["population.json"]["algos"]["idqn"]["5"]["training"]["ratio"] = 1.62  # now above the goal
+    data["soak.json"]["lost"] = 3
+    data["soak.json"]["fds"] = {"first": 25, "last": 31, "max": 33, "ratio": 1.24}
+    for name, values in data.items():
+        (tmp_path / name).write_text(json.dumps(values))
+    monkeypatch.setattr(doc_figures, "FIGURES", tmp_path)
+    readme, bench = (ROOT / "README.md").read_text(), (ROOT / "docs" / "benchmarks.md").read_text()
+    new_readme, new_bench = doc_figures.rendered(readme), doc_figures.rendered(bench)
+    assert "1.62× (idqn)" in new_readme and "below the 1.5× goal for ma-mesn " in new_readme
+    assert "3 lost" in new_readme and "open files 1.24×" in new_readme and "3 lost" not in readme
+    assert "**1.62×**" in new_bench and "**1.62×**" not in bench
+    assert "25 → 31 (max 33): 1.24×" in new_bench
