@@ -26,7 +26,8 @@ def test_a_changed_figure_makes_its_block_stale(tmp_path: Path, monkeypatch) -> 
         (tmp_path / name).write_text(json.dumps(values))
     monkeypatch.setattr(doc_figures, "FIGURES", tmp_path)
     readme = (ROOT / "README.md").read_text()
-    assert "12.3 ± 3.9" not in readme and "12.3 ± 3.9 |" in doc_figures.rendered(readme)
+    shown = f"12.3 ± {data['treadmill_search.json']['policies']['private driver']['ci95']:.1f}"
+    assert shown not in readme and f"{shown} |" in doc_figures.rendered(readme)
     assert "scores 23.5 ±" not in readme and "scores 23.5 ±" in doc_figures.rendered(readme)
 
 

@@ -128,14 +128,14 @@ def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256,
 
 
 # The family's parameters chosen by ``benchmarks/treadmill_search.py`` on 300 tuning episodes per grid point
-# (seed TUNING_SEED; 72 private and 144 team grid points): see docs/treadmill.md for the scores.
+# (seed TUNING_SEED; 144 private and 288 team grid points): see docs/treadmill.md for the scores.
 def _tuned() -> dict:
     from convoy.envs.treadmill.drivers import DriverParams
 
     return {
-        "private": DriverParams(danger=32.0, danger_adversary=32.0, hold="circle", flee_pace=3, brake=False),
-        "team": DriverParams(danger=24.0, danger_adversary=24.0, hold="straight", flee_pace=3, brake=True),
-        "team16": DriverParams(danger=16.0, danger_adversary=20.0, hold="straight", flee_pace=3, brake=True),
+        "private": DriverParams(danger=24.0, danger_adversary=24.0, hold="circle", flee_pace=3, brake=False, home=0.3),
+        "team": DriverParams(danger=24.0, danger_adversary=24.0, hold="straight", flee_pace=3, brake=True, home=0.5),
+        "team16": DriverParams(danger=16.0, danger_adversary=20.0, hold="weave", flee_pace=3, brake=False, home=0.3),
     }
 
 
@@ -295,16 +295,17 @@ def _cycle_name(cycle: list[int]) -> str:
 
 # ---------------------------------------------------------------------------------------------------- tuned drivers
 def driver_grid(quick: bool = False) -> list:
-    """The family's parameter grid (``drivers.DriverParams``): flee distance, how to hold a place, flee pace,
-    braking for a car ahead (and, for team drivers, the flee distance of a known adversary)."""
+    """The family's parameter grid (``drivers.DriverParams``): flee distance, how and where to hold a place, flee
+    pace, braking for a car ahead (and, for team drivers, the flee distance of a known adversary)."""
     from convoy.envs.treadmill.scripted import HOLDS, DriverParams
 
     dangers = (8.0, 16.0, 32.0) if quick else (8.0, 12.0, 16.0, 24.0, 32.0, 48.0)
     holds = ("straight", "circle") if quick else HOLDS
     return [
-        DriverParams(danger=d, danger_adversary=max(d, da), hold=h, flee_pace=fp, brake=b)
+        DriverParams(danger=d, danger_adversary=max(d, da), hold=h, flee_pace=fp, brake=b, home=home)
         for d in dangers
         for h in holds
+        for home in ((0.5,) if quick else (0.3, 0.5))
         for fp in ((3,) if quick else (2, 3))
         for b in ((False,) if quick else (False, True))
         for da in ((30.0,) if quick else (20.0, 40.0))
@@ -327,7 +328,7 @@ def tune_driver(
     if kind == "private":
         seen, unique = set(), []
         for p in grid:
-            key = (p.danger, p.hold, p.flee_pace, p.brake, p.band)
+            key = (p.danger, p.hold, p.flee_pace, p.brake, p.band, p.home)
             if key not in seen:
                 seen.add(key)
                 unique.append(p)

@@ -1,7 +1,7 @@
 """Hand-written drivers: the baseline learners must beat, and the full-information reference.
 
 All share one controller, ``family_actions``: keep away from a threat, the road's sides and the window's front and
-back, otherwise hold a place on the treadmill (straight back to the middle, circling or weaving); ``DriverParams``
+back, otherwise hold a place on the treadmill (straight back to a home row, circling or weaving); ``DriverParams``
 picks a member of the family (``envs.treadmill.drivers`` tunes them). The scripted drivers are its plainest member
 (flee at top speed within ``DANGER`` cells, drive straight); they differ only in what they know of the threat.
 
@@ -51,7 +51,10 @@ class DriverParams:
     hold: str = "straight"  # straight | circle | weave: what a car with nothing to flee does
     flee_pace: int = 3  # window speed (cells per step) when fleeing, before the belt is added
     brake: bool = False  # a threat ahead (in front of the car): brake to 0 and steer aside rather than flee
-    band: float = 10.0  # cells behind the middle of the window within which circling / weaving holds the place
+    band: float = 10.0  # cells behind the home row within which circling / weaving holds the place
+    # where along the window the car holds its place: 0 = the back edge, 1 = the front. Learners hold near the back
+    # (~0.3), where a car has the room to outrun a chaser forwards; the middle is the scripted drivers' home
+    home: float = 0.5
 
     def label(self) -> str:
         return ",".join(f"{k}={v}" for k, v in asdict(self).items())
@@ -72,7 +75,7 @@ def family_actions(
     """Actions ``[B, N]`` for cars at window cells (x, y) with one threat each at offset (dx, dy) where ``threat``."""
     belt = 0.5 * (cfg.treadmill_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed))  # expected belt
     margin = 4.0 * cfg.max_speed + 2.0
-    mid_x, mid_y = (cfg.length - 1) / 2.0, (cfg.width - 1) / 2.0
+    mid_x, mid_y = p.home * (cfg.length - 1), (cfg.width - 1) / 2.0
     dist = np.maximum(np.hypot(threat_dx, threat_dy), 1e-6)
     flee_x, flee_y = -threat_dx / dist, -threat_dy / dist
     home_x = np.clip((mid_x - x) / (cfg.length / 4.0), -1.0, 1.0)
