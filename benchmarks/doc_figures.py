@@ -173,6 +173,9 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     """README: what the treadmill shows, from the reference search and the learners' scores."""
     g = scores["groups"][HEADLINE[1]]
     c = next(c for c in scores["comparisons"] if (c["a"], c["b"]) == HEADLINE)
+    # the learner's settings: the label's words between "own" and the budget ("400 k", "10 seeds")
+    settings = [w for w in HEADLINE[1].split(", ")[1:] if not w.endswith((" k", " seeds"))]
+    learner = f"Independent\nDQN ({', '.join(settings)})" if settings else "Independent\nDQN"
     return (
         "**What it shows.** On the treadmill ([docs/treadmill.md](docs/treadmill.md): cars enter and leave\n"
         "a moving window whose speed changes, sensors have a range and a rear blind spot, chasers come from\n"
@@ -180,8 +183,8 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         "private-observation driver, and the same\n"
         f"driver told what its teammates observe scores {_ratio(search, 'team ÷ private')} "
         f"({_ratio(search, 'team16 ÷ private')} through a hand-written 16-bit code per\n"
-        "teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. Independent\n"
-        f"DQN on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
+        f"teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. {learner}"
+        f" on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
         f"({g['env_steps'] // 1000} k steps, last policies on held-out\nepisodes, {len(g['seeds'])} seeds; "
         f"tuned private driver {search['policies']['private driver']['mean']:.1f}); told every car its teammates "
         f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
