@@ -64,12 +64,16 @@ SCRIPTS = [(w, c) for w, c in COMMANDS if c.startswith("python benchmarks/")]
 MAKE = [(w, c) for w, c in COMMANDS if c.startswith("make ")]
 
 
+# a documented shell variable (``TM="…"``, ``LEARNER="…"``): set for the commands after it, not one to run
+ASSIGNMENT = re.compile(r"^([A-Z_]+)=(.*)$")
+
+
 def expand(command: str) -> list[str]:
     """The argv of a documented command, with its shell variables ($TM, $REF, $CONVOY_API_TOKEN, $(cat …)) filled
     from the lines that set them or with placeholders."""
     variables = {}
     for _, c in COMMANDS:
-        m = re.match(r"^([A-Z]+)=(.*)$", c)
+        m = ASSIGNMENT.match(c)
         if m:
             variables[m[1]] = " ".join(shlex.split(m[2]))
     text = re.sub(r"\$\((cat [^)]*)\)", "TOKEN", command)

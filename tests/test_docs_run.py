@@ -32,15 +32,14 @@ import pytest
 
 from convoy.protocol.session import free_port
 from tests.service_fixture import Service
-from tests.test_docs_commands import COMMANDS, OUTPUT, expand
+from tests.test_docs_commands import ASSIGNMENT, COMMANDS, OUTPUT, expand
 
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ("convoy serve", "convoy jobs", "convoy sweep", "curl ", "export ", "make serve")
 OWN_TESTS = (*SERVICE, "convoy router", "convoy host", "tensorboard", "make ")
-# a shell variable set for the commands after it (TM=…, LEARNER=…) is not run: ``expand`` fills it into them
-GENERIC = [(w, c) for w, c in COMMANDS if not c.startswith(OWN_TESTS) and not re.match(r"^[A-Z_]+=", c)]
+GENERIC = [(w, c) for w, c in COMMANDS if not c.startswith(OWN_TESTS) and not ASSIGNMENT.match(c)]
 
 
 def documented(prefix: str, containing: str = "") -> str:
