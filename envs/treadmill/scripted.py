@@ -75,10 +75,10 @@ def family_actions(
     """Actions ``[B, N]`` for cars at window cells (x, y) with one threat each at offset (dx, dy) where ``threat``."""
     belt = 0.5 * (cfg.treadmill_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed))  # expected belt
     margin = 4.0 * cfg.max_speed + 2.0
-    mid_x, mid_y = p.home * (cfg.length - 1), (cfg.width - 1) / 2.0
+    row_x, mid_y = p.home * (cfg.length - 1), (cfg.width - 1) / 2.0  # the home row; the road's middle
     dist = np.maximum(np.hypot(threat_dx, threat_dy), 1e-6)
     flee_x, flee_y = -threat_dx / dist, -threat_dy / dist
-    home_x = np.clip((mid_x - x) / (cfg.length / 4.0), -1.0, 1.0)
+    home_x = np.clip((row_x - x) / (cfg.length / 4.0), -1.0, 1.0)
     home_y = np.clip((mid_y - y) / (cfg.width / 4.0), -1.0, 1.0)
     wall_x = np.clip((margin - x) / margin, 0.0, 1.0) - np.clip((x - (cfg.length - 1 - margin)) / margin, 0.0, 1.0)
     wall_y = np.clip((margin - y) / margin, 0.0, 1.0) - np.clip((y - (cfg.width - 1 - margin)) / margin, 0.0, 1.0)
@@ -99,7 +99,7 @@ def family_actions(
     want_speed = np.where(side_gap < 3 * want_speed + 2, np.minimum(want_speed, 1), want_speed)
     act = steer_action(heading, speed, want_heading, want_speed)
     if p.hold != "straight":
-        calm = ~threat & (np.abs(wall_x) + np.abs(wall_y) == 0) & (x > mid_x - p.band)
+        calm = ~threat & (np.abs(wall_x) + np.abs(wall_y) == 0) & (x > row_x - p.band)
         if p.hold == "circle":  # full circles at top speed: the car drifts back with the belt, then drives up again
             held = 3 * 2 + np.where(speed < cfg.max_speed, 2, 1)
         else:  # weave: ±45° around the road's direction, four steps each way, at top speed
