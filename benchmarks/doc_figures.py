@@ -176,6 +176,9 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     # the learner's settings: the label's words between "own" and the budget ("400 k", "10 seeds")
     settings = [w for w in HEADLINE[1].split(", ")[1:] if not w.endswith((" k", " seeds"))]
     learner = f"Independent\nDQN ({', '.join(settings)})" if settings else "Independent\nDQN"
+    fell = sum(r < 0.9 for r in g["last_over_best"])  # seeds whose own-observation run ended below 0.9 × its best
+    decline = (f", though on its own observation it ends below 0.9 × its best point on {fell} of {len(g['seeds'])}\n"
+               "seeds, so part of the gap is that arm's decline ") if fell else " "  # fmt: skip
     return (
         "**What it shows.** On the treadmill ([docs/treadmill.md](docs/treadmill.md): cars enter and leave\n"
         "a moving window whose speed changes, sensors have a range and a rear blind spot, chasers come from\n"
@@ -194,13 +197,7 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
             "Huber loss it never learns where the window ends, and\ntold where every car is it flees off the window; "
             "learners that know the edge lead with the\nsightings, CIs still overlapping) "
             if c["diff_low"] <= 0
-            else "the learner turns teammates' knowledge\ninto reward"
-            + (
-                f", though on its own observation it ends below 0.9 × its best point on {fell} of "
-                f"{len(g['seeds'])}\nseeds, so part of the gap is that arm's decline "
-                if (fell := sum(r < 0.9 for r in g["last_over_best"]))
-                else " "
-            )
+            else "the learner turns teammates' knowledge\ninto reward" + decline
         )
         + "([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). The paper's figures at the quick\n"
         "scale, on these rules: [docs/reproduction.md](docs/reproduction.md)."
