@@ -44,6 +44,14 @@ class AlgoConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     lr: float = Field(5e-4, gt=0, le=1, description="Adam learning rate (paper: 5e-4).")
+    lr_end: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="Learning rate at the run's last step, reached linearly from lr over the run (annealing: the "
+        "policy's late changes shrink, so the last policy stays near the best one); None = lr throughout (the "
+        "paper).",
+    )
     batch_size: int = Field(64, ge=1, le=65536, description="Transitions per update (paper: 64).")
     gamma: Fraction = Field(0.99, description="Discount factor.")
     target_update: int = Field(200, ge=1, description="Updates between target-network syncs C (paper: 200).")

@@ -278,6 +278,36 @@ def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str
         make_algorithm(name, SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=[cfgs[0], cfgs[1], wider])
 
 
+def test_lr_end_anneals_each_runs_learning_rate_over_the_run() -> None:
+    """``lr_end``: the learning rate falls linearly from ``lr`` to ``lr_end`` as env steps go from 0 to the run's
+    total, per run of a population (a run without ``lr_end`` keeps its ``lr``), and member k still follows the
+    single run of its config while the schedule moves."""
+    from convoy.algos.algorithm import RunAdam, lr_at
+
+    torch.set_num_threads(1)
+    cfgs = [
+        config("idqn", False, lr=1e-3, lr_end=0.0),
+        config("idqn", False, lr=1e-3),
+        config("idqn", False, lr=2e-3, lr_end=1e-3),
+    ]
+    pop = make_algorithm("idqn", SPEC, cfgs[0], device="cpu", seed=SEEDS, run_configs=cfgs)
+    singles = [make_algorithm("idqn", SPEC, c, device="cpu", seed=s) for c, s in zip(cfgs, SEEDS, strict=True)]
+    feed(pop, singles, np.random.default_rng(1))
+    total = 1000
+    for i in range(200):
+        for agent in (pop, *singles):
+            agent.progress = Progress(env_steps=5 * i, total_steps=total, training=True)
+            agent.update()
+    at = 5 * 199 / total
+    want = [1e-3 * (1 - at), 1e-3, 2e-3 - at * 1e-3]
+    assert isinstance(pop.optimizer, RunAdam)
+    np.testing.assert_allclose(pop.optimizer.lrs.numpy(), want, rtol=1e-6)
+    for single, lr in zip(singles, want, strict=True):
+        assert single.optimizer.param_groups[0]["lr"] == pytest.approx(lr)
+    assert max_weight_gap(pop, singles) < 1e-5
+    assert lr_at(cfgs[0], 2 * total, total) == 0.0 and lr_at(cfgs[1], total, total) == 1e-3  # held past the end
+
+
 def test_a_jobs_seeds_make_a_population_of_single_runs() -> None:
     """``seeds`` in the one config model (CLI, files, the learner and actors read it): one seed is the single run
     of that seed; a population's members are single runs of their seeds writing DIR/seed-N; the resource limits
