@@ -18,6 +18,9 @@ messages are discrete bits (MA-MeSN, MA-BoN and their ``-mm`` variants) exposes 
 * ``modal``: every receiver hears each sender's most frequent message so far in the evaluation: a real, constant
   message that carries nothing. In distribution.
 
+* ``fixed``: every receiver hears all-zero bits: the constant a cut channel delivers (what a model trained with its
+  channel cut hears), whether or not any speaker sends it.
+
 "Listeners use the messages" means true messages beat ``shuffled`` and ``modal``, not only ``noise``.
 
 ``fill_lost="zeros"`` makes a memory-module algorithm hear zeros for lost messages, like a plain MA-MeSN/MA-BoN: the
@@ -72,6 +75,8 @@ class Listening:
             return true[self._derangement(true.shape[0]).to(true.device)]
         if self.source == "modal":
             return self._modal(true)
+        if self.source == "fixed":
+            return torch.zeros_like(true)
         if self.source == "predicted":
             if predicted is None:
                 raise ConfigError(

@@ -20,15 +20,16 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import Agent
-from convoy.algos.listening import HearsMessages
+from convoy.algos.listening import HearsMessages, Listening
 from convoy.algos.memory import MemoryModule
 from convoy.analysis.comm_metrics import (
     MetricFigure,
@@ -40,7 +41,7 @@ from convoy.analysis.comm_metrics import (
     speaker_consistency,
     symbols,
 )
-from convoy.analysis.evaluation import evaluate_policy
+from convoy.analysis.evaluation import evaluate_policy, listening
 from convoy.envs.batched import BatchedEnv
 from convoy.stats import ci95_half
 from convoy.validation import ConfigError
@@ -48,10 +49,28 @@ from convoy.validation import ConfigError
 
 @dataclass
 class Recording:
-    """Messages sent ``[T, B, N, bits]`` and actions taken ``[T, B, N]`` by the greedy policy."""
+    """Messages sent ``[T, B, N, bits]`` and actions taken ``[T, B, N]`` by the greedy policy; and, at the same
+    steps, the messages the intervention put in each env's place (those sent in another env, ``[T, B, N, bits]``)
+    with the greedy actions every agent would have taken hearing them instead (``[T, B, N]``)."""
 
     messages: np.ndarray
     actions: np.ndarray
+    intervened_messages: np.ndarray
+    intervened_actions: np.ndarray
+
+
+class Intervention(Listening):
+    """Every receiver hears the messages sent in another env at the same step (``shuffled``), and the derangement
+    it used is kept (``perm``: env b heard env ``perm[b]``), so each intervened action pairs with the message that
+    caused it."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__("shuffled", seed=seed)
+        self.perm: Tensor | None = None
+
+    def _derangement(self, n: int) -> Tensor:
+        self.perm = super()._derangement(n)
+        return self.perm
 
 
 @dataclass
@@ -87,16 +106,23 @@ def check_analysable(algo: Agent) -> HearsMessages:
 
 @torch.no_grad()
 def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
-    """``steps`` greedy steps of every env (auto-reset), recording messages and actions."""
+    """``steps`` greedy steps of every env (auto-reset), recording messages and actions; at each step, before it
+    is taken, the actions every agent would take hearing another env's messages (the causal intervention: same
+    observation and memory, only what is heard replaced)."""
     check_analysable(algo)
     stepper = EnvStepper(env, algo, seed, record=False)
-    msgs, acts = [], []
+    intervention = Intervention(seed)
+    msgs, acts, i_msgs, i_acts = [], [], [], []
     for _ in range(steps):
+        with listening(algo, intervention):
+            i_acts.append(algo.act(stepper.obs, 0.0, stepper.state).actions)
         stepper.step(0.0)
-        assert stepper.last is not None and stepper.last.messages is not None
+        assert stepper.last is not None and stepper.last.messages is not None and intervention.perm is not None
         msgs.append(stepper.last.messages)
         acts.append(stepper.last.actions)
-    return Recording(np.stack(msgs).round().astype(np.int8), np.stack(acts))
+        i_msgs.append(stepper.last.messages[intervention.perm.cpu().numpy()])
+    as_bits = lambda m: np.stack(m).round().astype(np.int8)  # noqa: E731
+    return Recording(as_bits(msgs), np.stack(acts), as_bits(i_msgs), np.stack(i_acts))
 
 
 def message_input_norm(algo: Agent) -> MetricFigure:
@@ -120,15 +146,19 @@ def message_input_norm(algo: Agent) -> MetricFigure:
 
 def return_figures(algo: Agent, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
     """Greedy return with the true messages and with each control in their place, on the same episodes: messages
-    shuffled across envs and each sender's modal message (in distribution: real messages, no content), white noise
+    shuffled across envs and each sender's modal message (in distribution: real messages, no content), all-zero
+    messages (what a cut channel delivers), white noise
     (out of distribution) and, for memory modules, their predictions. Each control's note gives its paired
     difference from the true messages with a 95 % CI: the messages matter where true beats the in-distribution
     controls."""
-    sources = ["sent", "shuffled", "modal", "noise"] + (["predicted"] if isinstance(algo, MemoryModule) else [])
+    sources = ["sent", "shuffled", "modal", "fixed", "noise"] + (
+        ["predicted"] if isinstance(algo, MemoryModule) else []
+    )
     names = {
         "sent": "Cumulative reward (true messages)",
         "shuffled": "Cumulative reward with messages shuffled across envs",
         "modal": "Cumulative reward with each sender's modal message",
+        "fixed": "Cumulative reward with every message all zeros",
         "noise": "Cumulative reward with white noise",
         "predicted": "Cumulative reward with predicted messages (no channel)",
     }
@@ -163,7 +193,9 @@ def analyze(
     flat_msgs, flat_acts = rec.messages.reshape(t * b, n, k), rec.actions.reshape(t * b, n)
     sc = speaker_consistency(flat_msgs, flat_acts, rng, repeats)
     ic = instantaneous_coordination(rec.messages, rec.actions, rng, repeats)
-    figures = [sc, ic, message_entropy(flat_msgs), message_input_norm(algo), *return_figures(algo, env, episodes, seed)]
+    cic = causal_influence(rec, rng, repeats)
+    returns = return_figures(algo, env, episodes, seed)
+    figures = [sc, ic, cic, message_entropy(flat_msgs), message_input_norm(algo), *returns]
     result = Analysis(algo.name, env_name, figures)
     if out_dir is not None:
         out = Path(out_dir)
@@ -184,6 +216,25 @@ def analyze(
         Path(result.files["table"]).write_text(result.table() + "\n")
         Path(result.files["json"]).write_text(json.dumps(result.as_dict(), indent=2) + "\n")
     return result
+
+
+def causal_influence(rec: Recording, rng: np.random.Generator, repeats: int = 20) -> MetricFigure:
+    """Causal influence of communication (Lowe et al. 2019): MI(speaker i's message, listener j's action) where
+    the message was put there by intervention — sent in another env, so unrelated to the listener's own state —
+    and the action is the one the listener takes on hearing it. Any dependence is then the message's effect; the
+    shuffled-pairs baseline is the estimator's bias. Pooled over states, it is a lower bound on Lowe et al.'s
+    per-state CIC. The note adds how often the intervention changed a listener's action at all (over agents with
+    more than one action)."""
+    fig = instantaneous_coordination(rec.intervened_messages, rec.intervened_actions, rng, repeats)
+    acts, moved = rec.actions.reshape(-1, rec.actions.shape[-1]), rec.intervened_actions != rec.actions
+    listeners = [j for j in range(acts.shape[1]) if len(np.unique(acts[:, j])) > 1]  # as the MI figures count them
+    changed = float(moved[..., listeners].mean()) if listeners else 0.0
+    return replace(
+        fig,
+        name="Causal influence of communication (messages from another env)",
+        key="causal_influence",
+        note=f"{fig.note}; the intervention changed {changed:.1%} of listener actions",
+    )
 
 
 def _best_pair(rec: Recording, n_actions: tuple[int, ...]) -> tuple[int, int]:

@@ -37,7 +37,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % confidence
     interval, next to the random policy's. --messages and --channel probe the communication: messages shuffled
-    across envs or each sender's modal message (in distribution: real messages, no content), white noise in
+    across envs or each sender's modal message (in distribution: real messages, no content), all-zero messages (a
+    cut channel), white noise in
     place of messages, the memory module's predictions (no channel, -mm algorithms), or a lossy channel.
     """
     from convoy.analysis.evaluation import evaluate_policy, evaluate_random, parse_channel
@@ -112,11 +113,12 @@ def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
 def cmd_analyze(args: argparse.Namespace) -> int:
     """Emergent-communication metrics of a checkpoint (the paper's Table 1).
 
-    Record the greedy policy's messages and actions and report speaker consistency, instantaneous coordination
+    Record the greedy policy's messages and actions and report speaker consistency, instantaneous coordination,
+    causal influence of communication (the listeners' actions when they hear another env's messages instead)
     (plug-in mutual information in nats, each next to its shuffled-pairs baseline and per message bit), message
     entropy, the message-input norm and the return with true messages vs messages shuffled across envs, each
-    sender's modal message and white noise, each paired with the true messages (and predicted messages for -mm
-    algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
+    sender's modal message, all-zero messages and white noise, each paired with the true messages (and predicted
+    messages for -mm algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
     """
     from convoy.analysis.recording import analyze
     from convoy.services.training import make_env
@@ -148,8 +150,8 @@ def add_eval_parsers(sub: argparse._SubParsersAction) -> None:
         choices=MESSAGE_SOURCES,
         default="sent",
         help="what the agents hear: sent (the true messages), shuffled (another env's messages of the step), modal "
-        "(each sender's most frequent message so far), noise (uniform random bits) or predicted (the memory "
-        "module's predictions, no channel: -mm algorithms) (default: %(default)s)",
+        "(each sender's most frequent message so far), fixed (all-zero bits: a cut channel), noise (uniform random "
+        "bits) or predicted (the memory module's predictions, no channel: -mm algorithms) (default: %(default)s)",
     )
     ev.add_argument("--channel", metavar="SPEC", help=CHANNEL_HELP)
     ev.add_argument("--gif", metavar="PATH", help="also write an animated GIF of one greedy episode (treadmill)")

@@ -24,7 +24,7 @@ Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when pr
 Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a discount
 DEVICES: tuple[str, ...] = get_args(Device)  # the same choices for the CLI's and the benchmarks' --device
 
-MessageSource = Literal["sent", "predicted", "noise", "shuffled", "modal"]
+MessageSource = Literal["sent", "predicted", "noise", "shuffled", "modal", "fixed"]
 MESSAGE_SOURCES: tuple[str, ...] = get_args(MessageSource)  # what agents hear at evaluation (algos/listening.py)
 
 
@@ -559,7 +559,8 @@ class JobConfig(BaseModel):
         "sent",
         description="What the agents hear in the greedy evaluations (curve and final): sent = centralised execution; "
         "predicted = decentralised, each agent's memory module predicts the messages (ma-mesn-mm, ma-bon-mm; "
-        "algorithms without messages are decentralised already); noise = white noise instead of messages.",
+        "algorithms without messages are decentralised already); noise = white noise instead of messages; shuffled, "
+        "modal, fixed = the controls of `convoy eval --messages`.",
     )
     eval_every: int = Field(
         10_000,
@@ -597,7 +598,7 @@ class JobConfig(BaseModel):
                 f"({self.num_envs:,} env steps); raise steps or lower num_envs",
             )
         row = ALGORITHMS[self.algo]
-        if self.eval_messages in ("noise", "shuffled", "modal") and not row.listens:
+        if self.eval_messages in ("noise", "shuffled", "modal", "fixed") and not row.listens:
             raise ConfigError(
                 "eval_messages", f"{self.algo} has no message channel to replace ({self.eval_messages}); use sent"
             )

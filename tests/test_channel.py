@@ -81,3 +81,5 @@ def test_shuffled_messages_come_from_other_envs_and_modal_is_each_senders_most_c
     again = true.clone()
     again[:, 0, 0] = torch.tensor([0.0, 1.0, 1.0])  # 011 now the most frequent for receiver 0 (1 + 6 times)
     assert (modal.hear(again)[:, 0, 0] == torch.tensor([0.0, 1.0, 1.0])).all()
+    fixed = Listening("fixed", seed=0).hear(true)  # the cut channel's constant, whatever was sent
+    assert fixed.shape == true.shape and not fixed.any()

@@ -143,7 +143,7 @@ def test_analyze_writes_table_and_plots(ckpts: dict[str, Path], tmp_path: Path, 
     assert "Instantaneous coordination" in (out_dir / "table.md").read_text()
     data = json.loads((out_dir / "analysis.json").read_text())
     keys = {f["key"] for f in data["figures"]}
-    assert {"return_sent", "return_noise", "return_predicted", "message_input_norm"} <= keys
+    assert {"return_sent", "return_noise", "return_predicted", "message_input_norm", "causal_influence"} <= keys
     for png in ("metrics.png", "cooccurrence.png"):
         with Image.open(out_dir / png) as img:
             assert img.format == "PNG" and img.size[0] > 100

@@ -9,7 +9,9 @@ teammate can see the chaser, MA-MeSN must beat independent DQN.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+import torch
 
 from convoy.algos.algorithm import NetworkAgent
 from convoy.config import JobConfig, job_config, resolve_algo
@@ -69,10 +71,35 @@ def test_in_distribution_controls_show_the_referential_listener_uses_what_messag
     agent = _train(job)
     env = make_env(job, 64)
     success = {src: evaluate_policy(agent, env, 500, seed=1, messages=src).mean
-               for src in ("sent", "shuffled", "modal", "noise")}  # fmt: skip
+               for src in ("sent", "shuffled", "modal", "fixed", "noise")}  # fmt: skip
     print(success)
     assert success["sent"] >= 0.9, success
-    assert success["shuffled"] < 0.5 and success["modal"] < 0.5, success  # chance: 1/K = 0.25
+    assert max(success["shuffled"], success["modal"], success["fixed"]) < 0.5, success  # chance: 1/K = 0.25
+
+
+def test_causal_influence_sees_a_speaker_listener_listener_act_on_what_it_hears() -> None:
+    """Causal influence of communication on a short speaker-listener MA-MeSN run (30 k steps): hearing the
+    messages of another env changes the listeners' actions, far above the shuffled-pairs baseline; the same
+    policy with its message inputs cut (first-layer weights on the messages zeroed) changes no action, and its
+    influence falls to the baseline. Influence is not usefulness: at this length the messages move the listener
+    without yet helping it (true and shuffled messages score alike), which is why the figure sits beside the
+    in-distribution return controls."""
+    from convoy.analysis.recording import causal_influence, record
+    from convoy.services.training import make_env
+
+    job = job_config(algo="ma-mesn", env="speaker-listener", algo_params={"lr": 1e-3, "replay_ratio": 8.0},
+                     steps=30_000, num_envs=16, seed=0, eval_episodes=0)  # fmt: skip
+    agent = _train(job)
+    env = make_env(job, 64)
+    cic = causal_influence(record(agent, env, 50, seed=1), np.random.default_rng(0), 10)
+    assert cic.shuffled is not None and cic.shuffled_std is not None
+    assert cic.value > 0.1 and cic.value > cic.shuffled + 20 * cic.shuffled_std, cic  # measured 0.35 vs 0.001
+    with torch.no_grad():
+        first = agent.online["policy"].get_parameter("layers.0.weight")
+        first[:, -agent.senders * agent.bits :] = 0.0
+    cut = causal_influence(record(agent, env, 50, seed=1), np.random.default_rng(0), 10)
+    assert cut.shuffled is not None and cut.value < cut.shuffled + 0.01, cut
+    assert "changed 0.0% of listener actions" in cut.note, cut.note
 
 
 # 2 agents on a 40 × 40 window, 50 steps: scripted 24.7, team-information 29.7, random 2.8
