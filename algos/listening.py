@@ -138,6 +138,7 @@ class HearsMessages:
     listening: Listening | None = None
     senders: int  # messages each agent hears per step (MA-MeSN: N − 1 peers, MA-BoN: 1 broadcast)
     online: nn.ModuleDict  # the algorithm's networks (the mixin sits on a NetworkAgent)
+    cfg: Any  # a config with ``channel_control`` (MeSNConfig, BoNConfig)
     runs: int | None
     bits: int
 
@@ -146,6 +147,16 @@ class HearsMessages:
         if self.listening is not None:
             self.listening.reset(done)
         return super().reset_state(state, done)  # type: ignore[misc]
+
+    def control(self, heard: Tensor) -> Tensor:
+        """What listeners hear under ``channel_control`` (in training and at execution): the messages, zeros
+        (the channel cut) or fresh uniform bits from each run's own generator."""
+        how = self.cfg.channel_control
+        if how == "cut":
+            return torch.zeros_like(heard)
+        if how == "noise":
+            return (self.rand_like(heard) < 0.5).to(heard.dtype)  # type: ignore[attr-defined]
+        return heard
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
         """Every sender's message logits ``[..., senders, 2·bits]`` from the raw observations ``[..., N, D]``."""

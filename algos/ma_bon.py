@@ -71,7 +71,7 @@ class MABoN(HearsMessages, NetworkAgent):
         x = with_agent_id(obs, self.use_id)
         bm = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg, self.rand_like)
         sent = bm.expand(*x.shape[:-1], self.bits)
-        return x, sent, sent
+        return x, sent, self.control(sent)
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
         """g′: every agent's Q-values ``[..., N, A]`` in one call."""

@@ -56,7 +56,7 @@ class MAMeSN(HearsMessages, NetworkAgent):
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
         sent = gumbel_bits(self.message_logits(nets, obs), self.bits, train, self.cfg, self.rand_like)
-        return with_agent_id(obs, self.shared), sent, gather_others(sent, self.peers)
+        return with_agent_id(obs, self.shared), sent, self.control(gather_others(sent, self.peers))
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
         """f″: Q-values ``[..., N, A]`` from each agent's own input and the messages it heard."""

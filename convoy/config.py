@@ -210,11 +210,22 @@ class IMSConfig(GumbelConfig):
     )
 
 
-class MeSNConfig(GumbelConfig):
+class ChannelControl(BaseModel):
+    """The controls a communication claim is judged against: the same networks, trained without a channel."""
+
+    channel_control: Literal["open", "cut", "noise"] = Field(
+        "open",
+        description="What every listener hears, in training and at execution: open = the messages (the paper); cut "
+        "= all-zero bits (the channel-cut twin: a gain over it is the messages', not the second network's); noise = "
+        "uniformly random bits drawn afresh at every step.",
+    )
+
+
+class MeSNConfig(GumbelConfig, ChannelControl):
     """MA-MeSN (Algorithm 1): separate message networks f′ and policy networks f″."""
 
 
-class BoNConfig(GumbelConfig):
+class BoNConfig(GumbelConfig, ChannelControl):
     """MA-BoN: one broadcast message from all agents' encodings."""
 
     encoding: int = Field(64, ge=1, le=65536, description="Width of each agent's observation encoding.")

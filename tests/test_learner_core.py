@@ -65,6 +65,26 @@ def test_mesn_td_loss_of_agent_i_reaches_other_message_nets_and_only_its_own_pol
                 assert message_grad[j] > 0, f"agent {i}'s loss must reach agent {j}'s message network f′_{j}"
 
 
+@pytest.mark.parametrize("name", ["ma-mesn", "ma-bon"])  # the -mm variants speak as these do
+def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_acting(name: str) -> None:
+    """The controls of a communication claim: with the channel cut, listeners hear zeros whatever was sent, no
+    TD loss reaches a message network (the twin has the same networks and nothing to learn through them), and
+    its greedy Q-values ignore the messages; with noise they hear fresh random bits at every call."""
+    batch = random_batch(SPEC)
+    cut = build(name, share_params=False, channel_control="cut")
+    _, sent, heard = cut.speak(cut.online, batch["obs"], train=True)
+    assert sent.abs().sum() > 0 and not heard.any()
+    cut.optimizer.zero_grad(set_to_none=True)
+    sum(cut.agent_losses(batch)).backward()
+    message = [p.grad for n, p in cut.online.named_parameters() if n.startswith(("message", "encoder"))]
+    assert message and all(g is None or not g.any() for g in message)
+    noisy = build(name, share_params=False, channel_control="noise")
+    first, second = (noisy.speak(noisy.online, batch["obs"], train=False)[2] for _ in range(2))
+    assert ((first == 0) | (first == 1)).all() and 0.3 < float(first.mean()) < 0.7 and (first != second).any()
+    with pytest.raises(ConfigError, match="channel_control"):
+        resolve_algo("ims", "referential", {"channel_control": "cut"})
+
+
 def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     algo = build("ma-mesn", share_params=False)
     batch = random_batch(SPEC)

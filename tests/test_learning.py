@@ -59,6 +59,18 @@ def test_independent_dqn_cannot_beat_chance_on_the_referential_game() -> None:
     assert abs(result.eval_return - 1 / K) < 0.1, f"idqn success {result.eval_return:.3f} should stay near 1/K"
 
 
+@pytest.mark.parametrize("control", ["cut", "noise"])
+def test_ma_mesn_trained_with_its_channel_cut_or_noisy_stays_at_chance_on_the_referential_game(control: str) -> None:
+    """MA-MeSN's channel-cut twin (same networks, listeners hear zeros) and its white-noise twin cannot solve the
+    game the open MA-MeSN solves (1.000 in the test above): what it gains is the messages', not the second
+    network's."""
+    job = job_config(algo="ma-mesn", env="referential", env_params={"n_targets": K},
+                     algo_params={**REFERENTIAL_HP, "channel_control": control}, steps=25_000, num_envs=64, seed=0,
+                     eval_episodes=500)  # fmt: skip
+    result = run_inprocess(job, out_dir=None, progress=False)
+    assert abs(result.eval_return - 1 / K) < 0.1, f"{control}: success {result.eval_return:.3f} should stay near 1/K"
+
+
 def test_in_distribution_controls_show_the_referential_listener_uses_what_messages_say() -> None:
     """A listener that solves the game with the true messages falls to chance when it hears real messages from
     another env (shuffled) or the speaker's most common message (modal): in-distribution controls, not only white
