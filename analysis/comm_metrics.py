@@ -337,7 +337,7 @@ def metrics_table(figures: list[MetricFigure], title: str = "") -> str:
             shuffled += f" ± {_fmt(f.shuffled_std, f.unit)}"
         cells = [
             f.name,
-            f"{_fmt(f.value, f.unit)} {f.unit}",
+            ("yes" if f.value else "no") if f.unit == "yes/no" else f"{_fmt(f.value, f.unit)} {f.unit}",
             shuffled,
             _fmt(f.per_bit, f.unit),
             _fmt(f.per_bit_shuffled, f.unit),

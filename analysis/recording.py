@@ -144,13 +144,14 @@ def message_input_norm(algo: Agent) -> MetricFigure:
     )
 
 
-def return_figures(algo: Agent, env: BatchedEnv, episodes: int, seed: int) -> list[MetricFigure]:
+def return_figures(
+    algo: Agent, env: BatchedEnv, episodes: int, seed: int
+) -> tuple[list[MetricFigure], dict[str, np.ndarray]]:
     """Greedy return with the true messages and with each control in their place, on the same episodes: messages
     shuffled across envs and each sender's modal message (in distribution: real messages, no content), all-zero
-    messages (what a cut channel delivers), white noise
-    (out of distribution) and, for memory modules, their predictions. Each control's note gives its paired
-    difference from the true messages with a 95 % CI: the messages matter where true beats the in-distribution
-    controls."""
+    messages (what a cut channel delivers), white noise (out of distribution) and, for memory modules, their
+    predictions. Each control's note gives its paired difference from the true messages with a 95 % CI (the
+    differences come back by source): the messages matter where true beats the in-distribution controls."""
     sources = ["sent", "shuffled", "modal", "fixed", "noise"] + (
         ["predicted"] if isinstance(algo, MemoryModule) else []
     )
@@ -162,18 +163,35 @@ def return_figures(algo: Agent, env: BatchedEnv, episodes: int, seed: int) -> li
         "noise": "Cumulative reward with white noise",
         "predicted": "Cumulative reward with predicted messages (no channel)",
     }
-    out, true = [], None
+    out, true, diffs = [], None, {}
     for src in sources:
         res = evaluate_policy(algo, env, episodes, seed=seed, messages=src)  # type: ignore[arg-type]
         note = f"± {res.ci95:.2f} (95 % CI)"
         if true is None:
             true = res.returns
         else:
-            diff = res.returns - true  # the same episodes: paired
+            diff = diffs[src] = res.returns - true  # the same episodes: paired
             note += f"; paired vs true {diff.mean():+.2f} ± {ci95_half(diff, single=0.0):.2f}"
         out.append(MetricFigure(name=names[src], key=f"return_{src}", value=res.mean, unit="return",
                                 samples=len(res.returns), note=note))  # fmt: skip
-    return out
+    return out, diffs
+
+
+def protocol_formed(cic: MetricFigure, diffs: dict[str, np.ndarray]) -> MetricFigure:
+    """Whether this policy's messages form a protocol: its listeners act on them (causal influence more than
+    three shuffle deviations above its baseline) *and* they pay (the true messages beat both in-distribution
+    controls, shuffled and modal, paired 95 % CIs above 0). 1 or 0, so its mean over seeds is the fraction of
+    seeds where a protocol formed."""
+    base = (cic.shuffled or 0.0) + 3 * (cic.shuffled_std or 0.0)
+    acts = cic.value > base
+    pays = {
+        src: float(-d.mean() - ci95_half(-d, single=np.inf)) for src, d in diffs.items() if src in ("shuffled", "modal")
+    }
+    formed = acts and len(pays) == 2 and min(pays.values()) > 0
+    gains = ", ".join(f"true − {src} ≥ {low:+.2f}" for src, low in pays.items())
+    note = f"influence {cic.value:.3f} vs {base:.3f} ({'acts' if acts else 'does not act'} on messages); {gains}"
+    return MetricFigure("Protocol formed (acts on messages and they pay)", "protocol", float(formed), "yes/no",
+                        note=note)  # fmt: skip
 
 
 def analyze(
@@ -194,8 +212,8 @@ def analyze(
     sc = speaker_consistency(flat_msgs, flat_acts, rng, repeats)
     ic = instantaneous_coordination(rec.messages, rec.actions, rng, repeats)
     cic = causal_influence(rec, rng, repeats)
-    returns = return_figures(algo, env, episodes, seed)
-    figures = [sc, ic, cic, message_entropy(flat_msgs), message_input_norm(algo), *returns]
+    returns, diffs = return_figures(algo, env, episodes, seed)
+    figures = [sc, ic, cic, message_entropy(flat_msgs), message_input_norm(algo), *returns, protocol_formed(cic, diffs)]
     result = Analysis(algo.name, env_name, figures)
     if out_dir is not None:
         out = Path(out_dir)

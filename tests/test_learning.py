@@ -87,6 +87,10 @@ def test_in_distribution_controls_show_the_referential_listener_uses_what_messag
     print(success)
     assert success["sent"] >= 0.9, success
     assert max(success["shuffled"], success["modal"], success["fixed"]) < 0.5, success  # chance: 1/K = 0.25
+    from convoy.analysis.recording import analyze
+
+    protocol = next(f for f in analyze(agent, env, "referential", 20, 200, seed=1).figures if f.key == "protocol")
+    assert protocol.value == 1.0, protocol.note  # it acts on the messages and they pay
 
 
 def test_causal_influence_sees_a_speaker_listener_listener_act_on_what_it_hears() -> None:
@@ -96,7 +100,7 @@ def test_causal_influence_sees_a_speaker_listener_listener_act_on_what_it_hears(
     influence falls to the baseline. Influence is not usefulness: at this length the messages move the listener
     without yet helping it (true and shuffled messages score alike), which is why the figure sits beside the
     in-distribution return controls."""
-    from convoy.analysis.recording import causal_influence, record
+    from convoy.analysis.recording import analyze, causal_influence, record
     from convoy.services.training import make_env
 
     job = job_config(algo="ma-mesn", env="speaker-listener", algo_params={"lr": 1e-3, "replay_ratio": 8.0},
@@ -112,6 +116,9 @@ def test_causal_influence_sees_a_speaker_listener_listener_act_on_what_it_hears(
     cut = causal_influence(record(agent, env, 50, seed=1), np.random.default_rng(0), 10)
     assert cut.shuffled is not None and cut.value < cut.shuffled + 0.01, cut
     assert "changed 0.0% of listener actions" in cut.note, cut.note
+    # a listener that cannot act on the messages has no protocol, whatever its returns
+    (protocol,) = (f for f in analyze(agent, env, "speaker-listener", 20, 100, seed=1).figures if f.key == "protocol")
+    assert protocol.value == 0.0 and "does not act" in protocol.note, protocol.note
 
 
 # 2 agents on a 40 × 40 window, 50 steps: scripted 24.7, team-information 29.7, random 2.8
