@@ -6,11 +6,15 @@ It plays the greedy policy, records every agent's message and action at every st
 * speaker consistency MI(agent's message, its own action) and instantaneous coordination MI(speaker's message at t,
   listener's action after hearing it), each next to its shuffled-pairs baseline and per message bit, with the
   number of samples — a 2-byte vocabulary biases plug-in MI upward, so the raw figure alone proves little;
+* causal influence of communication: the same MI where the message was put there by intervention (each listener
+  also acts, at every recorded step, on the messages sent in another env), so only the message's effect counts;
 * message entropy;
 * the message-input norm: the L2 norm of the listener policy's first-layer weights on its message inputs (next to
   the same norm on its observation inputs, per weight, for scale);
-* the return with the true messages and with white noise in place of them (and, for the ``-mm`` variants, with the
-  memory module's predictions and no channel).
+* the return with the true messages and with the controls in their place — messages shuffled across envs, each
+  sender's modal message, all-zero messages, white noise (and, for the ``-mm`` variants, the memory module's
+  predictions and no channel) — each paired with the true messages;
+* whether a protocol formed: the listeners act on the messages and the true ones beat the in-distribution controls.
 
 Samples come from ``B`` envs stepped for ``T`` steps with auto-reset (the policy's own state distribution, several
 episodes per env), so the time axis is kept for the speaker → listener pairing.
