@@ -128,13 +128,15 @@ def learners(scores: dict[str, Any]) -> str:
         return f"{sum(x['q'] for x in v) / len(v):.1f} / {sum(x['discounted_return'] for x in v) / len(v):.1f}"
 
     rows = [
-        [label, f"{len(g['seeds'])}", f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f} ({_seeds(g['last'])})",
+        [label, f"{len(g['seeds'])}", f"{g.get('episodes', scores['episodes'])}",
+         f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f} ({_seeds(g['last'])})",
          f"{g['best_mean']:.1f} ± {g['best_ci95']:.1f}", _seeds(g["last_over_best"], "{:.2f}"), start(g)]
         for label, g in scores["groups"].items()
     ]  # fmt: skip
-    header = ["run", "seeds", f"last policy, {scores['episodes']} held-out episodes (each seed)", "best.pt, held out",
+    header = ["run", "seeds", "held-out episodes", "last policy (each seed)", "best.pt, held out",
               "last ÷ best, per seed", "at the start: max Q / discounted return"]  # fmt: skip
-    return markdown_table(header, rows, [False, True, True, True, False, True]) + "\n\n" + learner_comparisons(scores)
+    right = [False, True, True, True, True, False, True]
+    return markdown_table(header, rows, right) + "\n\n" + learner_comparisons(scores)
 
 
 def learner_comparisons(scores: dict[str, Any]) -> str:
@@ -174,7 +176,7 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     g = scores["groups"][HEADLINE[1]]
     c = next(c for c in scores["comparisons"] if (c["a"], c["b"]) == HEADLINE)
     # the learner's settings: the label's words between "own" and the budget ("400 k", "10 seeds")
-    settings = [w for w in HEADLINE[1].split(", ")[1:] if not w.endswith((" k", " seeds"))]
+    settings = [w for w in HEADLINE[1].split(", ")[1:] if not w.endswith((" k", " seeds", " episodes"))]
     learner = f"Independent\nDQN ({', '.join(settings)})" if settings else "Independent\nDQN"
     fell = sum(r < 0.9 for r in g["last_over_best"])  # seeds whose own-observation run ended below 0.9 × its best
     decline = (f", though on its own observation it ends below 0.9 × its best point on {fell} of {len(g['seeds'])}\n"

@@ -6,9 +6,12 @@ seed's last policy (``checkpoint.pt``) and best point of its greedy curve (``bes
 own evaluation episodes) are played greedily on ``--episodes`` episodes of seed ``--seed`` — episodes neither was
 chosen on — and the group gets the mean over seeds with its 95 % t-CI, each seed's last ÷ best (below 1: the policy
 fell from its best point). ``--compare A B`` adds Welch's t-test of A's last policies against B's (seeds are
-independent runs, so unpaired). The JSON (``--json``, default ``docs/figures/treadmill_learners.json``) keeps the
-groups of earlier calls, so groups can be scored as their runs finish; ``python benchmarks/doc_figures.py`` renders
-it into docs/benchmarks.md.
+independent runs, so unpaired; both scored on as many episodes). The JSON (``--json``, default
+``docs/figures/treadmill_learners.json``) keeps the groups of earlier calls, so groups can be scored as their runs
+finish, each with its own episode count (one seed of episodes for the whole file: the first N episodes of a longer
+scoring are the same episodes); ``python benchmarks/doc_figures.py`` renders it into docs/benchmarks.md. Why more
+episodes for a budget's headline: a seed's last ÷ best is a ratio of two 200-episode means, noisy by about ±0.06 —
+as wide as the gap between holding and falling.
 
 Run: ``python benchmarks/learner_scores.py --group "own, 150 k"=runs/v4/idqn-private`` (~20 s per seed).
 """
@@ -97,6 +100,7 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any
     x, b = np.asarray(last), np.asarray(best)
     return {
         "dirs": [str(d) for d in run_dirs],
+        "episodes": episodes,
         "algo": job.algo,
         "env_params": job.env_params,
         "hyper_parameters": job.algo_params,  # the ones set on the command line; the rest are the env's defaults
@@ -135,11 +139,14 @@ def main(argv: list[str] | None = None) -> int:
 
     path = Path(args.json)
     data: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
-    if data and (data["episodes"], data["seed"]) != (args.episodes, args.seed):
-        raise SystemExit(f"{path} holds scores on {data['episodes']} episodes of seed {data['seed']}; score with "
-                         "the same --episodes and --seed, or write another --json")  # fmt: skip
-    data.update(episodes=args.episodes, seed=args.seed)
+    if data and data["seed"] != args.seed:
+        raise SystemExit(f"{path} holds scores on episodes of seed {data['seed']}; score with the same --seed, or "
+                         "write another --json")  # fmt: skip
+    data.setdefault("episodes", args.episodes)  # the count of groups scored before counts were kept per group
+    data["seed"] = args.seed
     groups: dict[str, Any] = data.setdefault("groups", {})
+    for g in groups.values():
+        g.setdefault("episodes", data["episodes"])
     for spec in args.group:
         label, sep, dirs = spec.rpartition("=")
         if not sep or not label or not dirs:
@@ -154,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         missing = [g for g in (a, b) if g not in groups]
         if missing:
             raise SystemExit(f"--compare: no group {missing[0]!r}; scored: {', '.join(groups) or 'none'}")
+        if groups[a]["episodes"] != groups[b]["episodes"]:
+            raise SystemExit(f"--compare: {a!r} was scored on {groups[a]['episodes']} episodes, {b!r} on "
+                             f"{groups[b]['episodes']}; score both with the same --episodes")  # fmt: skip
         comparisons[:] = [c for c in comparisons if (c["a"], c["b"]) != (a, b)]
         comparisons.append({"a": a, "b": b, **compare(groups[a], groups[b])})
         c = comparisons[-1]
