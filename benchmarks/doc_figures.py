@@ -180,7 +180,8 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     learner = f"Independent\nDQN ({', '.join(settings)})" if settings else "Independent\nDQN"
     fell = sum(r < 0.9 for r in g["last_over_best"])  # seeds whose own-observation run ended below 0.9 × its best
     decline = (f", though on its own observation it ends below 0.9 × its best point on {fell} of {len(g['seeds'])}\n"
-               "seeds, so part of the gap is that arm's decline ") if fell else " "  # fmt: skip
+               "seeds, so part of the gap is that arm's decline ") if fell else (
+               ", and on its own observation\nno seed ends below 0.9 × its best point ")  # fmt: skip
     return (
         "**What it shows.** On the treadmill ([docs/treadmill.md](docs/treadmill.md): cars enter and leave\n"
         "a moving window whose speed changes, sensors have a range and a rear blind spot, chasers come from\n"
@@ -190,7 +191,8 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"({_ratio(search, 'team16 ÷ private')} through a hand-written 16-bit code per\n"
         f"teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. {learner}"
         f" on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
-        f"({g['env_steps'] // 1000} k steps, last policies on held-out\nepisodes, {len(g['seeds'])} seeds; "
+        f"({g['env_steps'] // 1000} k steps, last policies on {g.get('episodes', scores['episodes'])} held-out\n"
+        f"episodes, {len(g['seeds'])} seeds; "
         f"tuned private driver {search['policies']['private driver']['mean']:.1f}); told every car its teammates "
         f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
