@@ -194,7 +194,7 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"({g['env_steps'] // 1000} k steps, last policies on {g.get('episodes', scores['episodes'])} held-out\n"
         f"episodes, {len(g['seeds'])} seeds; "
         f"tuned private driver {search['policies']['private driver']['mean']:.1f}); told every car its teammates "
-        f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f}\n"
+        f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f} ± {scores['groups'][HEADLINE[0]]['last_ci95']:.1f}\n"
         f"(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]): "
         + (
             "a learner has not yet been shown to turn teammates' knowledge\ninto reward on these rules (with the "
@@ -412,8 +412,8 @@ def engineering_results(population: dict[str, Any], population_all: dict[str, An
 
 # the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
 HEADLINE = (
-    "+ team sightings, LayerNorm, τ 0.001, squared TD error, ε over half, 400 k, 10 seeds",
-    "own, LayerNorm, τ 0.001, squared TD error, ε over half, 400 k, 10 seeds",
+    "+ team sightings, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, 400 k, 10 seeds",
+    "own, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, 400 k, 10 seeds",
 )
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
