@@ -160,10 +160,10 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     argv = shrink(expand(command))
     outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
     for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
-        value = arg.rpartition("=")[2]  # a path or --hp teacher=PATH
-        for path in PRODUCERS:
-            if value == path or value.startswith(path + "/"):
-                ensure(path, ws, capsys)
+        for value in arg.rpartition("=")[2].split(","):  # a path, --hp teacher=PATH or a group LABEL=DIR,DIR
+            for path in PRODUCERS:
+                if value == path or value.startswith(path + "/"):
+                    ensure(path, ws, capsys)
     if argv[0] == "convoy":
         return run_convoy(argv[1:], ws, capsys)
     if argv[0] == "python":
