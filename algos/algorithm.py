@@ -355,7 +355,8 @@ class NetworkAgent(ABC):
                 self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
             else:
                 lrs = torch.tensor([c.lr for c in self.run_cfgs], device=self.device)
-                self._optimizer = RunAdam(list(self.online.parameters()), lrs)
+                ends = torch.tensor([c.lr if c.lr_end is None else c.lr_end for c in self.run_cfgs], device=self.device)
+                self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends)
         return self._optimizer
 
     def anneal_lr(self) -> None:
@@ -363,12 +364,11 @@ class NetworkAgent(ABC):
         if all(c.lr_end is None for c in self.run_cfgs):
             return
         p, opt = self.progress, self.optimizer
-        lrs = [lr_at(c, p.env_steps, p.total_steps) for c in self.run_cfgs]
-        if isinstance(opt, RunAdam):
-            opt.lrs.copy_(torch.tensor(lrs))
+        if isinstance(opt, RunAdam):  # lr + f·(lr_end − lr) per run, on the device: no host copy per update
+            opt.anneal(min(1.0, p.env_steps / max(1, p.total_steps)))
         else:
             for group in opt.param_groups:
-                group["lr"] = lrs[0]
+                group["lr"] = lr_at(self.cfg, p.env_steps, p.total_steps)
 
     # --- what each algorithm writes ------------------------------------------------------------------------------
     @abstractmethod
@@ -681,9 +681,16 @@ class RunAdam(torch.optim.Optimizer):
     parameters ``[R, …]``; its state has ``torch.optim.Adam``'s layout, so a run's share loads into a single run's
     Adam. Equal to it up to float rounding (the fused kernel orders the same arithmetic differently)."""
 
-    def __init__(self, params: list[Tensor], lrs: Tensor, betas: tuple[float, float] = (0.9, 0.999)) -> None:
+    def __init__(
+        self, params: list[Tensor], lrs: Tensor, ends: Tensor | None = None, betas: tuple[float, float] = (0.9, 0.999)
+    ) -> None:
         super().__init__(params, {"lr": 0.0, "betas": betas, "eps": 1e-8})
-        self.lrs = lrs
+        self.lrs, self.start = lrs, lrs.clone()
+        self.span = torch.zeros_like(lrs) if ends is None else ends - lrs  # to each run's ``lr_end`` by the run's end
+
+    def anneal(self, fraction: float) -> None:
+        """Each run's rate ``fraction`` of the way to its end rate, computed on the device (no host copy)."""
+        torch.add(self.start, self.span, alpha=fraction, out=self.lrs)
 
     @torch.no_grad()
     def step(self, closure: Callable[[], float] | None = None) -> float | None:  # type: ignore[override]
