@@ -119,11 +119,16 @@ def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
     return cfg.eps_start + decay_progress(cfg, env_steps, total_steps) * (cfg.eps_end - cfg.eps_start)
 
 
+def run_fraction(env_steps: int, total_steps: int) -> float:
+    """How far the run has gone, 0 → 1 (held at 1 past its end)."""
+    return min(1.0, env_steps / max(1, total_steps))
+
+
 def lr_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
     """``lr`` annealed linearly to ``lr_end`` over the run (``lr`` throughout when ``lr_end`` is None)."""
     if cfg.lr_end is None:
         return cfg.lr
-    return cfg.lr + min(1.0, env_steps / max(1, total_steps)) * (cfg.lr_end - cfg.lr)
+    return cfg.lr + run_fraction(env_steps, total_steps) * (cfg.lr_end - cfg.lr)
 
 
 def epsilon_greedy(
@@ -355,7 +360,7 @@ class NetworkAgent(ABC):
                 self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
             else:
                 lrs = torch.tensor([c.lr for c in self.run_cfgs], device=self.device)
-                ends = torch.tensor([c.lr if c.lr_end is None else c.lr_end for c in self.run_cfgs], device=self.device)
+                ends = torch.tensor([lr_at(c, 1, 1) for c in self.run_cfgs], device=self.device)  # at the run's end
                 self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends)
         return self._optimizer
 
@@ -365,7 +370,7 @@ class NetworkAgent(ABC):
             return
         p, opt = self.progress, self.optimizer
         if isinstance(opt, RunAdam):  # lr + f·(lr_end − lr) per run, on the device: no host copy per update
-            opt.anneal(min(1.0, p.env_steps / max(1, p.total_steps)))
+            opt.anneal(run_fraction(p.env_steps, p.total_steps))
         else:
             for group in opt.param_groups:
                 group["lr"] = lr_at(self.cfg, p.env_steps, p.total_steps)

@@ -128,7 +128,7 @@ def learners(scores: dict[str, Any]) -> str:
         return f"{sum(x['q'] for x in v) / len(v):.1f} / {sum(x['discounted_return'] for x in v) / len(v):.1f}"
 
     rows = [
-        [label, f"{len(g['seeds'])}", f"{g.get('episodes', scores['episodes'])}",
+        [label, f"{len(g['seeds'])}", f"{g['episodes']}",
          f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f} ({_seeds(g['last'])})",
          f"{g['best_mean']:.1f} ± {g['best_ci95']:.1f}", _seeds(g["last_over_best"], "{:.2f}"), start(g)]
         for label, g in scores["groups"].items()
@@ -191,7 +191,7 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"({_ratio(search, 'team16 ÷ private')} through a hand-written 16-bit code per\n"
         f"teammate): knowledge that sits with teammates and fits the paper's 2-byte channel. {learner}"
         f" on its own observation scores {g['last_mean']:.1f} ± {g['last_ci95']:.1f} per agent "
-        f"({g['env_steps'] // 1000} k steps, last policies on {g.get('episodes', scores['episodes'])} held-out\n"
+        f"({g['env_steps'] // 1000} k steps, last policies on {g['episodes']} held-out\n"
         f"episodes, {len(g['seeds'])} seeds; "
         f"tuned private driver {search['policies']['private driver']['mean']:.1f}); told every car its teammates "
         f"see, {scores['groups'][HEADLINE[0]]['last_mean']:.1f} ± {scores['groups'][HEADLINE[0]]['last_ci95']:.1f}\n"
