@@ -3,21 +3,27 @@
 A claim is one table of a figure file's ``[[figure.claims]]``; its keys say what kind it is:
 
 * ``better = G``, ``than = H``: group G's final greedy return is above H's. Welch's one-sided t-test over seeds:
-  *reproduced* at p < 0.05, *partly* when G's mean is higher but not significantly, *not reproduced* otherwise.
+  *reproduced* at p < 0.05, *not shown* when G's mean is higher but not significantly, *not reproduced* when it
+  is not higher (the difference goes the other way).
 * ``group = G``, ``above_reference = R``: G's final return is above reference policy R's (one-sample t-test of
   the seeds' returns against R's mean, the same verdicts).
 * ``group = G``, ``paper = x``: the paper's number beside ours; with ``comparable = false`` (another reward scale)
-  the verdict is *not comparable*, else *reproduced* when x lies in our 95 % CI, *partly* within twice it.
-* ``exponent = ALGO``, ``between = [lo, hi]``: the fitted exponent k of inference time ∝ N^k lies in [lo, hi].
+  the verdict is *not comparable*, else *reproduced* when x lies in our 95 % CI, *not reproduced* outside it.
+* ``exponent = ALGO``, ``between = [lo, hi]``: the exponent k of inference time ∝ N^k is in [lo, hi]: *reproduced*
+  when k's whole 95 % CI lies inside, *not reproduced* when it lies wholly outside, *not shown* otherwise — so a
+  fit of k = 1.51 ± 0.3 does not pass for "quadratic".
 * ``metric = KEY`` (an analysis figure, Table 1) with ``above = "shuffled"`` (the figure beats its shuffled-pairs
   baseline), ``above = 0``, or ``below = OTHER_KEY`` (e.g. the return with noise below the return with messages):
   one-sided t-tests over the analysed checkpoints.
 
 A figure tests several claims at once, so ``judge_figure`` holds its family-wise error at 5 %: a tested claim is
 *reproduced* only when its p-value stays below 0.05 after Holm's step-down correction over the figure's tested
-claims (a claim significant alone but not after it is *partly*).
+claims (a claim significant alone but not after it is *not shown*).
 
-The figure's verdict: *reproduced* when every claim is, *not reproduced* when none is even partly, else *partly*.
+The figure's verdict, strict as a referee reads it: *not reproduced* when its headline claim (``headline = true``,
+else its first) goes the other way, or every claim does; *reproduced* when every claim is; *partly* only
+when some claims hold significantly and others do not; *not shown* when no claim holds significantly and the
+headline does not go the other way.
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ from scipy import stats
 
 from convoy.stats import ci95_half
 
-REPRODUCED, PARTLY, NOT, NOT_COMPARABLE = "reproduced", "partly", "not reproduced", "not comparable"
+REPRODUCED, PARTLY, NOT_SHOWN, NOT = "reproduced", "partly", "not shown", "not reproduced"
+NOT_COMPARABLE = "not comparable"
 ALPHA = 0.05
 
 
@@ -44,6 +51,7 @@ class Verdict:
     verdict: str
     why: str = ""
     p: float | None = None  # the one-sided test's p-value, for claims decided by one
+    headline: bool = False  # the figure's main claim: if it goes the other way, so does the figure
 
 
 def mean_ci(values: list[float]) -> str:
@@ -91,7 +99,7 @@ def _tested(text: str, paper: str, ours: str, diff: float, p: float) -> Verdict:
     if significant(diff, p):
         return Verdict(text, paper, ours, REPRODUCED, f"p = {p:.3g} (one-sided t-test)", p)
     if diff > 0:
-        return Verdict(text, paper, ours, PARTLY, f"higher but not significantly: p = {p:.2g}", p)
+        return Verdict(text, paper, ours, NOT_SHOWN, f"higher but not significantly: p = {p:.2g}", p)
     return Verdict(text, paper, ours, NOT, f"lower: difference {diff:.3g}, p = {p:.2g}", p)
 
 
@@ -107,15 +115,19 @@ def holm(verdicts: list[Verdict]) -> list[Verdict]:
         if running < ALPHA:
             v.why = f"p = {v.p:.3g}, {running:.3g} after Holm's correction over {m} tests"
         else:
-            v.verdict, v.why = PARTLY, f"p = {v.p:.3g} alone, {running:.2g} after Holm's correction over {m} tests"
+            v.verdict, v.why = NOT_SHOWN, f"p = {v.p:.3g} alone, {running:.2g} after Holm's correction over {m} tests"
     return verdicts
 
 
 def judge_figure(
     claims: list[dict[str, Any]], groups: dict[str, dict[str, Any]], extra: dict[str, Any]
 ) -> list[Verdict]:
-    """Every claim of a figure, Holm-corrected together."""
-    return holm([judge(c, groups, extra) for c in claims])
+    """Every claim of a figure, Holm-corrected together; the first is the headline unless one says it is."""
+    verdicts = holm([judge(c, groups, extra) for c in claims])
+    flagged = [v for v, c in zip(verdicts, claims, strict=True) if c.get("headline")]
+    for v in flagged or verdicts[:1]:
+        v.headline = True
+    return verdicts
 
 
 def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[str, Any]) -> Verdict:
@@ -142,15 +154,10 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
                 return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "another reward scale")))
             x = np.asarray(a, dtype=np.float64)
             gap, ci = abs(float(x.mean()) - float(claim["paper"])), ci95_half(x, single=0.0)
-            verdict = REPRODUCED if gap <= ci else PARTLY if gap <= 2 * ci else NOT
+            verdict = REPRODUCED if gap <= ci else NOT
             return Verdict(text, paper, ours, verdict, f"|ours − paper| = {gap:.3g}, CI {ci:.2g}")
         if "exponent" in claim:
-            k = extra.get("exponents", {}).get(claim["exponent"])
-            lo, hi = (float(v) for v in claim["between"])
-            if k is None or not math.isfinite(k):
-                return Verdict(text, paper, "not measured", NOT, "no timing for this algorithm")
-            verdict = REPRODUCED if lo <= k <= hi else NOT
-            return Verdict(text, paper, f"k = {k:.2f}", verdict, f"expected {lo:g} ≤ k ≤ {hi:g}")
+            return _judge_exponent(claim, text, paper, extra.get("exponents", {}).get(claim["exponent"]))
         if "metric" in claim:
             return _judge_metric(claim, text, paper, extra.get("analysis", {}))
     except KeyError as exc:
@@ -158,36 +165,61 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
     raise ValueError(f"claim {text!r}: no kind recognised (better/than, above_reference, paper, exponent, metric)")
 
 
+def _judge_exponent(claim: dict[str, Any], text: str, paper: str, fit: Any) -> Verdict:
+    """``fit``: ``{"k": k, "ci": [lo, hi]}`` (a k without a CI, from an older record or too few rounds, shows
+    nothing)."""
+    lo, hi = (float(v) for v in claim["between"])
+    expected = f"expected {lo:g} ≤ k ≤ {hi:g}"
+    if isinstance(fit, dict) and fit.get("ci") is not None and math.isfinite(fit["k"]):
+        k, (k_lo, k_hi) = float(fit["k"]), (float(v) for v in fit["ci"])
+        ours = f"k = {k:.2f} [{k_lo:.2f}, {k_hi:.2f}]"
+        if lo <= k_lo and k_hi <= hi:
+            return Verdict(text, paper, ours, REPRODUCED, f"{expected}: the 95 % CI lies inside")
+        if k_hi < lo or k_lo > hi:
+            return Verdict(text, paper, ours, NOT, f"{expected}: the 95 % CI lies outside")
+        return Verdict(text, paper, ours, NOT_SHOWN, f"{expected}: the 95 % CI reaches outside")
+    if isinstance(fit, dict):
+        fit = fit.get("k")  # too few rounds for a CI
+    if isinstance(fit, float | int) and math.isfinite(fit):
+        why = f"{expected}; no CI: run the figure again with --repeats ≥ 2"
+        return Verdict(text, paper, f"k = {fit:.2f}", NOT_SHOWN, why)
+    return Verdict(text, paper, "not measured", NOT_SHOWN, "no timing for this algorithm")
+
+
 def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[str, dict[str, list[float]]]) -> Verdict:
     key = claim["metric"]
-    if key not in figures or not figures[key]["value"]:
-        return Verdict(text, paper, "not measured", NOT, f"no analysis figure {key!r}")
+    measured = key in figures and figures[key]["value"]
+    if "above" not in claim and "below" not in claim:  # a number shown, not a claim tested
+        ours = mean_ci(figures[key]["value"]) if measured else "not measured"
+        return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "a number only")))
+    if not measured:
+        return Verdict(text, paper, "not measured", NOT_SHOWN, f"no analysis figure {key!r}: run the figure again")
     values = figures[key]["value"]
     ours = mean_ci(values)
     above, below = claim.get("above"), claim.get("below")
     if above == "shuffled":
         base = [v for v in figures[key].get("shuffled", []) if v is not None]
         if not base:
-            return Verdict(text, paper, ours, NOT, "no shuffled baseline")
+            return Verdict(text, paper, ours, NOT_SHOWN, "no shuffled baseline: run the figure again")
         diff = [v - s for v, s in zip(values, base, strict=False)]
         return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *p_above(diff, 0.0))
     if above is not None:
         return _tested(text, paper, ours, *p_above(values, float(above)))
-    if below is not None:
-        other = figures.get(below, {}).get("value", [])
-        diff = [o - v for v, o in zip(values, other, strict=False)]
-        if not diff:
-            return Verdict(text, paper, ours, NOT, f"no figure {below!r}")
-        return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *p_above(diff, 0.0))
-    return Verdict(text, paper, ours, NOT_COMPARABLE, str(claim.get("why", "a number only")))
+    other = figures.get(below, {}).get("value", [])
+    diff = [o - v for v, o in zip(values, other, strict=False)]
+    if not diff:
+        return Verdict(text, paper, ours, NOT_SHOWN, f"no figure {below!r}: run the figure again")
+    return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *p_above(diff, 0.0))
 
 
 def figure_verdict(verdicts: list[Verdict]) -> str:
-    judged = [v.verdict for v in verdicts if v.verdict != NOT_COMPARABLE]
+    """The figure's word from its claims' (see the module's docstring)."""
+    judged = [v for v in verdicts if v.verdict != NOT_COMPARABLE]
     if not judged:
         return NOT_COMPARABLE
-    if all(v == REPRODUCED for v in judged):
-        return REPRODUCED
-    if all(v == NOT for v in judged):
+    words = [v.verdict for v in judged]
+    if any(v.headline and v.verdict == NOT for v in judged) or all(w == NOT for w in words):
         return NOT
-    return PARTLY
+    if all(w == REPRODUCED for w in words):
+        return REPRODUCED
+    return PARTLY if REPRODUCED in words else NOT_SHOWN

@@ -335,8 +335,9 @@ class SweepList(BaseModel):
 
 
 class SweepSummary(BaseModel):
-    """Per group: the mean greedy curve ± 95 % CI over seeds at common env steps, the final greedy return and the
-    time to the threshold (env steps and seconds of the seeds that reached it)."""
+    """Per group: the mean greedy curve ± 95 % CI over seeds at common env steps, the final greedy return (mean with
+    t-CI, ``iqm`` with a bootstrap CI), ``auc`` (area under each job's greedy curve per env step) and the time to
+    the threshold (env steps and seconds of the seeds that reached it)."""
 
     id: str
     state: str

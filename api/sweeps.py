@@ -21,8 +21,8 @@ import numpy as np
 from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
 from convoy.config import ConfigError, JobConfig, algo_name
+from convoy.stats import curve_area, iqm_ci, mean_curve
 from convoy.stats import mean_ci as _mean_ci
-from convoy.stats import mean_curve
 from convoy.validation import build_config
 
 
@@ -169,9 +169,10 @@ def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_s
 def summarize_group(
     name: str, members: list[tuple[str, dict[str, Any]]], reader: JobReader, threshold: float | None
 ) -> dict[str, Any]:
-    """One group: its jobs' states, the mean greedy curve ± CI at common steps, the final return, the threshold."""
+    """One group: its jobs' states, the mean greedy curve ± CI at common steps, the final return (mean ± t-CI and
+    interquartile mean with a bootstrap CI), the area under each completed job's greedy curve, the threshold."""
     states: dict[str, int] = {}
-    curves, finals, reached_steps, reached_wall, jobs = [], [], [], [], []
+    curves, finals, areas, reached_steps, reached_wall, jobs = [], [], [], [], [], []
     for job_id, _ in members:
         try:
             rec = reader.get(job_id)
@@ -186,6 +187,7 @@ def summarize_group(
             curves.append((steps, values))
         if final and isinstance(final.get("eval_return"), int | float) and math.isfinite(final["eval_return"]):
             finals.append(float(final["eval_return"]))
+            areas.append(curve_area(steps, values))
         if threshold is not None and len(steps):
             hit = np.flatnonzero(values >= threshold)
             if len(hit):
@@ -198,6 +200,8 @@ def summarize_group(
         "states": states,
         "curve": mean_curve(curves),
         "final": _mean_ci(finals),
+        "iqm": iqm_ci(finals),
+        "auc": _mean_ci([a for a in areas if a is not None]),
     }
     if threshold is not None:
         out["threshold"] = {

@@ -330,12 +330,12 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
     analysis = table1["analysis"]
     returns = {"return_sent": "true messages", "return_shuffled": "shuffled across envs",
                "return_modal": "each sender's modal message", "return_noise": "white noise"}  # fmt: skip
-    noise = _verdict(table1, "white noise for messages lowers the return")
+    use = next((v for v in table1["verdicts"] if v.get("headline")), table1["verdicts"][0])  # true vs shuffled
     consistency = analysis["speaker_consistency"]
     shown = [mean_ci(analysis[k]["value"]) for k in returns]
     rows.append([f"Table 1 at the {table1['scale']} scale, MA-MeSN's return with {' / '.join(returns.values())}",
                  " / ".join(_ci(s) for s in shown) + ": "
-                 + (f"white noise lowers the return, {_p(noise['p'])}" if noise["verdict"] == REPRODUCED
+                 + (f"true messages beat shuffled ones, {_p(use['p'])}" if use["verdict"] == REPRODUCED
                     else "the listeners do not use what the messages say at this budget")
                  + f" (speaker consistency {mean_ci(consistency['value'])['mean']:.2f} vs shuffled "
                  f"{mean_ci(consistency['shuffled'])['mean']:.2f})", _where(table1)])  # fmt: skip

@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import stats
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
@@ -261,6 +262,17 @@ def fit_exponent(ns: Sequence[float], ys: Sequence[float]) -> float | None:
     return float(np.polyfit(x, y, 1)[0])
 
 
+def fit_exponent_ci(ns: Sequence[float], ys: Sequence[float]) -> tuple[float, float] | None:
+    """95 % CI of that slope over every measured round (Student-t on the least-squares slope's standard error), so
+    a claim "grows quadratically" is judged by the range the timings allow, not by one fitted number."""
+    pts = [(n, y) for n, y in zip(ns, ys, strict=True) if n > 0 and y > 0 and math.isfinite(y)]
+    if len({n for n, _ in pts}) < 2 or len(pts) < 3:
+        return None
+    fit = stats.linregress(np.log([n for n, _ in pts]), np.log([v for _, v in pts]))
+    half = float(stats.t.ppf(0.975, len(pts) - 2)) * float(fit.stderr)
+    return float(fit.slope) - half, float(fit.slope) + half
+
+
 def upper_half(ns: Sequence[int]) -> list[int]:
     """The larger half of the agent counts (at least two), where fixed per-call overheads matter least."""
     s = sorted(ns)
@@ -279,6 +291,7 @@ def summarise(cases: list[Case], names: list[str], agents: list[int]) -> dict[st
         ms = [c.median_ms for c in mine]
         fl = [float(c.flops_per_act) for c in mine]
         up = [i for i, c in enumerate(mine) if c.n_agents in upper]
+        rounds = [(c.n_agents, 1e3 * t) for c in mine if c.n_agents in upper for t in c.seconds_per_act]
         fits[name] = {
             "agents": ns,
             "ms_per_act": ms,
@@ -286,6 +299,7 @@ def summarise(cases: list[Case], names: list[str], agents: list[int]) -> dict[st
             "params": [c.n_params for c in mine],
             "exponent_all": fit_exponent(ns, ms),
             "exponent_upper": fit_exponent([ns[i] for i in up], [ms[i] for i in up]),
+            "exponent_upper_ci": fit_exponent_ci([n for n, _ in rounds], [y for _, y in rounds]),
             "upper_agents": [ns[i] for i in up],
             "flops_exponent_all": fit_exponent(ns, fl),
             "flops_exponent_upper": fit_exponent([ns[i] for i in up], [fl[i] for i in up]),

@@ -1,4 +1,5 @@
-"""Statistics every report shares: the 95 % confidence half-width of a mean, and seeds' curves as one.
+"""Statistics every report shares: the 95 % confidence half-width of a mean, the interquartile mean with a bootstrap
+CI, the area under a greedy curve, and seeds' curves as one.
 
 Student's t, not the normal 1.96: across 3–5 seeds the normal interval is a third too narrow (t₀.₉₇₅ with 4
 degrees of freedom is 2.78); over 100 evaluation episodes the two agree to 1 %.
@@ -38,3 +39,28 @@ def mean_curve(curves: list[tuple[Any, Any]]) -> dict[str, list]:
         ci.append(stats["ci95"])
         count.append(stats["n"])
     return {"env_steps": [int(x) for x in grid], "mean": mean, "ci95": ci, "n": count}
+
+
+def iqm_ci(values: list[float], resamples: int = 2000, seed: int = 0) -> dict[str, Any]:
+    """Interquartile mean of seeds' values (the mean of the middle half: one outlier seed moves it little) with the
+    percentile-bootstrap 95 % CI over seeds that Agarwal et al. (2021) and marl-eval report; with one task the
+    stratified bootstrap is this one. Fixed ``seed``: a report regenerated from the same values reads the same."""
+    x = np.asarray(values, dtype=np.float64)
+    if not len(x):
+        return {"iqm": None, "low": None, "high": None, "n": 0}
+    iqm = float(stats.trim_mean(x, 0.25))
+    if len(x) < 2 or np.ptp(x) == 0:
+        return {"iqm": iqm, "low": iqm, "high": iqm, "n": len(x)}
+    boot = stats.bootstrap((x,), lambda v, axis: stats.trim_mean(v, 0.25, axis=axis), n_resamples=resamples,
+                           method="percentile", random_state=np.random.default_rng(seed), vectorized=True)  # fmt: skip
+    low, high = boot.confidence_interval
+    return {"iqm": iqm, "low": float(low), "high": float(high), "n": len(x)}
+
+
+def curve_area(steps: np.ndarray, values: np.ndarray) -> float | None:
+    """Area under a greedy curve per env step (trapezoids over its evaluation steps): the return averaged over the
+    run, which tells a run that learns early and holds from one that gets there at the end."""
+    steps, values = np.asarray(steps, dtype=np.float64), np.asarray(values, dtype=np.float64)
+    if len(steps) < 2 or steps[-1] <= steps[0]:
+        return float(values[0]) if len(values) else None
+    return float(np.trapezoid(values, steps) / (steps[-1] - steps[0]))

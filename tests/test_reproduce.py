@@ -12,6 +12,7 @@ import pytest
 from convoy.analysis.verdicts import (
     NOT,
     NOT_COMPARABLE,
+    NOT_SHOWN,
     PARTLY,
     REPRODUCED,
     Verdict,
@@ -75,7 +76,7 @@ kind = "benchmark"
 title = "Fig. 4b: a tiny stand-in"
 claims = [{{ text = "idqn grows", exponent = "idqn", between = [-5, 5] }}]
 [figure.scales.quick]
-command = ["{ROOT / "benchmarks" / "inference_scaling.py"}", "--quick", "--algos", "idqn", "--repeats", "1"]
+command = ["{ROOT / "benchmarks" / "inference_scaling.py"}", "--quick", "--algos", "idqn", "--repeats", "2"]
 """
 
 
@@ -93,7 +94,7 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert [g["group"] for g in record["groups"]] == ["algo=ma-mesn", "algo=idqn"]
     assert all(g["final"]["n"] == 2 for g in record["groups"])
     assert [v["verdict"] for v in record["verdicts"]][1] == NOT_COMPARABLE
-    assert record["verdict"] in (REPRODUCED, PARTLY, NOT)
+    assert record["verdict"] in (REPRODUCED, PARTLY, NOT_SHOWN, NOT)
     assert (tmp_path / "docs" / "r" / "fig8.png").stat().st_size > 10_000
     page = (tmp_path / "docs" / "r.md").read_text()
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
@@ -146,35 +147,63 @@ def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) ->
                     assert claim[key] in known, (fig, claim["text"], claim[key], sorted(known))
 
 
-def test_claims_get_verdicts_from_one_sided_tests() -> None:
+def test_claims_get_strict_verdicts_from_one_sided_tests() -> None:
     groups = {
         "a": {"final": {"values": [10.0, 11.0, 12.0, 10.5, 11.5]}},
         "b": {"final": {"values": [5.0, 6.0, 5.5, 6.5, 5.0]}},
         "c": {"final": {"values": [2.0, 13.0, 4.0, 9.0, 3.0]}},
     }
     assert judge({"text": "", "better": "a", "than": "b"}, groups, {}).verdict == REPRODUCED
-    assert judge({"text": "", "better": "c", "than": "b"}, groups, {}).verdict == PARTLY  # higher, not significant
+    assert judge({"text": "", "better": "c", "than": "b"}, groups, {}).verdict == NOT_SHOWN  # higher, not significant
     assert judge({"text": "", "better": "b", "than": "a"}, groups, {}).verdict == NOT
     refs = {"references": {"scripted": 8.0}}
     assert judge({"text": "", "group": "a", "above_reference": "scripted"}, groups, refs).verdict == REPRODUCED
     assert judge({"text": "", "group": "a", "paper": 11.0}, groups, {}).verdict == REPRODUCED
     assert judge({"text": "", "group": "a", "paper": 30.0}, groups, {}).verdict == NOT
-    assert judge({"text": "", "exponent": "x", "between": [0.5, 1.5]}, groups, {"exponents": {"x": 1.1}}).verdict == (
-        REPRODUCED
-    )
+    assert judge({"text": "", "group": "a", "paper": 12.5}, groups, {}).verdict == NOT  # outside our CI: not "partly"
     missing = judge({"text": "", "better": "a", "than": "nope"}, groups, {})
     assert missing.verdict == NOT and "no group 'nope'" in missing.why
     figures = {"analysis": {"sc": {"value": [0.3, 0.32, 0.29], "shuffled": [0.1, 0.11, 0.09]}}}
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, figures).verdict == REPRODUCED
-    v = [Verdict("", "", "", REPRODUCED), Verdict("", "", "", NOT), Verdict("", "", "", NOT_COMPARABLE)]
-    assert figure_verdict(v) == PARTLY and figure_verdict(v[:1]) == REPRODUCED and figure_verdict(v[1:]) == NOT
+    assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, {}).verdict == NOT_SHOWN  # not measured
+
+
+def test_an_exponent_claim_is_judged_by_its_confidence_interval() -> None:
+    """A "quadratic" claim (1.5 ≤ k ≤ 2.5) is not passed by k = 1.51 whose CI reaches down to linear."""
+    quadratic = {"text": "", "exponent": "x", "between": [1.5, 2.5]}
+
+    def verdict(k: float | None, ci: list[float] | None) -> str:
+        return judge(quadratic, {}, {"exponents": {"x": k if ci is None else {"k": k, "ci": ci}}}).verdict
+
+    assert verdict(1.9, [1.7, 2.1]) == REPRODUCED
+    assert verdict(1.51, [1.2, 1.8]) == NOT_SHOWN
+    assert verdict(1.05, [0.9, 1.2]) == NOT
+    assert verdict(1.9, None) == NOT_SHOWN  # a bare k from an older record: no CI, nothing shown
+    assert judge(quadratic, {}, {}).verdict == NOT_SHOWN  # not measured
+
+
+def test_a_figures_verdict_is_strict() -> None:
+    """*partly* needs a significant claim; the headline claim going the other way sinks the figure."""
+
+    def figure(*words: str, headline: int = 0) -> str:
+        return figure_verdict([Verdict("", "", "", w, headline=i == headline) for i, w in enumerate(words)])
+
+    assert figure(REPRODUCED, REPRODUCED, NOT_COMPARABLE) == REPRODUCED
+    assert figure(REPRODUCED, NOT_SHOWN) == PARTLY and figure(REPRODUCED, NOT, NOT_SHOWN) == PARTLY
+    assert figure(NOT_SHOWN, NOT_SHOWN, NOT) == NOT_SHOWN  # nothing significant is not "partly"
+    assert figure(NOT, REPRODUCED, REPRODUCED) == NOT  # the headline goes the other way
+    assert figure(REPRODUCED, NOT, headline=1) == NOT and figure(NOT, NOT) == NOT
+    assert figure(NOT_COMPARABLE) == NOT_COMPARABLE
+    claims = [{"text": "x", "metric": "m", "above": 0}, {"text": "y", "metric": "m", "above": 0, "headline": True}]
+    assert [v.headline for v in judge_figure(claims, {}, {})] == [False, True]
+    assert [v.headline for v in judge_figure(claims[:1], {}, {})] == [True]  # the first, unless one says so
 
 
 def test_a_figures_claims_are_holm_corrected_together() -> None:
     # p = 0.04 alone is significant; beside two other tests Holm multiplies it by 3 (0.12): no longer reproduced
-    v = holm([Verdict("a", "", "", REPRODUCED, p=0.04), Verdict("b", "", "", PARTLY, p=0.09),
+    v = holm([Verdict("a", "", "", REPRODUCED, p=0.04), Verdict("b", "", "", NOT_SHOWN, p=0.09),
               Verdict("c", "", "", NOT, p=0.8), Verdict("d", "", "", NOT_COMPARABLE)])  # fmt: skip
-    assert [x.verdict for x in v] == [PARTLY, PARTLY, NOT, NOT_COMPARABLE] and "0.12 after Holm" in v[0].why
+    assert [x.verdict for x in v] == [NOT_SHOWN, NOT_SHOWN, NOT, NOT_COMPARABLE] and "0.12 after Holm" in v[0].why
     # a strong effect survives: 0.001 × 3 = 0.003; the next one is adjusted by 2 but never below the previous
     v = holm([Verdict("a", "", "", REPRODUCED, p=0.001), Verdict("b", "", "", REPRODUCED, p=0.02),
               Verdict("c", "", "", NOT, p=0.6)])  # fmt: skip
@@ -223,3 +252,27 @@ def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) 
     assert f"**Measured on the treadmill's rules {RULES - 1}**" in text
     assert "convoy reproduce fig3 --scale quick` again" in text
     assert text.count("treadmill rules") == 1  # the flagged row only
+
+
+def test_rejudge_judges_the_stored_measurements_again_without_running_anything(tmp_path: Path) -> None:
+    """``--rejudge`` reads a figure's stored groups, applies the claims as the experiment file words them now
+    and rewrites the record and the page; no service starts (``--service`` points nowhere)."""
+    (tmp_path / "exp").mkdir()
+    (tmp_path / "exp" / "fig8.toml").write_text(FIGURE)
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    finals = {"algo=ma-mesn": [5.0, 6.0, 5.5], "algo=idqn": [5.2, 5.9, 5.6]}  # the other way: not reproduced
+    groups = [{"group": g, "jobs": [], "states": {"completed": 3}, "final": {"values": v, "n": 3}}
+              for g, v in finals.items()]  # fmt: skip
+    stored = {"id": "fig8", "title": "Fig. 8: a tiny stand-in", "paper": "messages help", "scale": "quick",
+              "note": "", "files": [], "command": "convoy reproduce fig8 --scale quick", "minutes": 1.0,
+              "groups": groups, "references": {}, "verdicts": [], "verdict": "reproduced", "png": None}  # fmt: skip
+    (docs / "fig8.json").write_text(json.dumps(stored))
+    argv = ["reproduce", "--rejudge", "--experiments", str(tmp_path / "exp"), "--docs", str(docs),
+            "--page", str(tmp_path / "page.md"), "--service", "http://127.0.0.1:9"]  # fmt: skip
+    assert main(argv) == 0
+    record = json.loads((docs / "fig8.json").read_text())
+    assert [v["verdict"] for v in record["verdicts"]] == [NOT, NOT_COMPARABLE] and record["verdict"] == NOT
+    assert record["verdicts"][0]["headline"] and "**Verdict: not reproduced.**" in (tmp_path / "page.md").read_text()
+    (docs / "fig8.json").unlink()
+    assert main(argv) == 2  # nothing stored: says so and which command makes it

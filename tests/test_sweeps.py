@@ -84,7 +84,10 @@ def test_a_sweep_runs_through_a_service_restart_and_summarises_its_groups(tmp_pa
                 assert job["final"]["eval_return"] == pytest.approx(value), (name, job_id)
             assert final["mean"] == pytest.approx(x.mean())
             assert final["ci95"] == pytest.approx(stats.t.ppf(0.975, 1) * x.std(ddof=1) / np.sqrt(2))  # t, not 1.96
+            assert group["iqm"]["iqm"] == pytest.approx(x.mean())  # two seeds: nothing to trim
+            assert group["iqm"]["low"] <= group["iqm"]["iqm"] <= group["iqm"]["high"], group["iqm"]
             curve = group["curve"]
+            assert group["auc"]["n"] == 2 and all(-1e-9 <= a <= 1 + 1e-9 for a in group["auc"]["values"]), group
             assert curve["env_steps"] == sorted(curve["env_steps"]) and len(curve["env_steps"]) >= 3, curve
             assert curve["n"][-1] == 2 and all(1 <= n <= 2 for n in curve["n"]), curve
             th = group["threshold"]  # returns of the referential game are ≥ 0: every seed is at 0 at its first point
