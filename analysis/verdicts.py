@@ -205,7 +205,7 @@ def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[st
         return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *p_above(diff, 0.0))
     if above is not None:
         return _tested(text, paper, ours, *p_above(values, float(above)))
-    other = figures.get(below, {}).get("value", [])
+    other = figures.get(str(below), {}).get("value", [])
     diff = [o - v for v, o in zip(values, other, strict=False)]
     if not diff:
         return Verdict(text, paper, ours, NOT_SHOWN, f"no figure {below!r}: run the figure again")
