@@ -160,8 +160,8 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
             return _judge_exponent(claim, text, paper, extra.get("exponents", {}).get(claim["exponent"]))
         if "metric" in claim:
             return _judge_metric(claim, text, paper, extra.get("analysis", {}))
-    except KeyError as exc:
-        return Verdict(text, paper, "–", NOT, str(exc.args[0]))
+    except KeyError as exc:  # a group the stored figure does not have (e.g. a control added since): not measured
+        return Verdict(text, paper, "not measured", NOT_SHOWN, f"{exc.args[0]}: run the figure again")
     raise ValueError(f"claim {text!r}: no kind recognised (better/than, above_reference, paper, exponent, metric)")
 
 

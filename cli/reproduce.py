@@ -299,7 +299,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         **({"treadmill_rules": TREADMILL_RULES} if on_treadmill else {}),
         "paper": meta.get("paper", ""),
         "scale": ctx.scale,
-        "note": " ".join(n for n in scale_notes if n) or meta.get("note", ""),
+        "note": " ".join(dict.fromkeys(n for n in scale_notes if n)) or meta.get("note", ""),
         "files": [str(p) for p, _ in ctx.files[fig]],
         "command": f"convoy reproduce {fig} --scale {ctx.scale}",
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),

@@ -4,6 +4,8 @@ A file holds the sweep's fields at its top (``name``, ``actors``, ``threshold``,
 ``[scales.NAME]`` table overrides them for ``--scale NAME`` (its ``base`` merged key by key, its ``grid`` axes
 replacing those of the same name; its ``note`` says how the scale departs from the paper). ``[figure]``
 describes the paper's figure the file reproduces (``convoy reproduce``) and is not part of the sweep.
+``extends = "OTHER.toml"`` (a path relative to the file) starts from that file's tables but its ``[figure]``, so a
+figure's control groups share its base and scales instead of copying them.
 """
 
 from __future__ import annotations
@@ -28,8 +30,9 @@ def merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def read_file(path: str | Path) -> dict[str, Any]:
-    """The file's tables; a ConfigError naming the file and the line of a syntax error."""
+def read_file(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The file's tables (over those of the file it ``extends``); a ConfigError naming the file and the line of a
+    syntax error."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -42,7 +45,17 @@ def read_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(str(path), f"is not valid {kind}: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(str(path), "must hold one object (the sweep)")
-    return data
+    parent = data.pop("extends", None)
+    if parent is None:
+        return data
+    if not isinstance(parent, str) or not parent:
+        raise ConfigError(f"{path}: extends", "names another sweep file, relative to this one")
+    if path.resolve() in _seen:
+        chain = " → ".join(p.name for p in (*_seen, path.resolve()))
+        raise ConfigError(f"{path}: extends", f"files extend each other in a circle ({chain}); break it")
+    base = read_file(path.parent / parent, (*_seen, path.resolve()))
+    base.pop("figure", None)  # a figure's claims stay with the file that states them
+    return merged(base, data)
 
 
 def sweep_body(data: dict[str, Any], scale: str | None = None, where: str = "sweep") -> dict[str, Any]:

@@ -100,7 +100,9 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
     assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
     assert "random" in record["references"]  # each group's final return is tested against the random policy's
-    assert "| group | final greedy return | jobs | above random? |" in page
+    head = "| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve | jobs | above random? |"
+    assert head in page
+    assert all(g["iqm"]["n"] == 2 and g["auc"]["n"] == 2 for g in record["groups"])  # the reviewer's aggregates
     assert page.count("completed | yes (p = ") + page.count("completed | no (p = ") == 2
     table = json.loads((tmp_path / "docs" / "r" / "table1.json").read_text())  # fig8's MA-MeSN checkpoints
     assert table["groups"][0]["jobs"] == record["groups"][0]["jobs"]
@@ -162,7 +164,7 @@ def test_claims_get_strict_verdicts_from_one_sided_tests() -> None:
     assert judge({"text": "", "group": "a", "paper": 30.0}, groups, {}).verdict == NOT
     assert judge({"text": "", "group": "a", "paper": 12.5}, groups, {}).verdict == NOT  # outside our CI: not "partly"
     missing = judge({"text": "", "better": "a", "than": "nope"}, groups, {})
-    assert missing.verdict == NOT and "no group 'nope'" in missing.why
+    assert missing.verdict == NOT_SHOWN and "no group 'nope'" in missing.why
     figures = {"analysis": {"sc": {"value": [0.3, 0.32, 0.29], "shuffled": [0.1, 0.11, 0.09]}}}
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, figures).verdict == REPRODUCED
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, {}).verdict == NOT_SHOWN  # not measured

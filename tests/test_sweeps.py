@@ -14,7 +14,7 @@ from scipy import stats
 
 from convoy.api.sweeps import busy_seconds
 from convoy.cli.main import main
-from convoy.cli.sweep_file import load_sweep
+from convoy.cli.sweep_file import load_sweep, read_file
 from convoy.validation import ConfigError
 from tests.service_fixture import AUTH, TOKEN, Service
 
@@ -197,6 +197,26 @@ def test_sweep_files_take_scales_and_name_the_bad_field(tmp_path: Path, capsys: 
         err = capsys.readouterr().err
         assert f"error: {field}" in err or (field in err and "cannot read" in err), err
         assert "cannot reach" not in err, err
+
+
+def test_a_sweep_file_extends_another_with_its_own_grid(tmp_path: Path) -> None:
+    """A control file starts from its figure's file (base, scales) and replaces what it names; the figure's
+    claims are not inherited; a file that extends itself in a circle is named."""
+    (tmp_path / "tiny.toml").write_text(SWEEP_FILE)
+    (tmp_path / "cut.toml").write_text('extends = "tiny.toml"\nname = "cut"\n[grid]\nalgo = ["ma-mesn"]\n'
+                                       '"algo_params.channel_control" = ["cut"]\n')  # fmt: skip
+    quick = load_sweep(tmp_path / "cut.toml", "quick")
+    assert quick["name"] == "cut" and quick["base"]["steps"] == 1000
+    assert quick["base"] == {"env": "referential", "steps": 1000, "algo_params": {"hidden": [32]}}
+    assert quick["grid"] == {"algo": ["ma-mesn"], "algo_params.channel_control": ["cut"], "seed": [0, 1, 2]}
+    assert "figure" not in read_file(tmp_path / "cut.toml")
+    (tmp_path / "a.toml").write_text('extends = "b.toml"\n')
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
+    with pytest.raises(ConfigError, match="in a circle"):
+        read_file(tmp_path / "a.toml")
+    with pytest.raises(ConfigError, match="cannot read"):
+        (tmp_path / "c.toml").write_text('extends = "missing.toml"\n')
+        read_file(tmp_path / "c.toml")
 
 
 def test_a_sweeps_busy_time_leaves_out_its_pauses() -> None:
