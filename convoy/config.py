@@ -80,6 +80,13 @@ class AlgoConfig(BaseModel):
         "(Gallici et al. 2024, PQN). False = plain MLPs (the paper).",
     )
 
+    match_parameters: str | None = Field(
+        None,
+        description="A control for network size: widen every hidden layer by one factor, the least that gives this "
+        "algorithm at least as many parameters as the named one's on the same env and settings (independent DQN "
+        "with 'ma-mesn': as big as MA-MeSN's two networks); None = the widths as given.",
+    )
+
     @property
     def widths(self) -> tuple[int, ...]:
         """The hidden widths once resolved (``resolve_algo`` fills ``hidden`` from the env's defaults)."""
@@ -126,6 +133,14 @@ class AlgoConfig(BaseModel):
         if self.hidden is not None and (not self.hidden or min(self.hidden) < 1):
             raise ConfigError("hidden", f"needs at least one layer of ≥ 1 unit (got {self.hidden!r})")
         return self
+
+    @field_validator("match_parameters")
+    @classmethod
+    def _an_algorithm(cls, v: str | None) -> str | None:
+        try:
+            return None if v is None else algo_name(v)
+        except ConfigError as exc:  # named as this field, not as --algo
+            raise ConfigError("match_parameters", str(exc).split(": ", 1)[-1]) from None
 
 
 class MessageConfig(AlgoConfig):

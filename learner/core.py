@@ -73,6 +73,8 @@ class TrainingCore:
     ) -> None:
         counters = counters or {}
         self.job, self.algo, self.cfg = job, algo, job.algo_config()
+        if self.cfg.match_parameters is not None:  # the summary records the widths the network was built with
+            self.cfg = self.cfg.model_copy(update={"hidden": getattr(algo, "cfg", self.cfg).hidden})
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.replay_bytes = replay_bytes
         self.keep_previous = keep_previous  # a population's run: the checkpoint before stays, as PREVIOUS_CHECKPOINT

@@ -69,3 +69,25 @@ def test_layer_norm_reaches_every_mlp_of_every_algorithm(name: str, tmp_path: Pa
     mlps = [m for m in algo.online.modules() if isinstance(m, GroupMLP) and len(m.layers) > 1]
     assert mlps, f"{name} builds no GroupMLP with a hidden layer"
     assert all(m.norm for m in mlps), f"{name}: an MLP ignores layer_norm"
+
+
+def test_match_parameters_widens_independent_dqn_to_ma_mesns_size_and_no_more() -> None:
+    """The network-size control: the least common widening factor whose widths reach MA-MeSN's parameter count
+    (one unit less per layer falls short), the same widths every time (a checkpoint rebuilds it); an unknown name is
+    refused as this field."""
+    from convoy.algos.registry import n_parameters
+    from convoy.validation import ConfigError
+
+    spec = EnvSpec(name="treadmill", agent_ids=("a", "b", "c"), obs_dims=(14, 14, 14), n_actions=(9, 9, 9),
+                   max_steps=50)  # fmt: skip
+    shared = {"hidden": (32, 32), "message_bits": 16}
+    target = n_parameters("ma-mesn", spec, resolve_algo("ma-mesn", "treadmill", shared))
+    cfg = resolve_algo("idqn", "treadmill", {"hidden": (32, 32), "match_parameters": "MA_MeSN"})
+    algo = make_algorithm("idqn", spec, cfg, device="cpu")
+    wide = algo.cfg.widths
+    assert wide[0] == wide[1] > 32 and algo.n_parameters() >= target > n_parameters("idqn", spec, cfg.model_copy(
+        update={"hidden": (wide[0] - 1, wide[1] - 1), "match_parameters": None}))  # fmt: skip
+    assert make_algorithm("idqn", spec, cfg, device="cpu").cfg.widths == wide
+    with pytest.raises(ConfigError) as bad:
+        resolve_algo("idqn", "treadmill", {"match_parameters": "nope"})
+    assert bad.value.field == "match_parameters" and "ma-mesn" in str(bad.value)
