@@ -124,7 +124,7 @@ def _links_as_paths(node: Any) -> Any:
     return "teacher.pt" if isinstance(node, str) and node.startswith("@") else node
 
 
-@pytest.mark.parametrize("scale", ["quick", "paper"])
+@pytest.mark.parametrize("scale", ["quick", "mid", "paper"])
 def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) -> None:
     figures = figure_files(ROOT / "experiments")
     assert {"fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1"} <= set(figures)
@@ -138,6 +138,10 @@ def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) ->
             jobs = expand(SweepSubmit(**body))  # every job of the grid validates at this scale
             assert len({j.point.get("seed") for j in jobs}) >= 5, (path.name, "five seeds at least")
             groups[fig] |= {group_name(j.point) for j in jobs}
+            if scale == "mid":  # ≥ 10× the quick scale's steps, ≥ 10 seeds for Fig. 3 (the reviewer's budget)
+                quick = sweep_body(data, "quick", where=path.name)["base"]["steps"]
+                assert body["base"]["steps"] >= 10 * quick, (path.name, body["base"]["steps"], quick)
+                assert fig != "fig3" or len({j.point["seed"] for j in jobs}) >= 10, path.name
     for fig, files in figures.items():
         meta = files[0][1]["figure"]
         known = groups[meta["source"]] if meta.get("kind") == "analysis" else groups[fig]
