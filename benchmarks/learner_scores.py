@@ -31,6 +31,7 @@ import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
+from convoy.analysis.evaluation import HELD_OUT_SEED  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 
 DEFAULT_JSON = ROOT / "docs" / "figures" / "treadmill_learners.json"
@@ -49,17 +50,11 @@ def score(
 ) -> tuple[float, tuple[float, float] | None, Any, dict[str, Any]]:
     """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``
     (when ``values``), its job and counters."""
-    from convoy.algos.checkpoint import load_checkpoint
-    from convoy.analysis.evaluation import evaluate_policy
-    from convoy.services.training import make_env
+    from convoy.analysis.evaluation import evaluate_policy, loaded_policy
 
-    algo, job, counters = load_checkpoint(path, device="auto")
-    env = make_env(job, min(episodes, 256))
-    try:
+    with loaded_policy(path, min(episodes, 256)) as (algo, env, job, counters):
         mean = evaluate_policy(algo, env, episodes, seed=seed).mean
         return mean, start_values(algo, env, seed) if values else None, job, counters
-    finally:
-        env.close()
 
 
 def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
@@ -133,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--compare", nargs=2, action="append", default=[], metavar=("A", "B"),
                    help="Welch's test of group A's last policies against group B's, repeatable")  # fmt: skip
     p.add_argument("--episodes", type=int, default=200, help="held-out episodes per policy (default %(default)s)")
-    p.add_argument("--seed", type=int, default=777, help="seed of the held-out episodes (default %(default)s)")
+    p.add_argument(
+        "--seed", type=int, default=HELD_OUT_SEED, help="seed of the held-out episodes (default: %(default)s)"
+    )
     p.add_argument("--json", default=str(DEFAULT_JSON), help="figures file, updated in place (default %(default)s)")
     args = p.parse_args(argv)
 

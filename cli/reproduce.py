@@ -34,6 +34,7 @@ from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
 from convoy.cli.sweep_file import read_file, sweep_body
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
+from convoy.stats import mean_ci as seeds_summary
 from convoy.validation import ConfigError, build_config
 
 FIGURES = ("fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1")
@@ -204,10 +205,33 @@ class Context:
         return self._summaries[fig]
 
 
+def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, Any]:
+    """Each job's last policy and ``best.pt`` re-scored on held-out episodes: the best point was chosen on the
+    training run's own evaluation episodes, so only here do the two compare fairly."""
+    from convoy.analysis.evaluation import HELD_OUT_SEED, score_checkpoint
+
+    scores: dict[str, list[float]] = {"last": [], "best": []}
+    for job_id in group["jobs"]:
+        for key, name in (("last", "checkpoint.pt"), ("best", "best.pt")):
+            path = ctx.work / "checkpoints" / f"{job_id}-{name}"
+            if not path.is_file():
+                resp = ctx.api.client.get(f"/jobs/{job_id}/checkpoints/{name}")
+                if resp.status_code != 200:
+                    continue  # a job that never evaluated has no best.pt
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(resp.content)
+            scores[key].append(score_checkpoint(path, episodes))
+    return {"episodes": episodes, "seed": HELD_OUT_SEED, **{k: seeds_summary(v) for k, v in scores.items()}}
+
+
 def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
     from convoy.analysis.curves import plot_final_by, plot_groups
 
     groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
+    episodes = int(meta.get("held_out_episodes", 100))
+    for g in groups if episodes > 0 else []:
+        plain(out, f"{fig} [{ctx.scale}]: {g['group']}: last and best policies on {episodes} held-out episodes")
+        g["held_out"] = held_out(ctx, g, episodes)
     refs: dict[str, Any] = next(
         (g["references"] for g in groups if g["references"]), {}
     )  # the first group that measured them
@@ -282,6 +306,9 @@ def stale(record: dict[str, Any]) -> str:
     return f" (treadmill rules {rules})" if rules is not None and rules != TREADMILL_RULES else ""
 
 
+RECORDED = ("group", "jobs", "states", "final", "iqm", "auc", "held_out", "sweep", "references")  # per group
+
+
 def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     ctx.current = fig
     meta = ctx.files[fig][0][1]["figure"]
@@ -304,10 +331,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "files": [str(p) for p, _ in ctx.files[fig]],
         "command": f"convoy reproduce {fig} --scale {ctx.scale}",
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
-        "groups": [
-            {k: g[k] for k in ("group", "jobs", "states", "final", "iqm", "auc", "sweep", "references") if k in g}
-            for g in result["groups"]
-        ],
+        "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
         "verdicts": [v.__dict__ for v in verdicts],
         "verdict": figure_verdict(verdicts),
@@ -420,13 +444,19 @@ def render(docs: Path, page: Path) -> None:
         if r["groups"] and "analysis" not in r:
             rand = [refs.get("random") for refs in group_refs]
             head = " above random? |" if None not in rand else ""
-            lines += [f"| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve | jobs |{head}",
-                      "|---|---|---|---|---|" + "---|" * bool(head)]  # fmt: skip
+            held = next((g["held_out"]["episodes"] for g in r["groups"] if g.get("held_out")), None)
+            more = f" last, {held} held-out episodes | best.pt, held out |" if held else ""
+            lines += [f"| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve |{more} jobs |"
+                      f"{head}", "|---|---|---|---|" + "---|" * (1 + 2 * bool(held) + bool(head))]  # fmt: skip
             for g, ref in zip(r["groups"], rand, strict=True):
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
                 areas = (g.get("auc") or {}).get("values", [])  # records made before it was measured: –
                 final = mean_ci(g["final"]["values"])
-                row = f"| {g['group']} | {final} | {iqm_text(g)} | {mean_ci(areas)} | {states} |"
+                row = f"| {g['group']} | {final} | {iqm_text(g)} | {mean_ci(areas)} |"
+                if held:
+                    h = g.get("held_out") or {}
+                    row += "".join(f" {mean_ci((h.get(k) or {}).get('values', []))} |" for k in ("last", "best"))
+                row += f" {states} |"
                 if head:
                     diff, p = p_above(g["final"]["values"], float(cast(float, ref)))
                     mean = "" if one_env else f"{ref:.3g}, "  # each group's own random when envs differ

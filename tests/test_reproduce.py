@@ -50,6 +50,7 @@ note = "two seeds of 2,000 steps"
 id = "fig8"
 title = "Fig. 8: a tiny stand-in"
 paper = "messages help"
+held_out_episodes = 16
 claims = [
   { text = "MA-MeSN above independent DQN", better = "algo=ma-mesn", than = "algo=idqn", paper_says = "yes" },
   { text = "a number", group = "algo=idqn", paper = 0.5, comparable = false, paper_says = "0.5" },
@@ -100,9 +101,11 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
     assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
     assert "random" in record["references"]  # each group's final return is tested against the random policy's
-    head = "| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve | jobs | above random? |"
+    head = "| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve |"
     assert head in page
     assert all(g["iqm"]["n"] == 2 and g["auc"]["n"] == 2 for g in record["groups"])  # the reviewer's aggregates
+    assert all(g["held_out"]["last"]["n"] == g["held_out"]["best"]["n"] == 2 for g in record["groups"])
+    assert "| last, 16 held-out episodes | best.pt, held out |" in page
     assert page.count("completed | yes (p = ") + page.count("completed | no (p = ") == 2
     table = json.loads((tmp_path / "docs" / "r" / "table1.json").read_text())  # fig8's MA-MeSN checkpoints
     assert table["groups"][0]["jobs"] == record["groups"][0]["jobs"]
