@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import secrets
 import signal
@@ -188,21 +189,74 @@ class Context:
         self.api, self.scale, self.files, self.docs, self.work = api, scale, files, docs, work
         self.current = ""
         self._summaries: dict[str, list[dict[str, Any]]] = {}
+        self.tuning: dict[str, dict[str, dict[str, Any]]] = {}  # per figure, per algorithm: tried and chosen
         self.minutes: dict[str, float] = {}  # the service's wall time of each figure's sweeps
 
     def sweep_summaries(self, fig: str) -> list[dict[str, Any]]:
-        """Every group of figure ``fig``'s sweeps (run or reused), in file order."""
+        """Every group of figure ``fig``'s sweeps (run or reused), in file order, each algorithm at the settings
+        its tuning chose (when the figure tunes at this scale)."""
         if fig not in self._summaries:
             groups: list[dict[str, Any]] = []
+            chosen = self.tuned(fig)
             for path, data in self.files[fig]:
                 if data["figure"].get("kind", "sweep") != "sweep":
                     continue
-                body = resolve_links(sweep_body(data, self.scale, where=str(path)), self)
+                body = with_settings(resolve_links(sweep_body(data, self.scale, where=str(path)), self), chosen)
                 summary = run_sweep(self.api, body, f"{fig} [{self.scale}] {path.name}")
                 groups += [{**g, "sweep": summary["id"]} for g in summary["groups"]]
                 self.minutes[fig] = self.minutes.get(fig, 0.0) + summary["minutes"]
             self._summaries[fig] = groups
         return self._summaries[fig]
+
+    def tuned(self, fig: str) -> dict[str, dict[str, Any]]:
+        """Per algorithm of the figure, the settings of ``[figure.tuning]``'s grid with the highest mean final
+        return on its validation seeds (the figure's own seeds are fresh); {} when the figure does not tune at
+        this scale. Every algorithm gets the same grid, so none is better tuned than another."""
+        path, data = self.files[fig][0]
+        tuning = data["figure"].get("tuning")
+        if not tuning or self.scale not in tuning.get("scales", SCALES):
+            return {}
+        if fig not in self.tuning:
+            body = tuning_body(resolve_links(sweep_body(data, self.scale, where=str(path)), self), tuning)
+            summary = run_sweep(self.api, body, f"{fig} [{self.scale}] tuning")
+            self.minutes[fig] = self.minutes.get(fig, 0.0) + summary["minutes"]
+            self.tuning[fig] = choose_settings(summary["groups"], list(tuning["grid"]))
+        return {algo: t["chosen"] for algo, t in self.tuning[fig].items()}
+
+
+def tuning_body(body: dict[str, Any], tuning: dict[str, Any]) -> dict[str, Any]:
+    """The tuning sweep of a figure's first file: its algorithms × the tuning grid × the validation seeds."""
+    algos = body["grid"].get("algo") or [body["base"].get("algo", "idqn")]
+    grid = {"algo": algos, **tuning["grid"], "seed": tuning["seeds"]}
+    return {**body, "name": f"{body.get('name', 'figure')}-tuning", "grid": grid}
+
+
+def choose_settings(groups: list[dict[str, Any]], axes: list[str]) -> dict[str, dict[str, Any]]:
+    """Per algorithm: every tried setting's mean final return and the best one (``chosen``, as algo_params)."""
+    out: dict[str, dict[str, Any]] = {}
+    for g in groups:
+        mean = g["final"]["mean"]
+        setting = {axis.removeprefix("algo_params."): g["point"][axis] for axis in axes}
+        entry = out.setdefault(g["point"]["algo"], {"tried": [], "chosen": None, "best": -math.inf})
+        entry["tried"].append({"settings": setting, "final": mean})
+        if mean is not None and mean > entry["best"]:
+            entry["best"], entry["chosen"] = mean, setting
+    for algo, entry in out.items():
+        if entry["chosen"] is None:
+            raise CliError("figure.tuning", f"no tuning job of {algo} completed", "look at the tuning sweep's jobs")
+        del entry["best"]
+    return out
+
+
+def with_settings(body: dict[str, Any], chosen: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """``body`` with each tuned algorithm's chosen settings in its ``[algos.NAME]`` table (a grid axis still
+    wins: a control that varies one of them keeps its values)."""
+    if not chosen:
+        return body
+    algos = dict(body.get("algos") or {})
+    for algo, settings in chosen.items():
+        algos[algo] = {**algos.get(algo, {}), **settings}
+    return {**body, "algos": algos}
 
 
 def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, Any]:
@@ -337,6 +391,8 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "verdict": figure_verdict(verdicts),
         "png": result["png"],
     }
+    if fig in ctx.tuning:
+        record["tuning"] = ctx.tuning[fig]
     if "analysis_names" in result:
         record["analysis"] = {
             k: {"name": result["analysis_names"][k], **v} for k, v in result["extra"]["analysis"].items()
@@ -464,6 +520,12 @@ def render(docs: Path, page: Path) -> None:
                     row += f" {'yes' if significant(diff, p) else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)
             lines.append("")
+        if r.get("tuning"):
+            chosen = "; ".join(f"{algo} " + ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                                                      for k, v in t["chosen"].items())
+                               for algo, t in r["tuning"].items())  # fmt: skip
+            lines += [f"Every algorithm tuned on the same grid, on validation seeds apart from the figure's: {chosen}.",
+                      ""]  # fmt: skip
         if r.get("references") and one_env:
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
             lines += [f"References on the same evaluation episodes: {refs}.", ""]

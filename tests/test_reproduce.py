@@ -24,7 +24,7 @@ from convoy.analysis.verdicts import (
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import expand, group_name
 from convoy.cli.main import main
-from convoy.cli.reproduce import figure_files
+from convoy.cli.reproduce import figure_files, tuning_body
 from convoy.cli.sweep_file import sweep_body
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +55,9 @@ claims = [
   { text = "MA-MeSN above independent DQN", better = "algo=ma-mesn", than = "algo=idqn", paper_says = "yes" },
   { text = "a number", group = "algo=idqn", paper = 0.5, comparable = false, paper_says = "0.5" },
 ]
+[figure.tuning]
+grid = { "algo_params.lr" = [0.001, 0.003] }
+seeds = [7]
 """
 
 
@@ -106,6 +109,10 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert all(g["iqm"]["n"] == 2 and g["auc"]["n"] == 2 for g in record["groups"])  # the reviewer's aggregates
     assert all(g["held_out"]["last"]["n"] == g["held_out"]["best"]["n"] == 2 for g in record["groups"])
     assert "| last, 16 held-out episodes | best.pt, held out |" in page
+    tuning = record["tuning"]  # each algorithm's lr chosen on validation seed 7, then the figure on seeds 0 and 1
+    assert set(tuning) == {"ma-mesn", "idqn"} and all(len(t["tried"]) == 2 for t in tuning.values())
+    assert all(t["chosen"]["lr"] in (0.001, 0.003) for t in tuning.values())
+    assert "Every algorithm tuned on the same grid, on validation seeds apart from the figure's: ma-mesn lr" in page
     assert page.count("completed | yes (p = ") + page.count("completed | no (p = ") == 2
     table = json.loads((tmp_path / "docs" / "r" / "table1.json").read_text())  # fig8's MA-MeSN checkpoints
     assert table["groups"][0]["jobs"] == record["groups"][0]["jobs"]
@@ -141,6 +148,10 @@ def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) ->
             jobs = expand(SweepSubmit(**body))  # every job of the grid validates at this scale
             assert len({j.point.get("seed") for j in jobs}) >= 5, (path.name, "five seeds at least")
             groups[fig] |= {group_name(j.point) for j in jobs}
+            tuning = data["figure"].get("tuning")
+            if tuning and scale in tuning.get("scales", [scale]):  # the tuning grid validates too, seeds apart
+                tuned = expand(SweepSubmit(**tuning_body(body, tuning)))
+                assert not {j.point["seed"] for j in tuned} & {j.point.get("seed") for j in jobs}, path.name
             if scale == "mid":  # ≥ 10× the quick scale's steps, ≥ 10 seeds for Fig. 3 (the reviewer's budget)
                 quick = sweep_body(data, "quick", where=path.name)["base"]["steps"]
                 assert body["base"]["steps"] >= 10 * quick, (path.name, body["base"]["steps"], quick)
@@ -285,3 +296,20 @@ def test_rejudge_judges_the_stored_measurements_again_without_running_anything(t
     assert record["verdicts"][0]["headline"] and "**Verdict: not reproduced.**" in (tmp_path / "page.md").read_text()
     (docs / "fig8.json").unlink()
     assert main(argv) == 2  # nothing stored: says so and which command makes it
+
+
+def test_tuning_chooses_each_algorithms_best_setting_and_the_figure_runs_with_it() -> None:
+    from convoy.cli.reproduce import choose_settings, with_settings
+
+    def group(algo: str, lr: float, mean: float) -> dict[str, Any]:
+        return {"point": {"algo": algo, "algo_params.lr": lr}, "final": {"mean": mean}}
+
+    tried = [group("idqn", 1e-4, 5.0), group("idqn", 1e-3, 7.0), group("ma-mesn", 1e-4, 9.0),
+             group("ma-mesn", 1e-3, 3.0)]  # fmt: skip
+    chosen = choose_settings(tried, ["algo_params.lr"])
+    assert chosen["idqn"]["chosen"] == {"lr": 1e-3} and chosen["ma-mesn"]["chosen"] == {"lr": 1e-4}
+    assert [t["final"] for t in chosen["idqn"]["tried"]] == [5.0, 7.0]
+    body = {"grid": {"algo": ["idqn", "ma-mesn"]}, "algos": {"ma-mesn": {"gumbel_noise": 1.0}}}
+    tuned = with_settings(body, {a: c["chosen"] for a, c in chosen.items()})
+    assert tuned["algos"] == {"ma-mesn": {"gumbel_noise": 1.0, "lr": 1e-4}, "idqn": {"lr": 1e-3}}
+    assert with_settings(body, {}) is body
