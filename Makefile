@@ -5,6 +5,8 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.convoy-installed
 OUT    ?= runs/demo
+# test processes: two share a 2-core box well (many tests wait on services and child processes); files stay whole
+WORKERS ?= 2
 
 .PHONY: run run-distributed serve demo test test-fast lint bench clean
 
@@ -47,10 +49,10 @@ lint: $(STAMP)
 test: lint
 	@echo "make test: the dashboard tests need chromium on PATH and the multi-host test ip netns as root;"
 	@echo "  without them they skip (named below), and with CI=true the dashboard's fail instead"
-	$(BIN)/pytest
+	$(BIN)/pytest -n $(WORKERS) --dist loadfile
 
 test-fast: $(STAMP)
-	$(BIN)/pytest -m "not slow" -q
+	$(BIN)/pytest -n $(WORKERS) --dist loadfile -m "not slow" -q
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'

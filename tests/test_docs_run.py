@@ -112,8 +112,10 @@ def shrink(argv: list[str]) -> list[str]:
 
 
 def shrink_toml(text: str) -> str:
-    """A sweep file at a small budget: every ``steps`` shrunk, a few evaluation episodes, few checkpoints."""
+    """A sweep file at a small budget: every ``steps`` shrunk, a few evaluation and held-out episodes, few
+    checkpoints."""
     text = re.sub(r"\b(steps\s*=\s*)([\d_]+)", lambda m: m[1] + str(small_steps(int(m[2].replace("_", "")))), text)
+    text = text.replace("\n[figure]\n", "\n[figure]\nheld_out_episodes = 2\n")
     text = re.sub(r"\b(eval_episodes\s*=\s*)[\d_]+", r"\g<1>2", text)
     return re.sub(r"\b(eval_every|log_every|checkpoint_every)(\s*=\s*)[\d_]+", r"\1\g<2>200", text)
 
