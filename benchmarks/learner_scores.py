@@ -79,27 +79,54 @@ def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
     return believed, float(collected.mean())
 
 
-def score_group(run_dirs: list[Path], episodes: int, seed: int) -> dict[str, Any]:
-    """Every seed's last and best policy held out, the runs' settings, and the means with CIs over seeds."""
+def scored_before(groups: dict[str, Any], episodes: int) -> dict[str, dict[str, Any]]:
+    """Per seed folder, its figures in an earlier group scored on the same episodes (and that group's settings):
+    a group that adds seeds to scored ones plays only the new seeds."""
+    out: dict[str, dict[str, Any]] = {}
+    for g in groups.values():
+        if g["episodes"] != episodes or not all(Path(d).is_dir() for d in g["dirs"]):
+            continue
+        folders = [d for run_dir in g["dirs"] for _, d in seed_dirs(Path(run_dir))]
+        if len(folders) != len(g["seeds"]):
+            continue  # seeds added to its folders since: score them again
+        for i, d in enumerate(folders):
+            out[str(d)] = {"last": g["last"][i], "best": g["best"][i], "start": g["start_values"][i], "group": g}
+    return out
+
+
+def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Every seed's last and best policy held out (or its figures from ``before``), the runs' settings, and the means
+    with CIs over seeds."""
     seeds, last, best, values = [], [], [], []
+    settings: dict[str, Any] = {}
     for s, d in (sd for run_dir in run_dirs for sd in seed_dirs(run_dir)):
         seeds.append(s)
+        if str(d) in (before or {}):
+            known = (before or {})[str(d)]
+            last.append(known["last"])
+            best.append(known["best"])
+            values.append(known["start"])
+            settings = settings or {
+                k: known["group"][k] for k in ("algo", "env_params", "hyper_parameters", "env_steps")
+            }
+            print(f"  {d}: last {last[-1]:.1f}, best.pt {best[-1]:.1f} (scored before)", flush=True)
+            continue
         mean, start, job, counters = score(d / "checkpoint.pt", episodes, seed, values=True)
         assert start is not None
         q, v = start
         last.append(mean)
         values.append({"q": q, "discounted_return": v})
         best.append(score(d / "best.pt", episodes, seed)[0])
+        settings = {"algo": job.algo, "env_params": job.env_params,
+                    "hyper_parameters": job.algo_params,  # the ones set on the command line; the rest: env defaults
+                    "env_steps": counters.get("env_steps", job.steps)}  # fmt: skip
         print(f"  {d}: last {mean:.1f} (start: Q {q:.1f}, discounted return {v:.1f}), best.pt {best[-1]:.1f}",
               flush=True)  # fmt: skip
     x, b = np.asarray(last), np.asarray(best)
     return {
         "dirs": [str(d) for d in run_dirs],
         "episodes": episodes,
-        "algo": job.algo,
-        "env_params": job.env_params,
-        "hyper_parameters": job.algo_params,  # the ones set on the command line; the rest are the env's defaults
-        "env_steps": counters.get("env_steps", job.steps),
+        **settings,
         "seeds": seeds,
         "last": last,
         "best": best,
@@ -131,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--seed", type=int, default=HELD_OUT_SEED, help="seed of the held-out episodes (default: %(default)s)"
     )
+    p.add_argument("--rescore", action="store_true", help="play every seed again, even one an earlier group of "
+                   "the file scored on the same episodes (default: reuse its figures)")  # fmt: skip
     p.add_argument("--json", default=str(DEFAULT_JSON), help="figures file, updated in place (default %(default)s)")
     args = p.parse_args(argv)
 
@@ -149,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not label or not dirs:
             raise SystemExit(f"--group {spec!r}: write LABEL=DIR or LABEL=DIR,DIR")
         print(f"{label}: {dirs}", flush=True)
-        groups[label] = score_group([Path(d) for d in dirs.split(",")], args.episodes, args.seed)
+        before = {} if args.rescore else scored_before(groups, args.episodes)
+        groups[label] = score_group([Path(d) for d in dirs.split(",")], args.episodes, args.seed, before)
         g = groups[label]
         print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
               f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds", flush=True)  # fmt: skip

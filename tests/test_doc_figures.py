@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
@@ -63,3 +65,21 @@ def test_the_service_figures_come_from_the_population_and_soak_json(tmp_path: Pa
     assert "3 lost" in new_readme and "open files 1.24×" in new_readme and "3 lost" not in readme
     assert "**1.62×**" in new_bench and "**1.62×**" not in bench
     assert "25 → 31 (max 33): 1.24×" in new_bench
+
+
+def test_learner_scores_plays_only_the_seeds_no_earlier_group_scored(tmp_path: Path) -> None:
+    """A group that adds a population to two scored ones reuses their seeds' figures (same episodes) and plays
+    only the new seeds: here none, so no checkpoint is loaded; another episode count reuses nothing."""
+    import learner_scores
+
+    for run, seeds in (("a", (0, 1)), ("b", (5,))):
+        for s in seeds:
+            (tmp_path / run / f"seed-{s}").mkdir(parents=True)
+    dirs = [str(tmp_path / "a"), str(tmp_path / "b")]
+    settings = {"algo": "idqn", "env_params": {}, "hyper_parameters": {}, "env_steps": 10}
+    earlier = {"ab": {"dirs": dirs, "episodes": 500, "seeds": [0, 1, 5], "last": [10.0, 12.0, 9.0],
+                      "best": [11.0, 12.0, 10.0], "start_values": [{}, {}, {}], **settings}}  # fmt: skip
+    before = learner_scores.scored_before(earlier, 500)
+    group = learner_scores.score_group([Path(d) for d in dirs], 500, 777, before)
+    assert group["seeds"] == [0, 1, 5] and group["last"] == [10.0, 12.0, 9.0] and group["algo"] == "idqn"
+    assert group["last_over_best"][0] == pytest.approx(10 / 11) and learner_scores.scored_before(earlier, 200) == {}
