@@ -11,8 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -141,24 +140,3 @@ def evaluate_policy(
 
 
 HELD_OUT_SEED = 777  # episodes no training run evaluates on (those are seed + 10,000 + …): where policies are re-scored
-
-
-@contextmanager
-def loaded_policy(path: str | Path, num_envs: int) -> Iterator[tuple[Any, BatchedEnv, Any, dict[str, Any]]]:
-    """``(algo, env, job, counters)`` of a saved policy, with ``num_envs`` envs of its job's env (closed after)."""
-    from convoy.algos.checkpoint import load_checkpoint
-    from convoy.services.training import make_env
-
-    algo, job, counters = load_checkpoint(path, device="auto")
-    env = make_env(job, num_envs)
-    try:
-        yield algo, env, job, counters
-    finally:
-        env.close()
-
-
-def score_checkpoint(path: str | Path, episodes: int, seed: int = HELD_OUT_SEED) -> float:
-    """A saved policy's mean greedy return over ``episodes`` episodes of ``seed``: the last policy and ``best.pt``
-    re-scored on episodes neither was chosen on."""
-    with loaded_policy(path, min(episodes, 256)) as (algo, env, _, _):
-        return evaluate_policy(algo, env, episodes, seed=seed).mean

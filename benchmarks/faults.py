@@ -215,6 +215,10 @@ def part_api_down(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, 
         svc.kill()
         time.sleep(args.api_down)
         s2 = job_steps()
+        deadline = time.monotonic() + 60  # a loaded machine may log no row in a short window: wait for one
+        while job_steps() <= s1 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        kept_stepping = job_steps() > s1  # the job trained on with no API (each actor and learner alone)
         t0 = time.monotonic()
         again = Service(data, port=svc.port).start()
         view = again.wait(job, lambda v: v["state"] == "running" and v["progress"]["env_steps"] >= s2, what="running")
@@ -223,7 +227,8 @@ def part_api_down(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, 
         if again is not None:
             again.stop()
         svc.stop()
-    figures = {"window_s": args.api_down, "steps_api_up": s1 - s0, "steps_api_down": s2 - s1, "reattach_s": back_s}
+    figures = {"window_s": args.api_down, "steps_api_up": s1 - s0, "steps_api_down": s2 - s1, "reattach_s": back_s,
+               "kept_stepping": kept_stepping}  # fmt: skip
     ratio = (s2 - s1) / max(1.0, s1 - s0)
     text = f"### 4. API down (SIGKILL of `convoy serve` for {args.api_down:g} s)\n\n" + markdown_table(
         ["env steps in the window: API up", "API down", "down ÷ up", "new API reports the job running after (s)"],

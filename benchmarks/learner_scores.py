@@ -50,7 +50,8 @@ def score(
 ) -> tuple[float, tuple[float, float] | None, Any, dict[str, Any]]:
     """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``
     (when ``values``), its job and counters."""
-    from convoy.analysis.evaluation import evaluate_policy, loaded_policy
+    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.services.training import loaded_policy
 
     with loaded_policy(path, min(episodes, 256)) as (algo, env, job, counters):
         mean = evaluate_policy(algo, env, episodes, seed=seed).mean

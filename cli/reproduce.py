@@ -262,7 +262,8 @@ def with_settings(body: dict[str, Any], chosen: dict[str, dict[str, Any]]) -> di
 def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, Any]:
     """Each job's last policy and ``best.pt`` re-scored on held-out episodes: the best point was chosen on the
     training run's own evaluation episodes, so only here do the two compare fairly."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED, score_checkpoint
+    from convoy.analysis.evaluation import HELD_OUT_SEED
+    from convoy.services.training import score_checkpoint
 
     scores: dict[str, list[float]] = {"last": [], "best": []}
     for job_id in group["jobs"]:

@@ -3,6 +3,8 @@ trainer) or as learner and actor processes on this machine (``run_distributed``:
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -18,6 +20,28 @@ if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a dist
 def make_env(job: JobConfig, num_envs: int | None = None) -> BatchedEnv:
     """The job's env as a batch of ``num_envs`` (default: the job's)."""
     return make_batched(job.env, job.num_envs if num_envs is None else num_envs, **job.env_params)
+
+
+@contextmanager
+def loaded_policy(path: str | Path, num_envs: int) -> Iterator[tuple[Any, BatchedEnv, JobConfig, dict[str, Any]]]:
+    """``(algo, env, job, counters)`` of a saved policy, with ``num_envs`` envs of its job's env (closed after)."""
+    from convoy.algos.checkpoint import load_checkpoint
+
+    algo, job, counters = load_checkpoint(path, device="auto")
+    env = make_env(job, num_envs)
+    try:
+        yield algo, env, job, counters
+    finally:
+        env.close()
+
+
+def score_checkpoint(path: str | Path, episodes: int, seed: int | None = None) -> float:
+    """A saved policy's mean greedy return over ``episodes`` episodes of ``seed`` (default: the held-out ones): the
+    last policy and ``best.pt`` re-scored on episodes neither was chosen on."""
+    from convoy.analysis.evaluation import HELD_OUT_SEED, evaluate_policy
+
+    with loaded_policy(path, min(episodes, 256)) as (algo, env, _, _):
+        return evaluate_policy(algo, env, episodes, seed=HELD_OUT_SEED if seed is None else seed).mean
 
 
 def run_inprocess(

@@ -67,6 +67,9 @@ def test_fault_benchmark_reports_respawn_memory_and_api_down_figures(tmp_path) -
     assert len(churn["respawn_s"]) == len(churn["token_s"]) == 2
     assert all(_positive(x) for x in churn["respawn_s"] + churn["token_s"])
     assert _positive(churn["before"]["rss_mib"]) and _positive(churn["after"]["rss_mib"])
-    assert _positive(api["steps_api_up"]) and _positive(api["steps_api_down"]) and _positive(api["reattach_s"])
+    # the window's step counts may be 0 on a loaded machine (no metric row in 2 s): that the job trained on while the
+    # API was down is checked without a clock
+    assert api["steps_api_up"] >= 0 and api["steps_api_down"] >= 0 and api["kept_stepping"]
+    assert _positive(api["reattach_s"])
     assert _positive(churn["control"]["rss_mib"]) and len(stop["stop_s"]) == 1 and _positive(stop["stop_s"][0])
     assert "Actor respawn" in proc.stdout and "API down" in proc.stdout and "Stop while starting" in proc.stdout
