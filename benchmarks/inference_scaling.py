@@ -252,24 +252,28 @@ def make_case(
 
 
 # ------------------------------------------------------------------------------------------------- fitting
+def log_points(ns: Sequence[float], ys: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """(log N, log y) of the points a fit may use: positive, finite."""
+    pts = [(n, y) for n, y in zip(ns, ys, strict=True) if n > 0 and y > 0 and math.isfinite(y)]
+    return np.log([n for n, _ in pts]), np.log([y for _, y in pts])
+
+
 def fit_exponent(ns: Sequence[float], ys: Sequence[float]) -> float | None:
     """Slope k of log y = k log N + log c (least squares); None with fewer than two points or bad values."""
-    pts = [(n, y) for n, y in zip(ns, ys, strict=True) if n > 0 and y > 0 and math.isfinite(y)]
-    if len({n for n, _ in pts}) < 2:
+    x, y = log_points(ns, ys)
+    if len(set(x.tolist())) < 2:
         return None
-    x = np.log([n for n, _ in pts])
-    y = np.log([v for _, v in pts])
     return float(np.polyfit(x, y, 1)[0])
 
 
 def fit_exponent_ci(ns: Sequence[float], ys: Sequence[float]) -> tuple[float, float] | None:
     """95 % CI of that slope over every measured round (Student-t on the least-squares slope's standard error), so
     a claim "grows quadratically" is judged by the range the timings allow, not by one fitted number."""
-    pts = [(n, y) for n, y in zip(ns, ys, strict=True) if n > 0 and y > 0 and math.isfinite(y)]
-    if len({n for n, _ in pts}) < 2 or len(pts) < 3:
+    x, y = log_points(ns, ys)
+    if len(set(x.tolist())) < 2 or len(x) < 3:
         return None
-    fit = stats.linregress(np.log([n for n, _ in pts]), np.log([v for _, v in pts]))
-    half = float(stats.t.ppf(0.975, len(pts) - 2)) * float(fit.stderr)
+    fit = stats.linregress(x, y)
+    half = float(stats.t.ppf(0.975, len(x) - 2)) * float(fit.stderr)
     return float(fit.slope) - half, float(fit.slope) + half
 
 

@@ -100,10 +100,11 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str
     with CIs over seeds."""
     seeds, last, best, values = [], [], [], []
     settings: dict[str, Any] = {}
+    before = before or {}
     for s, d in (sd for run_dir in run_dirs for sd in seed_dirs(run_dir)):
         seeds.append(s)
-        if str(d) in (before or {}):
-            known = (before or {})[str(d)]
+        if str(d) in before:
+            known = before[str(d)]
             last.append(known["last"])
             best.append(known["best"])
             values.append(known["start"])

@@ -208,6 +208,18 @@ class Context:
             self._summaries[fig] = groups
         return self._summaries[fig]
 
+    def checkpoint(self, job_id: str, name: str) -> Path | None:
+        """Job ``job_id``'s ``name`` (``checkpoint.pt``, ``best.pt``) fetched from the service once, or None when it
+        has none (a job that never evaluated has no best.pt)."""
+        path = self.work / "checkpoints" / f"{job_id}-{name}"
+        if not path.is_file():
+            resp = self.api.client.get(f"/jobs/{job_id}/checkpoints/{name}")
+            if resp.status_code != 200:
+                return None
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(resp.content)
+        return path
+
     def tuned(self, fig: str) -> dict[str, dict[str, Any]]:
         """Per algorithm of the figure, the settings of ``[figure.tuning]``'s grid with the highest mean final
         return on its validation seeds (the figure's own seeds are fresh); {} when the figure does not tune at
@@ -268,14 +280,9 @@ def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, An
     scores: dict[str, list[float]] = {"last": [], "best": []}
     for job_id in group["jobs"]:
         for key, name in (("last", "checkpoint.pt"), ("best", "best.pt")):
-            path = ctx.work / "checkpoints" / f"{job_id}-{name}"
-            if not path.is_file():
-                resp = ctx.api.client.get(f"/jobs/{job_id}/checkpoints/{name}")
-                if resp.status_code != 200:
-                    continue  # a job that never evaluated has no best.pt
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_bytes(resp.content)
-            scores[key].append(score_checkpoint(path, episodes))
+            path = ctx.checkpoint(job_id, name)
+            if path is not None:
+                scores[key].append(score_checkpoint(path, episodes))
     return {"episodes": episodes, "seed": HELD_OUT_SEED, **{k: seeds_summary(v) for k, v in scores.items()}}
 
 
@@ -329,12 +336,9 @@ def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, A
     names: dict[str, str] = {}
     last = None
     for job_id in group["jobs"]:
-        path = ctx.work / "checkpoints" / f"{job_id}.pt"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        resp = ctx.api.client.get(f"/jobs/{job_id}/checkpoints/checkpoint.pt")
-        if resp.status_code != 200:
+        path = ctx.checkpoint(job_id, "checkpoint.pt")
+        if path is None:
             continue
-        path.write_bytes(resp.content)
         algo, job, _ = load_checkpoint(path, device="cpu")
         env = make_env(job, int(opts.get("num_envs", 256)))
         try:
@@ -371,8 +375,6 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     t0 = time.monotonic()
     result = {"sweep": sweep_figure, "benchmark": benchmark_figure, "analysis": analysis_figure}[kind](ctx, fig, meta)
     groups = result["groups"]
-    named = {g["group"]: g for g in groups}
-    verdicts = judge_figure(meta.get("claims", []), named, result["extra"])
     scales = [d.get("scales") or d["figure"].get("scales") or {} for _, d in ctx.files[fig]]
     scale_notes = [s.get(ctx.scale, {}).get("note", "") for s in scales]
     on_treadmill = any(d.get("base", {}).get("env") == "treadmill" for _, d in ctx.files[fig])
@@ -388,8 +390,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
         "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
-        "verdicts": [v.__dict__ for v in verdicts],
-        "verdict": figure_verdict(verdicts),
+        **judged(meta, groups, result["extra"]),
         "png": result["png"],
     }
     if fig in ctx.tuning:
@@ -406,6 +407,13 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     return record
 
 
+def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, Any]) -> dict[str, Any]:
+    """A record's ``verdicts`` and ``verdict``: the figure's claims (Holm-corrected together) on its groups and
+    ``extra`` figures (references, exponents, analysis)."""
+    verdicts = judge_figure(meta.get("claims", []), {g["group"]: g for g in groups}, extra)
+    return {"verdicts": [v.__dict__ for v in verdicts], "verdict": figure_verdict(verdicts)}
+
+
 def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     """Figure ``fig``'s stored record with its verdicts judged again from its stored measurements."""
     path = docs / f"{fig}.json"
@@ -414,9 +422,7 @@ def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     record = json.loads(path.read_text())
     extra = {"references": record.get("references") or {}, "exponents": record.get("exponents") or {},
              "analysis": record.get("analysis") or {}}  # fmt: skip
-    named = {g["group"]: g for g in record["groups"]}
-    verdicts = judge_figure(files[fig][0][1]["figure"].get("claims", []), named, extra)
-    record["verdicts"], record["verdict"] = [v.__dict__ for v in verdicts], figure_verdict(verdicts)
+    record.update(judged(files[fig][0][1]["figure"], record["groups"], extra))
     path.write_text(json.dumps(record, indent=2) + "\n")
     return record
 
