@@ -319,6 +319,11 @@ class NetworkAgent(ABC):
         self.online: nn.ModuleDict = online.to(self.device)  # type: ignore[assignment]
         self.target: nn.ModuleDict = copy.deepcopy(self.online)
         self.target.requires_grad_(False)
+        # ``policy_ema`` < 1: the Polyak average of the online weights that evaluation acts with (``evaluated``)
+        self.average: nn.ModuleDict | None = None
+        if cfg.policy_ema < 1.0:
+            self.average = copy.deepcopy(self.online)
+            self.average.requires_grad_(False)
         self._optimizer: torch.optim.Optimizer | None = None
         self._members: dict[int, NetworkAgent] = {}
         self.run_cfgs: list[AlgoConfig] = [cfg] * len(self.seeds)
@@ -467,12 +472,25 @@ class NetworkAgent(ABC):
             for t, o in zip(self.target.parameters(), self.online.parameters(), strict=True):
                 t.index_copy_(0, idx, o.index_select(0, idx))
 
+    @property
+    def evaluated(self) -> nn.ModuleDict:
+        """The weights a policy is judged by: the online ones, or their average when ``policy_ema`` < 1."""
+        return self.online if self.average is None else self.average
+
     @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
         """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style). A
-        population acts on ``[R, B, N, D]`` with ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``."""
+        population acts on ``[R, B, N, D]`` with ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``.
+        Outside training (``progress.training`` off: evaluation, a loaded checkpoint) it acts with ``evaluated``."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-        q, msgs, new_state = self.greedy_q(obs_t, state)
+        if self.progress.training or self.average is None:
+            q, msgs, new_state = self.greedy_q(obs_t, state)
+        else:  # every algorithm's greedy_q reads self.online: lend it the average for this call
+            online, self.online = self.online, self.average
+            try:
+                q, msgs, new_state = self.greedy_q(obs_t, state)
+            finally:
+                self.online = online
         actions, _, _ = self.explore(q, epsilon)
         return ActOutput(
             actions=actions,
@@ -524,6 +542,11 @@ class NetworkAgent(ABC):
             self.updates += 1
             if self.syncs_by_updates:
                 self.sync_targets()
+            if self.average is not None:
+                with torch.no_grad():
+                    torch._foreach_lerp_(
+                        list(self.average.parameters()), list(self.online.parameters()), self.cfg.policy_ema
+                    )
         rows = [dict(zip(names, col, strict=True)) for col in table.T.tolist()]
         for row, good in zip(rows, ok, strict=True):
             if not good:
@@ -582,7 +605,10 @@ class NetworkAgent(ABC):
         return {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
 
     def load_policy_state(self, state: dict[str, Tensor]) -> None:
+        """Act with ``state`` (an actor's weights from the learner): in training and out of it."""
         self.online.load_state_dict(state)
+        if self.average is not None:
+            self.average.load_state_dict(state)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume learning exactly: networks, targets, optimizer, counters, RNG."""
@@ -591,6 +617,7 @@ class NetworkAgent(ABC):
         return {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
+            **({} if self.average is None else {"average": self.average.state_dict()}),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
             "rng": self.rng.bit_generator.state,
@@ -602,6 +629,8 @@ class NetworkAgent(ABC):
             raise TypeError("a population loads a single run's state per run: load_member_state(k, state)")
         self.online.load_state_dict(state["online"])
         self.target.load_state_dict(state["target"])
+        if self.average is not None:  # a checkpoint written without one starts the average at its online weights
+            self.average.load_state_dict(state.get("average", state["online"]))
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
         self.rng.bit_generator.state = state["rng"]
@@ -624,6 +653,7 @@ class NetworkAgent(ABC):
             {
                 "online": run_state(self.online, k),
                 "target": run_state(self.target, k),
+                **({} if self.average is None else {"average": run_state(self.average, k)}),
                 "optimizer": {"param_groups": opt["param_groups"], "state": moments},
                 "updates": self.updates,
                 "rng": self.rngs[k].bit_generator.state,
@@ -648,7 +678,10 @@ class NetworkAgent(ABC):
             raise TypeError("load_member_state is for populations; use load_state_dict")
         opt = self.optimizer
         with torch.no_grad():
-            for module, key in ((self.online, "online"), (self.target, "target")):
+            modules = [(self.online, "online"), (self.target, "target")]
+            if self.average is not None:
+                modules.append((self.average, "average" if "average" in state else "online"))
+            for module, key in modules:
                 for name, value in module.state_dict().items():
                     value[k].copy_(state[key][name])
             saved = sorted(state["optimizer"]["state"].items())

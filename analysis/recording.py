@@ -132,7 +132,7 @@ def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
 def message_input_norm(algo: Agent) -> MetricFigure:
     """L2 norm of the policy network's first-layer weights on its message inputs (mean over listener groups)."""
     listener = check_analysable(algo)
-    first = listener.online["policy"].get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
+    first = listener.evaluated["policy"].get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
     width = listener.senders * listener.bits
     msg_w, obs_w = first[:, -width:], first[:, :-width]
     msg_norm = float(msg_w.flatten(1).norm(dim=1).mean())

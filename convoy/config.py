@@ -62,6 +62,15 @@ class AlgoConfig(BaseModel):
         description="1 = copy the online weights into the target every target_update updates (the paper); below 1 "
         "= Polyak averaging, target ← (1 − τ)·target + τ·online after every update (target_update unused).",
     )
+    policy_ema: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="Below 1: greedy evaluation, best.pt and every saved policy act with an exponential moving "
+        "average of the online weights, avg ← (1 − τ)·avg + τ·online after every update (Polyak averaging of the "
+        "evaluated policy, Nikishin et al. 2018): neighbouring Q-networks can differ by a fifth in return, their "
+        "average does not swing with them. Training still acts with the online weights. 1 = the online weights.",
+    )
     replay_capacity: int = Field(100_000, ge=1, description="Joint transitions kept in replay (oldest dropped).")
     learning_starts: int = Field(1_000, ge=0, description="Transitions stored before the first update.")
     replay_ratio: float = Field(

@@ -308,6 +308,53 @@ def test_lr_end_anneals_each_runs_learning_rate_over_the_run() -> None:
     assert lr_at(cfgs[0], 2 * total, total) == 0.0 and lr_at(cfgs[1], total, total) == 1e-3  # held past the end
 
 
+@pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
+def test_policy_ema_evaluates_the_average_of_the_online_weights(name: str, tmp_path: Path) -> None:
+    """``policy_ema`` τ: after each update avg ← (1 − τ)·avg + τ·online; training acts with the online weights,
+    evaluation (``progress.training`` off) and a loaded checkpoint with the average, per run of a population."""
+    from convoy.algos.checkpoint import load_checkpoint
+
+    torch.set_num_threads(1)
+    tau = 0.1
+    cfg = config(name, False, policy_ema=tau)
+    pop = make_algorithm(name, SPEC, cfg, device="cpu", seed=SEEDS)
+    single = make_algorithm(name, SPEC, cfg, device="cpu", seed=SEEDS[1])
+    g = np.random.default_rng(0)
+    for _ in range(4):
+        c = chunk(g, len(SEEDS))
+        pop.observe(c)
+        single.observe({f: v[:, 1] for f, v in c.items()})
+    want = {n: w.clone() for n, w in single.online.state_dict().items()}
+    for agent in (pop, single):
+        agent.progress = Progress(100, 1, 1000, training=True)
+    for _ in range(30):
+        pop.update()
+        single.update()
+        for n, w in single.online.state_dict().items():
+            want[n] = (1 - tau) * want[n] + tau * w
+    assert single.average is not None and single.evaluated is single.average
+    for n, w in single.average.state_dict().items():
+        torch.testing.assert_close(w, want[n], rtol=0, atol=1e-6)
+    member = pop.member(1)
+    for n, w in member.evaluated.state_dict().items():
+        torch.testing.assert_close(w, want[n], rtol=0, atol=1e-5)
+    # acting: online in training, the average out of it (the online net lent back afterwards)
+    obs = g.normal(size=(64, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
+    online_acts = single.act(obs).actions
+    single.progress = Progress(100, 1, 1000, training=False)
+    averaged_acts = single.act(obs).actions
+    assert (online_acts != averaged_acts).any(), "the average should act differently from the online weights"
+    assert single.online is not single.average
+    plain = make_algorithm(name, SPEC, config(name, False), device="cpu", seed=SEEDS[1])
+    plain.load_policy_state({n: w for n, w in single.average.state_dict().items()})
+    np.testing.assert_array_equal(plain.act(obs).actions, averaged_acts)
+    # a checkpoint keeps the average and acts with it once loaded
+    job = job_config(algo=name, env="treadmill", algo_params=cfg.model_dump(), device="cpu", seed=SEEDS[1])
+    save_checkpoint(tmp_path / "c.pt", single, job, {"env_steps": 100, "episodes": 1, "updates": 30})
+    loaded, _, _ = load_checkpoint(tmp_path / "c.pt", device="cpu")
+    np.testing.assert_array_equal(loaded.act(obs).actions, averaged_acts)
+
+
 def test_a_jobs_seeds_make_a_population_of_single_runs() -> None:
     """``seeds`` in the one config model (CLI, files, the learner and actors read it): one seed is the single run
     of that seed; a population's members are single runs of their seeds writing DIR/seed-N; the resource limits
