@@ -138,6 +138,7 @@ class HearsMessages:
     listening: Listening | None = None
     senders: int  # messages each agent hears per step (MA-MeSN: N − 1 peers, MA-BoN: 1 broadcast)
     online: nn.ModuleDict  # the algorithm's networks (the mixin sits on a NetworkAgent)
+    evaluated: nn.ModuleDict  # the weights it is judged by (NetworkAgent.evaluated)
     cfg: Any  # a config with ``channel_control`` (MeSNConfig, BoNConfig)
     runs: int | None
     bits: int
