@@ -238,12 +238,17 @@ def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
     return F.smooth_l1_loss(q, y, reduction="none") if cfg.huber else 0.5 * (q - y) ** 2
 
 
+def polyak_(average: nn.Module, online: nn.Module, tau: float) -> None:
+    """average ← (1 − τ)·average + τ·online, in place (the Polyak target and the averaged policy)."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(average.parameters()), list(online.parameters()), tau)
+
+
 def update_target(target: nn.Module, online: nn.Module, updates: int, cfg: AlgoConfig) -> None:
     """Copy the online weights every ``target_update`` updates, or move a step ``target_tau`` towards them after
     every update."""
     if cfg.target_tau < 1.0:
-        with torch.no_grad():
-            torch._foreach_lerp_(list(target.parameters()), list(online.parameters()), cfg.target_tau)
+        polyak_(target, online, cfg.target_tau)
     elif updates % cfg.target_update == 0:
         target.load_state_dict(online.state_dict())
 
@@ -543,10 +548,7 @@ class NetworkAgent(ABC):
             if self.syncs_by_updates:
                 self.sync_targets()
             if self.average is not None:
-                with torch.no_grad():
-                    torch._foreach_lerp_(
-                        list(self.average.parameters()), list(self.online.parameters()), self.cfg.policy_ema
-                    )
+                polyak_(self.average, self.online, self.cfg.policy_ema)
         rows = [dict(zip(names, col, strict=True)) for col in table.T.tolist()]
         for row, good in zip(rows, ok, strict=True):
             if not good:

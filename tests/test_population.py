@@ -346,7 +346,7 @@ def test_policy_ema_evaluates_the_average_of_the_online_weights(name: str, tmp_p
     assert (online_acts != averaged_acts).any(), "the average should act differently from the online weights"
     assert single.online is not single.average
     plain = make_algorithm(name, SPEC, config(name, False), device="cpu", seed=SEEDS[1])
-    plain.load_policy_state({n: w for n, w in single.average.state_dict().items()})
+    plain.load_policy_state(single.average.state_dict())
     np.testing.assert_array_equal(plain.act(obs).actions, averaged_acts)
     # a checkpoint keeps the average and acts with it once loaded
     job = job_config(algo=name, env="treadmill", algo_params=cfg.model_dump(), device="cpu", seed=SEEDS[1])
