@@ -69,8 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweeps", type=int, default=5, help="sweeps submitted, 6 jobs each (default %(default)s)")
     p.add_argument("--kills", type=int, default=3, help="kill -9 of the service (default %(default)s)")
     p.add_argument("--processes", type=int, default=3, help="the service's --max-processes (default %(default)s)")
+    p.add_argument("--burst", type=int, default=10, help="jobs sent just before the 1st kill (default %(default)s)")
     p.add_argument("--sample", type=float, default=10.0, help="seconds between RSS/FD samples (default %(default)s)")
-    p.add_argument("--drain", type=float, default=30.0, help="minutes to wait for the queue at the end")
+    p.add_argument("--drain", type=float, default=30.0, help="minutes the queue has to drain (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = p.parse_args(argv)
     console = Console()
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
             if kills_at and kills_at[0] <= now:
                 kills_at.pop(0)
                 if kills == 0:  # the first while it writes: right after a burst of submissions
-                    for i in range(10):
+                    for i in range(args.burst):
                         got = post(svc, "/jobs", {**JOB, "seed": 10_000 + i, "name": "burst"})
                         if got:
                             jobs.append(got)

@@ -173,7 +173,8 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                   "treadmill_references.py": ["--episodes", "2"], "treadmill_causes.py": ["--episodes", "2"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
-                  "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--sample", "2"],
+                  "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
+                              "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued
                   "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
                                                    "--analysis-samples", "2000"]}[Path(argv[1]).name]  # fmt: skip
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
