@@ -43,7 +43,10 @@ def plot_groups(
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    if ax.get_legend_handles_labels()[1]:
+        ax.legend(fontsize=7, loc="best")
+    else:  # a job that has not reached its first greedy evaluation yet
+        ax.text(0.5, 0.5, "no greedy evaluation yet", ha="center", va="center", transform=ax.transAxes)
     return _save(fig, path)
 
 

@@ -250,6 +250,23 @@ def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyP
     assert "full-information" not in lines  # only the named references
 
 
+def test_a_curve_plot_without_any_evaluation_says_so_instead_of_an_empty_legend(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import warnings
+
+    from convoy.analysis import curves
+
+    drawn: list[Any] = []
+    monkeypatch.setattr(curves, "_save", lambda fig, path: drawn.append(fig) or Path(path))
+    groups = [{"group": "a", "curve": {"env_steps": [0], "mean": [None], "ci95": [None], "n": [0]}}]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib warns about a legend with no labels
+        curves.plot_groups(groups, tmp_path / "c.png", "t")
+    ax = drawn[0].axes[0]
+    assert ax.get_legend() is None and [t.get_text() for t in ax.texts] == ["no greedy evaluation yet"]
+
+
 def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) -> None:
     """A figure's record keeps the treadmill rules it was measured on; the page flags one from earlier rules (in the
     overview and under its heading), and says nothing for the current rules or another env."""
