@@ -72,13 +72,29 @@ def cmd_train(args: argparse.Namespace) -> int:
     limits_from_args(args).check(job, "convoy train")
     if args.resume:
         out = Path(args.resume)
+        args.inprocess = resumed_inprocess(args, out)
     else:
         out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
     run_dir = claim(out, overwrite=args.overwrite, resume=bool(args.resume))
     try:
+        (out / LAUNCH).write_text(json.dumps({"inprocess": bool(args.inprocess)}) + "\n")
         return _train_population(args, job, out) if job.runs else _train(args, job, out)
     finally:
         run_dir.release()
+
+
+LAUNCH = "launch.json"  # how the run was started (in this process or actors over Zenoh): --resume goes on the same way
+
+
+def resumed_inprocess(args: argparse.Namespace, out: Path) -> bool:
+    """Whether ``--resume`` goes on in this process: as the run was started, unless ``--inprocess`` or ``--actors``
+    says otherwise — a run's data should not change how it is collected half-way without the user asking."""
+    if args.inprocess or args.actors is not None or not (out / LAUNCH).is_file():
+        return bool(args.inprocess)
+    started_inprocess = bool(json.loads((out / LAUNCH).read_text()).get("inprocess"))
+    if started_inprocess:
+        console.print(f"{out} was started with --inprocess: going on in this process (--actors N moves it to actors)")
+    return started_inprocess
 
 
 RESUME_FLAGS = ("steps", "device", "torch_threads", "loggers")  # what may change when a run goes on
@@ -266,7 +282,8 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         "--resume",
         metavar="DIR",
         help="go on with the run in DIR (its job.json, checkpoint and replay) up to its steps, or to a new --steps; "
-        "only --steps, --device, --threads, --actors and --runtime may change",
+        "the way it was started (in this process or with actors); only --steps, --device, --threads, --actors and "
+        "--runtime may change",
     )
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     add_limit_flags(tr)

@@ -167,7 +167,8 @@ def test_runs_never_share_a_directory_by_accident(tmp_path, capsys, monkeypatch)
 def test_a_run_goes_on_from_its_folder(tmp_path, capsys, seeds: list[str]) -> None:
     """``--resume DIR`` reads the run's own job.json and checkpoint (and replay, kept here) and goes on to a new
     ``--steps``: the counters carry on, the replay comes back, the metric rows continue without a duplicate, and
-    the summary names the algorithm, env, seed and hyper-parameters. A completed run drops its replay by default."""
+    the summary names the algorithm, env, seed and hyper-parameters. A completed run drops its replay by default.
+    A run started in this process goes on in this process without being told again."""
     out = tmp_path / "run"
     first = ["train", "--algo", "idqn", *TINY, "--steps", "2000", *seeds, "--out", str(out)]
     assert main(first) == 0
@@ -177,7 +178,9 @@ def test_a_run_goes_on_from_its_folder(tmp_path, capsys, seeds: list[str]) -> No
     assert list(out.rglob("replay.npz"))
     updates = [json.loads((f / "summary.json").read_text())["updates"] for f in folders]
     capsys.readouterr()
-    assert main(["train", "--resume", str(out), "--steps", "4000", "--inprocess", "--no-progress"]) == 0
+    assert main(["train", "--resume", str(out), "--steps", "4000", "--no-progress"]) == 0
+    said = " ".join(capsys.readouterr().out.split())
+    assert "started with --inprocess: going on in this process" in said and "Zenoh" not in said, said
     for folder, before, seed in zip(folders, updates, (3, 5), strict=False):
         assert json.loads((folder / "job.json").read_text())["seed"] == seed
         summary = json.loads((folder / "summary.json").read_text())
