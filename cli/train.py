@@ -91,7 +91,13 @@ def resumed_inprocess(args: argparse.Namespace, out: Path) -> bool:
     says otherwise — a run's data should not change how it is collected half-way without the user asking."""
     if args.inprocess or args.actors is not None or not (out / LAUNCH).is_file():
         return bool(args.inprocess)
-    started_inprocess = bool(json.loads((out / LAUNCH).read_text()).get("inprocess"))
+    try:
+        started_inprocess = json.loads((out / LAUNCH).read_text())["inprocess"]
+        if not isinstance(started_inprocess, bool):
+            raise TypeError(f"inprocess is {started_inprocess!r}, not true or false")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError("--resume", f"{out / LAUNCH} (how the run was started) is unreadable ({exc}); say how "
+                          "to go on with --inprocess or --actors N") from None  # fmt: skip
     if started_inprocess:
         console.print(f"{out} was started with --inprocess: going on in this process (--actors N moves it to actors)")
     return started_inprocess

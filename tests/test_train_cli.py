@@ -203,6 +203,10 @@ def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
     assert "--resume" in err and "--hp cannot change" in err, err
     assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 2
     assert "--resume" in capsys.readouterr().err  # the refusal to reuse a folder names the way to go on
+    (out / "launch.json").write_text("{not json")
+    assert main(["train", "--resume", str(out), "--no-progress"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "launch.json (how the run was started) is unreadable" in err and "--inprocess or --actors N" in err, err
 
 
 def test_one_random_reference_whatever_the_algorithm(tmp_path, capsys) -> None:
