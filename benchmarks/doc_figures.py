@@ -412,8 +412,9 @@ def engineering_results(population: dict[str, Any], population_all: dict[str, An
 
 # the comparison the README leads with: (learner told teammates' sightings, the same on its own observation)
 HEADLINE = (
-    "+ team sightings, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, 400 k, 15 seeds",
-    "own, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, 400 k, 15 seeds",
+    "+ team sightings, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, averaged policy, 400 k, "
+    "20 seeds",
+    "own, LayerNorm, τ 0.001, squared TD error, ε over half, lr annealed to 0, averaged policy, 400 k, 20 seeds",
 )
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
