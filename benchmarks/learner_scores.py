@@ -1,7 +1,7 @@
 """Trained treadmill learners re-scored on held-out episodes: the figures the docs quote about learners.
 
 Each ``--group LABEL=DIR[,DIR…]`` is a population run or several (``convoy train --seeds …``, one ``DIR/seed-N/``
-per seed). Every
+per seed; a one-seed run's files sit in ``DIR`` itself). Every
 seed's last policy (``checkpoint.pt``) and best point of its greedy curve (``best.pt``, chosen on the training run's
 own evaluation episodes) are played greedily on ``--episodes`` episodes of seed ``--seed`` — episodes neither was
 chosen on — and the group gets the mean over seeds with its 95 % t-CI, each seed's last ÷ best (below 1: the policy
@@ -38,10 +38,18 @@ DEFAULT_JSON = ROOT / "docs" / "figures" / "treadmill_learners.json"
 
 
 def seed_dirs(run_dir: Path) -> list[tuple[int, Path]]:
-    """``(seed, DIR/seed-N)`` of a population run, in seed order; a clear error when there are none."""
+    """``(seed, DIR/seed-N)`` of a population run, in seed order, or ``(seed, DIR)`` of a one-seed run (its files sit
+    in DIR itself); a clear error when there are none."""
     found = sorted((int(p.name.split("-", 1)[1]), p) for p in run_dir.glob("seed-*") if p.name[5:].isdigit())
+    if not found and (run_dir / "checkpoint.pt").is_file() and (run_dir / "job.json").is_file():
+        try:
+            found = [(int(json.loads((run_dir / "job.json").read_text())["seed"]), run_dir)]
+        except (ValueError, KeyError, TypeError) as e:
+            raise SystemExit(f"--group: {run_dir / 'job.json'} names no seed ({e}); is it a convoy train run?") from e
     if not found:
-        raise SystemExit(f"--group: {run_dir} has no seed-N/ folders; give the --out of a convoy train --seeds run")
+        raise SystemExit(
+            f"--group: {run_dir} has no seed-N/ folders and no checkpoint.pt; give the --out of a convoy train run"
+        )
     return found
 
 

@@ -72,6 +72,25 @@ def test_the_service_figures_come_from_the_population_and_soak_json(tmp_path: Pa
     assert "25 → 31 (max 33): 1.24×" in new_bench
 
 
+def test_learner_scores_takes_a_one_seed_run_and_names_what_a_folder_lacks(tmp_path: Path) -> None:
+    """``convoy train --seeds 20`` writes its files in DIR itself, not DIR/seed-20/: that is one seed; a folder
+    with neither is an error naming it."""
+    import learner_scores
+
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / "checkpoint.pt").write_bytes(b"")
+    (one / "job.json").write_text(json.dumps({"algo": "idqn", "seed": 20}))
+    assert learner_scores.seed_dirs(one) == [(20, one)]
+    (tmp_path / "pop" / "seed-3").mkdir(parents=True)
+    assert learner_scores.seed_dirs(tmp_path / "pop") == [(3, tmp_path / "pop" / "seed-3")]
+    with pytest.raises(SystemExit, match=r"no seed-N/ folders and no checkpoint\.pt"):
+        learner_scores.seed_dirs(tmp_path / "pop" / "seed-3")
+    (one / "job.json").write_text(json.dumps({"seed": "twenty"}))
+    with pytest.raises(SystemExit, match="names no seed"):
+        learner_scores.seed_dirs(one)
+
+
 def test_learner_scores_plays_only_the_seeds_no_earlier_group_scored(tmp_path: Path) -> None:
     """A group that adds a population to two scored ones reuses their seeds' figures (same episodes) and plays
     only the new seeds: here none, so no checkpoint is loaded; another episode count reuses nothing."""
