@@ -11,7 +11,10 @@ built for (``docs/treadmill.md``):
 
 and who observes an adversary that is close to an agent: the agent, only a teammate (what messages can add), nobody.
 
-Run: ``python benchmarks/treadmill_references.py`` (a few seconds); ``--set KEY=VALUE`` tries other rules.
+It plays the planners too (``envs.treadmill.planner``, the strongest reference at each information level).
+
+Run: ``python benchmarks/treadmill_references.py`` (about 3 minutes, most of it the planners); ``--set KEY=VALUE``
+tries other rules.
 ``--search`` runs the searched and tuned references instead (``benchmarks/treadmill_search.py``: open-loop search,
 tuned private / team / 16-bit team drivers, paired ratios; the arguments after ``--search`` go to it, e.g.
 ``--search``).

@@ -251,7 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
         "observations); team-information (also told of every adversary some agent observes); full-information "
         "(knows every car and which are adversaries); private-driver, team-driver, team16-driver (the tuned "
         "reactive driver on its own sensor, told its teammates' observations, told a 16-bit code per teammate); "
-        "all but random are treadmill-only (default: %(default)s)",
+        "private-planner, team16-planner, team-planner, full-planner (the tuned model-predictive driver on its own "
+        "sensor, told a 16-bit word per teammate, told its teammates' observations, told every car: the strongest "
+        "references); all but random are treadmill-only (default: %(default)s)",
     )
     ro.add_argument(
         "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"

@@ -6,6 +6,10 @@
 * ``team-information`` — the same driver told where every adversary is that some agent observes (in its
   ``observe_k`` slots), and that it is one: what perfectly decoded messages between agents could carry;
 * ``full-information`` — the same driver told every car's position and which cars are adversaries;
+* ``private-planner``, ``team-planner``, ``team16-planner``, ``full-planner`` — the model-predictive driver of
+  ``envs.treadmill.planner`` told its own sensor, its teammates' observations, one 16-bit word per teammate, or every
+  car, each level's parameters tuned on the default rules (``planner.TUNED``): the strongest policy Convoy has for each
+  information level, and the references every learner is judged against;
 * ``private-driver``, ``team-driver``, ``team16-driver`` — the reactive family of ``envs.treadmill.drivers`` with the
   parameters tuned on the default rules (``TUNED``): on its own sensor, told every teammate's observation, told a
   16-bit code per teammate. ``benchmarks/treadmill_search.py`` tunes them afresh on any rules and searches the
@@ -29,7 +33,16 @@ from convoy.envs.treadmill.scripted import DANGER, full_information_actions, scr
 Policy = Callable[[np.ndarray], np.ndarray]
 CONSTANTS: tuple[str, ...] = tuple(f"constant-{a}" for a in range(N_ACTIONS))
 DRIVERS: tuple[str, ...] = ("private-driver", "team-driver", "team16-driver")
-REFERENCES: tuple[str, ...] = ("random", *CONSTANTS, "scripted", "team-information", "full-information", *DRIVERS)
+PLANNERS: tuple[str, ...] = ("private-planner", "team16-planner", "team-planner", "full-planner")
+REFERENCES: tuple[str, ...] = (
+    "random",
+    *CONSTANTS,
+    "scripted",
+    "team-information",
+    "full-information",
+    *DRIVERS,
+    *PLANNERS,
+)
 
 
 def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None) -> Policy:
@@ -44,6 +57,11 @@ def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None
         return lambda obs: full_information_actions(engine, team_only=True)
     if name in DRIVERS:
         return _driver_policy(name.split("-")[0], engine, TUNED[name.split("-")[0]])
+    if name in PLANNERS:
+        from convoy.envs.treadmill import planner
+
+        level = name.split("-")[0]
+        return lambda obs: planner.level_actions(level, engine, obs, planner.TUNED[level])
     if name in CONSTANTS:
         action = int(name.rsplit("-", 1)[1])
         return lambda obs: np.full(obs.shape[:2], action, np.int64)
@@ -90,13 +108,13 @@ def best_constant(results: dict[str, RolloutResult]) -> str:
 def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[str, tuple[float, float]]:
     """What a trained policy's summary shows beside it, each as (mean, 95 % CI half-width) over ``episodes``
     episodes: random; the best constant action (named; on the default rules also the best open-loop policy the
-    search of ``benchmarks/treadmill_search.py`` finds); the scripted driver; the tuned reactive drivers on their own
-    sensor, told their teammates' observations and told a 16-bit code per teammate (tuned on the default rules); and
-    the full-information driver (what knowing every car is worth)."""
-    names = ("random", *CONSTANTS, "scripted", *DRIVERS, "full-information")
+    search of ``benchmarks/treadmill_search.py`` finds); the tuned reactive driver on its own sensor (the reference
+    of earlier results); and the planners told their own sensor, a 16-bit word per teammate, their teammates'
+    observations and every car (tuned on the default rules): the strongest policy known at each information level."""
+    names = ("random", *CONSTANTS, "private-driver", *PLANNERS)
     results = evaluate_references(cfg, episodes, seed, names=names)
     best = best_constant(results)
-    return {name: results[name].ci95() for name in ("random", best, "scripted", *DRIVERS, "full-information")}
+    return {name: results[name].ci95() for name in ("random", best, "private-driver", *PLANNERS)}
 
 
 def who_sees_the_threat(cfg: TreadmillConfig, steps: int = 400, envs: int = 256, seed: int = 0) -> dict[str, float]:
