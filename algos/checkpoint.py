@@ -122,8 +122,7 @@ def load_checkpoint(path: str | Path, device: str = "auto") -> tuple[Agent, JobC
     payload = read_checkpoint(path)
     try:
         job = job_config(**payload["job"])
-        spec_d = payload["spec"]
-        spec = EnvSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec_d.items()})  # type: ignore[arg-type]
+        spec = EnvSpec.from_dict(payload["spec"])
         algo = make_agent(job, spec, device=device)
         algo.load_state_dict(payload["state"])
         counters = payload.get("counters", {})

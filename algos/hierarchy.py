@@ -256,6 +256,7 @@ class HierarchicalAgent:
             obs_dims=spec.obs_dims,
             n_actions=(N_GOALS,) * spec.n_agents,
             max_steps=math.ceil(spec.max_steps / self.goal_steps),
+            layout=spec.layout,  # the meta level reads the env's observations
         )
         self.runs: int | None = job.runs
         self.seeds: tuple[int, ...] = tuple(job.run_seeds())

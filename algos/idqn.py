@@ -1,4 +1,8 @@
-"""Independent DQN: each agent's Q-network sees only its own observation — the no-communication baseline."""
+"""Independent DQN: each agent's Q-network sees only its own observation — the no-communication baseline.
+
+The Q-network is an MLP over the flat observation, or (``encoder=entity``) the entity encoder of ``algos/entity.py``
+and an MLP head.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,8 @@ from typing import Any
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
-from convoy.algos.nets import GroupMLP, id_width, with_agent_id
+from convoy.algos.entity import obs_network
+from convoy.algos.nets import id_width, with_agent_id
 from convoy.config import IDQNConfig
 
 
@@ -27,7 +32,8 @@ class IndependentDQN(NetworkAgent):
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
-        return {"q": GroupMLP(groups, self.input_width(), self.cfg.widths, self.n_act, norm=self.cfg.layer_norm)}
+        extra = self.input_width() - self.obs_dim  # agent id, fingerprint: read beside the own features
+        return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act)}
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.online["q"](self.features(obs)), None, None

@@ -16,6 +16,8 @@ Choices made where the paper is silent:
 * With shared weights a one-hot agent id is appended to the encoder's and g′'s inputs (``agent_id``, on by default)
   so agents with different roles can still act differently; that adds N input columns, again linear in N.
   ``agent_id=False`` is the paper's literal ``g′(z_i, bm)``, whose size is then independent of N.
+* ``encoder=entity`` (``algos/entity.py``): the encoder and g′ read the observation as a set of cars, and g′ reads
+  ``bm`` as one more entity; f′ still reads the N encodings in agent order.
 * ``greedy_q`` reports ``bm`` repeated for every agent ``[B, N, bits]`` so that metrics and channel models see the
   same per-agent message layout as the other algorithms; all N rows of an env are identical.
 """
@@ -29,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import NetworkAgent
+from convoy.algos.entity import obs_network
 from convoy.algos.listening import HearsMessages
 from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import GroupMLP, gumbel_bits, id_width, with_agent_id
@@ -50,14 +53,14 @@ class MABoN(HearsMessages, NetworkAgent):
         self.senders = 1
         self.use_id: bool = self.shared and bool(self.cfg.agent_id)
         groups = 1 if self.shared else self.n_agents
-        obs_in = self.obs_dim + id_width(self.n_agents, self.use_id)
+        ids = id_width(self.n_agents, self.use_id)
         enc = int(self.cfg.encoding)
         return {
-            "encoder": GroupMLP(groups, obs_in, (), enc),  # e_i (ReLU applied in forward)
+            "encoder": obs_network(self.spec, self.cfg, groups, ids, (), enc),  # e_i (ReLU applied in forward)
             # f′: one broadcast
             "message": GroupMLP(1, self.n_agents * enc, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm),
-            # g′
-            "policy": GroupMLP(groups, obs_in + self.bits, self.cfg.widths, self.n_act, norm=self.cfg.layer_norm),
+            # g′: bm one more entity with encoder=entity
+            "policy": obs_network(self.spec, self.cfg, groups, ids, self.cfg.widths, self.n_act, 1, self.bits),
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

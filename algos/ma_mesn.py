@@ -6,6 +6,9 @@ messages of the *others*: ``Q_i = f″_i(o_i, m_{−i})``. The loss is the sum o
 message network f′_j receives the summed gradients of every other agent's TD loss (Algorithm 1's "collect
 gradients from all policy networks"), while f″_i is reached by agent i's loss only. Targets use the target copies
 of both networks, synced every C updates.
+
+With ``encoder=entity`` (``algos/entity.py``) f′ and f″ read the observation as a set of cars and f″ reads each
+heard message m_j as one more entity; the messages still reach f″ straight-through, so the gradients are Algorithm 1's.
 """
 
 from __future__ import annotations
@@ -16,9 +19,9 @@ import torch
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
+from convoy.algos.entity import obs_network
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import (
-    GroupMLP,
     gather_others,
     gumbel_bits,
     id_width,
@@ -42,11 +45,10 @@ class MAMeSN(HearsMessages, NetworkAgent):
         self.peers = others_index(self.n_agents).to(self.device)
         self.senders = self.n_agents - 1
         groups = 1 if self.shared else self.n_agents
-        obs_in = self.obs_dim + id_width(self.n_agents, self.shared)
-        msg_in = (self.n_agents - 1) * self.bits
-        return {
-            "message": GroupMLP(groups, obs_in, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm),  # f′
-            "policy": GroupMLP(groups, obs_in + msg_in, self.cfg.widths, self.n_act, norm=self.cfg.layer_norm),  # f″
+        ids, widths = id_width(self.n_agents, self.shared), self.cfg.widths
+        return {  # MLPs over [o_i, id] and [o_i, id, m_−i], or entity encoders reading each m_j as one more entity
+            "message": obs_network(self.spec, self.cfg, groups, ids, widths, 2 * self.bits),  # f′
+            "policy": obs_network(self.spec, self.cfg, groups, ids, widths, self.n_act, self.senders, self.bits),  # f″
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import Agent
+from convoy.algos.entity import EntityEncoder
 from convoy.algos.listening import HearsMessages, Listening
 from convoy.algos.memory import MemoryModule
 from convoy.analysis.comm_metrics import (
@@ -132,9 +133,15 @@ def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
 def message_input_norm(algo: Agent) -> MetricFigure:
     """L2 norm of the policy network's first-layer weights on its message inputs (mean over listener groups)."""
     listener = check_analysable(algo)
-    first = listener.evaluated["policy"].get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
+    policy = listener.evaluated["policy"]
     width = listener.senders * listener.bits
-    msg_w, obs_w = first[:, -width:], first[:, :-width]
+    if isinstance(policy, torch.nn.Sequential) and isinstance(policy[0], EntityEncoder):
+        # encoder=entity: each message enters through ψ's first layer, each car through φ's
+        msg_w = policy.get_parameter("0.heard.layers.0.weight").detach()
+        obs_w = policy.get_parameter("0.car.layers.0.weight").detach()
+    else:
+        first = policy.get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
+        msg_w, obs_w = first[:, -width:], first[:, :-width]
     msg_norm = float(msg_w.flatten(1).norm(dim=1).mean())
     obs_norm = float(obs_w.flatten(1).norm(dim=1).mean())
     rms_ratio = (msg_norm / math.sqrt(msg_w[0].numel())) / max(obs_norm / math.sqrt(obs_w[0].numel()), 1e-12)

@@ -189,7 +189,23 @@ class GumbelConfig(MessageConfig):
     )
 
 
-class IDQNConfig(AlgoConfig):
+class EntityFields(BaseModel):
+    """How a network reads the observation (independent DQN and the MA-MeSN / MA-BoN networks)."""
+
+    encoder: Literal["mlp", "entity"] = Field(
+        "mlp",
+        description="How the networks read the observation: mlp = one MLP over the flat vector (the paper); entity = "
+        "one encoder shared by every car, applied alike to the agent's sensor slots, the sightings it is told and "
+        "(MA-MeSN, MA-BoN listeners) each heard message, pooled by a masked sum and max (slot order and empty slots "
+        "change nothing), beside an embedding of the agent's own features, then the Q head of the hidden widths. "
+        "entity needs an env whose observation is laid out as cars (the treadmill).",
+    )
+    entity_width: int = Field(
+        64, ge=1, le=4096, description="Units of each car's (and message's) embedding and of the own-feature one."
+    )
+
+
+class IDQNConfig(AlgoConfig, EntityFields):
     """Independent DQN: every agent learns from its own observation only."""
 
 
@@ -245,11 +261,11 @@ class ChannelControl(BaseModel):
     )
 
 
-class MeSNConfig(GumbelConfig, ChannelControl):
+class MeSNConfig(GumbelConfig, ChannelControl, EntityFields):
     """MA-MeSN (Algorithm 1): separate message networks f′ and policy networks f″."""
 
 
-class BoNConfig(GumbelConfig, ChannelControl):
+class BoNConfig(GumbelConfig, ChannelControl, EntityFields):
     """MA-BoN: one broadcast message from all agents' encodings."""
 
     encoding: int = Field(64, ge=1, le=65536, description="Width of each agent's observation encoding.")
@@ -649,7 +665,22 @@ class JobConfig(BaseModel):
             why = "hierarchical DQN's options span many steps" if self.hierarchical else "DIAL learns from sequences"
             raise ConfigError("algo_params.n_step", f"{why}; drop n_step (one-step returns) for this job")
         self._check_seeds()
+        if self.algo_params.get("encoder") == "entity":
+            self._check_layout()
         return self
+
+    def _check_layout(self) -> None:
+        """``encoder=entity`` reads the env's observation layout: refused here, before any process starts, when the
+        env (with these parameters) has none."""
+        from convoy.envs.layout import entity_layout
+        from convoy.envs.registry import make_batched
+
+        env = make_batched(self.env, 1, **self.env_params)
+        env.close()
+        try:
+            entity_layout(env.spec)
+        except ConfigError as exc:
+            raise ConfigError("algo_params.encoder", str(exc).split(": ", 1)[-1]) from None
 
     def _check_seeds(self) -> None:
         """A population's seeds: distinct, in range, not beside a different ``seed``; one seed is a single run."""

@@ -12,7 +12,7 @@ buffer needs as ``s_{t+1}``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
 
@@ -34,6 +34,45 @@ class StepResult:
         return self.terminated | self.truncated
 
 
+EntitySource = Literal["sensor", "told"]  # the agent's own sensor, or what its teammates tell it
+ENTITY_SOURCES: tuple[str, ...] = get_args(EntitySource)
+
+
+@dataclass(frozen=True)
+class EntitySlots:
+    """``count`` slots of ``width`` columns from column ``start`` of an observation, each one other car; an empty slot
+    is all zeros. ``present`` … ``adversary`` are columns within a slot, None where the block does not say (a told
+    sighting has no heading, a sensor no adversary flag). Every block gives offsets in sensor-range units and speeds
+    as a fraction of the top speed, so one network reads a car the same whichever block it sits in."""
+
+    source: EntitySource
+    start: int
+    count: int
+    width: int
+    present: int  # 1 = a car is there, 0 = an empty slot
+    dx: int  # offset along the road
+    dy: int  # offset across it
+    speed: int
+    heading: int | None = None  # first column of a heading one-hot (``ObsLayout.headings`` wide)
+    adversary: int | None = None  # 1 = an adversary
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    """Where the parts of an agent's observation lie, for networks that read the other cars as a set
+    (``encoder=entity``); an env whose observations are not made of cars has none."""
+
+    own: int  # columns 0 … own−1: the agent's own state
+    headings: int  # width of a heading one-hot
+    cars: tuple[EntitySlots, ...]
+    unread: tuple[str, ...] = ()  # blocks not laid out as cars, by the env parameter that adds them
+
+    @property
+    def width(self) -> int:
+        """Columns the own features and the car slots span (the observation's width when nothing is unread)."""
+        return max([self.own, *(b.start + b.count * b.width for b in self.cars)])
+
+
 @dataclass(frozen=True)
 class EnvSpec:
     """Static shape facts an actor or learner needs before the first step."""
@@ -43,6 +82,19 @@ class EnvSpec:
     obs_dims: tuple[int, ...]  # each agent's true observation width (before padding)
     n_actions: tuple[int, ...]  # each agent's Discrete action count
     max_steps: int
+    # what the observation's columns are, where the env says (the treadmill); derived from the env's parameters, so
+    # not compared: a spec read from a checkpoint written before layouts existed still equals the env's
+    layout: ObsLayout | None = field(default=None, compare=False)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EnvSpec:
+        """The spec ``dataclasses.asdict`` wrote (a checkpoint's), lists read back as tuples."""
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        layout = values.get("layout")
+        if isinstance(layout, dict):
+            cars = tuple(EntitySlots(**c) for c in layout["cars"])
+            values["layout"] = ObsLayout(**{**layout, "cars": cars, "unread": tuple(layout.get("unread", ()))})
+        return cls(**values)
 
     @property
     def n_agents(self) -> int:

@@ -45,6 +45,7 @@ import numpy as np
 
 from convoy.envs import rng
 from convoy.envs.batched import EnvSpec, StepResult, check_actions
+from convoy.envs.layout import treadmill_layout
 from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
 
 # Unit move per heading, counter-clockwise from "forward along the road".
@@ -79,6 +80,7 @@ class TreadmillEngine:
             obs_dims=(cfg.obs_dim,) * cfg.n_agents,
             n_actions=(N_ACTIONS,) * cfg.n_agents,
             max_steps=cfg.max_steps,
+            layout=treadmill_layout(cfg),  # what encoder=entity reads the cars from
         )
         n, c = cfg.n_agents, cfg.n_cars
         self._is_agent = np.arange(c) < n
