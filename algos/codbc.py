@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
 from convoy.config import CoDBCConfig
+from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError
 
 TEACHERS = ("ma-mesn", "ma-bon", "ma-mesn-mm", "ma-bon-mm", "ims", "idqn", "dqn-ser")
@@ -61,28 +62,9 @@ class CoDBC(NetworkAgent):
     def teacher(self) -> NetworkAgent:
         """The centralised policy being cloned, loaded from ``cfg.teacher`` on first use (frozen, greedy)."""
         if self._teacher is None:
-            from convoy.algos.checkpoint import CheckpointError, load_checkpoint
-
             if self.cfg.teacher is None:
                 raise ConfigError("teacher", "CoDBC needs a teacher checkpoint: algo_params.teacher=PATH")
-            try:
-                algo, job, _ = load_checkpoint(self.cfg.teacher, device=str(self.device))
-            except CheckpointError as exc:
-                raise ConfigError("teacher", str(exc)) from None
-            if job.hierarchical or algo.name not in TEACHERS or not isinstance(algo, NetworkAgent):
-                kind = "hierarchical " + job.algo if job.hierarchical else algo.name
-                raise ConfigError(
-                    "teacher",
-                    f"{self.cfg.teacher} holds a {kind} policy; CoDBC clones a feed-forward one: {', '.join(TEACHERS)}",
-                )
-            if algo.spec != self.spec:
-                raise ConfigError(
-                    "teacher",
-                    f"{self.cfg.teacher} was trained on {algo.spec}, this job's env is "
-                    f"{self.spec}; train the teacher on the same env parameters",
-                )
-            algo.online.requires_grad_(False)
-            self._teacher = algo
+            self._teacher = load_teacher(self.cfg.teacher, self.spec, str(self.device))
         return self._teacher
 
     def logits(self, obs: Tensor) -> Tensor:
@@ -125,3 +107,28 @@ class CoDBC(NetworkAgent):
             agreement = (logits.argmax(dim=-1) == labels).float().mean(dim=(-2, -1))
         ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.flatten(), reduction="none").view_as(labels)
         return Loss(ce.mean(dim=-2), None, {"teacher_agreement": agreement})
+
+
+def load_teacher(path: str, spec: EnvSpec | None, device: str = "cpu") -> NetworkAgent:
+    """The frozen teacher in checkpoint ``path``, or a ConfigError naming ``teacher``: a file that is missing,
+    unreadable or hostile (``read_checkpoint`` refuses it), a policy CoDBC cannot clone, or one trained on another
+    env shape than ``spec`` (None: not compared)."""
+    from convoy.algos.checkpoint import CheckpointError, load_checkpoint
+
+    try:
+        algo, job, _ = load_checkpoint(path, device=device)
+    except CheckpointError as exc:
+        raise ConfigError("teacher", str(exc)) from None
+    if job.hierarchical or algo.name not in TEACHERS or not isinstance(algo, NetworkAgent):
+        kind = "hierarchical " + job.algo if job.hierarchical else algo.name
+        raise ConfigError(
+            "teacher", f"{path} holds a {kind} policy; CoDBC clones a feed-forward one: {', '.join(TEACHERS)}"
+        )
+    if spec is not None and algo.spec != spec:
+        raise ConfigError(
+            "teacher",
+            f"{path} was trained on {algo.spec}, this job's env is {spec}; train the teacher on the same env "
+            "parameters",
+        )
+    algo.online.requires_grad_(False)
+    return algo

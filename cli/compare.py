@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +51,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     Each RUN is a folder written by convoy train: one run, or a population's (its seeds are one group, drawn as the
     mean over seeds with its 95 % CI band). Prints each group's final greedy return, best greedy point and random
-    reference (mean ± 95 % CI over its seeds) and plots the greedy curves in one PNG.
+    reference (mean ± 95 % CI over its seeds; a single seed's figure alone, with no CI) and plots the greedy curves
+    in one PNG: --plot, or compare.png in the folder that holds the runs.
     """
     from convoy.analysis.curves import plot_groups
 
@@ -60,17 +62,36 @@ def cmd_compare(args: argparse.Namespace) -> int:
         table.add_column(col, justify="left" if col == "run" else "right")
 
     def fmt(stats: dict[str, Any]) -> str:
-        return "–" if stats["mean"] is None else f"{stats['mean']:.3f} ± {stats['ci95']:.3f}"
+        if stats["mean"] is None:
+            return "–"
+        return f"{stats['mean']:.3f}" if stats["n"] < 2 else f"{stats['mean']:.3f} ± {stats['ci95']:.3f}"
 
     for g in groups:
         table.add_row(g["group"], str(g["runs"]), f"{g['steps']:,}", fmt(g["final"]), fmt(g["best"]), fmt(g["random"]))
     console.print(table)
-    plot_groups(groups, args.plot, title="greedy evaluation (mean ± 95 % CI over seeds)")
-    console.print(f"wrote {args.plot}")
+    if any(g["final"]["n"] == 1 for g in groups):
+        console.print("a group of one seed has no CI over seeds: its figures stand alone", highlight=False)
+    plot = Path(args.plot) if args.plot else default_plot([Path(run) for run in args.runs])
+    plot_groups(groups, plot, title="greedy evaluation (mean ± 95 % CI over seeds)")
+    console.print(f"wrote {plot}", highlight=False)
     return 0
+
+
+def default_plot(runs: list[Path]) -> Path:
+    """``compare.png`` beside the compared runs: in the folder that holds them (their parents' common folder),
+    not wherever the command happens to run."""
+    parents = [str(run.resolve().parent) for run in runs]
+    where = Path(os.path.commonpath(parents))
+    cwd = Path.cwd()
+    return (where.relative_to(cwd) if where.is_relative_to(cwd) else where) / "compare.png"
 
 
 def add_compare_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "compare", cmd_compare)
     p.add_argument("runs", nargs="+", metavar="RUN", help="a run's folder, or a population's (its seed-N runs)")
-    p.add_argument("--plot", default="compare.png", metavar="PATH", help="the plot's file (default: %(default)s)")
+    p.add_argument(
+        "--plot",
+        metavar="PATH",
+        help="the plot's file (default: compare.png beside the runs, in the folder that holds them: runs/compare.png "
+        "for runs/a runs/b)",
+    )

@@ -38,8 +38,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     Play EPISODES greedy episodes of a checkpoint's policy and print the mean return with its 95 % confidence
     interval, next to the random policy's. --messages and --channel probe the communication: messages shuffled
     across envs or each sender's modal message (in distribution: real messages, no content), all-zero messages (a
-    cut channel), white noise in
-    place of messages, the memory module's predictions (no channel, -mm algorithms), or a lossy channel.
+    cut channel), white noise in place of messages, the memory module's predictions (no channel, -mm algorithms),
+    or a lossy channel. A probe also plays the same episodes with the true messages and prints that return and the
+    paired difference (probe − true) with its 95 % CI: whether the messages matter.
     """
     from convoy.analysis.evaluation import evaluate_policy, evaluate_random, parse_channel
     from convoy.services.training import make_env
@@ -58,13 +59,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
         highlight=False,
         soft_wrap=True,
     )
+    probe = args.messages != "sent" or bool(args.channel)
     env = make_env(job, min(args.episodes, args.num_envs))
     try:
         result = evaluate_policy(algo, env, args.episodes, seed=args.seed, messages=args.messages, channel=args.channel)
+        # a probe answers "do the messages matter?": the true messages on the same episodes, and the paired difference
+        true = evaluate_policy(algo, env, args.episodes, seed=args.seed) if probe else None
         rand = evaluate_random(env, args.episodes, seed=args.seed)
     finally:
         env.close()
-    console.print(f"greedy return:  {result.describe()}", highlight=False, soft_wrap=True)
+    diff = result.returns - true.returns if true is not None else None
+    if true is not None and diff is not None:
+        console.print(f"true messages:  {true.describe()}", highlight=False, soft_wrap=True)
+        paired = f"{diff.mean():+.3f} ± {ci95_half(diff, single=0.0):.3f}"
+        console.print(f"greedy return:  {result.describe()}; paired vs true messages {paired} (95 % CI, same "
+                      "episodes)", highlight=False, soft_wrap=True)  # fmt: skip
+    else:
+        console.print(f"greedy return:  {result.describe()}", highlight=False, soft_wrap=True)
     console.print(f"random policy:  {rand.mean():.3f} ± {ci95_half(rand, single=0.0):.3f}", highlight=False)
     if args.gif:
         frames = gif_episode(algo, job, args)
@@ -82,6 +93,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
             "random_return": float(rand.mean()),
             "returns": result.returns.tolist(),
         }
+        if true is not None and diff is not None:  # the same episodes with the true messages, and the paired gap
+            summary.update(true_return=true.mean, true_ci95=true.ci95, true_returns=true.returns.tolist(),
+                           paired_difference=float(diff.mean()), paired_ci95=ci95_half(diff, single=0.0))  # fmt: skip
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
         console.print(f"wrote {args.json}")

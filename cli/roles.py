@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from convoy.cli.train import add_job_arguments, job_from_args
+from convoy.cli.train import add_job_arguments, check_job_inputs, job_from_args
 from convoy.protocol import keys
 from convoy.protocol.session import ZenohSettings
 from convoy.validation import ConfigError
@@ -67,6 +67,7 @@ def cmd_learner(args: argparse.Namespace) -> int:
     from convoy.learner.service import run_learner
 
     job = job_from_args(args)
+    check_job_inputs(job)  # before the learner makes --out
     return run_learner(_job_id(args), job, args.out, zenoh_from_args(args, job.runtime.zenoh))
 
 

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import fcntl
 import os
+import shutil
 from pathlib import Path
 from typing import IO
 
 from convoy.validation import ConfigError
 
 LOCK = ".convoy.lock"
+LAUNCH = "launch.json"  # how the run was started (in this process or actors over Zenoh): --resume goes on the same way
 RUN_FILES = ("checkpoint.pt", "metrics.jsonl", "summary.json")  # what makes a directory hold a run
 # What a run writes, and all that --overwrite removes (never anything else a user keeps beside it).
 ARTEFACTS = (*RUN_FILES, "best.pt", "checkpoint.previous.pt", "replay.npz", "replay.previous.npz", "metrics.csv",
@@ -87,3 +89,16 @@ def claim(path: Path, overwrite: bool = False, resume: bool = False) -> RunDir:
     handle.write(f"{os.getpid()}\n")
     handle.flush()
     return RunDir(path, handle)
+
+
+def discard_unstarted(path: Path, made: bool) -> None:
+    """Undo a run refused before it trained (no checkpoint in ``path`` or its seeds' folders), so nothing there reads
+    as a run to ``--resume``: the folder itself when this command ``made`` it, else only the run's own files."""
+    if any((folder / name).exists() for folder in run_folders(path) for name in ("checkpoint.pt", "best.pt")):
+        return
+    if made:
+        shutil.rmtree(path, ignore_errors=True)
+        return
+    for folder in run_folders(path):
+        for name in (*ARTEFACTS, LAUNCH, LOCK):
+            (folder / name).unlink(missing_ok=True)

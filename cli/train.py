@@ -22,7 +22,7 @@ from convoy.cli.args import (
     limits_from_args,
     parse_pairs,
 )
-from convoy.cli.rundir import claim, free_default
+from convoy.cli.rundir import LAUNCH, claim, discard_unstarted, free_default
 from convoy.config import (
     ALGORITHMS,
     AlgoConfig,
@@ -68,22 +68,38 @@ def cmd_train(args: argparse.Namespace) -> int:
     metrics.jsonl/metrics.csv (one row per --log-every steps), curve.png, checkpoint.pt and summary.json under
     --out.
     """
+    from convoy.services.procs import JobRefused
+
     job = resumed_job(args) if args.resume else job_from_args(args)
     limits_from_args(args).check(job, "convoy train")
+    check_job_inputs(job)  # before --out is made: a refused input leaves no folder that looks like a run
     if args.resume:
         out = Path(args.resume)
         args.inprocess = resumed_inprocess(args, out)
     else:
         out = Path(args.out) if args.out else free_default(Path("runs") / f"{job.algo}-{job.env}")
+    made = not out.exists()
     run_dir = claim(out, overwrite=args.overwrite, resume=bool(args.resume))
     try:
         (out / LAUNCH).write_text(json.dumps({"inprocess": bool(args.inprocess)}) + "\n")
         return _train_population(args, job, out) if job.runs else _train(args, job, out)
+    except (ConfigError, JobRefused):  # refused once under way: before a checkpoint, nothing stays that reads as a run
+        run_dir.release()
+        if not args.resume:
+            discard_unstarted(out, made)
+        raise
     finally:
         run_dir.release()
 
 
-LAUNCH = "launch.json"  # how the run was started (in this process or actors over Zenoh): --resume goes on the same way
+def check_job_inputs(job: JobConfig) -> None:
+    """What the job names outside its flags, tried before any folder is made: the files it reads (a CoDBC teacher
+    checkpoint) and the trackers it logs to (``--logger``), each a ConfigError that names it."""
+    from convoy.algos.inputs import check_inputs
+    from convoy.learner.trackers import check_loggers
+
+    check_inputs(job)
+    check_loggers(job.loggers)
 
 
 def resumed_inprocess(args: argparse.Namespace, out: Path) -> bool:

@@ -245,9 +245,16 @@ class ProgressDisplay:
             text += f" · lag {row['policy_lag']:.1f} · actors {row.get('actors_alive', 0):.0f}"
         return text
 
+    def counted(self, steps: int) -> str:
+        """``2,000/3,000 steps``; past the budget the real count, saying why it is more: every env takes its step,
+        so the last step of a batch of envs can go past the steps asked for."""
+        if steps <= self.total:
+            return f"{steps:>{len(f'{self.total:,}')},}/{self.total:,} steps"
+        return f"{steps:,} steps (asked {self.total:,}: the last batch step went {steps - self.total:,} over)"
+
     def update(self, steps: int, row: dict[str, Any]) -> None:
         if self.lines:
-            print(f"{steps:>{len(f'{self.total:,}')},}/{self.total:,} steps · {self.describe(row)}", flush=True)
+            print(f"{self.counted(steps)} · {self.describe(row)}", flush=True)
         elif self.progress is not None:
             self.progress.update(self.task, completed=min(steps, self.total), info=self.describe(row))
 

@@ -11,6 +11,8 @@ import sys
 DONE = 0
 NO_DATA = 3  # the learner heard no chunk for runtime.data_timeout_s: a crash the supervisor handles and counts
 DIVERGED = 4  # non-finite losses in a row: a restart from the checkpoint would diverge again; the job fails
+CONFIG = 78  # the process refused the job's configuration (a ConfigError; sysexits' EX_CONFIG): a restart would
+# refuse it again, so the job fails at once with the refusal as its error
 STOPPED = 143
 ORPHAN_EXIT_S = 60.0  # how long an orphaned worker may take to save and close before it is made to exit
 

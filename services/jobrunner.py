@@ -26,7 +26,7 @@ from convoy.learner.runlog import ProgressDisplay
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import ZenohSettings, open_session
-from convoy.services.procs import Event, JobFailed, ProcessGroup
+from convoy.services.procs import Event, JobFailed, JobRefused, ProcessGroup
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +171,7 @@ class JobRunner:
                     self.events.append(ev)
                     self.on_event(ev)
                     if ev.kind == "failed":
-                        raise JobFailed(ev.detail)
+                        raise (JobRefused if ev.refused else JobFailed)(ev.detail)
                 time.sleep(0.05)
             stop_pub.put(wire.encode("command", {"op": "stop", "args": {}}, "runner"))
             finished = "learner" in group.finished

@@ -137,6 +137,7 @@ class JobService:
     # --- JobControl ----------------------------------------------------------------------------------------------
     def submit(self, job: JobConfig, actors: int, name: str | None) -> JobRecord:
         self.limits.check(job, "convoy serve")
+        check_job_files(job)
         need = actors + 2
         if need > self.max_processes:
             raise ConfigError(
@@ -156,6 +157,13 @@ class JobService:
         jobs = expand(spec)
         for job in jobs:
             self.limits.check(job.config, "convoy serve")
+        checked: set[str] = set()
+        for job in jobs:  # each file once: a grid's jobs mostly name the same ones
+            key = json.dumps([job.config.algo, job.config.env, job.config.env_params, job.config.algo_params,
+                              job.config.hierarchical, job.config.loggers], sort_keys=True, default=str)  # fmt: skip
+            if key not in checked:
+                checked.add(key)
+                check_job_files(job.config)
         if spec.actors + 2 > self.max_processes:
             raise ConfigError("actors", f"{spec.actors} actors need {spec.actors + 2} processes; this service runs "
                               f"at most {self.max_processes} (convoy serve --max-processes)")  # fmt: skip
@@ -582,6 +590,17 @@ class JobService:
         return failure_summary(job_id, reports.read(self._out(self._runner(job_id)) / REPORTS_FILE, last=400))
 
 
+def check_job_files(job: JobConfig) -> None:
+    """What a job names outside its config, tried where its processes will run before it is queued: the files it
+    reads (a CoDBC teacher checkpoint: missing, unreadable or hostile) and its trackers. A ConfigError naming the
+    field (422 at ``POST /jobs``), not a job whose processes refuse it later."""
+    from convoy.algos.inputs import check_inputs
+    from convoy.learner.trackers import check_loggers
+
+    check_inputs(job)
+    check_loggers(job.loggers)
+
+
 def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
     """What a finished run's ``summary.json`` adds to its job's progress: the headline figures and ``final``."""
     keep: dict[str, Any] = {k: summary[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in summary}
@@ -599,8 +618,11 @@ def failure_summary(job_id: str, records: list[Report]) -> str:
     if not verdict and not errors:
         return f"its processes reported nothing; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
     head = f"{verdict[-1].source} {verdict[-1].kind}: {verdict[-1].detail}" if verdict else "a process failed"
+    where = f"the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
+    if verdict and errors and errors[-1].detail and errors[-1].detail in verdict[-1].detail:
+        return f"{head[:800]}; {where}"  # the verdict carries the cause already (a refused configuration)
     cause = f" (cause: {errors[-1].source}: {errors[-1].detail[:300]})" if errors else ""
-    return f"{head[:300]}{cause}; the whole log: GET /jobs/{job_id}/logs or convoy jobs logs {job_id}"
+    return f"{head[:300]}{cause}; {where}"
 
 
 def host_name(job_id: str) -> str:

@@ -8,11 +8,14 @@ option (fork after a Zenoh session is open loses every message); where the platf
 method is used. Processes get plain-data arguments (job config, Zenoh settings) and are tracked by PID. A crashed
 actor is respawned under a new id (its seed advanced, so it does not replay the same episodes); a crashed learner is
 restarted and resumes from its checkpoint, except one that diverged (``DIVERGED``: a restart would diverge again),
-which fails the job at once. Each role has its own budget within ``restart_window_s``: a few learner crashes
-(``max_restarts``: each costs a resume) and many actor deaths (``actor_max_restarts``: actors come and go), past
-which the job fails with the reason. An actor that keeps dying at start (a crash loop, not churn) is respawned after
-a doubling delay (``restart_backoff_s``). Exit code 0 means a process finished its part of the job and is not
-restarted, unless an actor leaves while its local learner still lacks the job's steps (then it is respawned: ``poll``).
+which fails the job at once, and a process that refused the job's configuration (a ``ConfigError``: a teacher
+checkpoint that is gone or refused, a tracker that cannot start; exit code ``CONFIG``), which fails it at once with
+that refusal as the reason: a respawn would only refuse again. Each role has its own budget within
+``restart_window_s``: a few learner crashes (``max_restarts``: each costs a resume) and many actor deaths
+(``actor_max_restarts``: actors come and go), past which the job fails with the reason. An actor that keeps dying
+at start (a crash loop, not churn) is respawned after a doubling delay (``restart_backoff_s``). Exit code 0 means a
+process finished its part of the job and is not restarted, unless an actor leaves while its local learner still lacks
+the job's steps (then it is respawned: ``poll``).
 """
 
 from __future__ import annotations
@@ -29,9 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from convoy.config import JobConfig
-from convoy.protocol.exitcodes import DIVERGED
+from convoy.config import ConfigError, JobConfig
+from convoy.protocol.exitcodes import CONFIG, DIVERGED
 from convoy.protocol.reports import REPORTS_FILE, setup_logging
+from convoy.protocol.reports import read as read_reports
 from convoy.protocol.session import ZenohSettings
 
 # What the forkserver imports before it forks any role process (no Zenoh session, no torch op, no CUDA there).
@@ -75,6 +79,9 @@ def _role_main(ident: str, reports: str | None, run: Callable[[], int]) -> None:
     setup_logging(reports, ident)
     try:
         code = run()
+    except ConfigError as exc:  # the job's configuration, not this process: a respawn would refuse it again
+        log.error("ConfigError: %s", exc)
+        code = CONFIG
     except Exception:
         log.exception("%s died", ident)
         code = 1
@@ -119,10 +126,15 @@ class Event:
     role: str
     ident: str
     detail: str = ""
+    refused: bool = False  # "failed" because a process refused the job's configuration (exit code CONFIG)
 
 
 class JobFailed(RuntimeError):
     """Too many crashes of one role: the job is given up, with the reason."""
+
+
+class JobRefused(JobFailed):
+    """A process refused the job's configuration (a ConfigError where it ran): the job never trained."""
 
 
 class ProcessGroup:
@@ -212,6 +224,17 @@ class ProcessGroup:
             return Event("failed", role, slot.ident, self.failed)
         return None
 
+    def _refused(self, slot: Slot, code: int) -> Event:
+        """``slot``'s process refused the job's configuration: the job fails, with the refusal it reported."""
+        said = [r.detail for r in read_reports(self.reports, last=200) if r.kind == "error"
+                and r.source == slot.ident] if self.reports else []  # fmt: skip
+        why = said[-1] if said else "see the job's log for the refusal"
+        self.failed = (
+            f"{slot.ident} refused the job's configuration (exit code {code}), so it is not restarted: {why}; fix "
+            "the config (or the file it names) and start the job again"
+        )
+        return Event("failed", slot.role, slot.ident, self.failed, refused=True)
+
     def _schedule_respawn(self, index: int, slot: Slot) -> float:
         """Respawn actor ``index`` at once after churn, after a doubling delay when it keeps dying at start."""
         now = time.monotonic()
@@ -262,6 +285,8 @@ class ProcessGroup:
                 self.finished.add("actor")
                 continue
             del self.actors[index]
+            if code == CONFIG:
+                return [*events, self._refused(slot, code)]
             if left_early:  # not a crash loop: not counted against actor_max_restarts
                 events.append(Event("crashed", "actor", slot.ident, "exited before the learner had the job's steps"))
             else:
@@ -289,6 +314,9 @@ class ProcessGroup:
                 )
                 self.learner = None
                 return [*events, Event("failed", "learner", slot.ident, detail)]
+            elif code == CONFIG:
+                self.learner = None
+                return [*events, self._refused(slot, code)]
             else:
                 events.append(Event("crashed", "learner", slot.ident, f"exit code {code}"))
                 fail = self._crash("learner", slot, code)

@@ -191,6 +191,40 @@ def test_a_failed_jobs_status_carries_the_cause_from_its_process_log(tmp_path: P
         svc.stop()
 
 
+def test_a_job_whose_processes_refuse_its_configuration_fails_with_the_refusal(tmp_path: Path) -> None:
+    """A CoDBC job whose teacher was fine when submitted and corrupt when its processes load it: its actor dies on
+    a ConfigError. It was respawned with back-off for ever (state running, error null); now the job fails at once
+    with the refusal as its error. The job waits behind a blocker while the file goes bad, so nothing races."""
+    from convoy.algos.agent import make_agent
+    from convoy.algos.checkpoint import save_checkpoint
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+
+    teacher = tmp_path / "teacher.pt"
+    config = job_config(
+        algo="ma-mesn", env="treadmill", env_params=SMALL_JOB["env_params"], algo_params={"hidden": [8]}
+    )
+    env = make_batched("treadmill", 1, **SMALL_JOB["env_params"])
+    save_checkpoint(teacher, make_agent(config, env.spec, device="cpu"), config, {"env_steps": 0})
+    env.close()
+    svc = Service(tmp_path / "svc", max_processes=3).start()
+    try:
+        blocker = submit(svc, steps=2_000_000, actors=1)
+        svc.wait(blocker, lambda v: v["state"] in ("starting", "running"), what="the blocker to start")
+        job = submit(svc, algo="codbc", steps=100_000, actors=1, algo_params={"hidden": [32], "teacher": str(teacher)})
+        assert svc.client.get(f"/jobs/{job}").json()["state"] == "queued"
+        teacher.write_bytes(b"not a checkpoint any more")
+        assert svc.client.delete(f"/jobs/{blocker}", headers=AUTH).status_code == 204  # now the job starts
+        t0 = time.monotonic()
+        view = svc.wait(job, lambda v: v["state"] in ("failed", "completed"), timeout=120, what="the job to end")
+        assert view["state"] == "failed", view
+        assert time.monotonic() - t0 < 60, "a refused job should fail within seconds of its processes starting"
+        assert "refused the job's configuration" in view["error"], view["error"]
+        assert "ConfigError: teacher:" in view["error"] and "corrupt or not a Convoy checkpoint" in view["error"]
+    finally:
+        svc.stop()
+
+
 def test_a_killed_api_finds_its_running_job_again_with_its_full_history(tmp_path: Path) -> None:
     data = tmp_path / "svc"
     svc = Service(data).start()

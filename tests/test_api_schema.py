@@ -24,6 +24,7 @@ import signal
 import time
 from collections import Counter
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -217,6 +218,50 @@ def test_jobs_too_large_for_the_machine_are_refused_at_submit(
     before = len(service.client.get("/jobs").json()["jobs"])
     body = assert_error(submit(service, **extra), 422, field)
     assert limit.replace("-", "_") in body["problem"] and f"convoy serve --{limit} N" in body["problem"], body
+    assert len(service.client.get("/jobs").json()["jobs"]) == before
+
+
+class _Touch:
+    """A pickled object whose loading (``torch.load(weights_only=False)``) would create a file: hostile."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (str(self.path), "w"))
+
+
+def test_a_codbc_job_with_a_teacher_it_cannot_use_is_refused_at_submit(service: Service, tmp_path: Path) -> None:
+    """A CoDBC job naming a missing, corrupt, hostile or foreign teacher was accepted (201), and its actors died on
+    the teacher and were respawned with back-off for ever (state running, no error). The service reads the file
+    where its processes would (without running anything in it) and answers 422 naming the field; nothing is
+    queued."""
+    import torch
+
+    from convoy.algos.agent import make_agent
+    from convoy.algos.checkpoint import save_checkpoint
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+
+    corrupt, hostile, foreign = tmp_path / "corrupt.pt", tmp_path / "hostile.pt", tmp_path / "foreign.pt"
+    corrupt.write_bytes(b"not a checkpoint")
+    marker = tmp_path / "pwned"
+    torch.save({"kind": "convoy-checkpoint", "format": 1, "state": _Touch(marker)}, hostile)
+    other = job_config(algo="idqn", env="referential", algo_params={"hidden": [8]})
+    env = make_batched("referential", 1)
+    save_checkpoint(foreign, make_agent(other, env.spec, device="cpu"), other, {"env_steps": 0})
+    env.close()
+    before = len(service.client.get("/jobs").json()["jobs"])
+    for teacher, says in (
+        (tmp_path / "missing.pt", "no such file"),
+        (corrupt, "corrupt or not a Convoy checkpoint"),
+        (hostile, "could run code"),
+        (foreign, "was trained on"),
+    ):
+        resp = submit(service, algo="codbc", algo_params={"hidden": [32], "teacher": str(teacher)})
+        body = assert_error(resp, 422, "algo_params.teacher")
+        assert str(teacher) in body["problem"] and says in body["problem"], body
+    assert not marker.exists()
     assert len(service.client.get("/jobs").json()["jobs"]) == before
 
 
@@ -466,3 +511,27 @@ def test_a_failed_jobs_error_names_its_last_exception() -> None:
     assert "cause: learner-0.5: OutOfMemoryError: CUDA out of memory" in text
     assert "convoy jobs logs x" in text
     assert failure_summary("x", []).startswith("its processes reported nothing")
+
+
+def test_a_refused_jobs_error_is_the_whole_refusal_once() -> None:
+    """A refused configuration's verdict carries the refusal itself: the error says it whole, not cut at 300
+    characters and then repeated as the cause."""
+    from convoy.protocol.reports import Report
+    from convoy.services.jobservice import failure_summary
+
+    said = (
+        "ConfigError: teacher: checkpoint /data/"
+        + "x" * 200
+        + ".pt: cannot be read; it is corrupt or not a Convoy checkpoint"
+    )
+    records = [
+        Report("error", "h-x.actor-0", said),
+        Report(
+            "failed",
+            "h-x.actor-0",
+            f"h-x.actor-0 refused the job's configuration (exit code 78), so it is not "
+            f"restarted: {said}; fix the config (or the file it names) and start the job again",
+        ),
+    ]
+    text = failure_summary("x", records)
+    assert text.count(said) == 1 and "cause:" not in text and text.endswith("convoy jobs logs x"), text

@@ -10,6 +10,7 @@ tracked file.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -127,6 +128,8 @@ def test_dashboard_draws_a_sweep_with_ci_bands_and_acts_on_a_finished_job(tmp_pa
             other.wait_for_function(f"window.convoy.selected === {first!r} && window.convoy.sweep.groups === 2")
             other.close()
             page.wait_for_selector('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
+            link = page.inner_text('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
+            assert re.fullmatch(r"checkpoint\.pt \(\d+(\.\d)? [kMG]?B\)", link), link  # "1.3 MB", not "1.32M B"
             page.click("#logs-box summary")
             page.wait_for_function("window.convoy.logs > 0")
             page.fill("#eval-episodes", "8")

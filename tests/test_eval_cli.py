@@ -102,6 +102,36 @@ def test_eval_message_probes(
     assert "greedy return" in out and needle in out
 
 
+def test_a_probe_prints_the_true_return_and_the_paired_difference(
+    ckpts: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """``--messages shuffled`` printed only the shuffled return, when the question it answers is whether the
+    messages matter: now also the true messages' return on the same episodes and the paired difference with its CI,
+    beside the probe's return; ``--json`` keeps both."""
+    import numpy as np
+
+    from convoy.stats import ci95_half
+
+    probe, plain = tmp_path / "probe.json", tmp_path / "plain.json"
+    assert main(["eval", str(ckpts["mm"]), *EPISODES, "--messages", "shuffled", "--json", str(probe)]) == 0
+    out = capsys.readouterr().out
+    true_line = next(line for line in out.splitlines() if line.startswith("true messages:"))
+    probe_line = flat(out).split("greedy return: ")[1].split("random policy:")[0]
+    assert "messages: sent" in true_line and "20 episodes" in true_line, out
+    assert "messages: shuffled" in probe_line and "paired vs true messages" in probe_line, out
+    data = json.loads(probe.read_text())
+    diff = np.array(data["returns"]) - np.array(data["true_returns"])
+    assert data["paired_difference"] == pytest.approx(diff.mean()) and data["paired_ci95"] == pytest.approx(
+        ci95_half(diff, single=0.0)
+    )
+    assert f"{diff.mean():+.3f} ± {ci95_half(diff, single=0.0):.3f}" in probe_line, probe_line
+    assert main(["eval", str(ckpts["mm"]), *EPISODES, "--json", str(plain)]) == 0  # the true messages alone
+    alone = capsys.readouterr().out
+    assert "paired" not in alone and "true messages:" not in alone, alone
+    assert json.loads(plain.read_text())["returns"] == data["true_returns"]  # the same episodes: paired
+    assert "true_returns" not in json.loads(plain.read_text())
+
+
 def test_eval_writes_json(ckpts: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = tmp_path / "sub" / "out.json"
     assert main(["eval", str(ckpts["mm"]), *EPISODES, "--messages", "noise", "--json", str(path)]) == 0

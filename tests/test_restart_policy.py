@@ -4,6 +4,7 @@ a crash loop backs off, and the budgets a failure names can be set from the CLI 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import pytest
 
@@ -137,3 +138,77 @@ def test_the_learner_process_reports_divergence_by_its_exit_code(
     job = job_config(algo="idqn", env="referential", steps=1000)
     assert service.run_learner("diverge", job, "unused", ZenohSettings()) == DIVERGED
     assert "training diverged: idqn: 100 updates in a row" in caplog.text
+
+
+@pytest.mark.parametrize("role", ["actor", "learner"])
+def test_a_process_that_refuses_the_jobs_configuration_fails_the_job_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, role: str
+) -> None:
+    """A process that died on a ConfigError (a CoDBC teacher that is gone or refused) was respawned with back-off
+    for ever: the job read "running" with no error. Its exit code CONFIG fails the job at once, not respawned, with
+    the refusal the process reported as the reason."""
+    from convoy.protocol.exitcodes import CONFIG
+    from convoy.protocol.reports import REPORTS_FILE, Report, append
+
+    job = job_config(algo="idqn", env="referential", steps=1000, runtime={"actors": 2})
+    group = ProcessGroup("refuse", job, str(tmp_path), ZenohSettings(), roles=(role,))
+    spawned: list[tuple[int, int]] = []
+
+    def spawn_actor(index: int, generation: int) -> Slot:
+        spawned.append((index, generation))
+        return Slot("actor", index, generation, FakeProc())
+
+    def spawn_learner(generation: int) -> Slot:
+        spawned.append((0, generation))
+        return Slot("learner", 0, generation, FakeProc())
+
+    monkeypatch.setattr(group, "_spawn_actor", spawn_actor)
+    monkeypatch.setattr(group, "_spawn_learner", spawn_learner)
+    if role == "actor":
+        group.scale_actors(2)
+        slot = group.actors[1]
+    else:
+        group.start_learner()
+        assert group.learner is not None
+        slot = group.learner
+    said = "ConfigError: teacher: checkpoint t.pt: refused — it holds Python objects"
+    append(tmp_path / REPORTS_FILE, Report("error", "actor-0", "ConfigError: another process's word"))
+    append(tmp_path / REPORTS_FILE, Report("error", slot.ident, said))
+    before = list(spawned)
+    slot.proc.exitcode = CONFIG
+    events = group.poll()
+    failed = events[-1]
+    assert failed.kind == "failed" and failed.refused and failed.ident == slot.ident, events
+    assert f"{slot.ident} refused the job's configuration (exit code {CONFIG})" in failed.detail
+    assert said in failed.detail and "another process" not in failed.detail, failed.detail
+    assert group.failed == failed.detail and spawned == before  # nothing respawned
+    assert group.poll() == []
+
+
+def test_a_role_process_exits_config_on_a_config_error_and_reports_it(tmp_path: Path) -> None:
+    """What tells the supervisor: a ConfigError in a role process is its exit code CONFIG, and its message is the
+    process's last word in the job's reports (where the job's error comes from)."""
+    import logging
+
+    from convoy.config import ConfigError
+    from convoy.protocol.exitcodes import CONFIG
+    from convoy.protocol.reports import REPORTS_FILE, read
+    from convoy.services.procs import _role_main
+
+    def refuse() -> int:
+        raise ConfigError("teacher", "checkpoint t.pt: no such file")
+
+    root = logging.getLogger("convoy")
+    handlers = list(root.handlers)
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            _role_main("h.actor-0", str(tmp_path / REPORTS_FILE), refuse)
+    finally:
+        for handler in list(root.handlers):
+            root.removeHandler(handler)
+        for handler in handlers:
+            root.addHandler(handler)
+    assert exit_.value.code == CONFIG
+    (report,) = read(tmp_path / REPORTS_FILE)
+    assert (report.kind, report.source) == ("error", "h.actor-0")
+    assert report.detail == "ConfigError: teacher: checkpoint t.pt: no such file"

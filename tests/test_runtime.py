@@ -492,6 +492,26 @@ def test_a_learner_that_keeps_crashing_fails_the_job_with_the_reason(tmp_path: P
     assert runner.group is not None and not runner.group.pids()  # every process stopped
 
 
+def test_a_process_that_refuses_the_jobs_configuration_fails_the_job_with_the_refusal(tmp_path: Path) -> None:
+    """A CoDBC job whose teacher file turns out corrupt where its processes run (it was fine, or not there, when the
+    job was checked): the actor that loads it refuses it, and the job fails with that refusal — not respawned with
+    back-off for ever. Real processes; the bound is generous for a loaded 2-core machine."""
+    from convoy.services.procs import JobRefused
+
+    teacher = tmp_path / "teacher.pt"
+    teacher.write_bytes(b"not a checkpoint")
+    algo_params = {**REFERENTIAL["algo_params"], "teacher": str(teacher)}
+    job = job_config(algo="codbc", steps=20_000, runtime={"actors": 1}, **{**REFERENTIAL, "algo_params": algo_params})
+    runner = JobRunner("refused", job, tmp_path / "run", progress=False)
+    with Background(runner) as bg, pytest.raises(JobRefused) as info:
+        bg.join(90)
+    text = str(info.value)
+    assert "refused the job's configuration" in text and "ConfigError: teacher:" in text, text
+    assert "corrupt or not a Convoy checkpoint" in text, text
+    assert not [e for e in runner.events if e.kind == "respawned"], runner.events
+    assert runner.group is not None and not runner.group.pids()  # every process stopped
+
+
 def _descendants(root: int) -> set[int]:
     """PIDs below ``root`` in the process tree (from /proc)."""
     children: dict[int, list[int]] = {}

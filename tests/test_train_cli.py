@@ -277,6 +277,43 @@ def test_runs_open_in_tensorboard_and_compare_side_by_side(tmp_path, capsys) -> 
     assert "holds no run" in capsys.readouterr().err
 
 
+def fake_run(folder, curve: list[float], final: float) -> None:
+    """A run folder as convoy train leaves it, as far as ``convoy compare`` reads one: greedy rows and a summary."""
+    folder.mkdir(parents=True)
+    rows = [
+        {"env_steps": 1000 * (i + 1), "return": 0.0, "eval_return": r, "eval_ci95": 0.5} for i, r in enumerate(curve)
+    ]
+    (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    summary = {
+        "eval_return": final,
+        "best_eval_return": max(curve),
+        "random_return": 0.25,
+        "env_steps": 1000 * len(curve),
+    }
+    (folder / "summary.json").write_text(json.dumps(summary))
+
+
+def test_compare_plots_beside_the_runs_and_gives_one_seed_no_ci(tmp_path, capsys, monkeypatch) -> None:
+    """``convoy compare`` wrote compare.png into whatever folder it ran in, and showed a single seed as
+    ``26.711 ± 0.000``, a CI it does not have. The plot goes beside the runs (or to --plot), one seed's figures
+    stand alone, a population's keep their CI."""
+    monkeypatch.chdir(tmp_path)
+    fake_run(tmp_path / "runs" / "one", [10.0, 26.711], 26.711)
+    fake_run(tmp_path / "runs" / "pop" / "seed-1", [8.0, 20.0], 20.0)
+    fake_run(tmp_path / "runs" / "pop" / "seed-2", [9.0, 22.0], 22.0)
+    assert main(["compare", "runs/one", "runs/pop"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert (tmp_path / "runs" / "compare.png").stat().st_size > 10_000 and not (tmp_path / "compare.png").exists()
+    assert "wrote runs/compare.png" in out, out
+    assert "26.711" in out and "26.711 ±" not in out and "0.250 ±" not in out.split("runs/pop")[0], out
+    assert "21.000 ± " in out and "a group of one seed has no CI over seeds" in out, out
+    assert main(["compare", "runs/one", "--plot", "plots/x.png"]) == 0
+    assert (tmp_path / "plots" / "x.png").is_file()
+    with pytest.raises(SystemExit):
+        main(["compare", "--help"])
+    assert "compare.png beside the runs" in " ".join(capsys.readouterr().out.split())
+
+
 @pytest.mark.parametrize("logger", ["wandb", "mlflow"])
 def test_a_tracker_that_is_not_installed_is_named_with_its_extra(tmp_path, capsys, monkeypatch, logger: str) -> None:
     import sys
@@ -285,6 +322,119 @@ def test_a_tracker_that_is_not_installed_is_named_with_its_extra(tmp_path, capsy
     assert main(["train", "--algo", "idqn", *TINY, "--logger", logger, "--out", str(tmp_path / "run")]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert f"loggers: {logger} is not installed: pip install 'convoy[{logger}]'" in err, err
+    assert not (tmp_path / "run").exists()  # refused before the run made its folder
+
+
+def unset(monkeypatch: pytest.MonkeyPatch, *names: str) -> None:
+    """The variables are not set for the test; what the code under test sets in-process is undone after it."""
+    for name in names:
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
+
+
+def test_mlflow_works_as_installed_with_no_environment(tmp_path, monkeypatch) -> None:
+    """``--logger mlflow`` with nothing set crashed in the default venv: mlflow-skinny cannot open the
+    ``sqlite:///mlflow.db`` store MLflow 3 defaults to, and a file store needs MLFLOW_ALLOW_FILE_STORE. Now each run
+    logs into a file store in its own folder (a population's seeds each their own, side by side in one process), and
+    nothing lands in the current folder."""
+    mlflow = pytest.importorskip("mlflow")
+    unset(monkeypatch, "MLFLOW_TRACKING_URI", "MLFLOW_ALLOW_FILE_STORE", "MLFLOW_EXPERIMENT_NAME")
+    monkeypatch.chdir(tmp_path)
+    one, pop = tmp_path / "one", tmp_path / "pop"
+    base = ["train", "--algo", "idqn", *TINY, "--steps", "1000", "--logger", "mlflow"]
+    assert main([*base, "--out", str(one)]) == 0
+    assert main([*base, "--seeds", "1", "2", "--out", str(pop)]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one", "pop"]  # no mlflow.db, no ./mlruns
+    for run in (one, pop / "seed-1", pop / "seed-2"):
+        client = mlflow.tracking.MlflowClient(tracking_uri=(run / "mlruns").as_uri())
+        (found,) = client.search_runs([e.experiment_id for e in client.search_experiments()])
+        assert found.info.run_name == run.name and found.info.status == "FINISHED"
+        assert found.data.params["seed"] == str(json.loads((run / "job.json").read_text())["seed"])
+        history = client.get_metric_history(found.info.run_id, "eval.return")
+        assert history and history[-1].step >= 1000 and "final.eval_return" in found.data.metrics
+
+
+def test_wandb_works_offline_with_no_environment_nor_network(tmp_path, monkeypatch) -> None:
+    """``--logger wandb`` with no W&B account, key or variable asked for a key (and failed without a terminal);
+    now it runs offline into RUN/wandb, a population's seeds each their own run."""
+    pytest.importorskip("wandb")
+    unset(monkeypatch, "WANDB_MODE", "WANDB_API_KEY", "WANDB_BASE_URL", "WANDB_DIR", "WANDB_SILENT", "NETRC")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))  # no ~/.netrc key, no ~/.config/wandb settings
+    one, pop = tmp_path / "one", tmp_path / "pop"
+    base = ["train", "--algo", "idqn", *TINY, "--steps", "1000", "--logger", "wandb"]
+    assert main([*base, "--out", str(one)]) == 0
+    assert main([*base, "--seeds", "1", "2", "--out", str(pop)]) == 0
+    for run in (one, pop / "seed-1", pop / "seed-2"):
+        (log,) = (run / "wandb").glob("offline-run-*/run-*.wandb")
+        data = log.read_bytes()
+        assert b"eval/return" in data and b"eval_return" in data  # its rows, then its summary
+
+
+@pytest.mark.parametrize(
+    ("logger", "env", "needle"),
+    [
+        ("mlflow", {"MLFLOW_TRACKING_URI": "sqlite:///{tmp}/mlflow.db"}, "pip install mlflow"),
+        ("mlflow", {"MLFLOW_TRACKING_URI": "file://{tmp}/store"}, "set MLFLOW_ALLOW_FILE_STORE=true"),
+        ("mlflow", {"MLFLOW_ALLOW_FILE_STORE": "false"}, "unset MLFLOW_ALLOW_FILE_STORE"),
+        ("wandb", {"WANDB_MODE": "online"}, "run `wandb login` (or set WANDB_API_KEY)"),
+    ],
+    ids=["mlflow-database", "mlflow-file-store", "mlflow-forbidden", "wandb-online-without-key"],
+)
+def test_a_tracker_that_cannot_work_is_refused_before_the_run_starts(
+    tmp_path, capsys, monkeypatch, logger: str, env: dict[str, str], needle: str
+) -> None:
+    """One line that says what to set, exit 2, and no half-made run folder (the next run there would be told to
+    --resume a run that never trained)."""
+    pytest.importorskip(logger)
+    unset(monkeypatch, "MLFLOW_TRACKING_URI", "MLFLOW_ALLOW_FILE_STORE", "WANDB_MODE", "WANDB_API_KEY", "NETRC")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    for name, value in env.items():
+        monkeypatch.setenv(name, value.format(tmp=tmp_path))
+    out = tmp_path / "run"
+    assert main(["train", "--algo", "idqn", *TINY, "--logger", logger, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"loggers: {logger}" in " ".join(err.split()) and needle in " ".join(err.split()), err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("teacher", ["missing", "corrupt"])
+def test_a_refused_input_leaves_no_out_folder(tmp_path, capsys, teacher: str) -> None:
+    """``convoy train --algo codbc --hp teacher=…`` with a teacher it cannot use exited 2 but left --out behind
+    (job.json, empty metrics, tb/), so the next run there was told to --resume a run that never trained."""
+    path = tmp_path / "teacher.pt"
+    if teacher == "corrupt":
+        path.write_bytes(b"not a checkpoint")
+    out = tmp_path / "run"
+    argv = ["train", "--algo", "codbc", *TINY, "--steps", "500", "--hp", f"teacher={path}", "--out", str(out)]
+    assert main(argv) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"algo_params.teacher: checkpoint {path}" in err, err
+    assert not out.exists()
+    assert main(["learner", "--job-id", "refused", "--algo", "codbc", "--env", "referential", "--hp",
+                 f"teacher={path}", "--out", str(out)]) == 2  # fmt: skip
+    assert not out.exists()
+
+
+def test_a_run_refused_where_it_runs_removes_the_folder_it_made(tmp_path, capsys, monkeypatch) -> None:
+    """Whatever is refused only once the run is under way (here the teacher, with the check before it skipped),
+    before its first checkpoint: the folder this command made goes too; a folder that was there keeps what it held
+    and loses what the run wrote, so neither reads as a run to resume."""
+    from convoy.cli import train
+    from convoy.cli.rundir import holds_run
+
+    monkeypatch.setattr(train, "check_job_inputs", lambda job: None)
+    out, kept = tmp_path / "run", tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    for where in (out, kept):
+        argv = ["train", "--algo", "codbc", *TINY, "--steps", "500", "--hp", f"teacher={tmp_path / 'no.pt'}"]
+        assert main([*argv, "--out", str(where)]) == 2
+        assert "teacher: checkpoint" in " ".join(capsys.readouterr().err.split())
+    assert not out.exists()
+    assert (kept / "notes.txt").read_text() == "mine"
+    assert not holds_run(kept) and not (kept / "job.json").exists()
+    assert main(["train", "--algo", "idqn", *TINY, "--steps", "500", "--out", str(kept)]) == 0  # not "--resume"
 
 
 def test_a_run_sends_its_rows_and_summary_to_wandb(tmp_path, monkeypatch) -> None:
@@ -316,3 +466,19 @@ def test_a_run_sends_its_rows_and_summary_to_mlflow(tmp_path, monkeypatch) -> No
     history = client.get_metric_history(run.info.run_id, "eval.return")
     assert [m.step for m in history] == sorted(m.step for m in history) and history[-1].step >= 1000
     assert "final.eval_return" in run.data.metrics
+
+
+def test_the_progress_line_tells_the_real_step_count_past_the_budget(capsys) -> None:
+    """Every env takes its step, so a run of 3,000 steps on 32 envs ends at 3,008: the progress line read
+    ``3,008/3,000 steps``, more done than the whole. Up to the budget it reads N/total; past it the real count and
+    why it is more."""
+    from convoy.learner.runlog import ProgressDisplay
+
+    row = {"return": 1.0, "loss": 0.1, "epsilon": 0.5, "env_steps_per_s": 1000.0, "updates_per_s": 10.0}
+    display = ProgressDisplay(3000, enabled=True)  # output is not a terminal here: one plain line per row
+    display.update(2016, row)
+    display.update(3008, row)
+    display.close()
+    first, last = capsys.readouterr().out.splitlines()
+    assert first.startswith("2,016/3,000 steps · return 1.00")
+    assert last.startswith("3,008 steps (asked 3,000: the last batch step went 8 over) · return 1.00"), last

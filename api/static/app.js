@@ -52,6 +52,18 @@ function fmtCount(v) {
   return Math.round(v).toLocaleString("en-US");
 }
 
+// a file's size as people write it: 1.3 MB, 842 kB, 512 B (SI units, as the byte counts the API gives)
+function fmtBytes(v) {
+  if (v == null || !Number.isFinite(v) || v < 0) return "–";
+  const units = ["B", "kB", "MB", "GB", "TB"];
+  let i = 0;
+  while (i < units.length - 1 && Math.round(v) >= 1000) {
+    v /= 1000;
+    i += 1;
+  }
+  return `${v.toFixed(i === 0 || v >= 9.95 ? 0 : 1)} ${units[i]}`;
+}
+
 function fmtValue(v) {
   if (v == null || !Number.isFinite(v)) return "–";
   const a = Math.abs(v);
@@ -431,7 +443,7 @@ async function refreshDownloads(id) {
       const a = document.createElement("a");
       a.href = `${jobPath(id)}/checkpoints/${encodeURIComponent(c.name)}`;
       a.download = `${id}-${c.name}`;
-      a.textContent = `${c.name} (${fmtCount(c.bytes)} B)`;
+      a.textContent = `${c.name} (${fmtBytes(c.bytes)})`;
       return a;
     });
     $("job-downloads").replaceChildren(...(links.length ? links : [document.createTextNode("no checkpoint yet")]));
