@@ -240,6 +240,19 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
     )
 
 
+def variants(screen: dict[str, Any]) -> str:
+    """docs/treadmill.md: the planners tuned on the default rules, on rule variants
+    (``benchmarks/treadmill_variants.py``)."""
+    rows = [
+        [label, *(_ci(v["returns"][level]) for level in ("private", "team16", "team", "full")),
+         *(f"{v['ratios'][level]['ratio']:.2f} ± {v['ratios'][level]['ratio_ci95']:.2f}" for level in ("team", "full"))]
+        for label, v in screen["variants"].items()
+    ]  # fmt: skip
+    header = [f"rules ({screen['episodes']} episodes)", "private planner", "16-bit planner", "team planner",
+              "full planner", "team ÷ private", "full ÷ private"]  # fmt: skip
+    return markdown_table(header, rows, [False, *[True] * 6])
+
+
 def causes(ends: dict[str, Any]) -> str:
     """docs/treadmill.md: how episodes end, per policy, and a learner's belief before it leaves the window
     (``benchmarks/treadmill_causes.py``)."""
@@ -454,6 +467,7 @@ HEADLINE = (
 )
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
+VARIANTS = "treadmill_variants.json"
 POPULATION, POPULATION_ALL, SOAK = "population.json", "population_all.json", "soak.json"
 REPRODUCED_FIGURES = "reproduction/*.json"  # every figure in REPRODUCTION, by id
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
@@ -465,6 +479,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
     "treadmill-causes": ((CAUSES,), causes),
+    "treadmill-variants": ((VARIANTS,), variants),
     "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),
     "population": ((POPULATION,), population_table),
     "population-all": ((POPULATION_ALL,), population_table),

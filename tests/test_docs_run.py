@@ -171,6 +171,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     if argv[0] == "python":
         budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
                   "treadmill_references.py": ["--episodes", "2"], "treadmill_causes.py": ["--episodes", "2"],
+                  "treadmill_variants.py": ["--episodes", "2", "--cache", "variants"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
                   "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
