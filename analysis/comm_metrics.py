@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convoy.output import markdown_table, save_figure
+from convoy.output import markdown_table, pyplot, save_figure
 
 __all__ = [
     "MetricFigure",
@@ -350,10 +350,7 @@ def metrics_table(figures: list[MetricFigure], title: str = "") -> str:
 
 
 def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     return plt
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from convoy.output import save_figure
+from convoy.output import pyplot, save_figure
 
 
 def plot_groups(
@@ -19,10 +19,7 @@ def plot_groups(
 ) -> Path:
     """A PNG of each group's ``curve`` (``env_steps``, ``mean``, ``ci95``) as a line with a shaded band, and each
     reference return as a dashed horizontal line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     import numpy as np
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
@@ -63,10 +60,7 @@ def plot_final_by(
     """A PNG of each group's final return (mean ± 95 % CI) against one grid axis ``x`` (log₂), one line per value
     of another axis ``lines`` (Fig. 4a: return against the number of agents, one line per algorithm), and the
     named reference policies' returns (each group's own ``references``: its env changes along ``x``) dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     series: dict[str, list[tuple[float, float, float]]] = {}
     refs: dict[str, dict[float, float]] = {}  # each reference policy's return at each x (its own env)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -47,7 +48,9 @@ from convoy.analysis.comm_metrics import (
     symbols,
 )
 from convoy.analysis.evaluation import evaluate_policy, listening
+from convoy.analysis.probe import adversary_sector, own_place, planner_words, probe_figures
 from convoy.envs.batched import BatchedEnv
+from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.stats import ci95_half
 from convoy.validation import ConfigError
 
@@ -62,6 +65,12 @@ class Recording:
     actions: np.ndarray
     intervened_messages: np.ndarray
     intervened_actions: np.ndarray
+    # on the treadmill, for the decoding probe (``analysis/probe.py``), ``[T, B, N]`` and ``[T, B, N, 16]``: where
+    # only teammates observe the adversary and its direction, and the 16-bit planner word each agent would send
+    probe_valid: np.ndarray | None = None
+    probe_label: np.ndarray | None = None
+    planner_words: np.ndarray | None = None
+    place: np.ndarray | None = None  # [T, B, N, 2] each agent's place on the window
 
 
 class Intervention(Listening):
@@ -110,15 +119,25 @@ def check_analysable(algo: Agent) -> HearsMessages:
 
 
 @torch.no_grad()
-def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
+def record(
+    algo: Agent, env: BatchedEnv, steps: int, seed: int, progress: Callable[[int, int], None] | None = None
+) -> Recording:
     """``steps`` greedy steps of every env (auto-reset), recording messages and actions; at each step, before it
     is taken, the actions every agent would take hearing another env's messages (the causal intervention: same
-    observation and memory, only what is heard replaced)."""
+    observation and memory, only what is heard replaced). ``progress(done, steps)`` is called after each step."""
     check_analysable(algo)
     stepper = EnvStepper(env, algo, seed, record=False)
     intervention = Intervention(seed)
     msgs, acts, i_msgs, i_acts = [], [], [], []
+    engine = env if isinstance(env, TreadmillEngine) else None
+    valid, label, words, place = [], [], [], []
     for _ in range(steps):
+        if engine is not None:  # what only teammates know now, before the agents speak about it
+            v, lab = adversary_sector(engine)
+            valid.append(v)
+            label.append(lab)
+            words.append(planner_words(stepper.obs, engine))
+            place.append(own_place(stepper.obs))
         with listening(algo, intervention):
             i_acts.append(algo.act(stepper.obs, 0.0, stepper.state).actions)
         stepper.step(0.0)
@@ -126,8 +145,19 @@ def record(algo: Agent, env: BatchedEnv, steps: int, seed: int) -> Recording:
         msgs.append(stepper.last.messages)
         acts.append(stepper.last.actions)
         i_msgs.append(stepper.last.messages[intervention.perm.cpu().numpy()])
+        if progress is not None:
+            progress(len(msgs), steps)
     as_bits = lambda m: np.stack(m).round().astype(np.int8)  # noqa: E731
-    return Recording(as_bits(msgs), np.stack(acts), as_bits(i_msgs), np.stack(i_acts))
+    rec = Recording(as_bits(msgs), np.stack(acts), as_bits(i_msgs), np.stack(i_acts))
+    if engine is not None:
+        rec = replace(
+            rec,
+            probe_valid=np.stack(valid),
+            probe_label=np.stack(label),
+            planner_words=np.stack(words),
+            place=np.stack(place),
+        )
+    return rec
 
 
 def message_input_norm(algo: Agent) -> MetricFigure:
@@ -156,7 +186,7 @@ def message_input_norm(algo: Agent) -> MetricFigure:
 
 
 def return_figures(
-    algo: Agent, env: BatchedEnv, episodes: int, seed: int
+    algo: Agent, env: BatchedEnv, episodes: int, seed: int, say: Callable[[str], None] | None = None
 ) -> tuple[list[MetricFigure], dict[str, np.ndarray]]:
     """Greedy return with the true messages and with each control in their place, on the same episodes: messages
     shuffled across envs and each sender's modal message (in distribution: real messages, no content), all-zero
@@ -175,7 +205,9 @@ def return_figures(
         "predicted": "Cumulative reward with predicted messages (no channel)",
     }
     out, true, diffs = [], None, {}
-    for src in sources:
+    for i, src in enumerate(sources):
+        if say is not None:
+            say(f"return figures: {episodes} episodes with {src} messages ({i + 1}/{len(sources)})")
         res = evaluate_policy(algo, env, episodes, seed=seed, messages=src)  # type: ignore[arg-type]
         note = f"± {res.ci95:.2f} (95 % CI)"
         if true is None:
@@ -214,17 +246,32 @@ def analyze(
     seed: int,
     out_dir: str | Path | None = None,
     repeats: int = 20,
+    progress: Callable[[int, int], None] | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> Analysis:
-    """Table 1 for ``algo``: communication figures from ``steps × B`` samples, returns from ``episodes`` episodes."""
-    rec = record(algo, env, steps, seed)
+    """Table 1 for ``algo``: communication figures from ``steps × B`` samples, returns from ``episodes`` episodes.
+    ``progress(done, steps)`` follows the recording, ``say`` is told each later stage."""
+    rec = record(algo, env, steps, seed, progress)
+    if say is not None:
+        say(f"mutual-information figures ({repeats} shuffles per baseline)")
     rng = np.random.default_rng(seed)
     t, b, n, k = rec.messages.shape
     flat_msgs, flat_acts = rec.messages.reshape(t * b, n, k), rec.actions.reshape(t * b, n)
     sc = speaker_consistency(flat_msgs, flat_acts, rng, repeats)
     ic = instantaneous_coordination(rec.messages, rec.actions, rng, repeats)
     cic = causal_influence(rec, rng, repeats)
-    returns, diffs = return_figures(algo, env, episodes, seed)
+    returns, diffs = return_figures(algo, env, episodes, seed, say)
     figures = [sc, ic, cic, message_entropy(flat_msgs), message_input_norm(algo), *returns, protocol_formed(cic, diffs)]
+    words, place, valid, label = rec.planner_words, rec.place, rec.probe_valid, rec.probe_label
+    if (
+        words is not None
+        and place is not None
+        and valid is not None
+        and label is not None
+        and n > 1
+        and rec.messages.shape[2] == words.shape[2]  # one message per agent (not MA-BoN's broadcast)
+    ):
+        figures += probe_figures(rec.messages, words, place, valid, label)
     result = Analysis(algo.name, env_name, figures)
     if out_dir is not None:
         out = Path(out_dir)

@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from convoy.config import (
     ALGORITHMS,
+    JOB_FIELDS,
     MAX_POPULATION,
     ConfigError,
     JobConfig,
@@ -95,10 +96,7 @@ class JobSubmit(JsonBody):
         return job_config(**values, runtime={**self.runtime, "actors": self.actors})
 
 
-GRID_FIELDS = (
-    "algo", "env", "hierarchical", "steps", "num_envs", "seed", "eval_episodes", "eval_messages", "eval_every",
-    "log_every",
-)  # fmt: skip
+GRID_FIELDS = JOB_FIELDS  # the job fields a grid may vary: the CLI's job flags (convoy/config.py)
 GRID_TABLES = ("env_params", "algo_params", "runtime")
 MAX_SWEEP_JOBS = 1_000
 

@@ -51,7 +51,7 @@ from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
 from convoy.config import JobConfig, job_config  # noqa: E402
 from convoy.learner.inprocess import Trainer  # noqa: E402
 from convoy.learner.runtime import configure_learner  # noqa: E402
-from convoy.output import save_figure  # noqa: E402
+from convoy.output import pyplot, save_figure  # noqa: E402
 from convoy.services.training import make_env  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 
@@ -254,10 +254,7 @@ def report(console: Console, runs: list[dict], channel_rows: list[dict], args: a
 
 
 def plot(runs: list[dict], path: Path, args: argparse.Namespace) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7.5, 4.2))

@@ -60,7 +60,7 @@ from convoy.algos.nets import pick_device  # noqa: E402
 from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
 from convoy.config import DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
 from convoy.envs.registry import make_batched  # noqa: E402
-from convoy.output import markdown_table, save_figure  # noqa: E402
+from convoy.output import markdown_table, pyplot, save_figure  # noqa: E402
 
 ENV = "treadmill"
 AGENT_COUNTS = (2, 4, 8, 16, 32, 64)
@@ -351,10 +351,7 @@ def report_table(fits: dict[str, dict[str, Any]], agents: list[int]) -> str:
 
 def plot(fits: dict[str, dict[str, Any]], path: Path, title: str) -> Path:
     """Log-log ms per act against N, with dashed N¹ and N² guides through the plot's middle."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7, 4.5))

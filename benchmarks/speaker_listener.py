@@ -37,7 +37,7 @@ from rich.table import Table  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
 from convoy.config import job_config  # noqa: E402
-from convoy.output import save_figure  # noqa: E402
+from convoy.output import pyplot, save_figure  # noqa: E402
 from convoy.services.training import run_inprocess  # noqa: E402
 from convoy.stats import ci95_half  # noqa: E402
 
@@ -113,10 +113,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _plot(runs: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(7, 4))

@@ -2,6 +2,6 @@
 
 import sys
 
-from convoy.cli.main import main
+from convoy.cli.entry import main
 
 sys.exit(main())

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -124,6 +127,36 @@ def gif_episode(algo: Any, job: Any, args: argparse.Namespace) -> int:
     return len(result.frames)
 
 
+class AnalyzeProgress:
+    """What ``convoy analyze`` is doing, on stderr: the recording's samples with an estimate of the time left (its
+    first step, then at most every ``every_s``), then each later stage."""
+
+    def __init__(self, num_envs: int, every_s: float = 5.0) -> None:
+        self.num_envs, self.every_s = num_envs, every_s
+        self.t0 = time.monotonic()
+        self.last = -math.inf
+
+    def say(self, what: str) -> None:
+        print(f"convoy analyze: {what}", file=sys.stderr, flush=True)
+
+    def __call__(self, done: int, steps: int) -> None:
+        now = time.monotonic()
+        if now - self.last < self.every_s and done < steps:
+            return
+        self.last = now
+        left = (now - self.t0) / done * (steps - done)
+        samples = f"{done * self.num_envs:,} / {steps * self.num_envs:,} samples"
+        self.say(f"recording {samples} ({100 * done / steps:.0f} %), ~{duration(left)} left")
+
+
+def duration(seconds: float) -> str:
+    """``seconds`` as ``1h02m``, ``3m05s`` or ``12s``."""
+    s = round(seconds)
+    if s >= 3600:
+        return f"{s // 3600}h{s % 3600 // 60:02d}m"
+    return f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s"
+
+
 def cmd_analyze(args: argparse.Namespace) -> int:
     """Emergent-communication metrics of a checkpoint (the paper's Table 1).
 
@@ -145,7 +178,11 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     env = make_env(job, args.num_envs)
     try:
         steps = -(-args.samples // env.num_envs)
-        result = analyze(algo, env, job.env, steps, args.episodes, args.seed, out_dir=out, repeats=args.repeats)
+        progress = AnalyzeProgress(env.num_envs)
+        progress.say(f"{algo.name} on {job.env}: recording {steps * env.num_envs:,} samples ({steps:,} steps × "
+                     f"{env.num_envs} envs), then {args.episodes} episodes per return figure")  # fmt: skip
+        result = analyze(algo, env, job.env, steps, args.episodes, args.seed, out_dir=out, repeats=args.repeats,
+                         progress=progress, say=progress.say)  # fmt: skip
     finally:
         env.close()
     console.print(result.table(), highlight=False, soft_wrap=True)

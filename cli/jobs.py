@@ -25,14 +25,14 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
+from convoy.api.lifecycle import FINAL_STATES, JobState
 from convoy.api.models import MAX_ACTORS, JobSubmit
 from convoy.cli.args import add_command, add_model_flags, env_params, given, parse_pairs
 from convoy.cli.train import add_job_flags
 from convoy.config import MESSAGE_SOURCES
 
 DEFAULT_URL = "http://127.0.0.1:8000"
-FINAL_STATES = ("completed", "stopped", "failed")
-STATES = ("queued", "starting", "running", "stopping", "stopped", "completed", "failed")
+STATES: tuple[str, ...] = tuple(JobState)  # every state, in lifecycle order, for --state
 LOG_COLUMNS = ("env_steps", "episodes", "updates", "return", "loss", "env_steps_per_s", "policy_lag", "actors_alive")
 HTTP_TIMEOUT_S = 30.0
 

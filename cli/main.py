@@ -187,10 +187,9 @@ def _write_summary(args: argparse.Namespace, params: dict[str, Any], result: Rol
 
 
 def _plot_returns(args: argparse.Namespace, agent_ids: tuple[str, ...], result: RolloutResult) -> None:
-    import matplotlib
+    from convoy.output import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(8, 4))
     episodes = np.arange(len(result.lengths))

@@ -25,6 +25,7 @@ from convoy.cli.args import (
 from convoy.cli.rundir import LAUNCH, claim, discard_unstarted, free_default
 from convoy.config import (
     ALGORITHMS,
+    JOB_FIELDS,
     AlgoConfig,
     JobConfig,
     env_default_note,
@@ -326,10 +327,7 @@ def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     tr.add_argument("--config", metavar="FILE", help="job config as JSON or TOML; flags override its values")
 
 
-JOB_FLAGS = (
-    "algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_messages", "eval_every",
-    "log_every",
-)  # fmt: skip
+JOB_FLAGS = JOB_FIELDS  # one list with the sweep grid's job fields (convoy/config.py)
 
 
 def add_job_flags(tr: argparse.ArgumentParser) -> None:

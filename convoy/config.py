@@ -1,6 +1,6 @@
 """The configuration every Convoy process agrees on: one pydantic model per algorithm and the job that runs it.
 
-The CLI, the (later) REST API, the actor and the learner processes all build a ``JobConfig`` the same way
+The CLI, the REST API (api/models.py), the actor and the learner processes all build a ``JobConfig`` the same way
 (``job_config(...)``), so a bad value is rejected with the same message everywhere: the field, what was given and
 the allowed range. Defaults that the paper ties to an environment (network sizes, message width, IMS iterations,
 parameter sharing) are ``None`` in the algorithm models and filled in from ``ENV_DEFAULTS`` when the job is
@@ -735,6 +735,14 @@ class JobConfig(BaseModel):
         from convoy.envs.registry import env_entry
 
         return build_config(env_entry(self.env).config(), **self.env_params)
+
+
+JOB_FIELDS: tuple[str, ...] = (
+    "algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_messages", "eval_every",
+    "log_every",
+)  # fmt: skip
+"""The scalar ``JobConfig`` fields a user picks per job: the flags of ``convoy train`` and ``convoy jobs submit``
+(cli/train.py's JOB_FLAGS) and the job fields a sweep's grid may vary (api/models.py's GRID_FIELDS)."""
 
 
 def _env_table() -> dict[str, Any]:

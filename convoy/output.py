@@ -22,9 +22,23 @@ def markdown_table(header: list[str], rows: list[list[str]], right: list[bool]) 
     return "\n".join([line(header), rule, *(line(r) for r in rows)])
 
 
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the Agg backend, so figures render headless (no display, no GUI toolkit).
+
+    The one place Convoy picks matplotlib's backend: every module that plots gets pyplot here, imported lazily so
+    that importing the module costs nothing until it draws.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig: Any, path: str | Path, dpi: int = 110) -> Path:
     """A matplotlib figure as a PNG at ``path`` (folders made), laid out tight; the figure is closed."""
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path = Path(path)
     fig.tight_layout()

@@ -1,4 +1,5 @@
-"""One table of Convoy's environments, so the CLI, actors and (later) the API name them alike."""
+"""One table of Convoy's environments, so the CLI, the actors, ``JobConfig`` and the API (``GET /envs``) name them
+alike."""
 
 from __future__ import annotations
 

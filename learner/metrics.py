@@ -10,7 +10,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from convoy.output import json_safe, save_figure
+from convoy.output import json_safe, pyplot, save_figure
 
 
 class MetricsWriter:
@@ -77,10 +77,7 @@ def plot_curves(
     """The learning curve: the greedy evaluation with its 95 % CI band (the figure to read), the ε-greedy training
     return (episodes that ended in each row; short crashed episodes weigh in it) and the reference policies as
     dashed lines; speed beside it."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     path = Path(path)
     steps = [r["env_steps"] for r in rows]

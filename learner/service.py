@@ -22,6 +22,7 @@ import collections
 import logging
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
@@ -104,8 +105,19 @@ def chunk_problem(
 
 
 class Learner:
-    def __init__(self, job_id: str, job: JobConfig, out_dir: str | Path, settings: ZenohSettings) -> None:
+    def __init__(
+        self,
+        job_id: str,
+        job: JobConfig,
+        out_dir: str | Path,
+        settings: ZenohSettings,
+        on_data: Callable[[], None] | None = None,
+    ) -> None:
+        """``on_data``: called once the job has its steps, before the actors are told (the local supervisor's
+        word, which no peer on the job's keys can forge: ``ProcessGroup.poll`` then takes the actors' exits as the
+        job's end, however long the final evaluation takes)."""
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
+        self.on_data = on_data
         self.stopping = False
         self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
 
@@ -224,6 +236,8 @@ class Learner:
             if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
                 s.core.checkpoint()
                 return STOPPED
+            if self.on_data is not None:  # first the supervisor, so it reads the actors' exits as the end
+                self.on_data()
             self._publish_budget(job.steps, s.core.env_steps, algo.updates)  # tells actors the job has its data
         finally:
             s.core.close()  # the metric files, whichever way the loop ends
@@ -317,9 +331,11 @@ class _Ingest:
         }
 
 
-def run_learner(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings) -> int:
+def run_learner(
+    job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings, on_data: Callable[[], None] | None = None
+) -> int:
     """Process entry point (spawned by a host agent or run by ``convoy learner``); SIGTERM checkpoints and exits."""
-    learner = Learner(job_id, job, out_dir, settings)
+    learner = Learner(job_id, job, out_dir, settings, on_data)
     dump_stacks_on_sigusr1()
     signal.signal(signal.SIGTERM, learner.stop)
     signal.signal(signal.SIGINT, learner.stop)

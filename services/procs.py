@@ -97,10 +97,12 @@ def _actor_main(
 
 
 def _learner_main(job_id: str, job: JobConfig, out_dir: str, settings: ZenohSettings, ident: str,
-                  reports: str | None) -> None:  # fmt: skip
+                  reports: str | None, has_data: Any = None) -> None:  # fmt: skip
+    """``has_data``: the group's event the learner sets once the job has its steps (``ProcessGroup.poll``)."""
     from convoy.learner.service import run_learner
 
-    _role_main(ident, reports, lambda: run_learner(job_id, job, out_dir, settings))
+    on_data = has_data.set if has_data is not None else None
+    _role_main(ident, reports, lambda: run_learner(job_id, job, out_dir, settings, on_data))
 
 
 @dataclass
@@ -158,6 +160,10 @@ class ProcessGroup:
         self.respawn_at: dict[int, tuple[float, int]] = {}  # actor index → (when, generation) of a pending respawn
         self.short_lives: dict[int, int] = {}  # index → deaths within SHORT_LIFE_S of start in a row
         self.learner: Slot | None = None
+        # set by this group's learner (a child: no peer on the job's keys can set it) once the job has its steps,
+        # before it tells the actors so: their exit 0 after it is the job's end, not a crash, however long the
+        # learner's final evaluation and last row take on a loaded machine
+        self.has_data: Any = _CTX.Event() if "learner" in roles else None
         self.crashes: dict[str, deque[float]] = {"actor": deque(), "learner": deque()}
         self.finished: set[str] = set()  # roles whose processes exited 0
         self.failed: str | None = None
@@ -178,7 +184,7 @@ class ProcessGroup:
 
     def _spawn_learner(self, generation: int) -> Slot:
         slot = Slot("learner", 0, generation, None)
-        args = (self.job_id, self.job, self.out_dir, self.settings, slot.ident, self.reports)
+        args = (self.job_id, self.job, self.out_dir, self.settings, slot.ident, self.reports, self.has_data)
         slot.proc = _CTX.Process(target=_learner_main, args=args, name=slot.ident, daemon=True)
         slot.proc.start()
         return slot
@@ -256,14 +262,16 @@ class ProcessGroup:
     def poll(self, learner_has_data: bool = False) -> list[Event]:
         """Notice exits; respawn crashed actors, restart a crashed learner; returns what happened.
 
-        An actor that exits 0 while this group's learner runs and has not reported the job's steps
-        (``learner_has_data``) left early — a stop or budget it was sent, forged or not — and is respawned like a
-        crashed one: a job never waits on actors that are gone. Without a local learner (an actor-only host) exit 0
+        An actor that exits 0 while this group's learner runs and has neither reported the job's steps
+        (``learner_has_data``) nor told this group so (``has_data``, set before it tells the actors) left early — a
+        stop or budget it was sent, forged or not — and is respawned like a crashed one: a job never waits on actors
+        that are gone. Without a local learner (an actor-only host) exit 0
         is taken at its word.
         """
         events: list[Event] = []
         if self.failed:
             return events
+        learner_has_data = learner_has_data or (self.has_data is not None and self.has_data.is_set())
         for index, slot in list(self.actors.items()):
             code = slot.proc.exitcode
             if code is None:

@@ -136,3 +136,47 @@ def test_every_package_folder_is_installed() -> None:
     on_disk = {m for m, p in modules().items() if p.name == "__init__.py"}
     data_only = {"convoy.api.static"}  # the dashboard's files: a package of data, no code
     assert on_disk | data_only == listed, f"missing: {sorted(on_disk - listed)}; stale: {sorted(listed - on_disk)}"
+
+
+# One source for each truth: where two modules need the same list, one defines it and the other imports it.
+
+SKIP_DIRS = {"tests", ".venv", "runs", "convoy.egg-info"}
+
+
+def product_sources() -> list[Path]:
+    """Every Python file of the product (the packages, benchmarks, experiments): the tree less tests and tooling."""
+    folders = lambda p: p.relative_to(ROOT).parts[:-1]  # noqa: E731
+    return sorted(p for p in ROOT.rglob("*.py") if not any(d in SKIP_DIRS or d[0] == "." for d in folders(p)))
+
+
+def test_one_place_picks_the_matplotlib_backend() -> None:
+    """``matplotlib.use(`` once, in convoy.output.pyplot, which every plotting module calls for pyplot."""
+    found = sorted(str(p.relative_to(ROOT)) for p in product_sources() if "matplotlib.use(" in p.read_text())
+    assert found == ["convoy/output.py"], found
+
+
+def test_pyplot_renders_headless(tmp_path: Path) -> None:
+    from convoy.output import pyplot, save_figure
+
+    plt = pyplot()
+    assert plt.get_backend().lower() == "agg"
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    assert save_figure(fig, tmp_path / "a" / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_job_flags_and_sweep_grid_fields_are_one_list() -> None:
+    from convoy.api.models import GRID_FIELDS
+    from convoy.cli.train import JOB_FLAGS
+    from convoy.config import JOB_FIELDS, JobConfig
+
+    assert JOB_FLAGS is GRID_FIELDS is JOB_FIELDS
+    assert set(JOB_FIELDS) <= set(JobConfig.model_fields)
+
+
+def test_the_cli_and_the_api_share_the_final_states() -> None:
+    from convoy.api.lifecycle import FINAL_STATES, JobState
+    from convoy.cli import jobs
+
+    assert jobs.FINAL_STATES is FINAL_STATES
+    assert tuple(JobState) == jobs.STATES

@@ -257,7 +257,16 @@ def test_population_flags_say_what_is_wrong(capsys: pytest.CaptureFixture[str]) 
 def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str) -> None:
     """A small grid in one population: run k follows its own learning rate (``RunAdam``), discount and target
     period, as the single run with that config does (up to float rounding: RunAdam orders Adam's arithmetic
-    differently from torch's fused kernel); shapes and the update's structure must agree."""
+    differently from torch's fused kernel); shapes and the update's structure must agree.
+
+    Tolerance 2e-4, measured (torch 2.13 CPU, MKL): on this machine the gap after the loop is 6.7e-8 (DIAL) and
+    3.5e-7 (IDQN), the same with 1 or 2 threads, ATEN_CPU_CAPABILITY avx512/avx2/none, MKL_ENABLE_INSTRUCTIONS
+    AVX2/SSE4_2, MKL_CBWR=COMPATIBLE and mkldnn off (≤ 7.5e-8 / 5.4e-7). Another machine's rounding, though, is
+    not a small shift of these: moving every population weight by ±1 ulp before the loop (12 draws) gives gaps up
+    to 3.9e-5 (DIAL, median 7e-6: the very 3.9e-5 seen on a 2-core x86-64 machine) and 1.2e-5 (IDQN, median
+    3e-6), as a rounding difference takes another argmax or Adam step somewhere. A run given a wrong config is
+    far off: gamma 0.9 for 0.95 gives 1.2e-3 (DIAL) / 1.2e-2 (IDQN), lr 3.3e-4 for 3e-4 3.0e-3 (DIAL). 2e-4
+    is 5× the worst measured rounding gap and 6× below the smallest wrong-config gap."""
     torch.set_num_threads(1)
     grid = [(1e-3, 0.9, 10), (3e-4, 0.95, 25), (2e-3, 0.99, 5)]
     cfgs = [config(name, False, lr=lr, gamma=g, target_update=c) for lr, g, c in grid]
@@ -268,10 +277,10 @@ def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str
         pop.update()
         for single in singles:
             single.update()
-    assert max_weight_gap(pop, singles) < 1e-5
+    assert max_weight_gap(pop, singles) < 2e-4  # measured: see the docstring
     for k, single in enumerate(singles):  # each run's target synced at its own period
         for n, w in run_state(pop.target, k).items():
-            torch.testing.assert_close(w, single.target.state_dict()[n], rtol=0, atol=1e-5)
+            torch.testing.assert_close(w, single.target.state_dict()[n], rtol=0, atol=2e-4)
     assert pop.member(1).cfg == cfgs[1]
     wider = config(name, False, hidden=(64, 32))
     with pytest.raises(ValueError, match="hidden"):

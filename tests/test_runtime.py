@@ -682,3 +682,24 @@ def test_opening_a_session_gives_up_when_told_while_zenoh_open_hangs(monkeypatch
     monkeypatch.setattr(zenoh, "open", refuse)
     with pytest.raises(zenoh.ZError, match="bad endpoint"):
         open_session(ZenohSettings(), give_up=lambda: False)
+
+
+def test_a_normal_end_on_a_loaded_machine_is_no_crash(tmp_path: Path) -> None:
+    """Both cores busy: the actors leave when the learner's last budget says the job has its data, long before its
+    final evaluation and last row; the learner told its group first (``ProcessGroup.has_data``), so no exit is
+    taken for a crash and none is respawned."""
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        job = job_config(algo="ma-mesn", steps=3_000, seed=2, runtime={"actors": 4},
+                         **{**TREADMILL, "eval_episodes": 64})  # fmt: skip
+        runner = JobRunner("loaded", job, tmp_path, progress=False)
+        with Background(runner) as bg:
+            summary = bg.join(600)
+    finally:
+        for p in busy:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p.pid, signal.SIGKILL)
+            p.wait(30)
+    assert summary["env_steps"] >= job.steps
+    assert not [e for e in runner.events if e.kind in ("crashed", "respawned", "backoff")], runner.events
+    assert [e.ident for e in runner.events if e.kind == "exited" and e.role == "actor"], runner.events
