@@ -37,9 +37,11 @@ run-distributed: $(STAMP)
 serve: $(STAMP)
 	$(BIN)/convoy serve --port $(or $(PORT),8000) --data $(or $(DATA),runs/service)
 
+# its own folder: `make run`'s summary.json stays where `convoy compare runs/demo` reads it
+DEMO   ?= runs/demo-rollout
 demo: $(STAMP)
 	$(BIN)/convoy env rollout --env treadmill --agents 3 --adversaries 1 --episodes 20 --policy scripted \
-		--seed 0 --show 8 --gif $(OUT)/treadmill.gif --summary $(OUT)/summary.json --plot $(OUT)/returns.png
+		--seed 0 --show 8 --gif $(DEMO)/treadmill.gif --summary $(DEMO)/summary.json --plot $(DEMO)/returns.png
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

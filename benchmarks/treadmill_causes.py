@@ -155,7 +155,10 @@ def main(argv: list[str] | None = None) -> None:
     for arg in args.policies:
         label, _, what = arg.rpartition("=")
         label = label or what
-        ends = play(what, args.episodes, args.seed, sets)
+        try:
+            ends = play(what, args.episodes, args.seed, sets)
+        except ValueError as exc:  # a checkpoint it cannot use (CheckpointError), an unknown policy or rule
+            raise SystemExit(f"error: {what}: {exc}") from None
         shares = np.bincount(ends.cause, minlength=len(CAUSES)) / len(ends.cause)
         share = dict(zip(CAUSES, shares.tolist(), strict=True))
         believed = ends.belief[np.isfinite(ends.belief)]

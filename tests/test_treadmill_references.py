@@ -205,3 +205,16 @@ def test_the_tuned_planners_are_the_ones_the_search_json_records() -> None:
 
     search = json.loads((Path(__file__).resolve().parents[1] / "docs/figures/treadmill_search.json").read_text())
     assert {level: TUNED[level].label() for level in LEVELS} == search["planners"]
+
+
+def test_how_episodes_end_refuses_a_hostile_checkpoint_with_an_error_line(tmp_path) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "treadmill_causes.py"
+    done = subprocess.run([sys.executable, str(script), str(bad), "--episodes", "2"], capture_output=True, text=True)
+    assert done.returncode != 0
+    assert done.stderr.startswith(f"error: {bad}: ") and "Traceback" not in done.stderr, done.stderr
