@@ -167,13 +167,14 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     sender's modal message, all-zero messages and white noise, each paired with the true messages (and predicted
     messages for -mm algorithms). Writes table.md, analysis.json, metrics.png and cooccurrence.png.
     """
-    from convoy.analysis.recording import analyze
+    from convoy.analysis.recording import analyze, check_analysable
     from convoy.services.training import make_env
 
     for flag in ("samples", "episodes", "repeats"):
         if getattr(args, flag) < 1:
             raise ConfigError(f"--{flag}", f"must be ≥ 1 (got {getattr(args, flag)})")
     algo, job, _ = load(args.checkpoint, args.device)
+    check_analysable(algo)  # refused in one line, before the plan is announced
     out = Path(args.out) if args.out else Path(args.checkpoint).resolve().parent / "analysis"
     env = make_env(job, args.num_envs)
     try:
