@@ -19,6 +19,7 @@ import torch
 
 from convoy.analysis.comm_metrics import MetricFigure
 from convoy.envs.treadmill.config import LONGITUDINAL
+from convoy.envs.treadmill.drivers import peer_index
 from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.envs.treadmill.planner import WORD_BITS, encode_word
 from convoy.envs.treadmill.scripted import heading_towards
@@ -54,8 +55,7 @@ def planner_words(obs: np.ndarray, engine: TreadmillEngine) -> np.ndarray:
 def heard(bits: np.ndarray) -> np.ndarray:
     """What each agent hears from its peers ``[..., N, (N−1)·bits]`` from everyone's bits ``[..., N, bits]``."""
     n = bits.shape[-2]
-    peers = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
-    return bits[..., peers, :].reshape(*bits.shape[:-2], n, -1)
+    return bits[..., peer_index(n), :].reshape(*bits.shape[:-2], n, -1)
 
 
 def probe_accuracy(

@@ -110,12 +110,13 @@ def main(argv: list[str] | None = None) -> int:
     notes: dict[str, str] = {}
     kept: dict = {}
     refs: dict[str, np.ndarray] = {}
+    drivers: dict = {}
     if args.part == "planners":
         kept = _kept(args.json, cfg, args.episodes)
         if kept:
             refs = kept_references(cfg, kept, args.episodes)
     else:
-        open_loop_and_drivers(cfg, args, returns, notes)
+        drivers = open_loop_and_drivers(cfg, args, returns, notes)
     tuned = tune_planners(cfg, args, kept, returns, notes)
 
     table = Table(title=f"treadmill references ({args.rules} rules): {args.episodes} scoring episodes each")
@@ -144,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         out["planners"] = {level: p.label() for level, p in tuned.items()}
         out["planner_budget"] = planner_budget(args) | {"start": planner.START.label()}
         if args.part == "all":
-            out["params"] = {k: v.label() for k, v in DRIVER_PARAMS.items()}
+            out["params"] = {k: v.label() for k, v in drivers.items()}
         write_json(args.json, out)
     return 0
 
@@ -175,7 +176,6 @@ def kept_references(cfg: TreadmillConfig, kept: dict, episodes: int) -> dict[str
     return out
 
 
-DRIVER_PARAMS: dict = {}
 PAIRED = ("private driver", *(f"{level} planner" for level in planner.LEVELS), "best open loop")
 GOALS = {
     "best open-loop ÷ private": "≤ 0.5",
@@ -189,22 +189,25 @@ GOALS = {
 }
 
 
-def open_loop_and_drivers(cfg: TreadmillConfig, args, returns: dict, notes: dict) -> None:
-    """The open-loop search and the reactive drivers' grids, each scored on the scoring episodes."""
+def open_loop_and_drivers(cfg: TreadmillConfig, args, returns: dict, notes: dict) -> dict:
+    """The open-loop search and the reactive drivers' grids, each scored on the scoring episodes; returns the
+    drivers' chosen parameters by kind."""
     chosen = open_loop_search(cfg, args.max_period, quick=args.quick)
     for name, (seq, tuned) in chosen.items():
         seq = seq[None]  # one sequence: [T] shared or [N, T] per agent
         returns[name] = sequence_returns(cfg, seq, args.episodes, SCORING_SEED)[0]
         notes[name] = f"tuning {tuned:.1f}"
     grid = driver_grid(args.quick)
+    params = {}
     for kind in ("private", "team", "team16"):
-        DRIVER_PARAMS[kind], tuned = tune_driver(cfg, kind, grid, args.tune_episodes)
-        returns[f"{kind} driver"] = driver_returns(cfg, kind, DRIVER_PARAMS[kind], args.episodes, SCORING_SEED)
-        notes[f"{kind} driver"] = f"tuning {tuned:.1f}; {DRIVER_PARAMS[kind].label()}"
+        params[kind], tuned = tune_driver(cfg, kind, grid, args.tune_episodes)
+        returns[f"{kind} driver"] = driver_returns(cfg, kind, params[kind], args.episodes, SCORING_SEED)
+        notes[f"{kind} driver"] = f"tuning {tuned:.1f}; {params[kind].label()}"
     returns["full information"] = full_information_returns(cfg, args.episodes, SCORING_SEED)
     returns["random"] = random_returns(cfg, args.episodes, SCORING_SEED)
     open_loop = [n for n in returns if n.startswith("open-loop")]
     returns["best open loop"] = returns[max(open_loop, key=lambda n: returns[n].mean())]
+    return params
 
 
 def tune_planners(cfg: TreadmillConfig, args, kept: dict, returns: dict, notes: dict) -> dict:

@@ -28,10 +28,20 @@ from convoy.envs.treadmill.engine import DX, DY
 from convoy.envs.treadmill.scripted import DriverParams, family_actions, own_state
 
 
+def sensor_slots(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
+    """An agent's ``observe_k`` sensor slots ``[..., k, NEIGHBOUR_FEATURES]`` from its observation ``[..., D]``."""
+    k = cfg.observe_k
+    return obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
+
+
+def peer_index(n: int) -> np.ndarray:
+    """``[N, N−1]``: every agent's teammates in order (agent i's row skips i), to gather what each one hears."""
+    return np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
+
+
 def slot_cars(obs: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cars an agent's sensor reports: (seen ``[B, N, k]``, dx, dy) in cells, from observations ``[B, N, D]``."""
-    k = cfg.observe_k
-    slots = obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
+    slots = sensor_slots(obs, cfg)
     return slots[..., 0] > 0.5, slots[..., 1] * cfg.sensor_range, slots[..., 2] * cfg.sensor_range
 
 
@@ -59,7 +69,7 @@ def closing_slot(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     observed car or on the observer itself (the one a hand-written code reports: chasers close in, allies hold)."""
     k = cfg.observe_k
     seen, dx, dy = slot_cars(obs, cfg)
-    slots = obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
+    slots = sensor_slots(obs, cfg)
     h = np.argmax(slots[..., 3 : 3 + N_HEADINGS], axis=-1)
     v = np.rint(slots[..., 3 + N_HEADINGS] * cfg.max_speed)
     nx, ny = dx + v * DX[h], dy + v * DY[h]  # where each car is headed in one step (observer's frame)
@@ -105,7 +115,7 @@ def team16_actions(obs: np.ndarray, cfg: TreadmillConfig, p: DriverParams, t: in
     x, y, h, v = own_state(obs, cfg)
     seen, dx, dy = slot_cars(obs, cfg)
     heard, cx, cy = decode16(encode16(obs, cfg, slot), cfg)  # [B, N]: what each agent says
-    others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
+    others = peer_index(n)
     hx, hy = cx[:, others] - x[..., None], cy[:, others] - y[..., None]  # [B, N, N−1] in the listener's frame
     cell = max((cfg.length - 1) / 127.0, (cfg.width - 1) / 127.0)
     heard = heard[:, others] & (np.hypot(hx, hy) > 1.5 * cell + 0.5)  # not the listener itself

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, NEIGHBOUR_FEATURES, OWN_FEATURES, TreadmillConfig
+from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
+from convoy.envs.treadmill.drivers import closing_slot, peer_index, sensor_slots
 from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, DX, DY, TreadmillEngine
 from convoy.envs.treadmill.scripted import own_state
 
@@ -123,8 +124,7 @@ class Known:
 def sensed(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Known:
     """The cars an agent's own sensor reports (``private``): identity unknown."""
     x, y, _, _ = own_state(obs, cfg)
-    k = cfg.observe_k
-    slots = obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
+    slots = sensor_slots(obs, cfg)
     seen = slots[..., 0] > 0.5
     return Known(
         known=seen,
@@ -174,11 +174,8 @@ def encode_word(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     cell along / across the road, each axis scaled to 0…63; bits 0–2 its heading. The car is the one the speaker
     observes closing in fastest on another car it observes or on itself (``drivers.closing_slot``): a chaser, most of
     the time — the speaker cannot tell an ally from an adversary either."""
-    from convoy.envs.treadmill.drivers import closing_slot
-
     x, y, _, _ = own_state(obs, cfg)
-    k = cfg.observe_k
-    slots = obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
+    slots = sensor_slots(obs, cfg)
     pick = closing_slot(obs, cfg)[..., None, None]
     car = np.take_along_axis(slots, pick, axis=-2)[..., 0, :]
     seen = car[..., 0] > 0.5
@@ -205,7 +202,7 @@ def heard_known(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Know
     own = sensed(obs, cfg, p)
     x, y, _, _ = own_state(obs, cfg)
     seen, rx, ry, rh = decode_word(encode_word(obs, cfg), cfg)  # [B, N]: what each agent says
-    others = np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
+    others = peer_index(n)
     seen, rx, ry, rh = seen[:, others], rx[:, others], ry[:, others], rh[:, others]  # [B, N, N−1] heard by each
     tol = 1.0 + max(cfg.length, cfg.width) / 63.0
     heard = seen & (np.hypot(rx - x[..., None], ry - y[..., None]) > tol)
@@ -256,6 +253,7 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
     belt_lo = cfg.treadmill_speed
     belt_hi = cfg.treadmill_speed_max or cfg.treadmill_speed
     cap = cfg.reward_distance_cap
+    near = lambda d: np.clip(1.0 - d / p.danger, 0.0, None) ** 2  # noqa: E731
     for t in range(1, hz + 1):
         act = PLAN_FIRST if t == 1 else PLAN_THEN
         h = (h + ACTION_STEER[act]) % N_HEADINGS
@@ -264,13 +262,8 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
         py = py + v * DY[h]
         # allies keep heading and speed; adversaries close in on where the agent will be
         bx, by = kx + t * cv * cdx, ky + t * cv * cdy  # [M, 1, K]
-        gx, gy = px[..., None] - ax, py[..., None] - ay
-        gap = np.maximum(np.hypot(gx, gy), 1e-9)
-        step = np.minimum(p.chase, gap) / gap
-        ax, ay = ax + gx * step, ay + gy * step  # [M, P, K]
+        ax, ay, d_adv = _close_in(ax, ay, px, py, p.chase)  # [M, P, K]
         d_ally = np.hypot(px[..., None] - bx, py[..., None] - by)
-        d_adv = np.hypot(px[..., None] - ax, py[..., None] - ay)
-        near = lambda d: np.clip(1.0 - d / p.danger, 0.0, None) ** 2  # noqa: E731
         danger = adv * (p.w_danger * near(d_adv) + p.w_crash * (d_adv < COLLIDE))
         danger += (1.0 - adv) * (p.w_danger * near(d_ally) + p.w_crash * (d_ally < COLLIDE))
         closest = np.where(known, adv * d_adv + (1 - adv) * d_ally, np.inf).min(axis=-1)
@@ -282,11 +275,7 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
         out = gap_edge < 0
         edge = p.w_edge * np.clip(1.0 - gap_edge / p.edge, 0.0, None) ** 2 + p.w_crash * out
         if p.w_phantom and len(blind):
-            gx, gy = px[..., None] - fx, py[..., None] - fy
-            gap = np.maximum(np.hypot(gx, gy), 1e-9)
-            step = np.minimum(p.chase, gap) / gap
-            fx, fy = fx + gx * step, fy + gy * step
-            d_ph = np.hypot(px[..., None] - fx, py[..., None] - fy)
+            fx, fy, d_ph = _close_in(fx, fy, px, py, p.chase)
             edge = edge + unseen * p.w_phantom * near(d_ph).sum(axis=-1) / N_HEADINGS
         # looking back: the chaser comes from behind, into the sensor's blind spot
         edge = edge + unseen * p.w_blind * ~_sees(cfg, h, np.full_like(h, 4))
@@ -296,6 +285,16 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
     cost += p.w_home * np.abs(px - home_x)
     best = np.argmin(cost, axis=-1)
     return PLAN_FIRST[best].reshape(lead)
+
+
+def _close_in(cx, cy, px, py, chase: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Chasers at ``(cx, cy)`` ``[M, P, K]`` after moving ``chase`` cells straight at the agent's planned place
+    ``(px, py)`` ``[M, P]`` (never past it): their new places and their distance from it."""
+    gx, gy = px[..., None] - cx, py[..., None] - cy
+    gap = np.maximum(np.hypot(gx, gy), 1e-9)
+    step = np.minimum(chase, gap) / gap
+    cx, cy = cx + gx * step, cy + gy * step
+    return cx, cy, np.hypot(px[..., None] - cx, py[..., None] - cy)
 
 
 _UX = DX / np.hypot(DX, DY)
