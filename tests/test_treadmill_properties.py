@@ -182,7 +182,7 @@ def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k,
     road = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
     if v3:  # the v3 rules' own randomness (spawn headings, a varying belt) and a stealthy adversary
         road |= {"spawn_heading_spread": 4, "treadmill_speed_max": 2, "treadmill_switch_prob": 0.3}
-        road |= {"adversary_stealth": True}
+        road |= {"adversary_stealth": True, "adversary_speed": 5}
     cfg = TreadmillConfig(n_agents=n_agents, n_adversaries=n_adv, observe_k=observe_k, aggression=0.5, **road)
     b = len(seeds)
     batch = TreadmillEngine(cfg, b)
@@ -307,6 +307,21 @@ def test_aggressive_adversary_closes_in() -> None:
         e.step(np.full((64, 1), KEEP))
     end = distance(e.x[:, 0], e.y[:, 0], e.x[:, 1], e.y[:, 1])
     assert (end < start).mean() > 0.9
+
+
+def test_a_faster_adversary_reaches_its_own_top_speed_and_agents_keep_theirs() -> None:
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=1, aggression=1.0, adversary_speed=5)
+    e = TreadmillEngine(cfg, 32)
+    e.reset(0)
+    top_adv = top_agent = 0
+    for _ in range(30):
+        obs = e.step(np.full((32, 2), 8)).obs  # every agent: turn left and accelerate
+        top_adv, top_agent = max(top_adv, e.speed[:, 2].max()), max(top_agent, e.speed[:, :2].max())
+        assert np.abs(obs).max() <= 1.0
+    assert (top_adv, top_agent) == (5, 3)
+    assert cfg.top_speed == 5 and TreadmillConfig().top_speed == TreadmillConfig().max_speed
+    with pytest.raises(ValueError, match="adversary_speed"):
+        TreadmillConfig(adversary_speed=0)
 
 
 def test_treadmill_carries_cars_back() -> None:

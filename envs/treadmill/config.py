@@ -37,6 +37,11 @@ class TreadmillConfig(BaseModel):
     max_speed: int = Field(3, ge=1, le=16, description="Top speed in cells per step; speeds are 0..max_speed.")
     treadmill_speed: Speed = Field(1, description="Cells per step the treadmill carries every car back (≤ max_speed).")
     initial_speed: Speed = Field(1, description="Speed of every car at spawn (≤ max_speed).")
+    adversary_speed: Speed | None = Field(
+        None,
+        description="Top speed of the adversaries if set (≥ 1; default: max_speed). Above max_speed a chaser "
+        "cannot be outrun, only dodged as it arrives: that needs to know where it is.",
+    )
     aggression: Probability = Field(
         0.8,
         description="Chance an adversary chases the closest agent, else it acts at random (0.8: what teammates "
@@ -105,6 +110,16 @@ class TreadmillConfig(BaseModel):
     def v2(cls, **overrides) -> TreadmillConfig:
         """The second rule set (``V2_RULES``): what every result measured before the current defaults used."""
         return cls(**(V2_RULES | overrides))
+
+    @property
+    def adversary_top(self) -> int:
+        """The adversaries' top speed."""
+        return self.max_speed if self.adversary_speed is None else self.adversary_speed
+
+    @property
+    def top_speed(self) -> int:
+        """The fastest any car may go: the scale of other cars' speeds in an observation."""
+        return max(self.max_speed, self.adversary_top)
 
     @property
     def n_cars(self) -> int:
@@ -179,6 +194,8 @@ class TreadmillConfig(BaseModel):
                 "treadmill_speed_max",
                 f"must lie in treadmill_speed … max_speed ({self.treadmill_speed} … {self.max_speed})",
             )
+        if self.adversary_speed is not None and self.adversary_speed < 1:
+            raise ConfigError("adversary_speed", "a chaser must be able to move: set it ≥ 1 or leave it unset")
         if self.observe_k > self.n_cars - 1:
             raise ConfigError(
                 "observe_k",

@@ -71,7 +71,7 @@ def closing_slot(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     seen, dx, dy = slot_cars(obs, cfg)
     slots = sensor_slots(obs, cfg)
     h = np.argmax(slots[..., 3 : 3 + N_HEADINGS], axis=-1)
-    v = np.rint(slots[..., 3 + N_HEADINGS] * cfg.max_speed)
+    v = np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed)
     nx, ny = dx + v * DX[h], dy + v * DY[h]  # where each car is headed in one step (observer's frame)
     zero = np.zeros_like(dx[..., :1])
     tx, ty = np.concatenate([dx, zero], axis=-1), np.concatenate([dy, zero], axis=-1)  # the others and the observer

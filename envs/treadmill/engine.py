@@ -16,7 +16,8 @@ accel_index``. Cars 0…N−1 are the agents; N…N+M−1 are adversaries that e
 ``aggression``, take the action whose one-step outcome lands closest to the nearest agent, else a uniformly
 random action.
 
-Motion and collisions. A step is split into ``max_speed`` micro-steps; a car with speed v moves one cell along its
+Motion and collisions. A step is split into ``top_speed`` micro-steps (the fastest car's top speed:
+``max_speed``, or ``adversary_speed`` if that is higher); a car with speed v moves one cell along its
 heading in each of the first v micro-steps. After every micro-step two cars collide if they share a cell, or if
 their moves crossed (a swap, or two diagonals through the same point: equal move midpoints). A crashed car stops
 where it is. Collisions between two adversaries are ignored.
@@ -29,7 +30,7 @@ terminates the episode for all (cooperation: one car's mistake costs everyone); 
 Observation per agent (features clipped to [−1, 1]): own lateral position, heading one-hot, speed / max_speed,
 distance to each side edge / (width−1), longitudinal position on the window; then for each of the ``observe_k``
 closest cars within ``sensor_range`` (agents and adversaries alike, as in the paper): a seen flag, relative
-position / sensor_range, heading one-hot and speed; a slot with no car in range is all zeros. With
+position / sensor_range, heading one-hot and speed / top_speed; a slot with no car in range is all zeros. With
 ``full_information`` (a reference, not the task) every other car follows: relative position / road size, speed
 and an adversary flag. Agents spawn forward-facing at ``initial_speed`` on random distinct cells of a lattice of
 pitch ``spawn_gap`` in the middle half of the window; adversaries enter at the front or back.
@@ -86,6 +87,7 @@ class TreadmillEngine:
         self._is_agent = np.arange(c) < n
         pair = self._is_agent[:, None] | self._is_agent[None, :]
         self._counted_pair = pair & ~np.eye(c, dtype=bool)  # pairs whose collision matters
+        self._top = np.where(self._is_agent, cfg.max_speed, cfg.adversary_top)  # [C] each car's top speed
         self._self_mask = np.where(np.eye(n, c, dtype=bool), np.inf, 0.0)  # excludes an agent's own car
         # every other car of each agent, agents first then adversaries (the full-information layout)
         self._others = np.array([[j for j in range(c) if j != i] for i in range(n)], dtype=np.int64).reshape(n, c - 1)
@@ -156,7 +158,7 @@ class TreadmillEngine:
         if cfg.n_adversaries:
             acts = np.concatenate([acts, self._adversary_actions()], axis=1)
         self.heading = (self.heading + ACTION_STEER[acts]) % N_HEADINGS
-        self.speed = np.clip(self.speed + ACTION_ACCEL[acts], 0, cfg.max_speed)
+        self.speed = np.clip(self.speed + ACTION_ACCEL[acts], 0, self._top)
         crashed, bounced = self._move()
         self.heading[:, n:] = np.where(bounced, (N_HEADINGS - self.heading[:, n:]) % N_HEADINGS, self.heading[:, n:])
         self.x = self.x - self.belt[:, None]
@@ -197,7 +199,7 @@ class TreadmillEngine:
         tx = np.take_along_axis(self.x[:, :n], target, axis=1)[..., None]
         ty = np.take_along_axis(self.y[:, :n], target, axis=1)[..., None]
         h = (ah[..., None] + ACTION_STEER) % N_HEADINGS  # [B, M, 9] outcome of each action
-        v = np.clip(av[..., None] + ACTION_ACCEL, 0, cfg.max_speed)
+        v = np.clip(av[..., None] + ACTION_ACCEL, 0, cfg.adversary_top)
         cx = ax[..., None] + v * DX[h] - self.belt[:, None, None]
         cy = np.clip(ay[..., None] + v * DY[h], 0, cfg.width - 1)
         greedy = np.argmin(distance(cx, cy, tx, ty), axis=-1)
@@ -226,7 +228,7 @@ class TreadmillEngine:
         self.x[adv] = np.where(out, np.where(from_back, 0, cfg.length - 1), self.x[adv])
         self.y[adv] = np.where(out, lane, self.y[adv])
         self.heading[adv] = np.where(out, 0, self.heading[adv])
-        self.speed[adv] = np.where(out, np.where(from_back, cfg.max_speed, 0), self.speed[adv])
+        self.speed[adv] = np.where(out, np.where(from_back, cfg.adversary_top, 0), self.speed[adv])
 
     def _move(self) -> tuple[np.ndarray, np.ndarray]:
         """Move every car by its speed in micro-steps; returns (crashed [B, C], adversary bounced [B, M])."""
@@ -236,7 +238,7 @@ class TreadmillEngine:
         x, y = self.x, self.y
         crashed = np.zeros(x.shape, bool)
         bounced = np.zeros((x.shape[0], cfg.n_adversaries), bool)
-        for k in range(1, cfg.max_speed + 1):
+        for k in range(1, cfg.top_speed + 1):
             moving = (self.speed >= k) & ~crashed
             if not moving.any():
                 break
@@ -329,7 +331,7 @@ class TreadmillEngine:
                 (np.take_along_axis(rel_x, near, axis=2) / r).astype(np.float32)[..., None],
                 (np.take_along_axis(rel_y, near, axis=2) / r).astype(np.float32)[..., None],
                 _ONE_HOT[nh],
-                (nv / cfg.max_speed).astype(np.float32)[..., None],
+                (nv / cfg.top_speed).astype(np.float32)[..., None],
             ],
             axis=3,
         )
@@ -339,7 +341,7 @@ class TreadmillEngine:
             parts.append(private[:, self._others[:, : n - 1]].reshape(len(envs), n, -1))
         if cfg.full_information:
             me, o = np.arange(n)[:, None], self._others  # [N, 1], [N, C−1]
-            speed = v[:, o] / cfg.max_speed  # [E, N, C−1]
+            speed = v[:, o] / cfg.top_speed  # [E, N, C−1]
             adversary = np.broadcast_to(o >= n, speed.shape)
             full = np.stack([rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed, adversary], axis=3, dtype=np.float32)
             parts.append(full.reshape(len(envs), n, -1))
@@ -360,7 +362,7 @@ class TreadmillEngine:
         me = np.arange(n)[:, None]
         r = np.float32(cfg.sensor_range)
         adversary = np.broadcast_to(o >= n, known.shape)
-        feats = [known, rel_x[:, me, o] / r, rel_y[:, me, o] / r, speed[:, o] / cfg.max_speed, adversary]
+        feats = [known, rel_x[:, me, o] / r, rel_y[:, me, o] / r, speed[:, o] / cfg.top_speed, adversary]
         out = np.stack(feats, axis=3, dtype=np.float32) * known[..., None]
         return out.reshape(len(observed), n, -1)
 

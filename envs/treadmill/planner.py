@@ -131,7 +131,7 @@ def sensed(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Known:
         x=x[..., None] + slots[..., 1] * cfg.sensor_range,
         y=y[..., None] + slots[..., 2] * cfg.sensor_range,
         heading=np.argmax(slots[..., 3 : 3 + N_HEADINGS], axis=-1),
-        speed=np.rint(slots[..., 3 + N_HEADINGS] * cfg.max_speed),
+        speed=np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed),
         adversary=np.where(seen, p.p_adversary, 0.0),
         unseen=np.ones(x.shape),
     )
@@ -216,7 +216,7 @@ def heard_known(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Know
         x=np.concatenate([own.x, rx], axis=-1),
         y=np.concatenate([own.y, ry], axis=-1),
         heading=np.concatenate([own.heading, rh], axis=-1),
-        speed=np.concatenate([own.speed, np.full(rx.shape, float(cfg.max_speed))], axis=-1),
+        speed=np.concatenate([own.speed, np.full(rx.shape, float(cfg.top_speed))], axis=-1),
         adversary=np.concatenate(
             [np.where(reported, p.p_reported, own.adversary), np.where(new, p.p_reported, 0.0)], axis=-1
         ),
