@@ -8,7 +8,7 @@ OUT    ?= runs/demo
 # test processes: two share a 2-core box well (many tests wait on services and child processes); files stay whole
 WORKERS ?= 2
 
-.PHONY: run run-distributed serve demo test test-fast lint bench clean
+.PHONY: run run-distributed serve demo test test-fast docs-check lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	BIN=$(BIN) .ci/typecheck
+	BIN=$(BIN) .ci/typecheck --tests
 
 test: lint
 	@echo "make test: the dashboard tests need chromium on PATH and the multi-host test ip netns as root;"
@@ -55,6 +56,11 @@ test: lint
 
 test-fast: $(STAMP)
 	$(BIN)/pytest -n $(WORKERS) --dist loadfile -m "not slow" -q
+
+# the documented outputs whose commands take minutes (README's make run, the service guide's session) at the budgets
+# the docs show, held against the docs (tests/test_docs_output.py); make test checks them at small budgets
+docs-check: $(STAMP)
+	CONVOY_DOCS_BUDGET=1 $(BIN)/pytest -m docs_budget -q
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'

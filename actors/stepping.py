@@ -11,9 +11,11 @@ each run's own episodes.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
-from convoy.algos.algorithm import ActOutput, Agent
+from convoy.algos.algorithm import ActOutput, Agent, Population
 from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
 from convoy.transition import ENV_MAJOR, record
 
@@ -39,7 +41,8 @@ class EnvStepper:
         else:
             if b % self.runs:
                 raise ValueError(f"num_envs: {b} envs do not split evenly among the population's {self.runs} runs")
-            per_run = [env_seeds(s, b // self.runs) for s in algo.seeds]  # type: ignore[attr-defined]
+            seeds = cast(Population, algo).seeds  # it has runs: a population, one seed per run
+            per_run = [env_seeds(s, b // self.runs) for s in seeds]
             self.obs = env.reset(seed=np.concatenate(per_run))
         self.run_of_env = np.repeat(np.arange(self.runs or 1), b // (self.runs or 1))
         self.state = algo.initial_state(b // (self.runs or 1))

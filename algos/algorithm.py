@@ -13,9 +13,9 @@ from __future__ import annotations
 import copy
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, NamedTuple, Protocol
+from typing import Any, ClassVar, NamedTuple, Protocol, overload
 
 import numpy as np
 import torch
@@ -65,7 +65,7 @@ class Loss(NamedTuple):
     extra: Tensor | None = None  # a scalar, or [R]
     stats: dict[str, float | Tensor] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
 
-    def plus(self, extra: Tensor | None, stats: dict[str, float]) -> Loss:
+    def plus(self, extra: Tensor | None, stats: Mapping[str, float | Tensor]) -> Loss:
         """This loss with one more auxiliary term and its figures."""
         total = self.extra if extra is None else extra if self.extra is None else self.extra + extra
         return Loss(self.agents, total, {**self.stats, **stats})
@@ -75,12 +75,13 @@ class Agent(Protocol):
     """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
 
     spec: EnvSpec
-    cfg: AlgoConfig
     device: torch.device
     progress: Progress
     updates: int
     chunk_len: int
 
+    @property
+    def cfg(self) -> AlgoConfig: ...  # read-only here, so an algorithm's own config class (MeSNConfig, …) fits
     @property
     def name(self) -> str: ...  # the registry's name (a class constant; the hierarchical wrapper's is per instance)
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput: ...
@@ -321,7 +322,7 @@ class NetworkAgent(ABC):
                 torch.manual_seed(s)
                 per_run.append(nn.ModuleDict(self.build()))
         online = per_run[0] if self.runs is None else stack_runs(per_run)
-        self.online: nn.ModuleDict = online.to(self.device)  # type: ignore[assignment]
+        self.online: nn.ModuleDict = online.to(self.device)
         self.target: nn.ModuleDict = copy.deepcopy(self.online)
         self.target.requires_grad_(False)
         # ``policy_ema`` < 1: the Polyak average of the online weights that evaluation acts with (``evaluated``)
@@ -732,8 +733,12 @@ class RunAdam(torch.optim.Optimizer):
         """Each run's rate ``fraction`` of the way to its end rate, computed on the device (no host copy)."""
         torch.add(self.start, self.span, alpha=fraction, out=self.lrs)
 
+    @overload
+    def step(self, closure: None = None) -> None: ...
+    @overload
+    def step(self, closure: Callable[[], float]) -> float: ...
     @torch.no_grad()
-    def step(self, closure: Callable[[], float] | None = None) -> float | None:  # type: ignore[override]
+    def step(self, closure: Callable[[], float] | None = None) -> float | None:  # the closure is never called
         for group in self.param_groups:
             b1, b2 = group["betas"]
             for p in group["params"]:
@@ -757,7 +762,7 @@ def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:
     """Each run's gradient clipped to its own global norm (``clip_grad_norm_`` per run); the norms ``[R]``."""
     grads = [p.grad for p in params if p.grad is not None]
     norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
-    total = torch.linalg.vector_norm(norms, dim=0)  # [R]
+    total: Tensor = torch.linalg.vector_norm(norms, dim=0)  # [R]
     coef = (max_norm / (total + 1e-6)).clamp(max=1.0)
     for g in grads:
         g.mul_(coef.reshape(-1, *([1] * (g.dim() - 1))))

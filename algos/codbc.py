@@ -68,7 +68,8 @@ class CoDBC(NetworkAgent):
         return self._teacher
 
     def logits(self, obs: Tensor) -> Tensor:
-        return self.online["policy"](with_agent_id(obs, self.shared)).masked_fill(~self.action_mask, NEG)
+        logits: Tensor = self.online["policy"](with_agent_id(obs, self.shared))  # torch leaves a module call untyped
+        return logits.masked_fill(~self.action_mask, NEG)
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.logits(obs), None, None

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -174,8 +174,8 @@ class DIAL(NetworkAgent):
         if self.runs is None and due:
             self.sync_target()
             self.synced_at = self.episodes_done
-        elif self.runs is not None and due.any():  # type: ignore[union-attr]
-            self.sync_runs(due)  # type: ignore[arg-type]
+        elif self.runs is not None and isinstance(due, np.ndarray) and due.any():  # a population's: per run [R]
+            self.sync_runs(due)
             self.synced_at = np.where(due, self.episodes_done, self.synced_at)
         self.last_chunk_rows = ended.shape[0] * ended.shape[-1]
         if self.cfg.replay:
@@ -293,8 +293,9 @@ class DIAL(NetworkAgent):
         return {**counts, "dru_rng": self.torch_rngs[k].get_state()}
 
     def load_member_extra(self, k: int, state: dict[str, Any]) -> None:
-        self.episodes_done[k] = int(state["episodes_done"])  # type: ignore[index]
-        self.synced_at[k] = int(state["synced_at"])  # type: ignore[index]
+        done, synced = cast(np.ndarray, self.episodes_done), cast(np.ndarray, self.synced_at)  # a population's: [R]
+        done[k] = int(state["episodes_done"])
+        synced[k] = int(state["synced_at"])
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)

@@ -105,7 +105,7 @@ class EntityEncoder(nn.Module):
 
     def tokens(self, x: Tensor) -> Tensor:
         """Every car's token ``[..., T, N, F]`` (agents on dim −2, as ``GroupLinear`` reads them)."""
-        picked = x.index_select(-1, self.index).unflatten(-1, tuple(self.scale.shape))  # [..., N, T, F]
+        picked: Tensor = x.index_select(-1, self.index).unflatten(-1, tuple(self.scale.shape))  # [..., N, T, F]
         return (picked * self.scale).transpose(-3, -2)
 
     def forward(self, x: Tensor) -> Tensor:

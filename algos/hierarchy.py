@@ -112,10 +112,12 @@ class GoalCritic:
         return (obs[..., LATERAL] + 1.0) * self.half_width
 
     def speed(self, obs: np.ndarray) -> np.ndarray:
-        return np.rint(obs[..., SPEED] * self.max_speed).astype(np.int64)
+        speed: np.ndarray = np.rint(obs[..., SPEED] * self.max_speed).astype(np.int64)  # numpy leaves obs[...] untyped
+        return speed
 
     def heading(self, obs: np.ndarray) -> np.ndarray:
-        return np.argmax(obs[..., HEADING], axis=-1)
+        heading: np.ndarray = np.argmax(obs[..., HEADING], axis=-1)
+        return heading
 
     def reached(self, goal: np.ndarray, anchor: np.ndarray, obs: np.ndarray) -> np.ndarray:
         """``[..., N]`` bool: goal ``[..., N]`` met by ``obs [..., N, D]`` relative to ``anchor [..., N, D]``."""
@@ -388,7 +390,7 @@ class HierarchicalAgent:
         messages = st.messages
         if mo.messages is not None:
             fits = messages is not None and messages.shape == mo.messages.shape
-            messages = messages.copy() if fits else np.zeros_like(mo.messages)  # type: ignore[union-attr]
+            messages = messages.copy() if messages is not None and fits else np.zeros_like(mo.messages)
             messages[new] = mo.messages[new]
         extras = {META_PREFIX + k: v for k, v in mo.extras.items()}  # read where an option starts
         co = self.controller.act(self.controller_input(obs, goal), np.repeat(eps, n, axis=-1), None)

@@ -95,16 +95,18 @@ class IMS(NetworkAgent):
             "head": GroupLinear(groups, width, self.n_act),
         }
 
-    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+    def forward(
+        self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Q-values ``[..., N, A]`` and the first round's messages ``[..., N, bits]``; ``received``
         (``[..., N, bits]``) overrides the averaged message every agent hears, in every round (for channel models,
         white-noise probes and memory modules)."""
         h0 = F.relu(nets["encoder"](with_agent_id(obs, self.shared)))
-        h, first = h0, None
-        for _ in range(self.rounds):  # P rounds; agents and batch stay vectorised inside each
-            h, sent = nets["comm"](h, h0, train, received, self.rand_like)
-            first = sent if first is None else first
-        return nets["head"](h), first
+        h, first = nets["comm"](h0, h0, train, received, self.rand_like)  # round 1 (P ≥ 1): the messages acting reports
+        for _ in range(self.rounds - 1):  # P rounds; agents and batch stay vectorised inside each
+            h, _ = nets["comm"](h, h0, train, received, self.rand_like)
+        q: Tensor = nets["head"](h)  # torch leaves a module call untyped
+        return q, first
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, None]:
         q, first = self.forward(self.online, obs, train=False)

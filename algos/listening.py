@@ -29,7 +29,7 @@ same trained policy with and without its memory, for the channel-robustness comp
 
 from __future__ import annotations
 
-from typing import Any, Literal, get_args
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 import numpy as np
 import torch
@@ -38,6 +38,12 @@ from torch import Tensor, nn
 from convoy.config import MessageSource
 from convoy.envs.channel import MessageChannel
 from convoy.validation import ConfigError
+
+if TYPE_CHECKING:  # the mixin sits on a NetworkAgent: the checker reads it as one, at run time it is a plain class
+    from convoy.algos.algorithm import NetworkAgent as _OnAgent
+    from convoy.config import BoNConfig, MeSNConfig
+else:
+    _OnAgent = object
 
 Source = MessageSource
 SOURCES: tuple[str, ...] = get_args(Source)
@@ -127,7 +133,7 @@ class Listening:
             self.channel.reset(np.flatnonzero(done))
 
 
-class HearsMessages:
+class HearsMessages(_OnAgent):
     """Mixin for algorithms whose policies read discrete messages laid out ``[..., N, senders·bits]``.
 
     The algorithm provides ``speak`` (observations → id-augmented inputs, messages sent, messages heard) and
@@ -137,17 +143,14 @@ class HearsMessages:
 
     listening: Listening | None = None
     senders: int  # messages each agent hears per step (MA-MeSN: N − 1 peers, MA-BoN: 1 broadcast)
-    online: nn.ModuleDict  # the algorithm's networks (the mixin sits on a NetworkAgent)
-    evaluated: nn.ModuleDict  # the weights it is judged by (NetworkAgent.evaluated)
-    cfg: Any  # a config with ``channel_control`` (MeSNConfig, BoNConfig)
-    runs: int | None
+    cfg: MeSNConfig | BoNConfig  # a config with ``channel_control``
     bits: int
 
     def reset_state(self, state: Any, done: np.ndarray) -> Any:
         """Also forget the channel's in-flight messages of envs whose episode ended (latency)."""
         if self.listening is not None:
             self.listening.reset(done)
-        return super().reset_state(state, done)  # type: ignore[misc]
+        return super().reset_state(state, done)
 
     def control(self, heard: Tensor) -> Tensor:
         """What listeners hear under ``channel_control`` (in training and at execution): the messages, zeros
@@ -156,7 +159,7 @@ class HearsMessages:
         if how == "cut":
             return torch.zeros_like(heard)
         if how == "noise":
-            return (self.rand_like(heard) < 0.5).to(heard.dtype)  # type: ignore[attr-defined]
+            return (self.rand_like(heard) < 0.5).to(heard.dtype)
         return heard
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

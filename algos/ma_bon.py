@@ -67,7 +67,8 @@ class MABoN(HearsMessages, NetworkAgent):
         """f′: the broadcast's logits ``[..., 1, 2·bits]`` of each env from all its agents' encodings."""
         e = F.relu(nets["encoder"](with_agent_id(obs, self.use_id)))  # [..., N, enc]
         joint = e.reshape(*e.shape[:-2], 1, e.shape[-2] * e.shape[-1])  # [..., 1, N·enc]
-        return nets["message"](joint)
+        logits: Tensor = nets["message"](joint)  # torch leaves a module call untyped
+        return logits
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, ``bm`` per agent ``[..., N, bits]``, what each hears: the same ``bm``)."""
@@ -78,9 +79,12 @@ class MABoN(HearsMessages, NetworkAgent):
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
         """g′: every agent's Q-values ``[..., N, A]`` in one call."""
-        return nets["policy"](torch.cat([x, heard], dim=-1))
+        q: Tensor = nets["policy"](torch.cat([x, heard], dim=-1))
+        return q
 
-    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+    def forward(
+        self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Q-values ``[..., N, A]`` and ``bm`` per agent ``[..., N, bits]``; ``received`` (``[..., N, bits]``)
         overrides what each agent hears (for channel models, white-noise probes and memory modules)."""
         x, sent, heard = self.speak(nets, obs, train)

@@ -53,7 +53,8 @@ class MAMeSN(HearsMessages, NetworkAgent):
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:
         """f′: every agent's message logits ``[..., N, 2·bits]`` from its own observation."""
-        return nets["message"](with_agent_id(obs, self.shared))
+        logits: Tensor = nets["message"](with_agent_id(obs, self.shared))  # torch leaves a module call untyped
+        return logits
 
     def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]:
         """(id-augmented inputs, every agent's message ``[..., N, bits]``, what each hears ``[..., N, (N−1)·bits]``)."""
@@ -62,9 +63,12 @@ class MAMeSN(HearsMessages, NetworkAgent):
 
     def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor:
         """f″: Q-values ``[..., N, A]`` from each agent's own input and the messages it heard."""
-        return nets["policy"](torch.cat([x, heard], dim=-1))
+        q: Tensor = nets["policy"](torch.cat([x, heard], dim=-1))
+        return q
 
-    def forward(self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None) -> tuple:
+    def forward(
+        self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Q-values ``[..., N, A]`` and the messages sent; ``received`` overrides what each agent hears
         (``[..., N, (N−1)·bits]``: for channel models, white-noise probes and memory modules)."""
         x, sent, heard = self.speak(nets, obs, train)

@@ -26,7 +26,7 @@ appended when shared), all agents in one batched call.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -34,6 +34,25 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from convoy.algos.nets import GroupLinear, id_width, with_agent_id
+
+if TYPE_CHECKING:
+    from convoy.algos.algorithm import Batch, Loss
+    from convoy.algos.listening import HearsMessages
+    from convoy.config import BoNMMConfig, MeSNMMConfig
+
+    class _Speaker(HearsMessages):
+        """What the mixin sits on, as the type checker reads it (at run time it is a plain class): a message-passing
+        algorithm, MA-MeSN or MA-BoN, with its networks, loss, ``speak``, ``listen`` and ``forward``."""
+
+        def build(self) -> dict[str, nn.Module]: ...
+        def loss(self, batch: Batch) -> Loss: ...
+        def speak(self, nets: nn.ModuleDict, obs: Tensor, train: bool) -> tuple[Tensor, Tensor, Tensor]: ...
+        def listen(self, nets: nn.ModuleDict, x: Tensor, heard: Tensor) -> Tensor: ...
+        def forward(
+            self, nets: nn.ModuleDict, obs: Tensor, train: bool, received: Tensor | None = None
+        ) -> tuple[Tensor, Tensor]: ...
+else:
+    _Speaker = object
 
 HISTORY = "history"
 
@@ -73,7 +92,8 @@ class GroupLSTM(nn.Module):
         if self.groups == 1:
             flat = seq.permute(0, 2, 1, 3).reshape(m * n, steps, width)  # every agent's window is a sequence
             _, (h, _) = self.lstm(flat)
-            return self.head(h[-1].reshape(m, n, self.hidden))
+            last: Tensor = self.head(h[-1].reshape(m, n, self.hidden))  # torch leaves a module call untyped
+            return last
         gates_in = self.inp(seq)  # every step's input projection in one call
         h = seq.new_zeros(m, n, self.hidden)
         c = torch.zeros_like(h)
@@ -81,7 +101,8 @@ class GroupLSTM(nn.Module):
             i, f, g, o = (gates_in[:, t] + self.rec(h)).chunk(4, dim=-1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
             h = torch.sigmoid(o) * torch.tanh(c)
-        return self.head(h)
+        out: Tensor = self.head(h)
+        return out
 
     def _forward_runs(self, seq: Tensor) -> Tensor:
         """A population's windows ``[R, M, L, N, in]`` → ``[R, M, N, out]``: the grouped cell stepped by hand; with
@@ -113,26 +134,17 @@ class GroupLSTM(nn.Module):
             i, f, g, o = (gates_in[:, :, t] + rec(h)).chunk(4, dim=-1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
             h = torch.sigmoid(o) * torch.tanh(c)
-        return self.head(h)
+        out: Tensor = self.head(h)
+        return out
 
 
-class MemoryModule:
+class MemoryModule(_Speaker):
     """Mixin: put it before a ``HearsMessages`` algorithm, e.g. ``class MAMeSNMM(MemoryModule, MAMeSN)``."""
 
-    # provided by the algorithm it is mixed into
-    cfg: Any
-    online: nn.ModuleDict
-    device: torch.device
-    shared: bool
-    runs: int | None
-    n_agents: int
-    obs_dim: int
-    senders: int
-    bits: int
-    listening: Any
+    cfg: MeSNMMConfig | BoNMMConfig  # the rest (networks, device, sizes, ``listening``) the algorithm provides
 
     def build(self) -> dict[str, nn.Module]:
-        nets = super().build()  # type: ignore[misc]
+        nets = super().build()
         self.window = int(self.cfg.memory_window)
         groups = 1 if self.shared else self.n_agents
         width = self.obs_dim + 1 + id_width(self.n_agents, self.shared)
@@ -145,7 +157,7 @@ class MemoryModule:
         return torch.zeros(*runs, num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
 
     def reset_state(self, state: Tensor, done: np.ndarray) -> Tensor:
-        state = super().reset_state(state, done)  # type: ignore[misc]  # the channel's in-flight messages
+        state = super().reset_state(state, done)  # the channel's in-flight messages
         if not done.any():
             return state
         state = state.clone()
@@ -161,28 +173,29 @@ class MemoryModule:
 
     def predict(self, nets: nn.ModuleDict, window: Tensor) -> Tensor:
         """Bit logits ``[M, N, senders·bits]`` of the messages each agent will hear, from its own window."""
-        return nets["memory"](with_agent_id(window.float(), self.shared))
+        logits: Tensor = nets["memory"](with_agent_id(window.float(), self.shared))
+        return logits
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, Tensor]:
         window = self.push(state, obs)
-        x, sent, heard = self.speak(self.online, obs, False)  # type: ignore[attr-defined]
+        x, sent, heard = self.speak(self.online, obs, False)
         predicted = None
         if self.listening is not None and self.listening.needs_prediction:
             predicted = (self.predict(self.online, window) > 0).to(heard.dtype)
-        q = self.listen(self.online, x, self.hear(heard.contiguous(), predicted))  # type: ignore[attr-defined]
+        q = self.listen(self.online, x, self.hear(heard.contiguous(), predicted))
         return q, sent.contiguous(), window
 
     def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
-        extra = super().extras(obs, state)  # type: ignore[misc]
+        extra = super().extras(obs, state)
         if state is not None:
             extra[HISTORY] = state.to(torch.float16).cpu().numpy()
         return extra
 
     # --- learning: supervised, in parallel with the TD losses ---------------------------------------------------
-    def loss(self, batch: dict[str, Tensor]) -> Any:
+    def loss(self, batch: Batch) -> Loss:
         """The algorithm's own loss, plus the memory module's on the same batch: predict the messages each agent
         hears from its own observation window (no gradient of it reaches the message or policy networks)."""
-        return super().loss(batch).plus(*self.memory_loss(batch))  # type: ignore[misc]
+        return super().loss(batch).plus(*self.memory_loss(batch))
 
     def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """``memory_coef`` × the BCE of the predicted bits against the messages each agent truly hears, and the
@@ -191,7 +204,7 @@ class MemoryModule:
             raise KeyError(f"{type(self).__name__} needs '{HISTORY}' in its transitions: collect them with its act()")
         logits = self.predict(self.online, batch[HISTORY])
         with torch.no_grad():
-            _, _, heard = self.speak(self.online, batch["obs"], False)  # type: ignore[attr-defined]
+            _, _, heard = self.speak(self.online, batch["obs"], False)
             target = heard.reshape(logits.shape)
         per_run = tuple(range(1 if self.runs else 0, logits.dim()))  # a population's figures are per run
         bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none").mean(dim=per_run)

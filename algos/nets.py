@@ -12,7 +12,7 @@ import copy
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 import torch.nn.functional as F
@@ -79,7 +79,10 @@ class GroupLinear(nn.Module):
         return n
 
 
-def stack_runs(modules: Sequence[nn.Module]) -> nn.Module:
+M = TypeVar("M", bound=nn.Module)
+
+
+def stack_runs(modules: Sequence[M]) -> M:
     """One module holding R = len(modules) runs of the same architecture: every ``GroupLinear``'s weights stacked on
     a leading run axis, so run k computes exactly what ``modules[k]`` computes, all runs in one batched call.
 
@@ -130,7 +133,8 @@ class GroupMLP(nn.Module):
             if self.norm:
                 x = F.layer_norm(x, x.shape[-1:])
             x = torch.relu(x)
-        return self.layers[-1](x)
+        out: Tensor = self.layers[-1](x)  # torch leaves a module call untyped
+        return out
 
 
 def with_agent_id(x: Tensor, shared: bool) -> Tensor:

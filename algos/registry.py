@@ -14,7 +14,8 @@ from convoy.envs.batched import EnvSpec
 
 def algorithm_class(name: str) -> type[NetworkAgent]:
     module, _, attr = ALGORITHMS[algo_name(name)].impl.partition(":")
-    return getattr(importlib.import_module(module), attr)
+    cls: type[NetworkAgent] = getattr(importlib.import_module(module), attr)  # the table names a NetworkAgent
+    return cls
 
 
 def make_algorithm(

@@ -15,6 +15,8 @@ from that run's own stream, over that run's own rows, exactly as its single run'
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import numpy as np
 
 
@@ -112,21 +114,22 @@ class JointReplay:
         ``rng[k]`` exactly as a single run's buffer would draw them."""
         if len(self) == 0:
             raise ValueError("sample() from an empty replay buffer")
-        if self.runs is None:
-            idx = rng.integers(0, int(self._size), size=n)  # type: ignore[union-attr]
+        if self.runs is None:  # a single run is given its one stream, a population one per run
+            idx = cast(np.random.Generator, rng).integers(0, int(self._size), size=n)
             return {k: v[idx] for k, v in self._data.items()}
-        idx = np.stack([g.integers(0, size, size=n) for g, size in zip(rng, self._size.tolist(), strict=True)])  # type: ignore[arg-type]
+        gens = cast(list[np.random.Generator], rng)
+        idx = np.stack([g.integers(0, size, size=n) for g, size in zip(gens, self._size.tolist(), strict=True)])
         run = np.arange(self.runs)[:, None]
         return {k: v[run, idx] for k, v in self._data.items()}
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         """Contents for a full checkpoint (only the filled part; a population's up to its fullest run's size)."""
         top = int(self._size.max(initial=0))
         filled = np.s_[:top] if self.runs is None else np.s_[:, :top]
         return {"data": {k: v[filled].copy() for k, v in self._data.items()}, "next": self._next.copy(),
                 "size": self._size.copy()}  # fmt: skip
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict[str, Any]) -> None:
         """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length)."""
         self._data = {}
         self._next = np.zeros(self.runs or (), dtype=np.int64)

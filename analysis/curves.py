@@ -18,7 +18,9 @@ def plot_groups(
     ylabel: str = "greedy return",
 ) -> Path:
     """A PNG of each group's ``curve`` (``env_steps``, ``mean``, ``ci95``) as a line with a shaded band, and each
-    reference return as a dashed horizontal line."""
+    reference return as a dashed horizontal line. A group's ``bounds`` (the returns its env allows: a success rate's
+    [0, 1]) clip its band: a t-interval over few seeds runs past them (−0.3 to 1.5 on a success rate), and no
+    return lies there."""
     plt = pyplot()
     import numpy as np
 
@@ -33,7 +35,8 @@ def plot_groups(
         ci = np.array([curve["ci95"][i] or 0.0 for i in keep], dtype=float)
         n = max(curve["n"][i] for i in keep)
         (line,) = ax.plot(x, y, label=f"{group['group']} (n={n})")
-        ax.fill_between(x, y - ci, y + ci, color=line.get_color(), alpha=0.2, linewidth=0)
+        low, high = band(y, ci, group.get("bounds"))
+        ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
     for i, (name, value) in enumerate((references or {}).items()):
         ax.axhline(value, color=f"C{7 + i % 3}", linestyle="--", linewidth=1, label=name)
     ax.set_xlabel(xlabel)
@@ -45,6 +48,16 @@ def plot_groups(
     else:  # a job that has not reached its first greedy evaluation yet
         ax.text(0.5, 0.5, "no greedy evaluation yet", ha="center", va="center", transform=ax.transAxes)
     return _save(fig, path)
+
+
+def band(mean: Any, ci: Any, bounds: Any = None) -> tuple[Any, Any]:
+    """The band ``mean ± ci``, clipped to ``bounds`` (lowest, highest) when given."""
+    import numpy as np
+
+    low, high = np.asarray(mean) - ci, np.asarray(mean) + ci
+    if bounds:
+        low, high = np.clip(low, *bounds), np.clip(high, *bounds)
+    return low, high
 
 
 def plot_final_by(

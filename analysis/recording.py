@@ -35,7 +35,7 @@ from torch import Tensor
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import Agent
 from convoy.algos.entity import EntityEncoder
-from convoy.algos.listening import HearsMessages, Listening
+from convoy.algos.listening import HearsMessages, Listening, Source
 from convoy.algos.memory import MemoryModule
 from convoy.analysis.comm_metrics import (
     MetricFigure,
@@ -193,9 +193,9 @@ def return_figures(
     messages (what a cut channel delivers), white noise (out of distribution) and, for memory modules, their
     predictions. Each control's note gives its paired difference from the true messages with a 95 % CI (the
     differences come back by source): the messages matter where true beats the in-distribution controls."""
-    sources = ["sent", "shuffled", "modal", "fixed", "noise"] + (
-        ["predicted"] if isinstance(algo, MemoryModule) else []
-    )
+    sources: list[Source] = ["sent", "shuffled", "modal", "fixed", "noise"]
+    if isinstance(algo, MemoryModule):
+        sources.append("predicted")
     names = {
         "sent": "Cumulative reward (true messages)",
         "shuffled": "Cumulative reward with messages shuffled across envs",
@@ -204,11 +204,12 @@ def return_figures(
         "noise": "Cumulative reward with white noise",
         "predicted": "Cumulative reward with predicted messages (no channel)",
     }
-    out, true, diffs = [], None, {}
+    out, true = [], None
+    diffs: dict[str, np.ndarray] = {}
     for i, src in enumerate(sources):
         if say is not None:
             say(f"return figures: {episodes} episodes with {src} messages ({i + 1}/{len(sources)})")
-        res = evaluate_policy(algo, env, episodes, seed=seed, messages=src)  # type: ignore[arg-type]
+        res = evaluate_policy(algo, env, episodes, seed=seed, messages=src)
         note = f"± {res.ci95:.2f} (95 % CI)"
         if true is None:
             true = res.returns

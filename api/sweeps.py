@@ -169,16 +169,21 @@ def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_s
 def summarize_group(
     name: str, members: list[tuple[str, dict[str, Any]]], reader: JobReader, threshold: float | None
 ) -> dict[str, Any]:
-    """One group: its jobs' states, the mean greedy curve ± CI at common steps, the final return (mean ± t-CI and
-    interquartile mean with a bootstrap CI), the area under each completed job's greedy curve, the threshold."""
+    """One group: its jobs' states, the mean greedy curve ± CI at common steps (and ``bounds``, the returns its env
+    allows, where the rules bound them), the final return (mean ± t-CI and interquartile mean with a bootstrap CI),
+    the area under each completed job's greedy curve, the threshold."""
+    from convoy.envs.registry import return_bounds  # the envs load on first use
+
     states: dict[str, int] = {}
     curves, finals, areas, reached_steps, reached_wall, jobs = [], [], [], [], [], []
+    bounds: tuple[float, float] | None = None
     for job_id, _ in members:
         try:
             rec = reader.get(job_id)
         except UnknownJob:
             continue  # deleted: the summary is of the jobs that remain
         jobs.append(job_id)
+        bounds = return_bounds(str(rec.config.get("env", "")))
         states[rec.state.value] = states.get(rec.state.value, 0) + 1
         final = rec.progress.get("final") if rec.state == JobState.completed else None
         rows = reader.metrics(job_id, names=["eval_return", "wall_s"])
@@ -199,6 +204,7 @@ def summarize_group(
         "jobs": jobs,
         "states": states,
         "curve": mean_curve(curves),
+        "bounds": list(bounds) if bounds else None,  # the returns the env allows: a plot's band stays within them
         "final": _mean_ci(finals),
         "iqm": iqm_ci(finals),
         "auc": _mean_ci([a for a in areas if a is not None]),

@@ -35,7 +35,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,6 +47,7 @@ from rich.table import Table  # noqa: E402
 from benchmarks.report import write_json  # noqa: E402
 from convoy.algos.agent import make_agent  # noqa: E402
 from convoy.algos.checkpoint import load_checkpoint  # noqa: E402
+from convoy.algos.listening import Source  # noqa: E402
 from convoy.analysis.evaluation import evaluate_policy  # noqa: E402
 from convoy.config import JobConfig, job_config  # noqa: E402
 from convoy.learner.inprocess import Trainer  # noqa: E402
@@ -73,7 +74,7 @@ def t_ci95(values: np.ndarray) -> float:
     return ci95_half(values, single=0.0)
 
 
-def train(job: JobConfig, out_dir: Path, eval_episodes: int, messages: str) -> tuple[list[tuple[int, float]], Any]:
+def train(job: JobConfig, out_dir: Path, eval_episodes: int, messages: Source) -> tuple[list[tuple[int, float]], Any]:
     """Train ``job`` in-process with a greedy evaluation (hearing ``messages``) at every metric row."""
     configure_learner(job.torch_threads)
     env, eval_env = make_env(job), make_env(job, min(eval_episodes, 256))
@@ -81,7 +82,7 @@ def train(job: JobConfig, out_dir: Path, eval_episodes: int, messages: str) -> t
     curve: list[tuple[int, float]] = []
 
     def on_row(steps: int) -> dict[str, float]:
-        ret = evaluate_policy(algo, eval_env, eval_episodes, seed=job.seed + 777, messages=messages).mean  # type: ignore[arg-type]
+        ret = evaluate_policy(algo, eval_env, eval_episodes, seed=job.seed + 777, messages=messages).mean
         curve.append((steps, ret))
         return {"eval_return": ret}
 
@@ -139,12 +140,12 @@ def main(argv: list[str] | None = None) -> int:
                 log_every=args.eval_every,
                 checkpoint_every=10**9,
             )
-            heard = "predicted" if method == "ma-mesn-mm" else "sent"
+            heard: Source = "predicted" if method == "ma-mesn-mm" else "sent"
             t0 = time.perf_counter()
             curve, algo = train(job, root / f"{method}-{seed}", args.eval_episodes, heard)
             wall = time.perf_counter() - t0
             final_env = make_env(job, min(args.final_episodes, 256))
-            final = evaluate_policy(algo, final_env, args.final_episodes, seed=10_000 + seed, messages=heard)  # type: ignore[arg-type]
+            final = evaluate_policy(algo, final_env, args.final_episodes, seed=10_000 + seed, messages=heard)
             random = evaluate_policy(algo, final_env, args.final_episodes, seed=10_000 + seed, epsilon=1.0)
             offset = args.steps if method == "codbc" else 0  # CoDBC starts once its teacher is trained
             runs.append(
@@ -171,7 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     plot(runs, Path(args.plot), args)
     console.print(f"wrote {args.plot} (total {time.perf_counter() - t_start:.0f} s)")
     if args.json:
-        data = {"settings": {"treadmill": TREADMILL, "hp": hp, "steps": args.steps, "seeds": args.seeds}}
+        data: dict[str, Any] = {
+            "settings": {"treadmill": TREADMILL, "hp": hp, "steps": args.steps, "seeds": args.seeds}
+        }
         data.update(runs=runs, channel=channel_rows, summary=summary)
         write_json(args.json, data)
     return 0
@@ -184,14 +187,18 @@ def channel_robustness(ckpt: Path, job: JobConfig, episodes: int, seed: int) -> 
     rows = []
     try:
         for drop in DROPS:
-            for fill, label in (("zeros", "ma-mesn"), ("predicted", "ma-mesn-mm")):
+            fills: tuple[tuple[Literal["zeros", "predicted"], str], ...] = (
+                ("zeros", "ma-mesn"),
+                ("predicted", "ma-mesn-mm"),
+            )
+            for fill, label in fills:
                 res = evaluate_policy(
                     algo,
                     env,
                     episodes,
                     seed=20_000 + seed,
                     channel=f"drop={drop}",
-                    fill_lost=fill,  # type: ignore[arg-type]
+                    fill_lost=fill,
                 )
                 rows.append({"seed": seed, "drop": drop, "method": label, "return": res.mean})
     finally:

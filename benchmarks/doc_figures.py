@@ -158,14 +158,19 @@ def learners(scores: dict[str, Any]) -> str:
     return markdown_table(header, rows, right) + "\n\n" + learner_comparisons(scores)
 
 
-def learner_comparisons(scores: dict[str, Any]) -> str:
-    """README and docs: the learner comparisons that ask whether teammates' knowledge pays, with Welch's test."""
+def learner_comparisons(scores: dict[str, Any], headline: bool = False) -> str:
+    """docs: the learner comparisons that ask whether teammates' knowledge pays, with Welch's test; the README's
+    ``headline`` keeps the studies of ≥ 15 seeds an arm and the latest comparison."""
     groups = scores["groups"]
+    chosen = scores["comparisons"]
+    if headline:
+        seeds = lambda c: min(len(groups[c["a"]]["last"]), len(groups[c["b"]]["last"]))  # noqa: E731
+        chosen = [c for c in chosen[:-1] if seeds(c) >= 15] + chosen[-1:]
     rows = [
         [f"{c['a']} vs {c['b']}", f"{groups[c['a']]['last_mean']:.1f} vs {groups[c['b']]['last_mean']:.1f}",
          f"{_signed(c['diff'])} [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]",
          f"{c['p']:.2f}" if c["p"] >= 0.01 else f"{c['p']:.1e}"]
-        for c in scores["comparisons"]
+        for c in chosen
     ]  # fmt: skip
     header = ["last policies, held out", "mean per agent", "difference (95 % CI)", "Welch p"]
     return markdown_table(header, rows, [False, True, True, True])
@@ -322,8 +327,8 @@ def _none_above_random(r: dict[str, Any]) -> bool:
     """Whether no group ends significantly above the random policy on its env (docs/reproduction.md's *above
     random?* column, the same test)."""
     tested = [(g["final"]["values"], (g.get("references") or r["references"] or {}).get("random")) for g in r["groups"]]
-    tested = [(values, ref) for values, ref in tested if ref is not None]
-    return bool(tested) and not any(significant(*p_above(values, float(ref))) for values, ref in tested)
+    known = [(values, ref) for values, ref in tested if ref is not None]
+    return bool(known) and not any(significant(*p_above(values, float(ref))) for values, ref in known)
 
 
 def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, Any]]) -> str:
@@ -478,6 +483,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "readme-summary": ((SEARCH, SCORES), readme_summary),
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
+    "treadmill-learner-headline": ((SCORES,), lambda scores: learner_comparisons(scores, headline=True)),
     "treadmill-causes": ((CAUSES,), causes),
     "treadmill-variants": ((VARIANTS,), variants),
     "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),

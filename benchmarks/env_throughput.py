@@ -150,7 +150,8 @@ def highway_case(controlled: int, seconds: float, seed: int) -> Case:
     config = HIGHWAY_MULTI_AGENT_CONFIG if controlled > 1 else {}
     env = gymnasium.make("highway-fast-v0", config=config)
     env.reset(seed=seed)
-    n_agents = len(env.unwrapped.controlled_vehicles)
+    highway: Any = env.unwrapped  # highway-env's own env class, with its controlled vehicles
+    n_agents = len(highway.controlled_vehicles)
     if n_agents != controlled:
         raise RuntimeError(f"highway-env built {n_agents} controlled vehicles, expected {controlled}")
     env.action_space.seed(seed)
@@ -245,7 +246,7 @@ def markdown_table(cases: list[Case], refs: dict[str, float | None]) -> str:
     right = [False, True, True, True, True, True, True]
     rows = []
     for c in cases:
-        ratios = [None if refs[k] is None else c.median / refs[k] for k in (HIGHWAY_KEY, MPE_KEY)]
+        ratios = [None if (ref := refs[k]) is None else c.median / ref for k in (HIGHWAY_KEY, MPE_KEY)]
         rows.append(
             [
                 c.label or c.name,
@@ -387,8 +388,8 @@ def main(argv: list[str] | None = None) -> int:
                     "n_agents": c.n_agents,
                     "agent_steps_per_s": {"median": c.median, "best": c.best, "all": c.rates},
                     "env_steps_per_s_median": c.env_steps,
-                    "ratio_vs_highway_4": None if refs[HIGHWAY_KEY] is None else c.median / refs[HIGHWAY_KEY],
-                    "ratio_vs_mpe2_speaker_listener": None if refs[MPE_KEY] is None else c.median / refs[MPE_KEY],
+                    "ratio_vs_highway_4": None if (highway := refs[HIGHWAY_KEY]) is None else c.median / highway,
+                    "ratio_vs_mpe2_speaker_listener": None if (mpe := refs[MPE_KEY]) is None else c.median / mpe,
                 }
                 for c in cases
             ],

@@ -54,7 +54,15 @@ from convoy.output import markdown_table  # noqa: E402
 from convoy.services.jobrunner import JobRunner  # noqa: E402
 from tests.multihost import Hosts, MultiHostJob, available  # noqa: E402
 from tests.service_fixture import AUTH, SMALL_JOB, Service  # noqa: E402
-from tests.test_runtime import TREADMILL, Background, shm_mappings, wait_for  # noqa: E402
+from tests.test_runtime import (  # noqa: E402
+    TREADMILL,
+    Background,
+    alive_of,
+    group_of,
+    learner_of,
+    shm_mappings,
+    wait_for,
+)
 
 MIB = 1024 * 1024
 
@@ -79,19 +87,28 @@ def part_churn(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, Any
     started, token = [], []
     with Background(runner):
         wait_for(lambda: steps(runner) > 1.5 * args.replay, 180, "the replay buffer to fill")
-        learner = runner.group.learner.proc.pid
+        learner = learner_of(runner).proc.pid
         before = {"rss_mib": rss_mib(learner), "shm": len(shm_mappings(learner))}
         t_first = time.monotonic()
         for kill in range(args.kills):
             at = steps(runner)
-            os.kill(runner.group.actors[0].proc.pid, signal.SIGKILL)
+            os.kill(group_of(runner).actors[0].proc.pid, signal.SIGKILL)
             t0 = time.monotonic()
-            back = lambda k=kill: 0 in runner.group.actors and runner.group.actors[0].generation == k + 1  # noqa: E731
+
+            def back(k: int = kill) -> bool:
+                return 0 in group_of(runner).actors and group_of(runner).actors[0].generation == k + 1
+
+            def announced(k: int = kill) -> bool:
+                return f"actor-0.{k + 1}" in alive_of(runner).ids("actor")
+
+            def fed(s: float = at) -> bool:
+                return steps(runner) > s + 2_000
+
             wait_for(back, 30, "the respawn", every=0.005)
             started.append(time.monotonic() - t0)
-            wait_for(lambda k=kill: f"actor-0.{k + 1}" in runner.alive.ids("actor"), 30, "the token", every=0.005)
+            wait_for(announced, 30, "the token", every=0.005)
             token.append(time.monotonic() - t0)
-            wait_for(lambda s=at: steps(runner) > s + 2_000, 60, "the new actor's data")
+            wait_for(fed, 60, "the new actor's data")
         after = {"rss_mib": rss_mib(learner), "shm": len(shm_mappings(learner))}
         churn_s = time.monotonic() - t_first
         time.sleep(churn_s)  # the control: as long again, with no kill
@@ -154,7 +171,7 @@ def part_learner_kill(args: argparse.Namespace, work: Path) -> tuple[str, dict[s
     with Background(runner) as bg:
         wait_for(lambda: steps(runner) > 50_000, 600, "50 k env steps")
         reported = steps(runner)
-        os.kill(runner.group.learner.proc.pid, signal.SIGKILL)
+        os.kill(learner_of(runner).proc.pid, signal.SIGKILL)
         t0 = time.monotonic()
         wait_for(lambda: bool(runner.resumes), 60, "the resume")
         resume_s = time.monotonic() - t0
@@ -200,7 +217,7 @@ def part_api_down(args: argparse.Namespace, work: Path) -> tuple[str, dict[str, 
     metrics = None
 
     def job_steps() -> float:
-        lines = metrics.read_text().splitlines() if metrics and metrics.exists() else []
+        lines: list[str] = metrics.read_text().splitlines() if metrics and metrics.exists() else []
         return json.loads(lines[-1])["env_steps"] if lines else 0.0
 
     try:

@@ -57,8 +57,8 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere
 from benchmarks.report import cpu_model  # noqa: E402
 from convoy.algos.algorithm import NetworkAgent  # noqa: E402
 from convoy.algos.nets import pick_device  # noqa: E402
-from convoy.algos.registry import ALGORITHMS, algorithm_class, make_algorithm  # noqa: E402
-from convoy.config import DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
+from convoy.algos.registry import algorithm_class, make_algorithm  # noqa: E402
+from convoy.config import ALGORITHMS, DEVICES, PAPER_TREADMILL_HIDDEN, paper_treadmill_hidden, resolve_algo  # noqa: E402
 from convoy.envs.registry import make_batched  # noqa: E402
 from convoy.output import markdown_table, pyplot, save_figure  # noqa: E402
 

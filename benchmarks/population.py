@@ -58,7 +58,8 @@ def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
     """Run ``commands``, as many at a time as there are ``slots`` (a command prefix each: a ``taskset`` pinning
     or nothing); wall seconds for all of them."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    pending, running, free = list(commands), [], list(slots)
+    pending, free = list(commands), list(slots)
+    running: list[tuple[subprocess.Popen[bytes], list[str]]] = []
     t0 = time.perf_counter()
     while pending or running:
         while pending and free:
@@ -71,7 +72,8 @@ def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
         for proc, slot in list(running):
             if proc.poll() is not None:
                 if proc.returncode:
-                    raise RuntimeError(f"{proc.args} failed:\n{proc.stderr.read().decode()[-2000:]}")
+                    err = proc.stderr.read().decode() if proc.stderr is not None else ""
+                    raise RuntimeError(f"{proc.args!r} failed:\n{err[-2000:]}")
                 running.remove((proc, slot))
                 free.append(slot)
     return time.perf_counter() - t0
@@ -182,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
             if not algorithm_class(algo).population:
                 table.add_row(algo, "–", "one seed per process", "", "", "", "", "")
                 continue
-            rows = figures["algos"][algo] = {"arithmetic": update_arithmetic(algo, peak)}
+            rows: dict[str | int, dict[str, Any]] = {"arithmetic": update_arithmetic(algo, peak)}
+            figures["algos"][algo] = rows
             for size in args.sizes:
                 run = training_throughput(algo, size, args.steps, cores, Path(tmp))
                 upd = update_cost(algo, size, len(cores))

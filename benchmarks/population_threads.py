@@ -25,6 +25,7 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 
 from benchmarks.population import filled  # noqa: E402
+from convoy.algos.algorithm import Agent  # noqa: E402
 
 
 def seconds_per_call(fn: Callable[[], object], seconds: float) -> float:
@@ -39,16 +40,18 @@ def seconds_per_call(fn: Callable[[], object], seconds: float) -> float:
 class Worker(threading.Thread):
     """Runs ``n`` updates of its agent per hand-off, in its own thread."""
 
-    def __init__(self, agent: object) -> None:
+    def __init__(self, agent: Agent) -> None:
         super().__init__(daemon=True)
-        self.agent, self.todo, self.done = agent, queue.Queue(), queue.Queue()
+        self.agent = agent
+        self.todo: queue.Queue[int] = queue.Queue()
+        self.done: queue.Queue[int] = queue.Queue()
         self.start()
 
     def run(self) -> None:
         while True:
             n = self.todo.get()
             for _ in range(n):
-                self.agent.update()  # type: ignore[attr-defined]
+                self.agent.update()
             self.done.put(n)
 
 

@@ -364,7 +364,9 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
     t0 = time.perf_counter()
     for i in range(n):
         inbox.offer(payloads[i % len(payloads)])
-        arrays = inbox.get().body["arrays"]
+        msg = inbox.get()
+        assert msg is not None
+        arrays = msg.body["arrays"]
         if set(arrays) != set(schema) or any(a.dtype.str != schema[k][0] for k, a in arrays.items()):
             raise RuntimeError("chunk does not match its own schema")
         arrays = dict(arrays)

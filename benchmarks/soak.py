@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.2)
         t_end = time.monotonic() + args.drain * 60
         while time.monotonic() < t_end:
-            states = svc.client.get("/healthz").json()["jobs"]
-            if not states.get("queued") and not states.get("starting") and not states.get("running"):
+            by_state = svc.client.get("/healthz").json()["jobs"]
+            if not by_state.get("queued") and not by_state.get("starting") and not by_state.get("running"):
                 break
             time.sleep(5)
         if svc.proc is not None:

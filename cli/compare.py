@@ -22,6 +22,7 @@ def load_group(path: Path) -> dict[str, Any]:
     """A run folder, or a population's (its ``seed-N`` runs as one group), as a group of seeds: the mean greedy
     curve with its CI, the final and best greedy returns over seeds, and the random reference."""
     from convoy.api.sweeps import greedy_curve
+    from convoy.envs.registry import return_bounds
     from convoy.learner.metrics import read_rows
     from convoy.stats import mean_ci, mean_curve
 
@@ -41,8 +42,9 @@ def load_group(path: Path) -> dict[str, Any]:
     def over(key: str) -> dict[str, Any]:
         return mean_ci([float(s[key]) for s in summaries if isinstance(s.get(key), int | float)])
 
-    return {"group": str(path), "runs": len(folders), "curve": mean_curve(curves), "final": over("eval_return"),
-            "best": over("best_eval_return"), "random": over("random_return"),
+    bounds = return_bounds(str(summaries[0].get("env", ""))) if summaries else None
+    return {"group": str(path), "runs": len(folders), "curve": mean_curve(curves), "bounds": bounds,
+            "final": over("eval_return"), "best": over("best_eval_return"), "random": over("random_return"),
             "steps": max((int(s.get("env_steps", 0)) for s in summaries), default=0)}  # fmt: skip
 
 

@@ -18,7 +18,8 @@ from typing import Annotated, Any, ClassVar, Literal, TypeVar, get_args
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from convoy.protocol.session import ZenohSettings
-from convoy.validation import ConfigError, build_config
+from convoy.validation import ConfigError as ConfigError  # re-exported: the API, learner and services import it here
+from convoy.validation import build_config
 
 Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
 Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a discount

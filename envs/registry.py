@@ -3,6 +3,7 @@ alike."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -23,22 +24,46 @@ class EnvEntry:
     parallel: Callable[..., ParallelEnv]  # (**params)
     summary: str
     config: Callable[[], type[BaseModel]]  # the pydantic model of its parameters (lazy: particle envs import mpe2)
-    # (params, episodes, seed) → {policy name: (mean return, 95 % CI)}: the hand-made policies a learner is judged
-    # against beside random (the treadmill: its best constant action and the scripted driver)
-    references: Callable[[dict[str, Any], int, int], dict[str, tuple[float, float]]] | None = None
+    # (params, episodes, seed, report=None) → {policy name: (mean return, 95 % CI)}: the hand-made policies a learner
+    # is judged against beside random (the treadmill: its best constant action, a tuned driver and the planners);
+    # ``report`` hears of each as it ends (``Report``)
+    references: Callable[..., dict[str, tuple[float, float]]] | None = None
+    # (lowest, highest) return an episode can have, where the rules bound it (the referential game's success rate):
+    # a mean's confidence band is drawn within them
+    return_bounds: tuple[float, float] | None = None
+
+
+# (k, of, name, (mean, 95 % CI), seconds): reference k of ``of`` has been played
+Report = Callable[[int, int, str, tuple[float, float], float], None]
 
 
 def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
     return TreadmillEngine(build_config(TreadmillConfig, **params), num_envs)
 
 
-def _treadmill_references(params: dict[str, Any], episodes: int, seed: int) -> dict[str, tuple[float, float]]:
-    from convoy.envs.treadmill.references import summary_references
+def _treadmill_references(
+    params: dict[str, Any], episodes: int, seed: int, report: Report | None = None
+) -> dict[str, tuple[float, float]]:
+    """``summary_references``; with ``report``, the same rollouts played one policy (the constant actions: one
+    group) at a time, each reported as it ends — the planners take most of the time, tens of seconds at 100
+    episodes."""
+    from convoy.envs.treadmill import references as refs
 
-    return summary_references(build_config(TreadmillConfig, **params), episodes, seed)
+    cfg = build_config(TreadmillConfig, **params)
+    if report is None:
+        return refs.summary_references(cfg, episodes, seed)
+    played: dict[str, Any] = {}
+    groups = [("random",), refs.CONSTANTS, ("private-driver",), *((name,) for name in refs.PLANNERS)]
+    for k, names in enumerate(groups, 1):
+        t0 = time.perf_counter()
+        played.update(refs.evaluate_references(cfg, episodes, seed, names=names))
+        name = refs.best_constant(played) if names == refs.CONSTANTS else names[0]
+        report(k, len(groups), name, played[name].ci95(), time.perf_counter() - t0)
+    best = refs.best_constant(played)  # what summary_references keeps (tests/test_train_cli.py holds them equal)
+    return {name: played[name].ci95() for name in ("random", best, "private-driver", *refs.PLANNERS)}
 
 
-def _particle(name: str, summary: str, config: str) -> EnvEntry:
+def _particle(name: str, summary: str, config: str, return_bounds: tuple[float, float] | None = None) -> EnvEntry:
     """Particle envs are imported on first use: mpe2 costs half a second and the treadmill never needs it."""
 
     def attr(attribute: str) -> Any:
@@ -52,6 +77,7 @@ def _particle(name: str, summary: str, config: str) -> EnvEntry:
         parallel=lambda *a, **kw: attr(f"make_{key}")(*a, **kw),
         summary=summary,
         config=lambda: attr(config),
+        return_bounds=return_bounds,
     )
 
 
@@ -70,7 +96,10 @@ ENVS: dict[str, EnvEntry] = {
         "speaker-listener", "mpe2 simple_speaker_listener, env channel removed", "SpeakerListenerConfig"
     ),
     "referential": _particle(
-        "referential", "referential game: listener picks the speaker's target (1 or more rounds)", "ReferentialConfig"
+        "referential",
+        "referential game: listener picks the speaker's target (1 or more rounds)",
+        "ReferentialConfig",
+        (0.0, 1.0),  # 1 when the listener's last guess is the target, else 0: a success rate
     ),
 }
 
@@ -81,6 +110,14 @@ def env_entry(name: str) -> EnvEntry:
     if key not in ENVS:
         raise ConfigError("env", f"unknown environment {name!r}; choose one of: {', '.join(ENVS)}")
     return ENVS[key]
+
+
+def return_bounds(name: str) -> tuple[float, float] | None:
+    """The returns env ``name`` allows, where its rules bound them (None: unbounded, or an unknown env)."""
+    try:
+        return env_entry(name).return_bounds
+    except ConfigError:
+        return None
 
 
 def make_batched(name: str, num_envs: int = 1, **params: Any) -> BatchedEnv:

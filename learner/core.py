@@ -70,13 +70,17 @@ class TrainingCore:
         counters: dict[str, Any] | None = None,
         replay_bytes: int = 0,
         keep_previous: bool = False,
+        say: Callable[[str], None] | None = None,
     ) -> None:
+        """``say``: where the final evaluation tells what it does, a line as each part ends (by default the
+        progress display's stdout when ``progress``, else nowhere)."""
         counters = counters or {}
         self.job, self.algo, self.cfg = job, algo, job.algo_config()
         if self.cfg.match_parameters is not None:  # the summary records the widths the network was built with
             self.cfg = self.cfg.model_copy(update={"hidden": getattr(algo, "cfg", self.cfg).hidden})
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.replay_bytes = replay_bytes
+        self.say = say if say is not None else (print_line if progress else None)
         self.keep_previous = keep_previous  # a population's run: the checkpoint before stays, as PREVIOUS_CHECKPOINT
         self.saved_at = -1  # the env step of the last checkpoint.pt this core wrote
         self.env_steps = int(counters.get("env_steps", 0))
@@ -211,7 +215,7 @@ class TrainingCore:
                 drop_replay(self.out_dir / REPLAY_FILE)
         wall = (time.perf_counter() if end is None else end) - self.t0
         try:
-            final = self.evaluator.final(self.algo)
+            final = self.evaluator.final(self.algo, say=self.say)
         finally:
             self.evaluator.close()
         tail = self.returns[-max(1, len(self.returns) // 10) :] if self.returns else [math.nan]
@@ -236,3 +240,7 @@ class TrainingCore:
             write_artefacts(self.out_dir, summary, self.log.rows, title=title)
         self._close_trackers(summary)
         return summary
+
+
+def print_line(line: str) -> None:
+    print(line, flush=True)

@@ -31,7 +31,7 @@ from convoy.algos.algorithm import Population, Progress
 from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
-from convoy.learner.core import TrainingCore, UpdateClock
+from convoy.learner.core import TrainingCore, UpdateClock, print_line
 from convoy.learner.inprocess import TrainResult
 
 
@@ -50,17 +50,28 @@ class PopulationCore:
         progress: bool = False,
         counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
         replay: tuple[Path, int] | None = None,
+        say: Callable[[str], None] | None = None,
     ) -> None:
         """``jobs[k]`` is run k's job (its seed ``algo.seeds[k]``); ``out_dirs[k]`` its folder; ``counters[k]``
         its checkpoint's counters when the population resumes; ``replay`` = (file, max bytes): the population's
-        replay is written there before each checkpoint, as ``TrainingCore`` writes a single run's."""
+        replay is written there before each checkpoint, as ``TrainingCore`` writes a single run's; ``say``: where
+        each run's final evaluation tells what it does, its lines headed by the run's seed (by default stdout
+        when ``progress``)."""
         if algo.runs != len(jobs) or [j.seed for j in jobs] != list(algo.seeds):
             raise ValueError("jobs: one job per run of the population, with the run's seed")
         self.jobs, self.algo = jobs, algo
         dirs = out_dirs or [None] * len(jobs)
+        say = say if say is not None else (print_line if progress else None)
         self.cores = [
             TrainingCore(
-                job, algo.member(k), out, make_eval_env, progress=progress and k == 0, counters=c, keep_previous=True
+                job,
+                algo.member(k),
+                out,
+                make_eval_env,
+                progress=progress and k == 0,
+                counters=c,
+                keep_previous=True,
+                say=_headed(say, f"seed {job.seed}: ") if say else None,
             )
             for k, (job, out, c) in enumerate(zip(jobs, dirs, counters or [None] * len(jobs), strict=True))
         ]
@@ -151,6 +162,10 @@ class PopulationCore:
             self.algo.member(k)
             summaries.append(core.finish(title(job), end=end, **extra))
         return summaries
+
+
+def _headed(say: Callable[[str], None], head: str) -> Callable[[str], None]:
+    return lambda line: say(head + line)
 
 
 def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:

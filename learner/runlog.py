@@ -172,19 +172,28 @@ class Evaluator:
                 self.save_best()
         return {"eval_return": mean, "eval_ci95": ci95_half(r, single=0.0)}
 
-    def final(self, algo: Any) -> dict[str, Any]:
+    def final(self, algo: Any, say: Callable[[str], None] | None = None) -> dict[str, Any]:
         """The trained policy's greedy return and CI, the best point of the curve and the reference policies'
         returns on the same number of episodes (the uniform random policy for every env, the same for every
-        algorithm; the treadmill adds its best constant action and its drivers)."""
+        algorithm; the treadmill adds its best constant action, a tuned driver and its planners). ``say``: where
+        a line goes as each part ends, when the env's references are slow enough to need them (the treadmill's
+        planners: tens of seconds at 100 episodes, after the last training step)."""
         if not self.enabled:
             nan = math.nan
             return {"eval_return": nan, "eval_ci95": nan, "random_return": nan, "references": {}}
         from convoy.envs.registry import env_entry
 
-        greedy = self.returns(algo)
         table = env_entry(self.env_name).references
+        say = say if table is not None else None
+        if say is not None:
+            say(f"final evaluation: the greedy policy, then the reference policies, {self.episodes:,} episodes each")
+        t0 = time.perf_counter()
+        greedy = self.returns(algo)
+        if say is not None:
+            shown = f"{float(greedy.mean()):.3f} ± {ci95_half(greedy, single=0.0):.3f}"
+            say(f"  greedy policy {shown} ({time.perf_counter() - t0:.1f} s)")
         if table is not None:  # the env's own references, its uniform random policy among them
-            refs = table(self.env_params, self.episodes, self.seed)
+            refs = table(self.env_params, self.episodes, self.seed, report=_reporter(say) if say else None)
         else:
             rand = evaluate_random(self._env, self.episodes, self.seed)  # type: ignore[arg-type]
             refs = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
@@ -201,6 +210,15 @@ class Evaluator:
     def close(self) -> None:
         if self._env is not None:
             self._env.close()
+
+
+def _reporter(say: Callable[[str], None]) -> Callable[[int, int, str, tuple[float, float], float], None]:
+    """A line per reference policy as it ends (``envs.registry.Report``)."""
+
+    def report(k: int, of: int, name: str, result: tuple[float, float], seconds: float) -> None:
+        say(f"  reference {k}/{of} {name} {result[0]:.3f} ± {result[1]:.3f} ({seconds:.1f} s)")
+
+    return report
 
 
 def write_artefacts(out_dir: str | Path, summary: dict[str, Any], rows: list[dict[str, Any]], title: str) -> None:

@@ -186,12 +186,14 @@ class Learner:
             return make_batched(job.env, n, **job.env_params)
 
         replay_bytes = job.runtime.replay_checkpoint_mb << 20
+        say = log.info  # the final evaluation's lines (the treadmill's references) in the host's log
         if job.runs:
             dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
             population = cast(Population, algo)  # a job with seeds builds one
             return PopulationCore(job.members(), population, dirs, make_eval_env, counters=counters or None,
-                                  replay=replay)  # fmt: skip
-        return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes)
+                                  replay=replay, say=say)  # fmt: skip
+        return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes,
+                            say=say)  # fmt: skip
 
     def _take(self, core: TrainingCore | PopulationCore, msg: wire.Message) -> str | None:
         """Chunk ``msg`` into the core (its transitions, steps and finished episodes), or why not (a drop reason)."""

@@ -33,7 +33,7 @@ class Inbox:
             return
         self.offer(payload)
 
-    def offer(self, payload: bytes) -> Message | None:
+    def offer(self, payload: bytes | bytearray | memoryview) -> Message | None:
         """Decode and queue ``payload``; returns the message, or None when it was dropped."""
         try:
             msg = decode(payload)

@@ -65,8 +65,9 @@ def alive_all(job: str) -> str:
     return f"{job_root(job)}/alive/**"
 
 
-def parse_alive(key: str) -> tuple[str, str, str] | None:
-    """``(job, role, id)`` of a liveliness key, or None for a key that is not one."""
+def parse_alive(key: object) -> tuple[str, str, str] | None:
+    """``(job, role, id)`` of a liveliness key (a str or a Zenoh key expression: its ``str``), or None for a key
+    that is not one."""
     parts = str(key).split("/")
     if len(parts) != 5 or parts[0] != PREFIX or parts[2] != "alive":
         return None

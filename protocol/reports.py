@@ -16,7 +16,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TextIO
 
 REPORTS_FILE = "reports.jsonl"
 EVENTS = ("exited", "crashed", "backoff", "respawned", "failed")  # a supervisor's events about its processes
@@ -116,14 +116,14 @@ class ReportHandler(logging.Handler):
             self.handleError(record)
 
 
-class _Stdout(logging.StreamHandler):
+class _Stdout(logging.StreamHandler[TextIO]):
     """A stream handler on whatever ``sys.stdout`` is when it writes (a process's log is its stdout; tests swap it)."""
 
     def __init__(self) -> None:
         super().__init__(sys.stdout)
 
     @property
-    def stream(self) -> Any:
+    def stream(self) -> TextIO:
         return sys.stdout
 
     @stream.setter

@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, SupportsFloat, SupportsIndex, TypeGuard
 
 import msgpack
 import numpy as np
@@ -67,7 +68,7 @@ def _default(obj: Any) -> Any:
             raise TypeError(f"array dtype {arr.dtype} is not sent on the wire; use one of {sorted(DTYPES)}")
         if arr.ndim > MAX_DIMS:
             raise TypeError(f"array with {arr.ndim} dims is not sent on the wire (at most {MAX_DIMS})")
-        raw = memoryview(arr).cast("B") if arr.size else b""  # type: ignore[arg-type]  # numpy arrays are buffers
+        raw = arr.data.cast("B") if arr.size else b""  # the array's own buffer (a memoryview), as bytes
         return msgpack.ExtType(ARRAY_EXT, msgpack.packb([arr.dtype.str, list(arr.shape), raw]))
     if isinstance(obj, np.generic):
         return obj.item()
@@ -107,11 +108,12 @@ def encode(kind: str, body: dict[str, Any], sender: str, seq: int = 0) -> bytes:
     validate(kind, body)
     if not isinstance(sender, str):
         raise WireError("bad-envelope", f"sender {sender!r} is not a str")
-    return msgpack.packb(
+    packed: bytes = msgpack.packb(
         {"v": VERSION, "kind": kind, "sender": sender, "seq": int(seq), "t": time.time(), "body": body},
         default=_default,
         use_bin_type=True,
     )
+    return packed
 
 
 def decode(data: bytes | bytearray | memoryview) -> Message:
@@ -132,15 +134,15 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
     if not isinstance(body, dict):
         raise WireError("bad-envelope", "body is not a map")
     validate(kind, body)
-    return Message(kind, sender, int(seq), float(t), body)  # type: ignore[arg-type]  # checked above
+    return Message(kind, sender, int(seq), float(t), body)
 
 
 # -------------------------------------------------------------------------------------------------- validation
-def _is_int(x: Any) -> bool:
+def _is_int(x: object) -> TypeGuard[int]:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
-def _is_num(x: Any) -> bool:
+def _is_num(x: object) -> TypeGuard[int | float]:
     return isinstance(x, int | float) and not isinstance(x, bool)
 
 
@@ -215,11 +217,12 @@ def validate(kind: str, body: dict[str, Any]) -> None:
 def chunk_body(
     arrays: dict[str, np.ndarray],
     actor: str,
-    policy_version: int,
-    env_steps: int,
-    returns: list[float],
-    return_runs: list[int] | None = None,
+    policy_version: SupportsIndex,
+    env_steps: SupportsIndex,
+    returns: Sequence[SupportsFloat],
+    return_runs: Sequence[SupportsIndex] | None = None,
 ) -> dict[str, Any]:
+    """A chunk's body; numpy scalars are taken and sent as plain ints and floats."""
     body = {
         "arrays": arrays,
         "actor": actor,
@@ -232,7 +235,7 @@ def chunk_body(
     return body
 
 
-def weights_body(version: int, algo: str, state: dict[str, np.ndarray]) -> dict[str, Any]:
+def weights_body(version: SupportsIndex, algo: str, state: dict[str, np.ndarray]) -> dict[str, Any]:
     return {"version": int(version), "algo": algo, "state": state}
 
 
@@ -248,7 +251,8 @@ def dropped_reasons(values: dict[str, float]) -> dict[str, int]:
     return out
 
 
-def metrics_body(role: str, ident: str, values: dict[str, float]) -> dict[str, Any]:
+def metrics_body(role: str, ident: str, values: Mapping[str, object]) -> dict[str, Any]:
+    """A metrics body of ``values``' numbers (numpy's too, sent as floats); anything else is left out."""
     return {
         "role": role,
         "id": ident,

@@ -7,11 +7,14 @@ a module in ``SLOW_MODULES``, and tests marked ``@pytest.mark.slow`` in the othe
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 
 import pytest
 import torch
+from torch import Tensor, nn
 
+from convoy.algos.algorithm import Agent
 from convoy.envs.batched import EnvSpec
 
 SLOW_MODULES = {
@@ -35,12 +38,24 @@ SLOW_MODULES = {
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "slow: starts processes, servers or a browser, or trains (not in test-fast)")
+    config.addinivalue_line(
+        "markers",
+        "docs_budget(budget): runs a documented command at the budget the docs show (minutes, said in `budget`); "
+        "skipped unless CONVOY_DOCS_BUDGET=1 (make docs-check)",
+    )
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
+        module = getattr(item, "module", None)  # a test function's module (pytest.Item does not declare it)
+        if module is not None and module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+        budget = item.get_closest_marker("docs_budget")
+        if budget is not None:
+            item.add_marker(pytest.mark.slow)
+            if os.environ.get("CONVOY_DOCS_BUDGET") != "1":
+                reason = f"at the documented budget ({budget.args[0]}): CONVOY_DOCS_BUDGET=1 (make docs-check)"
+                item.add_marker(pytest.mark.skip(reason=reason))
 
 
 @pytest.fixture
@@ -62,3 +77,24 @@ def synthetic_spec(n_agents: int = 3, obs_dim: int = 5, n_actions: int = 3) -> E
         n_actions=(n_actions,) * n_agents,
         max_steps=10,
     )
+
+
+def grad(module: nn.Module, name: str) -> Tensor:
+    """The gradient of ``module``'s parameter ``name`` (dotted, as ``named_parameters`` says), which must have one."""
+    g = module.get_parameter(name).grad
+    assert g is not None, f"no gradient reached {name}"
+    return g
+
+
+def single_update(algo: Agent) -> dict[str, float]:
+    """``algo.update()`` of a single run: its one dict of figures (a population's update returns one per run)."""
+    figures = algo.update()
+    assert isinstance(figures, dict), "a population's update: one dict per run"
+    return figures
+
+
+def population_update(algo: Agent) -> list[dict[str, float]]:
+    """``algo.update()`` of a population: one dict of figures per run."""
+    figures = algo.update()
+    assert isinstance(figures, list), "a single run's update: one dict"
+    return figures

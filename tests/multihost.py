@@ -52,7 +52,9 @@ class Hosts:
     def __init__(self, names: list[str]) -> None:
         self.tag = f"cvy{secrets.token_hex(2)}"
         self.net = secrets.randbelow(200) + 20
-        self.names, self.ns, self.addr = names, {}, {}
+        self.names = names
+        self.ns: dict[str, str] = {}
+        self.addr: dict[str, str] = {}
         self.router_ns = f"{self.tag}-r"
         self.router_addr = SUBNET.format(self.net, 1)
 

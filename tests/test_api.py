@@ -18,9 +18,11 @@ import signal
 import time
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from tests.doc_output import compare, output_blocks
 from tests.service_fixture import AUTH, SMALL_JOB, Service
 
 pytestmark = pytest.mark.timeout(300)
@@ -144,7 +146,11 @@ def test_drops_show_by_role_and_reason_in_the_jobs_status_and_prometheus(tmp_pat
             weights = session.declare_publisher(keys.weights(job), congestion_control=block)
             metrics = session.declare_publisher(keys.metrics(job, "learner", "0"), congestion_control=block)
             for pub in (chunks, weights, metrics):
-                wait_for(lambda p=pub: p.matching_status.matching, 10, "the insider to reach the job")
+
+                def matched(p: Any = pub) -> bool:  # zenoh's stub says matching_status is a bool: it is a struct
+                    return bool(p.matching_status.matching)
+
+                wait_for(matched, 10, "the insider to reach the job")
             for _reason, body in hostile_chunks(job_config(**config)) * 3:
                 chunks.put(wire.encode("chunk", body, "insider"))
             for i in range(50):
@@ -347,6 +353,9 @@ def test_the_service_log_tells_of_a_crash_and_the_respawn(tmp_path: Path) -> Non
             time.sleep(0.3)
         text = log.read_text()
         assert re.search(rf"\d\d:\d\d:\d\d job {job}: crashed h-{job}\.\w+-\d+ exit code -9", text), text
+        shown = next(b for b in output_blocks() if b.doc == "service.md" and not b.command)  # the guide's excerpt
+        problems = compare(shown.output, text, None, [(r"actor-@", None)])  # by template: times, ids, delays aside
+        assert not problems, "docs/service.md's log excerpt:\n" + "\n".join(problems) + "\n\nlogged:\n" + text
         assert view["state"] == "running"
         assert svc.client.patch(f"/jobs/{job}", json={"actors": 2}, headers=AUTH).status_code == 200
         assert svc.client.delete(f"/jobs/{job}", headers=AUTH).status_code == 204

@@ -76,7 +76,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
         assert len(pids) == 1, pids
         frozen = pids
         _killpg(pids[0], signal.SIGSTOP)  # holds the 3-process budget, uses no CPU
-        svc.blocker = blocker  # type: ignore[attr-defined]
+        svc.blocker = blocker  # type: ignore[attr-defined]  # this module's fixture tags its service with the job
         yield svc
     finally:
         svc.stop()  # the API first: with it gone no queued job can start; then the blocker's group (SIGKILL)
@@ -477,7 +477,7 @@ def test_the_blocker_held_the_budget(service: Service) -> None:
     """Nothing generated or submitted here ever started: the only job that left the queue is the blocker."""
     jobs = service.client.get("/jobs").json()["jobs"]
     started = [j["id"] for j in jobs if j["state"] not in ("queued", "stopped")]
-    assert started == [service.blocker], started  # type: ignore[attr-defined]
+    assert started == [service.blocker], started  # type: ignore[attr-defined]  # set by the fixture above
     assert service.host_pids() and len(service.host_pids()) == 1
 
 

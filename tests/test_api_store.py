@@ -123,7 +123,7 @@ def test_bad_arguments(store: JobStore) -> None:
     with pytest.raises(StoreError, match="actors must be"):
         store.create("x", {}, actors=-1)
     with pytest.raises(StoreError, match="config must be a dict"):
-        store.create("x", [1, 2], actors=1)  # type: ignore[arg-type]
+        store.create("x", [1, 2], actors=1)  # type: ignore[arg-type]  # a config that is no dict, on purpose
     with pytest.raises(StoreError, match="cannot be stored as JSON"):
         store.create("x", {"f": object()}, actors=1)
     assert not store.exists("x")
@@ -204,9 +204,9 @@ def test_update_merges_progress(store: JobStore) -> None:
     assert rec.progress["updates"] == 1 and rec.actors == 6
     assert store.update("u") == rec  # nothing given, nothing changed
     with pytest.raises(StoreError, match="actors must be"):
-        store.update("u", actors=True)  # type: ignore[arg-type]
+        store.update("u", actors=True)  # a bool is an int to the checker, not to the store
     with pytest.raises(StoreError, match="progress must be a dict"):
-        store.update("u", progress=[1])  # type: ignore[arg-type]
+        store.update("u", progress=[1])  # type: ignore[arg-type]  # progress that is no dict, on purpose
     assert store.get("u") == rec
 
 
@@ -294,11 +294,11 @@ def test_bad_metric_rows(store: JobStore) -> None:
         ([("env_steps", 3)], "must be a dict"),
     ]:
         with pytest.raises(StoreError, match=pattern):
-            store.append_metrics("b", [*rows([2]), bad])  # type: ignore[list-item]
+            store.append_metrics("b", [*rows([2]), bad])  # type: ignore[list-item]  # bad rows, on purpose
     assert [r["env_steps"] for r in store.metrics("b")] == [1]  # a bad batch writes nothing
     assert store.append_metrics("b", []) == 0
     with pytest.raises(StoreError, match="since must be an int"):
-        store.metrics("b", since="5")  # type: ignore[arg-type]
+        store.metrics("b", since="5")  # type: ignore[arg-type]  # a str for an int, on purpose
     with pytest.raises(StoreError, match="limit must be"):
         store.metrics("b", limit=-1)
 

@@ -98,6 +98,7 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     import torch
 
     spec = importlib.util.spec_from_file_location("bench_updates", ROOT / "benchmarks" / "updates.py")
+    assert spec is not None and spec.loader is not None
     updates = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(updates)
     hidden = (32, 16)
@@ -105,9 +106,12 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     ref = updates.reference_for(algo, hidden)
 
     def copy(seq: torch.nn.Sequential, mlp: torch.nn.Module) -> None:
+        from convoy.algos.nets import GroupLinear
+
         linears = [m for m in seq if isinstance(m, torch.nn.Linear)]
+        layers = [m for m in mlp.modules() if isinstance(m, GroupLinear)]  # the MLP's layers, in order
         with torch.no_grad():
-            for linear, layer in zip(linears, mlp.layers, strict=True):
+            for linear, layer in zip(linears, layers, strict=True):
                 linear.weight.copy_(layer.weight[0].T)
                 linear.bias.copy_(layer.bias[0])
 

@@ -6,6 +6,7 @@ import sys
 
 import pytest
 from PIL import Image
+from PIL.GifImagePlugin import GifImageFile
 
 from convoy.cli.main import build_parser, main
 from convoy.envs.treadmill import TreadmillConfig
@@ -24,7 +25,7 @@ def test_rollout_writes_gif_summary_and_plot(tmp_path, capsys) -> None:
     assert data["episodes"] == 4 and len(data["episode_returns"]) == 4 and len(data["episode_returns"][0]) == 3
     assert all(1 <= n <= 40 for n in data["episode_lengths"])
     with Image.open(gif) as im:
-        assert im.format == "GIF" and im.n_frames == data["episode_lengths"][0] + 1
+        assert isinstance(im, GifImageFile) and im.format == "GIF" and im.n_frames == data["episode_lengths"][0] + 1
     assert Image.open(plot).format == "PNG"
 
 

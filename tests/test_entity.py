@@ -13,6 +13,7 @@ import torch
 
 from convoy.algos.algorithm import Progress
 from convoy.algos.entity import EntityEncoder, token_features
+from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import run_state
 from convoy.algos.registry import make_algorithm
 from convoy.config import job_config, resolve_algo
@@ -256,7 +257,8 @@ def test_a_checkpoint_rebuilds_the_entity_networks(tmp_path: Path) -> None:
             w.add_(torch.randn_like(w))
     save_checkpoint(tmp_path / "c.pt", agent, job, {"env_steps": 0, "episodes": 0, "updates": 0})
     loaded, _, _ = load_checkpoint(tmp_path / "c.pt", device="cpu")
-    assert loaded.spec.layout == env.spec.layout is not None and loaded.cfg.encoder == "entity"  # type: ignore[attr-defined]
+    assert isinstance(loaded, MAMeSN)
+    assert loaded.spec.layout == env.spec.layout is not None and loaded.cfg.encoder == "entity"
     x = torch.as_tensor(obs[-1])
     with torch.no_grad():
         torch.testing.assert_close(loaded.greedy_q(x, None)[0], agent.greedy_q(x, None)[0], rtol=0, atol=0)

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 import torch
 from PIL import Image
+from PIL.GifImagePlugin import GifImageFile
 
 from convoy.cli.main import main
 from convoy.config import job_config
@@ -191,7 +192,9 @@ def bad_files(ckpts: dict[str, Path], tmp: Path) -> dict[str, Path]:
     """Files that are not usable checkpoints, made next to (never from a write to) the real one."""
     real = ckpts["mm"].read_bytes()
     noise = tmp / "noise.pt"
-    noise.write_bytes(torch.randint(0, 256, (4096,), generator=torch.Generator().manual_seed(0)).byte().numpy())
+    noise.write_bytes(
+        torch.randint(0, 256, (4096,), generator=torch.Generator().manual_seed(0)).byte().numpy().tobytes()
+    )
     truncated = tmp / "truncated.pt"
     truncated.write_bytes(real[: len(real) // 2])
     foreign = tmp / "foreign.pt"
@@ -255,7 +258,7 @@ def test_eval_gif_on_the_treadmill(tmp_path: Path, capsys: pytest.CaptureFixture
     assert "greedy return" in out and wrote(gif, out)
     assert gif.stat().st_size > 0
     with Image.open(gif) as img:
-        assert img.format == "GIF" and img.n_frames > 1
+        assert isinstance(img, GifImageFile) and img.format == "GIF" and img.n_frames > 1
 
 
 # --------------------------------------------------------------------------- hostile checkpoints
@@ -290,12 +293,14 @@ def test_a_hostile_checkpoint_runs_no_code(tmp_path: Path, capsys: pytest.Captur
     assert "refused" in err and "could run code" in err, err
     with pytest.raises(CheckpointError, match="refused"):
         read_checkpoint(evil)
+    from convoy.algos.codbc import CoDBC
     from convoy.algos.registry import make_algorithm
     from convoy.envs import make_batched
 
     env = make_batched("treadmill", 2, n_agents=2, n_adversaries=1)
     cfg = resolve_algo("codbc", "treadmill", {"teacher": str(evil), "hidden": (16,)})
     student = make_algorithm("codbc", env.spec, cfg, device="cpu", seed=0)
+    assert isinstance(student, CoDBC)
     with pytest.raises(ConfigError, match="refused") as info:
         student.teacher  # noqa: B018 (loaded on first use)
     assert info.value.field == "teacher"

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import bootstrap_target
+from convoy.algos.algorithm import Agent, bootstrap_target
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.algos.hierarchy import (
     CRUISE,
@@ -25,6 +25,7 @@ from convoy.algos.hierarchy import (
     SLOWER,
     GoalCritic,
     HierarchicalAgent,
+    HierState,
     LockstepQueue,
 )
 from convoy.config import job_config
@@ -32,6 +33,7 @@ from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
+from tests.conftest import single_update
 
 # forward spawns on a belt of constant speed: the goals' "cruise" is the belt's speed (the critic reads it from the
 # config), and the spawn pose is then a cruise
@@ -55,6 +57,12 @@ def job(algo: str = "idqn", **overrides: Any) -> Any:
     }
     values.update(overrides)
     return job_config(**values)
+
+
+def hierarchical(agent: Agent) -> HierarchicalAgent:
+    """``make_agent``'s agent, of a job whose options are on."""
+    assert isinstance(agent, HierarchicalAgent)
+    return agent
 
 
 def own(y: int, heading: int, speed: int) -> np.ndarray:
@@ -158,7 +166,9 @@ def test_dial_options_have_a_fixed_length_and_goals_are_pursued_again() -> None:
 
 
 # --- learning data ---------------------------------------------------------------------------------------------
-def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrinsic_rewards() -> None:
+def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrinsic_rewards(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     agent = HierarchicalAgent(job(), make_env(job(), 1).spec, device="cpu", goal_steps=4)
     gamma, scale = agent.meta.cfg.gamma, agent.env_reward_scale
     meta_act = agent.meta.act
@@ -171,15 +181,16 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
 
     meta_chunks: list[dict[str, np.ndarray]] = []
     ctrl_chunks: list[dict[str, np.ndarray]] = []
-    agent.meta.act = fixed_goals  # type: ignore[method-assign]
-    agent.meta.observe = meta_chunks.append  # type: ignore[method-assign]
-    agent.controller.observe = ctrl_chunks.append  # type: ignore[method-assign]
+    monkeypatch.setattr(agent.meta, "act", fixed_goals)
+    monkeypatch.setattr(agent.meta, "observe", meta_chunks.append)
+    monkeypatch.setattr(agent.controller, "observe", ctrl_chunks.append)
 
     b = 3  # env 0 times out, env 1's agent 0 reaches its goal on the 2nd step, env 2 crashes on the 1st
     first = np.stack([pair_obs(BASE, BASE)] * b)
     rewards = np.random.default_rng(0).uniform(0, 1, (4, b, 2)).astype(np.float32)
     rewards[0, 2, 0] = -10.0
-    obs, state = first.copy(), agent.initial_state(b)
+    obs = first.copy()
+    state: HierState | None = agent.initial_state(b)
     for t in range(4):
         out = agent.act(obs, 0.0, state)
         nxt = obs.copy()
@@ -260,8 +271,13 @@ def test_lockstep_queue_releases_contiguous_columns() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["idqn", "dqn-ser", "ma-mesn", "ma-bon", "ims", "dial"])
 def test_every_meta_algorithm_trains_both_levels(algo: str) -> None:
-    hp = {"hidden": (32,), "learning_starts": 100, "batch_size": 32, "replay_ratio": 1.0}
-    hp.update({"dial": {"unroll": 4}, "ims": {"comm_iterations": 1}, "dqn-ser": {"fingerprint": True}}.get(algo, {}))
+    hp: dict[str, Any] = {"hidden": (32,), "learning_starts": 100, "batch_size": 32, "replay_ratio": 1.0}
+    extra: dict[str, dict[str, Any]] = {
+        "dial": {"unroll": 4},
+        "ims": {"comm_iterations": 1},
+        "dqn-ser": {"fingerprint": True},
+    }
+    hp.update(extra.get(algo, {}))
     j = job(algo, algo_params=hp, steps=1_600, num_envs=8, eval_episodes=0)
     env = make_env(j)
     agent = make_agent(j, env.spec, device="cpu")
@@ -320,6 +336,7 @@ def test_trains_and_reloads_on_cuda(algo: str, tmp_path) -> None:
     j = job(algo, algo_params=hp, steps=1_600, num_envs=8, eval_episodes=0, device="cuda")
     env = make_env(j)
     agent = make_agent(j, env.spec)
+    assert isinstance(agent, HierarchicalAgent)
     assert agent.device.type == "cuda" and agent.meta.device.type == "cuda"
     Trainer(j, env, agent, out_dir=tmp_path, progress=False).run()
     assert agent.meta.updates > 0 and agent.controller.updates > 0
@@ -342,8 +359,8 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
     hp = {**HP, "learning_starts": 40, "batch_size": 16, "replay_capacity": 300, "target_update": 20}
     pop_job = job(algo, seed=seeds[0], seeds=seeds, num_envs=4, algo_params=hp)
     env = make_env(pop_job, 4 * len(seeds))
-    pop = make_agent(pop_job, env.spec)
-    singles = [make_agent(j, env.spec) for j in pop_job.members()]
+    pop = hierarchical(make_agent(pop_job, env.spec))
+    singles = [hierarchical(make_agent(j, env.spec)) for j in pop_job.members()]
     pop_stepper = EnvStepper(env, pop, seed=pop_job.seed)
     steppers = [EnvStepper(make_env(j, 4), s, seed=j.seed) for j, s in zip(pop_job.members(), singles, strict=True)]
     for _ in range(6):  # 6 chunks of 10 steps, no update yet: every act is bit for bit the single run's
@@ -370,7 +387,8 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
     assert pop.can_update() and pop.meta_can_update() and all(s.meta_can_update() for s in singles)
     for _ in range(150):
         rows = pop.update()
-        single_rows = [s.update() for s in singles]
+        single_rows = [single_update(s) for s in singles]
+    assert isinstance(rows, list)  # a population's: one dict per run
     for k, single in enumerate(singles):
         assert rows[k]["meta_loss"] == pytest.approx(single_rows[k]["meta_loss"], rel=1e-4)
         for level in ("controller", "meta"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,20 +12,34 @@ import torch
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import NetworkAgent
-from convoy.algos.ims import mean_of_others
+from convoy.algos.ims import IMS, mean_of_others
+from convoy.algos.ma_bon import MABoN
+from convoy.algos.nets import GroupLinear, GroupMLP
 from convoy.algos.registry import make_algorithm
 from convoy.config import resolve_algo
 from convoy.envs import EnvSpec, make_batched
 from convoy.transition import record
-from tests.conftest import synthetic_spec
+from tests.conftest import grad, synthetic_spec
 
-SMALL = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
+SMALL: dict[str, Any] = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
 
 
 def build(algo: str, spec: EnvSpec, seed: int = 0, **params: object) -> NetworkAgent:
     torch.manual_seed(seed)
     cfg = resolve_algo(algo, "referential", {**SMALL, **params})
     return make_algorithm(algo, spec, cfg, device="cpu", seed=seed)
+
+
+def build_ims(spec: EnvSpec, seed: int = 0, **params: object) -> IMS:
+    algo = build("ims", spec, seed, **params)
+    assert isinstance(algo, IMS)
+    return algo
+
+
+def build_bon(spec: EnvSpec, seed: int = 0, **params: object) -> MABoN:
+    algo = build("ma-bon", spec, seed, **params)
+    assert isinstance(algo, MABoN)
+    return algo
 
 
 def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
@@ -64,7 +79,7 @@ def one_thread() -> Iterator[None]:
 
 @pytest.mark.parametrize("p", [1, 3, 5])
 def test_ims_applies_the_communication_step_p_times_per_forward(p: int) -> None:
-    algo = build("ims", synthetic_spec(3), comm_iterations=p, share_params=True)
+    algo = build_ims(synthetic_spec(3), comm_iterations=p, share_params=True)
     counter = CallCounter(algo.online["comm"])
     obs = np.random.default_rng(0).normal(size=(4, 3, 5)).astype(np.float32)
     out = algo.act(obs, 0.0)
@@ -78,8 +93,8 @@ def test_ims_applies_the_communication_step_p_times_per_forward(p: int) -> None:
 
 def test_ims_parameter_count_does_not_depend_on_p() -> None:
     assert (
-        build("ims", synthetic_spec(3), comm_iterations=1).n_parameters()
-        == build("ims", synthetic_spec(3), comm_iterations=5).n_parameters()
+        build_ims(synthetic_spec(3), comm_iterations=1).n_parameters()
+        == build_ims(synthetic_spec(3), comm_iterations=5).n_parameters()
     )
 
 
@@ -91,7 +106,7 @@ def test_mean_of_others_is_the_mean_over_the_other_agents_and_zero_alone() -> No
 
 
 def test_ims_received_overrides_what_agents_hear() -> None:
-    algo = build("ims", synthetic_spec(3), comm_iterations=1)
+    algo = build_ims(synthetic_spec(3), comm_iterations=1)
     obs = torch.randn(6, 3, 5)
     q, sent = algo.forward(algo.online, obs, train=False)
     q_same, _ = algo.forward(algo.online, obs, train=False, received=mean_of_others(sent))
@@ -101,30 +116,30 @@ def test_ims_received_overrides_what_agents_hear() -> None:
 
 
 def test_ims_single_agent_runs_and_hears_nothing() -> None:
-    algo = build("ims", synthetic_spec(1), comm_iterations=3)
+    algo = build_ims(synthetic_spec(1), comm_iterations=3)
     out = algo.act(np.zeros((2, 1, 5), np.float32), 0.0)
     assert out.actions.shape == (2, 1)
 
 
 def test_ims_continuous_messages_are_real_valued_and_trainable() -> None:
-    algo = build("ims", synthetic_spec(2), comm_iterations=2, discrete=False)
+    algo = build_ims(synthetic_spec(2), comm_iterations=2, discrete=False)
     msgs = algo.act(np.random.default_rng(1).normal(size=(8, 2, 5)).astype(np.float32), 0.0).messages
     assert msgs is not None and not set(np.unique(msgs)) <= {0.0, 1.0}
     algo.agent_losses(random_batch(algo))[0].backward()
-    assert algo.online["comm"].speak.weight.grad.abs().sum() > 0
+    assert grad(algo.online, "comm.speak.weight").abs().sum() > 0
 
 
 def test_ims_agent_loss_reaches_the_other_agents_message_weights() -> None:
     """With per-agent weights and P = 1, agent i's loss trains agent j's speaker (j ≠ i) through what i heard."""
-    algo = build("ims", synthetic_spec(3), comm_iterations=1, share_params=False)
+    algo = build_ims(synthetic_spec(3), comm_iterations=1, share_params=False)
     comm = algo.online["comm"]
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[i].backward()
-        speak = comm.speak.weight.grad.abs().sum(dim=(1, 2))
+        speak = grad(comm, "speak.weight").abs().sum(dim=(1, 2))
         for j in range(3):
             assert (speak[j] > 0) == (j != i), (i, j, speak)  # i's own message is only heard by others
-        assert comm.listen.weight.grad[i].abs().sum() > 0 and comm.recur.weight.grad[i].abs().sum() > 0
+        assert grad(comm, "listen.weight")[i].abs().sum() > 0 and grad(comm, "recur.weight")[i].abs().sum() > 0
 
 
 # --------------------------------------------------------------------------- MA-BoN
@@ -132,7 +147,7 @@ def test_ims_agent_loss_reaches_the_other_agents_message_weights() -> None:
 
 @pytest.mark.parametrize("shared", [True, False])
 def test_ma_bon_evaluates_all_agents_with_one_call_and_one_broadcast(shared: bool) -> None:
-    algo = build("ma-bon", synthetic_spec(4), share_params=shared)
+    algo = build_bon(synthetic_spec(4), share_params=shared)
     g_calls, f_calls = CallCounter(algo.online["policy"]), CallCounter(algo.online["message"])
     obs = np.random.default_rng(0).normal(size=(6, 4, 5)).astype(np.float32)
     out = algo.act(obs, 0.0)
@@ -148,7 +163,7 @@ def test_ma_bon_evaluates_all_agents_with_one_call_and_one_broadcast(shared: boo
 
 
 def test_ma_bon_received_overrides_the_broadcast() -> None:
-    algo = build("ma-bon", synthetic_spec(3))
+    algo = build_bon(synthetic_spec(3))
     obs = torch.randn(6, 3, 5)
     q, sent = algo.forward(algo.online, obs, train=False)
     torch.testing.assert_close(algo.forward(algo.online, obs, train=False, received=sent)[0], q)
@@ -157,22 +172,25 @@ def test_ma_bon_received_overrides_the_broadcast() -> None:
 
 @pytest.mark.parametrize("shared", [True, False])
 def test_ma_bon_every_agent_loss_trains_the_message_network_and_the_encoders(shared: bool) -> None:
-    algo = build("ma-bon", synthetic_spec(3), share_params=shared)
+    algo = build_bon(synthetic_spec(3), share_params=shared)
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[i].backward()
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in algo.online["message"].parameters())
-        enc = algo.online["encoder"].layers[0].weight.grad
+        enc = algo.online.get_parameter("encoder.layers.0.weight").grad
         assert enc is not None and (enc.abs().sum(dim=(1, 2)) > 0).all()  # every agent's encoder feeds bm
 
 
 def test_ma_bon_per_agent_heads_only_see_their_own_agents_loss() -> None:
-    algo = build("ma-bon", synthetic_spec(3), share_params=False)
+    algo = build_bon(synthetic_spec(3), share_params=False)
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[i].backward()
-        for layer in algo.online["policy"].layers:
-            reached = layer.weight.grad.abs().sum(dim=(1, 2)) > 0
+        policy = algo.online["policy"]
+        assert isinstance(policy, GroupMLP)
+        for layer in policy.layers:
+            assert isinstance(layer, GroupLinear)
+            reached = grad(layer, "weight").abs().sum(dim=(1, 2)) > 0
             assert reached.tolist() == [j == i for j in range(3)], (i, reached)
 
 
@@ -180,13 +198,13 @@ def test_ma_bon_parameters_grow_linearly_in_n_and_g_prime_is_independent_of_n() 
     """Section 6.2: with shared weights only f′'s input (N·encoding) and the id columns grow with N."""
 
     def g_params(n: int, agent_id: bool) -> int:
-        algo = build("ma-bon", synthetic_spec(n), share_params=True, agent_id=agent_id)
+        algo = build_bon(synthetic_spec(n), share_params=True, agent_id=agent_id)
         return sum(p.numel() for p in algo.online["policy"].parameters())
 
     assert g_params(2, False) == g_params(4, False) == g_params(8, False)
     width = SMALL["hidden"][0]
     assert g_params(8, True) - g_params(4, True) == 4 * width  # only the one-hot id's input columns
-    totals = [build("ma-bon", synthetic_spec(n), share_params=True).n_parameters() for n in (2, 4, 6, 8)]
+    totals = [build_bon(synthetic_spec(n), share_params=True).n_parameters() for n in (2, 4, 6, 8)]
     steps = np.diff(totals)
     assert (steps > 0).all() and (steps == steps[0]).all()  # exactly affine in N: linear space
 

@@ -258,7 +258,8 @@ def test_watch_of_a_failing_job_rewinds_and_exits_1(
 
     def call(self: object, method: str, path: str, **kwargs: object) -> object:
         if path.endswith("/metrics"):
-            sinces.append((kwargs.get("params") or {}).get("since"))  # type: ignore[union-attr]
+            params = kwargs.get("params")
+            sinces.append(params.get("since") if isinstance(params, dict) else None)
             return next(pages)
         return next(views)
 

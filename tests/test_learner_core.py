@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from convoy.algos.algorithm import epsilon_at, td_target
+from convoy.algos.algorithm import NetworkAgent, epsilon_at, td_target
 from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from convoy.algos.dqn_ser import age_weights
+from convoy.algos.listening import Source
 from convoy.algos.registry import make_algorithm
 from convoy.algos.replay import JointReplay
-from convoy.config import ALGORITHMS, job_config, resolve_algo
+from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError
@@ -262,18 +263,30 @@ def test_resource_limits_name_the_field_the_limit_and_the_flag(values: dict, fie
     ResourceLimits(**{limit.replace("-", "_"): 10**10}).check(job, "convoy serve")  # raised: accepted
 
 
+def mesn_defaults(env: str) -> MeSNConfig:
+    cfg = resolve_algo("ma-mesn", env)
+    assert isinstance(cfg, MeSNConfig)
+    return cfg
+
+
+def ims_defaults(env: str) -> IMSConfig:
+    cfg = resolve_algo("ims", env)
+    assert isinstance(cfg, IMSConfig)
+    return cfg
+
+
 def test_env_defaults_fill_only_what_the_user_left_open() -> None:
     assert resolve_algo("ma-mesn", "treadmill").hidden == (256, 256)
     assert resolve_algo("ma-mesn", "treadmill").lr == 1e-4 and resolve_algo("ma-mesn", "referential").lr == 5e-4
     assert resolve_algo("ma-mesn", "treadmill", {"lr": 3e-4}).lr == 3e-4  # a value the user sets always wins
-    assert resolve_algo("ma-mesn", "treadmill").message_bits == 16
-    assert resolve_algo("ma-mesn", "predator-prey").message_bits == 8
-    assert resolve_algo("ma-mesn", "speaker-listener").message_bits == 2
-    assert resolve_algo("ma-mesn", "speaker-listener").gumbel_noise == 0.0  # appendix B.2: a plain softmax
-    assert resolve_algo("ma-mesn", "treadmill").gumbel_noise == 0.0  # deterministic bits (docs/algorithms.md)
-    assert resolve_algo("ma-mesn", "predator-prey").gumbel_noise == 1.0
-    assert resolve_algo("ims", "treadmill").comm_iterations == 5
-    assert resolve_algo("ims", "predator-prey").comm_iterations == 3
+    assert mesn_defaults("treadmill").message_bits == 16
+    assert mesn_defaults("predator-prey").message_bits == 8
+    assert mesn_defaults("speaker-listener").message_bits == 2
+    assert mesn_defaults("speaker-listener").gumbel_noise == 0.0  # appendix B.2: a plain softmax
+    assert mesn_defaults("treadmill").gumbel_noise == 0.0  # deterministic bits (docs/algorithms.md)
+    assert mesn_defaults("predator-prey").gumbel_noise == 1.0
+    assert ims_defaults("treadmill").comm_iterations == 5
+    assert ims_defaults("predator-prey").comm_iterations == 3
     assert resolve_algo("ma-mesn", "treadmill", {"hidden": 64}).hidden == (64,)
     assert resolve_algo("dial", "treadmill").hidden == (384, 256)  # 1.5× the first layer, as the paper's 6144
     assert resolve_algo("dial", "treadmill", {"hidden": 64}).hidden == (64,)
@@ -429,7 +442,7 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
 
 
 @pytest.mark.parametrize("heard", ["noise", "predicted"])
-def test_the_greedy_curve_hears_what_eval_messages_says(heard: str) -> None:
+def test_the_greedy_curve_hears_what_eval_messages_says(heard: Source) -> None:
     """eval_messages=predicted/noise: every curve point is played as `convoy eval --messages` plays it."""
     from convoy.algos.agent import make_agent
     from convoy.analysis.evaluation import evaluate_policy
@@ -441,7 +454,7 @@ def test_the_greedy_curve_hears_what_eval_messages_says(heard: str) -> None:
     algo = make_agent(job, env.spec)
     evaluator = Evaluator(job, lambda n: make_batched("referential", n))
     curve = evaluator.returns(algo)
-    probe = evaluate_policy(algo, env, 64, seed=evaluator.seed, messages=heard)  # type: ignore[arg-type]
+    probe = evaluate_policy(algo, env, 64, seed=evaluator.seed, messages=heard)
     sent = evaluate_policy(algo, env, 64, seed=evaluator.seed)
     assert np.array_equal(curve, probe.returns)
     assert heard == "predicted" or not np.array_equal(curve, sent.returns)  # noise changes what they do
@@ -472,12 +485,13 @@ def test_a_populations_chunks_name_runs_it_has(tmp_path: Path) -> None:
                      algo_params={"hidden": [16], "learning_starts": 10_000})  # fmt: skip
     learner = Learner("pop", job, tmp_path, ZenohSettings())
     algo = make_agent(job, make_batched("referential", 1).spec)
+    assert isinstance(algo, NetworkAgent)
     core = learner._core(algo, {})
     g = np.random.default_rng(0)
     n = algo.spec.n_agents
 
     def chunk(envs: int, returns: list[float], runs: list[int]) -> wire.Message:
-        arrays = {"obs": g.normal(size=(2, envs, n, algo.obs_dim)).astype(np.float32),
+        arrays: dict[str, np.ndarray] = {"obs": g.normal(size=(2, envs, n, algo.obs_dim)).astype(np.float32),
                   "next_obs": g.normal(size=(2, envs, n, algo.obs_dim)).astype(np.float32),
                   "action": np.zeros((2, envs, n), np.int64), "reward": np.zeros((2, envs, n), np.float32),
                   "terminated": np.zeros((2, envs), bool), "truncated": np.zeros((2, envs), bool),
@@ -487,7 +501,7 @@ def test_a_populations_chunks_name_runs_it_has(tmp_path: Path) -> None:
     assert learner._take(core, chunk(7, [], [])) == "schema"  # 7 envs do not split into 2 runs
     assert learner._take(core, chunk(8, [1.0], [2])) == "out-of-range"  # the job has runs 0 and 1
     assert learner._take(core, chunk(8, [1.0], [-1])) == "out-of-range"
-    assert len(algo.replay) == 0 and core.env_steps == 0 and list(core.episodes) == [0, 0]
+    assert len(algo.replay) == 0 and core.env_steps == 0 and np.asarray(core.episodes).tolist() == [0, 0]
     assert learner._take(core, chunk(8, [1.0, 2.0, 3.0], [1, 1, 0])) is None
-    assert len(algo.replay) == 2 * 4 and core.env_steps == 2 * 4 and list(core.episodes) == [1, 2]
+    assert len(algo.replay) == 2 * 4 and core.env_steps == 2 * 4 and np.asarray(core.episodes).tolist() == [1, 2]
     core.close()

@@ -24,16 +24,19 @@ from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.algos.checkpoint import load_checkpoint, save_checkpoint
 from convoy.algos.codbc import CoDBC
-from convoy.algos.listening import Listening
+from convoy.algos.listening import HearsMessages, Listening, Source
+from convoy.algos.ma_bon import MABoN
+from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.memory import HISTORY, MemoryModule
 from convoy.algos.registry import make_algorithm
 from convoy.analysis.evaluation import evaluate, listening, listening_for
 from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
+from convoy.envs.particle.referential import ReferentialBatch
 from convoy.services.training import run_inprocess
 from convoy.validation import ConfigError
-from tests.conftest import synthetic_spec
+from tests.conftest import single_update, synthetic_spec
 
 MM_ALGOS = ("ma-mesn-mm", "ma-bon-mm")
 TINY = {"hidden": (16,), "message_bits": 4, "learning_starts": 16, "batch_size": 16}
@@ -51,6 +54,13 @@ def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) 
     base = {k: v for k, v in {**TINY, **TINY_MEMORY}.items() if k in fields}  # what this algorithm has
     cfg = resolve_algo(name, "referential", {**base, **params})
     return make_algorithm(name, spec or synthetic_spec(), cfg, device="cpu", seed=seed)
+
+
+def build_mm(name: str, spec: EnvSpec | None = None, seed: int = 0) -> MemoryModule:
+    """``build`` of a memory-module algorithm (MA-MeSN-MM, MA-BoN-MM)."""
+    algo = build(name, spec, seed)
+    assert isinstance(algo, MemoryModule)
+    return algo
 
 
 def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
@@ -91,7 +101,7 @@ class CallCounter:
 
 @pytest.mark.parametrize("name", MM_ALGOS)
 def test_memory_loss_reaches_only_the_memory_module(name: str) -> None:
-    algo = build(name)
+    algo = build_mm(name)
     loss, stats = algo.memory_loss(random_batch(algo))
     assert loss is not None and loss.ndim == 0
     assert {"memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
@@ -113,14 +123,14 @@ def test_td_loss_leaves_the_memory_module_alone(name: str) -> None:
     for pname, p in algo.online.named_parameters():
         if pname.startswith("memory."):
             assert all_zero(p.grad), f"the TD loss reached {pname}"
-    assert not all_zero(algo.online["policy"].layers[0].weight.grad)  # it did reach the policy
+    assert not all_zero(algo.online.get_parameter("policy.layers.0.weight").grad)  # it did reach the policy
 
 
 @pytest.mark.parametrize("name", MM_ALGOS)
-def test_update_trains_memory_and_reports_its_figures(name: str) -> None:
+def test_update_trains_memory_and_reports_its_figures(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     algo = build(name)
     batch = random_batch(algo)
-    algo.sample = lambda: batch  # type: ignore[method-assign]
+    monkeypatch.setattr(algo, "sample", lambda: batch)  # replay draws replaced by one fixed batch
     before = {k: v.clone() for k, v in algo.online["memory"].state_dict().items()}
     stats = algo.update()
     assert {"loss", "memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
@@ -129,7 +139,7 @@ def test_update_trains_memory_and_reports_its_figures(name: str) -> None:
 
 
 def test_memory_loss_without_history_says_what_is_missing() -> None:
-    algo = build("ma-mesn-mm")
+    algo = build_mm("ma-mesn-mm")
     batch = random_batch(algo)
     del batch[HISTORY]
     with pytest.raises(KeyError, match="history"):
@@ -156,7 +166,7 @@ def test_push_shifts_in_the_newest_observation_marked_real() -> None:
 
 
 def test_reset_state_zeroes_only_the_finished_envs() -> None:
-    algo = build("ma-bon-mm")
+    algo = build_mm("ma-bon-mm")
     state = torch.randn(4, algo.window, algo.n_agents, algo.obs_dim + 1)
     original = state.clone()
     done = np.array([True, False, True, False])
@@ -169,7 +179,7 @@ def test_reset_state_zeroes_only_the_finished_envs() -> None:
 
 @pytest.mark.parametrize("name", MM_ALGOS)
 def test_act_stores_the_window_it_acted_on(name: str) -> None:
-    algo = build(name)
+    algo = build_mm(name)
     b, n, d = 5, algo.n_agents, algo.obs_dim
     rng = np.random.default_rng(0)
     state = algo.initial_state(b)
@@ -185,7 +195,7 @@ def test_act_stores_the_window_it_acted_on(name: str) -> None:
 
 def test_env_stepper_records_history_and_clears_it_between_episodes() -> None:
     env = make_batched("referential", 8, **GLIMPSE)
-    algo = build("ma-mesn-mm", env.spec)
+    algo = build_mm("ma-mesn-mm", env.spec)
     stepper = EnvStepper(env, algo, seed=0)
     for _ in range(3):  # two rounds = one whole episode, then the first step of the next
         stepper.step(0.5)
@@ -269,6 +279,7 @@ def test_predicted_without_predictions_names_messages() -> None:
         Listening("predicted").hear(true_messages())
     assert err.value.field == "messages"
     algo = build("ma-mesn")  # a plain algorithm has nothing to predict with
+    assert isinstance(algo, HearsMessages)
     algo.listening = Listening("predicted")
     with pytest.raises(ConfigError) as err:
         algo.act(np.zeros((2, algo.n_agents, algo.obs_dim), np.float32), 0.0)
@@ -276,15 +287,15 @@ def test_predicted_without_predictions_names_messages() -> None:
 
 
 @pytest.mark.parametrize("source", ["predicted", "noise"])
-def test_a_channel_carries_only_true_messages(source: str) -> None:
+def test_a_channel_carries_only_true_messages(source: Source) -> None:
     with pytest.raises(ConfigError, match=source) as err:
-        Listening(source, MessageChannel())  # type: ignore[arg-type]
+        Listening(source, MessageChannel())
     assert err.value.field == "channel"
 
 
 def test_unknown_source_names_messages() -> None:
     with pytest.raises(ConfigError, match="sent, predicted, noise") as err:
-        Listening("shout")  # type: ignore[arg-type]
+        Listening("shout")  # type: ignore[arg-type]  # an unknown source, on purpose
     assert err.value.field == "messages"
 
 
@@ -312,6 +323,7 @@ class RecordingListening(Listening):
 )
 def test_latency_channel_forgets_messages_of_finished_episodes(name: str) -> None:
     algo = build(name, seed=1)
+    assert isinstance(algo, MAMeSN | MABoN)
     how = RecordingListening("sent", MessageChannel(ChannelConfig(latency=1), seed=0), fill_lost="zeros")
     algo.listening = how
     rng = np.random.default_rng(0)
@@ -528,9 +540,9 @@ def test_codbc_clones_its_teacher(tmp_path: Path) -> None:
         stepper.step(0.2)
     student.observe(stepper.take_chunk())
     assert student.can_update()
-    first = student.update()
+    first = single_update(student)
     assert first["teacher_agreement"] < 0.4, first  # an untrained student agrees only by chance (1/9 actions)
-    stats = [student.update() for _ in range(300)]
+    stats = [single_update(student) for _ in range(300)]
     late = float(np.mean([s["teacher_agreement"] for s in stats[-20:]]))
     assert late > 0.8, late
     # the greedy student now acts as the teacher on fresh states, from its own observations alone
@@ -567,6 +579,7 @@ def test_a_loaded_codbc_checkpoint_acts_as_its_student(tmp_path: Path) -> None:
     ckpt = save_checkpoint(tmp_path / "student.pt", student, job, {"env_steps": 10_000, "episodes": 0, "updates": 0})
     teacher.unlink()  # "evaluating a CoDBC checkpoint needs only the student" (algos/codbc.py)
     loaded, _, _ = load_checkpoint(ckpt, device="cpu")
+    assert isinstance(loaded, CoDBC)
     obs = env.reset(seed=1)
     greedy = loaded.logits(torch.as_tensor(obs)).argmax(dim=-1).numpy()
     np.testing.assert_array_equal(loaded.act(obs, 0.0).actions, greedy)
@@ -587,6 +600,7 @@ def test_listener_glimpse_needs_two_rounds() -> None:
 def test_glimpse_shows_the_target_on_the_first_round_only() -> None:
     k, b = 4, 16
     env = make_batched("referential", b, n_targets=k, rounds=3, listener_glimpse=True)
+    assert isinstance(env, ReferentialBatch)
     eye = np.eye(k, dtype=np.float32)
     obs = env.reset(seed=0)
     targets = env.targets
@@ -613,15 +627,15 @@ def test_shared_fused_lstm_matches_the_grouped_cell() -> None:
     fused, stepped = GroupLSTM(1, 5, 7, 3), GroupLSTM(2, 5, 7, 3)
     with torch.no_grad():
         for g in range(2):  # both groups of the stepped cell get the fused LSTM's weights
-            stepped.inp.weight[g] = fused.lstm.weight_ih_l0.T
-            stepped.inp.bias[g] = fused.lstm.bias_ih_l0
-            stepped.rec.weight[g] = fused.lstm.weight_hh_l0.T
-            stepped.rec.bias[g] = fused.lstm.bias_hh_l0
+            stepped.inp.weight[g] = fused.lstm.get_parameter("weight_ih_l0").T
+            stepped.inp.bias[g] = fused.lstm.get_parameter("bias_ih_l0")
+            stepped.rec.weight[g] = fused.lstm.get_parameter("weight_hh_l0").T
+            stepped.rec.bias[g] = fused.lstm.get_parameter("bias_hh_l0")
             stepped.head.weight[g] = fused.head.weight[0]
             stepped.head.bias[g] = fused.head.bias[0]
     seq = torch.randn(4, 6, 2, 5)  # [M, L, N, in]
     torch.testing.assert_close(fused(seq), stepped(seq))
-    assert fused.lstm.bias_ih_l0[7:14].eq(1.0).all()  # forget gate opened at init
+    assert fused.lstm.get_parameter("bias_ih_l0")[7:14].eq(1.0).all()  # forget gate opened at init
 
 
 def test_curve_points_measure_the_student_alone(tmp_path: Path) -> None:

@@ -43,6 +43,7 @@ def test_a_job_across_four_namespaces_survives_a_10s_link_cut(tmp_path: Path, ho
     job = MultiHostJob(hosts, "mh", job_args, tmp_path, ["a1", "a2"])
     try:
         job.start()
+        assert job.learner is not None
         t_end = time.monotonic() + 120
         while not job.rows() or job.rows()[-1]["env_steps"] < 6_000:
             assert job.learner.poll() is None, job.log("learner")[-3000:]

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import n_step_rows
+from convoy.algos.algorithm import NetworkAgent, n_step_rows
 from convoy.algos.registry import make_algorithm
 from convoy.config import job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.transition import record
 from convoy.validation import ConfigError
+from tests.conftest import single_update
 
 
 def loop_rows(chunk: dict[str, np.ndarray], n: int, gamma: np.ndarray) -> dict[str, np.ndarray]:
@@ -23,7 +24,7 @@ def loop_rows(chunk: dict[str, np.ndarray], n: int, gamma: np.ndarray) -> dict[s
     out["discount"] = np.ones((t_len, *lead), np.float32)
     for t in range(t_len):
         for i in np.ndindex(*lead):
-            g = gamma[i[0]] if gamma.ndim else float(gamma)
+            g = float(gamma[i[0]]) if gamma.ndim else float(gamma)
             ret, disc, k = np.zeros_like(reward[t][i]), 1.0, t
             for k in range(t, min(t + n, t_len)):
                 ret = ret + disc * reward[k][i]
@@ -71,7 +72,7 @@ def test_an_agent_learns_from_n_step_rows_and_keeps_them_apart_from_one_step() -
                                 np.zeros(4, np.int64), out.extras))  # fmt: skip
             obs = res.obs
         algo.observe({k: np.stack([s[k] for s in steps]) for k in steps[0]})
-        assert np.isfinite(algo.update()["loss"])
+        assert np.isfinite(single_update(algo)["loss"])
         rows[n] = algo.replay.sample(8, algo.rng)
     assert "discount" not in rows[1] and "discount" in rows[3]
 
@@ -91,7 +92,7 @@ def test_the_trainer_collects_chunks_long_enough_for_n_steps(tmp_path) -> None:
                      algo_params={"hidden": [8], "n_step": 3, "learning_starts": 0, "gamma": 0.5})  # fmt: skip
     env = make_env(job)
     algo = make_agent(job, env.spec)
-    assert algo.chunk_len == 12
+    assert isinstance(algo, NetworkAgent) and algo.chunk_len == 12
     try:
         Trainer(job, env, algo, make_eval_env=lambda n: make_env(job, n), out_dir=tmp_path, progress=False).run()
     finally:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from convoy.algos.nets import GroupMLP
+from convoy.algos.nets import GroupLinear, GroupMLP
 from convoy.algos.registry import make_algorithm
 from convoy.config import ALGORITHMS, resolve_algo
 from convoy.envs.batched import EnvSpec
@@ -30,6 +30,7 @@ def test_group_mlp_is_linear_relu_with_one_weight_set_per_agent_group(
         g = 0 if groups == 1 else agent
         h = x[:, agent]
         for i, layer in enumerate(m.layers):
+            assert isinstance(layer, GroupLinear)
             h = h @ layer.weight[g] + layer.bias[g]
             if i < len(m.layers) - 1:
                 if norm:

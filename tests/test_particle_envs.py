@@ -148,7 +148,7 @@ def test_predator_prey_renders_rgb_array() -> None:
     env = make_predator_prey(max_steps=5, render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
-    assert frame.ndim == 3 and frame.shape[2] == 3
+    assert frame is not None and frame.ndim == 3 and frame.shape[2] == 3
     with pytest.raises(ConfigError) as exc:
         make_predator_prey(render_mode="human")
     assert exc.value.field == "render_mode"

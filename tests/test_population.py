@@ -26,6 +26,7 @@ from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
 from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs.batched import EnvSpec
+from tests.conftest import population_update, single_update
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
 SEEDS = [3, 7, 11]
@@ -130,8 +131,8 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     # updates: equal up to float32 rounding (module docstring)
     updates = 50 if algorithm_class(name).uses_messages else 300
     for _ in range(updates):
-        rows = pop.update()
-        single_rows = [s.update() for s in singles]
+        rows = population_update(pop)
+        single_rows = [single_update(s) for s in singles]
     assert max_weight_gap(pop, singles) < 1e-5
     for row, single_row in zip(rows, single_rows, strict=True):
         assert row.keys() == single_row.keys()
@@ -158,8 +159,8 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
     pop.observe(c)
     single.observe({f: v[:, 0] for f, v in c.items()})
     before = run_state(pop.online, 2)
-    rows = pop.update()
-    single_row = single.update()
+    rows = population_update(pop)
+    single_row = single_update(single)
     assert rows[0]["grad_norm"] == pytest.approx(single_row["grad_norm"], rel=1e-5)
     assert rows[1]["grad_norm"] > 1e3 * cfg.grad_clip
     assert np.isnan(rows[2]["loss"]) and pop.skipped_updates == 1
@@ -415,4 +416,5 @@ def test_a_population_resumes_at_the_last_step_all_its_runs_saved(tmp_path: Path
     job = job_config(**json.loads(cfg.read_text()))
     agent = make_algorithm("idqn", make_batched("referential", 1).spec, job.algo_config(), "cpu", [0, 1])
     counters = restore_population(agent, job.members(), job.member_dirs(out), out / "replay.npz", strict=True)
+    assert counters is not None
     assert [c["env_steps"] for c in counters] == [before, before]

@@ -238,7 +238,12 @@ def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyP
     from convoy.analysis import curves
 
     drawn: list[Any] = []
-    monkeypatch.setattr(curves, "_save", lambda fig, path: drawn.append(fig) or Path(path))
+
+    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
+        drawn.append(fig)
+        return Path(path)
+
+    monkeypatch.setattr(curves, "_save", save)
     groups = [
         {"point": {"algo": a, "n": n}, "final": {"mean": 10.0 * n, "ci95": 1.0},
          "references": {"random": float(n), "scripted": 5.0 * n, "full-information": 99.0}}
@@ -258,7 +263,12 @@ def test_a_curve_plot_without_any_evaluation_says_so_instead_of_an_empty_legend(
     from convoy.analysis import curves
 
     drawn: list[Any] = []
-    monkeypatch.setattr(curves, "_save", lambda fig, path: drawn.append(fig) or Path(path))
+
+    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
+        drawn.append(fig)
+        return Path(path)
+
+    monkeypatch.setattr(curves, "_save", save)
     groups = [{"group": "a", "curve": {"env_steps": [0], "mean": [None], "ci95": [None], "n": [0]}}]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # matplotlib warns about a legend with no labels

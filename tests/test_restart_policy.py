@@ -118,6 +118,7 @@ def test_a_diverged_learner_fails_the_job_at_once_with_the_fix(monkeypatch: pyte
 
     monkeypatch.setattr(group, "_spawn_learner", spawn)
     group.start_learner()
+    assert group.learner is not None
     group.learner.proc.exitcode = DIVERGED
     events = group.poll()
     assert events[-1].kind == "failed" and "diverged" in events[-1].detail and "lr" in events[-1].detail, events

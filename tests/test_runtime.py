@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -28,17 +29,18 @@ from convoy.algos.checkpoint import read_checkpoint
 from convoy.config import JobConfig, job_config
 from convoy.protocol import keys
 from convoy.protocol.session import ZenohSettings, free_port, loopback, open_session
-from convoy.services.jobrunner import JobRunner
+from convoy.services.jobrunner import AliveSet, JobRunner
+from convoy.services.procs import ProcessGroup, Slot
 from convoy.services.training import run_inprocess
 
-REFERENTIAL = {
+REFERENTIAL: dict[str, Any] = {
     "env": "referential",
     "num_envs": 32,
     "log_every": 1000,
     "eval_episodes": 200,
     "algo_params": {"hidden": [64], "learning_starts": 256},
 }
-TREADMILL = {
+TREADMILL: dict[str, Any] = {
     "env": "treadmill",
     "num_envs": 16,
     "log_every": 1000,
@@ -46,6 +48,25 @@ TREADMILL = {
     "env_params": {"length": 30, "width": 12},
     "algo_params": {"hidden": [32, 12], "learning_starts": 256, "replay_ratio": 0.25},
 }
+
+
+def group_of(runner: JobRunner) -> ProcessGroup:
+    """The runner's processes (there once it has started them)."""
+    assert runner.group is not None, "the runner has not started its processes"
+    return runner.group
+
+
+def learner_of(runner: JobRunner) -> Slot:
+    """The runner's learner process (there but while it is being restarted)."""
+    slot = group_of(runner).learner
+    assert slot is not None, "no learner right now"
+    return slot
+
+
+def alive_of(runner: JobRunner) -> AliveSet:
+    """The runner's view of the liveliness tokens (there once it has started)."""
+    assert runner.alive is not None, "the runner has not started"
+    return runner.alive
 
 
 def wait_for(cond: Callable[[], bool], timeout: float, what: str, every: float = 0.02) -> float:
@@ -62,7 +83,9 @@ class Background:
     """A JobRunner in a thread; ``result`` / ``error`` once it returns; processes stopped by PID at the end."""
 
     def __init__(self, runner: JobRunner) -> None:
-        self.runner, self.result, self.error = runner, None, None
+        self.runner = runner
+        self.result: dict[str, Any] | None = None
+        self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
@@ -76,11 +99,12 @@ class Background:
         assert self.runner.started.wait(60), "runner did not start its processes"
         return self
 
-    def join(self, timeout: float) -> dict:
+    def join(self, timeout: float) -> dict[str, Any]:
         self.thread.join(timeout)
         assert not self.thread.is_alive(), f"job did not finish within {timeout:g} s"
         if self.error:
             raise self.error
+        assert self.result is not None
         return self.result
 
     def __exit__(self, *exc: object) -> None:
@@ -137,16 +161,18 @@ def test_killed_actor_is_respawned_and_the_job_completes(tmp_path: Path) -> None
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "2 actors alive")
         time.sleep(2.0)  # mid-job
-        victim = runner.group.actors[0]
+        victim = group_of(runner).actors[0]
         # actors yield to the learner on shared cores (runtime.actor_nice, default 5)
         assert os.getpriority(os.PRIO_PROCESS, victim.proc.pid) == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 5)
         os.kill(victim.proc.pid, signal.SIGKILL)
         killed_at = time.monotonic()
         respawn_s = wait_for(
-            lambda: 0 in runner.group.actors and runner.group.actors[0].generation == 1, 60, "the actor's respawn"
+            lambda: 0 in group_of(runner).actors and group_of(runner).actors[0].generation == 1,
+            60,
+            "the actor's respawn",
         )
-        assert runner.group.actors[0].proc.is_alive()
-        wait_for(lambda: "actor-0.1" in runner.alive.ids("actor"), 30, "the respawned actor's liveliness token")
+        assert group_of(runner).actors[0].proc.is_alive()
+        wait_for(lambda: "actor-0.1" in alive_of(runner).ids("actor"), 30, "the respawned actor's liveliness token")
         token_s = time.monotonic() - killed_at
         summary = bg.join(120)
     print(f"respawned {respawn_s:.2f} s after kill -9; its liveliness token {token_s:.2f} s after")
@@ -176,13 +202,17 @@ def test_actor_churn_does_not_grow_the_learners_shared_memory_nor_fail_the_job(t
     counts = []
     with Background(runner):
         wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
-        learner = runner.group.learner.proc.pid
+        learner = learner_of(runner).proc.pid
         for kill in range(8):
             steps = runner.last_row.get("env_steps", 0)
-            os.kill(runner.group.actors[0].proc.pid, signal.SIGKILL)
-            back = lambda k=kill: 0 in runner.group.actors and runner.group.actors[0].generation == k + 1  # noqa: E731
+            os.kill(group_of(runner).actors[0].proc.pid, signal.SIGKILL)
+            back = lambda k=kill: 0 in group_of(runner).actors and group_of(runner).actors[0].generation == k + 1  # noqa: E731
             wait_for(back, 30, "the respawn")
-            wait_for(lambda s=steps: runner.last_row.get("env_steps", 0) > s + 2000, 60, "the new actor's data")
+
+            def fed(s: float = steps) -> bool:
+                return runner.last_row.get("env_steps", 0) > s + 2000
+
+            wait_for(fed, 60, "the new actor's data")
             counts.append(shm_mappings(learner))
         assert not [e for e in runner.events if e.kind == "failed"], runner.events
     print(f"learner's shared-memory mappings after each of 8 actor deaths: {[len(c) for c in counts]}")
@@ -199,8 +229,8 @@ def test_killed_learner_resumes_from_its_checkpoint(tmp_path: Path) -> None:
         wait_for(lambda: (tmp_path / "checkpoint.pt").is_file() and runner.last_row.get("env_steps", 0) > 2 * every,
                  90, "a checkpoint and two intervals of progress")  # fmt: skip
         before = runner.last_row["updates"]
-        os.kill(runner.group.learner.proc.pid, signal.SIGKILL)
-        wait_for(lambda: runner.group.learner is not None and runner.group.learner.generation == 1, 60, "restart")
+        os.kill(learner_of(runner).proc.pid, signal.SIGKILL)
+        wait_for(lambda: (slot := group_of(runner).learner) is not None and slot.generation == 1, 60, "restart")
         summary = bg.join(180)
     rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     steps = [r["env_steps"] for r in rows]
@@ -232,8 +262,8 @@ def test_actor_count_scales_live_and_every_actor_delivers(tmp_path: Path) -> Non
     runner = JobRunner("scale", job, tmp_path, progress=False)
 
     def rates(ids: int) -> list[float]:
-        wait_for(lambda: runner.alive.count("actor") == ids, 60, f"{ids} actors alive")
-        live = runner.alive.ids("actor")
+        wait_for(lambda: alive_of(runner).count("actor") == ids, 60, f"{ids} actors alive")
+        live = alive_of(runner).ids("actor")
 
         def delivering() -> bool:  # a new actor's first report may come before its first chunk got through
             reports = runner.reports.actors
@@ -248,8 +278,8 @@ def test_actor_count_scales_live_and_every_actor_delivers(tmp_path: Path) -> Non
         three = rates(3)
         runner.scale(1)
         back = rates(1)
-        learner_pid = runner.group.learner.proc.pid
-        assert runner.group.learner.generation == 0  # scaling never restarted the learner
+        learner_pid = learner_of(runner).proc.pid
+        assert learner_of(runner).generation == 0  # scaling never restarted the learner
     print(f"env-steps/s: 1 actor {sum(one):,.0f} → 3 actors {sum(three):,.0f} → 1 actor {sum(back):,.0f} "
           f"(learner pid {learner_pid})")  # fmt: skip
     assert len(one) == 1 and len(three) == 3 and len(back) == 1
@@ -271,7 +301,7 @@ def test_garbage_on_the_jobs_keys_is_dropped_and_counted(tmp_path: Path) -> None
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 1, 60, "the actor")
         wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
-        settings = runner.group.settings  # a peer of the job's network
+        settings = group_of(runner).settings  # a peer of the job's network
         session = open_session(settings)
         try:
             block = zenoh.CongestionControl.BLOCK
@@ -338,7 +368,7 @@ def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_p
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 2, 60, "the actors")
         wait_for(lambda: runner.last_row.get("env_steps", 0) > 0, 60, "learning to start")
-        session = open_session(runner.group.settings)
+        session = open_session(group_of(runner).settings)
         try:
             block = zenoh.CongestionControl.BLOCK
             stop = session.declare_publisher(keys.ctl("forged", "stop"), congestion_control=block)
@@ -347,7 +377,7 @@ def test_actors_told_to_leave_by_a_peer_are_respawned_and_the_job_finishes(tmp_p
             for _ in range(3):
                 stop.put(wire.encode("command", {"op": "stop", "args": {}}, "intruder"))
             forged = {"allowed_steps": job.steps, "ingested_steps": job.steps, "version": 0}
-            wait_for(lambda: runner.alive.count("actor") == 2, 30, "the actors to be back after the stops")
+            wait_for(lambda: alive_of(runner).count("actor") == 2, 30, "the actors to be back after the stops")
             for _ in range(3):
                 budget.put(wire.encode("budget", forged, "intruder"))
         finally:
@@ -374,8 +404,8 @@ def test_a_peer_without_the_jobs_credential_cannot_reach_it(tmp_path: Path) -> N
     runner = JobRunner("locked", job, tmp_path, progress=False)
     with Background(runner) as bg:
         wait_for(lambda: runner.alive is not None and runner.alive.count("actor") == 1, 60, "the actor")
-        member = runner.group.settings
-        assert member.user == "locked" and member.password is not None
+        member = group_of(runner).settings
+        assert member.user == "locked" and member.password is not None and member.credentials_file is not None
         assert stat.S_IMODE(Path(member.credentials_file).stat().st_mode) == 0o600
         root = member.connect[0]
         for outsider in (ZenohSettings(connect=(root,)), ZenohSettings(connect=(root,), user="locked", password="x")):
@@ -433,8 +463,8 @@ def test_router_topology_as_local_processes(tmp_path: Path) -> None:
     endpoint (client mode, no shared memory)."""
     port = free_port()
     endpoint = loopback(port)
-    job_flags = "--job-id mh --env referential --steps 12000 --num-envs 32 --hp hidden=64 --hp learning_starts=256"
-    job_flags = [*job_flags.split(), "--eval-episodes", "200", "--log-every", "2000"]
+    flags = "--job-id mh --env referential --steps 12000 --num-envs 32 --hp hidden=64 --hp learning_starts=256"
+    job_flags = [*flags.split(), "--eval-episodes", "200", "--log-every", "2000"]
     net = ["--mode", "client", "--connect", endpoint, "--no-shm"]
     cmd = [sys.executable, "-m", "convoy.cli"]
     procs: list[subprocess.Popen] = []
@@ -609,8 +639,8 @@ def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_
     with Background(runner) as bg:
         wait_for(lambda: all((d / "checkpoint.pt").is_file() for d in dirs) and (tmp_path / "replay.npz").is_file()
                  and runner.last_row.get("env_steps", 0) > 2 * every, 120, "checkpoints of every run")  # fmt: skip
-        os.kill(runner.group.learner.proc.pid, signal.SIGKILL)
-        wait_for(lambda: runner.group.learner is not None and runner.group.learner.generation == 1, 60, "restart")
+        os.kill(learner_of(runner).proc.pid, signal.SIGKILL)
+        wait_for(lambda: (slot := group_of(runner).learner) is not None and slot.generation == 1, 60, "restart")
         result = bg.join(240)
     assert len(runner.resumes) == 1 and runner.resumes[0]["resumed_replay_rows"] > 0, runner.resumes
     resumed_steps = runner.resumes[0]["resumed_env_steps"]
@@ -623,7 +653,7 @@ def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_
         assert steps == sorted(steps) and len(steps) == len(set(steps)), f"seed {s}: duplicate rows after restart"
         assert any(r["env_steps"] <= resumed_steps for r in rows) and rows[-1]["env_steps"] >= job.steps
         agent, run_job, counters = load_checkpoint(d / "checkpoint.pt", device="cpu")  # a plain single run
-        assert run_job.seed == s and not run_job.seeds and agent.runs is None
+        assert run_job.seed == s and not run_job.seeds and getattr(agent, "runs", None) is None
         assert counters["env_steps"] == summary["env_steps"]
     weights = [read_checkpoint(d / "checkpoint.pt")["state"]["online"] for d in dirs]
     first = next(iter(weights[0]))
@@ -672,7 +702,12 @@ def test_opening_a_session_gives_up_when_told_while_zenoh_open_hangs(monkeypatch
     monkeypatch.setattr(zenoh, "open", lambda conf: release.wait(60))
     checks: list[float] = []
     with pytest.raises(SessionAbandoned):
-        open_session(ZenohSettings(), give_up=lambda: checks.append(time.monotonic()) or len(checks) >= 3)
+
+        def give_up() -> bool:
+            checks.append(time.monotonic())
+            return len(checks) >= 3
+
+        open_session(ZenohSettings(), give_up=give_up)
     assert len(checks) == 3  # polled while the open hung, until it said so
     release.set()
 

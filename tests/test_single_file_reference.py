@@ -141,7 +141,9 @@ def test_losses_and_gradients_equal_the_products(single: ModuleType, params: dic
 
 
 @pytest.mark.parametrize("params", [REF, PLAIN], ids=["ref", "plain"])
-def test_weights_after_adam_steps_equal_the_products(single: ModuleType, params: dict, one_thread: None) -> None:
+def test_weights_after_adam_steps_equal_the_products(
+    single: ModuleType, params: dict, one_thread: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Three steps on three batches (Adam's moments, the clip and the target sync included)."""
     agent = product(params)
     args, online, target = twins(single, agent)
@@ -152,7 +154,7 @@ def test_weights_after_adam_steps_equal_the_products(single: ModuleType, params:
     updates = 0
     for step in range(3):
         data = batch(agent.spec, seed=10 + step)
-        agent.sample = lambda data=data: data  # the update's batch: this one
+        monkeypatch.setattr(agent, "sample", lambda data=data: data)  # the update's batch: this one
         figures = agent.update()
         loss, updates = single.train_step(online, target, optimizer, data, args, gen, updates)
         assert isinstance(figures, dict) and updates == agent.updates

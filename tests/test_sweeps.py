@@ -20,7 +20,7 @@ from tests.service_fixture import AUTH, TOKEN, Service
 
 pytestmark = pytest.mark.timeout(600)
 
-TINY = {
+TINY: dict[str, Any] = {
     "name": "tiny",
     "base": {
         "env": "referential",
@@ -318,3 +318,40 @@ def test_a_packed_sweeps_summary_reads_as_an_unpacked_ones(tmp_path: Path) -> No
         assert resp.status_code == 409 and "cannot resume" in resp.text, resp.text
     finally:
         svc.stop()
+
+
+def test_a_success_rates_band_stays_within_zero_and_one(tmp_path: Path, monkeypatch) -> None:
+    """The sweep plot drew a t-interval over three seeds from −0.3 to 1.5 on the referential game's success rate,
+    where no return lies. A group's summary names the returns its env allows (``bounds``), and the plot clips its
+    band to them; a group of an env without bounds (the treadmill) keeps its whole band."""
+    from types import SimpleNamespace
+
+    from matplotlib.axes import Axes
+
+    from convoy.analysis.curves import plot_groups
+    from convoy.api.lifecycle import JobState
+    from convoy.api.sweeps import summarize_group
+
+    def record(env: str, returns: list[float]) -> SimpleNamespace:
+        rows = [{"env_steps": 1000 * (i + 1), "eval_return": r} for i, r in enumerate(returns)]
+        progress = {"env_steps": 1000 * len(returns), "final": {"eval_return": returns[-1]}}
+        return SimpleNamespace(state=JobState.completed, config={"env": env}, rows=rows, progress=progress)
+
+    jobs = {"r0": record("referential", [0.2, 1.0]), "r1": record("referential", [0.9, 1.0]),
+            "r2": record("referential", [0.1, 0.2]), "t0": record("treadmill", [10.0, 30.0]),
+            "t1": record("treadmill", [12.0, 90.0])}  # fmt: skip
+    reader = SimpleNamespace(get=jobs.__getitem__, metrics=lambda job_id, names: jobs[job_id].rows)
+    referential = summarize_group(
+        "algo=idqn", [(j, {"seed": k}) for k, j in enumerate(("r0", "r1", "r2"))], reader, None
+    )
+    treadmill = summarize_group("algo=idqn", [("t0", {"seed": 0}), ("t1", {"seed": 1})], reader, None)
+    assert referential["bounds"] == [0.0, 1.0] and treadmill["bounds"] is None
+    curve = referential["curve"]
+    assert curve["mean"][1] - curve["ci95"][1] < 0 < 1 < curve["mean"][1] + curve["ci95"][1]  # the t-interval runs past
+    bands = []
+    monkeypatch.setattr(Axes, "fill_between", lambda self, x, low, high, **kw: bands.append((list(low), list(high))))
+    plot_groups([referential, treadmill], tmp_path / "sweep.png", "sweep")
+    (low, high), (t_low, t_high) = bands
+    assert min(low) == 0.0 and max(high) == 1.0 and all(0.0 <= v <= 1.0 for v in low + high)
+    ci = treadmill["curve"]["ci95"][1]
+    assert t_high[1] == pytest.approx(treadmill["curve"]["mean"][1] + ci) and t_low[1] < 0  # not clipped

@@ -9,6 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.cli.main import main
 
@@ -91,6 +92,7 @@ TIMING = {"env_steps_per_s", "updates_per_s", "wall_s"}
 def _curve_and_weights(out) -> tuple[list[dict], dict[str, torch.Tensor]]:
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     algo, _, _ = load_checkpoint(out / "checkpoint.pt", device="cpu")
+    assert isinstance(algo, NetworkAgent)
     return [{k: v for k, v in r.items() if k not in TIMING} for r in rows], algo.online.state_dict()
 
 
@@ -227,15 +229,19 @@ def test_a_policy_that_sends_one_message_is_said_to(tmp_path, capsys) -> None:
     nothing); one whose messages vary does not."""
     from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import save_checkpoint
+    from convoy.algos.nets import GroupLinear
     from convoy.cli.train import warn_constant_messages
     from convoy.config import job_config
     from convoy.envs import make_batched
 
     job = job_config(algo="ma-mesn", env="referential", algo_params={"hidden": [16]}, device="cpu")
     algo = make_agent(job, make_batched("referential", 1).spec)
+    assert isinstance(algo, NetworkAgent)
     path = save_checkpoint(tmp_path / "varied.pt", algo, job, {"env_steps": 0, "episodes": 0, "updates": 0})
-    assert warn_constant_messages(path) > 0.1 and "warning" not in capsys.readouterr().out
+    entropy = warn_constant_messages(path)
+    assert entropy is not None and entropy > 0.1 and "warning" not in capsys.readouterr().out
     last = list(algo.online["message"].modules())[-1]  # f′'s last layer: every bit's logit pair fixed
+    assert isinstance(last, GroupLinear)
     with torch.no_grad():
         for p in last.parameters():
             p.zero_()
@@ -482,3 +488,31 @@ def test_the_progress_line_tells_the_real_step_count_past_the_budget(capsys) -> 
     first, last = capsys.readouterr().out.splitlines()
     assert first.startswith("2,016/3,000 steps · return 1.00")
     assert last.startswith("3,008 steps (asked 3,000: the last batch step went 8 over) · return 1.00"), last
+
+
+def test_the_final_evaluation_and_the_references_say_what_they_do(tmp_path, capsys) -> None:
+    """A small treadmill run spent ~40 s after its last step (the final evaluation, then the reference drivers and
+    planners) with no line. Now a line says the phase began and one more ends each part, with its figure and
+    time; the figures are the summary's, the same as ``summary_references`` (the rollouts played one at a time);
+    ``--no-progress`` keeps them out."""
+    from convoy.envs.treadmill import TreadmillConfig
+    from convoy.envs.treadmill.references import summary_references
+    from convoy.learner.runlog import EVAL_SEED_OFFSET
+
+    run = ["train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--steps", "200", "--eval-episodes", "2",
+           "--hp", "learning_starts=64", "--hp", "hidden=32"]  # fmt: skip
+    assert main([*run, "--out", str(tmp_path / "run")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith("final evaluation: the greedy policy, then"))
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    greedy = f"{summary['eval_return']:.3f} ± {summary['eval_ci95']:.3f}"
+    assert lines[at + 1].startswith(f"  greedy policy {greedy} (") and lines[at + 1].endswith(" s)")
+    refs = summary["references"]
+    shown = lines[at + 2 : at + 2 + len(refs)]
+    for k, (line, (name, (mean, ci))) in enumerate(zip(shown, refs.items(), strict=True), 1):
+        assert line.startswith(f"  reference {k}/{len(refs)} {name} {mean:.3f} ± {ci:.3f} ("), (line, lines)
+    assert "idqn on treadmill" in lines[at + 2 + len(refs)]  # then the summary table
+    alone = summary_references(TreadmillConfig(), 2, EVAL_SEED_OFFSET)  # seed 0's evaluation episodes
+    assert {k: list(v) for k, v in alone.items()} == refs
+    assert main([*run, "--out", str(tmp_path / "quiet"), "--no-progress"]) == 0
+    assert "final evaluation" not in capsys.readouterr().out

@@ -44,7 +44,7 @@ def test_record_casts_to_the_declared_dtypes_and_keeps_extras_apart() -> None:
                  np.zeros(b, bool), np.zeros(b, bool), np.zeros(b, np.int32), extras)  # fmt: skip
     assert {k: v.dtype.str for k, v in got.items()} == {**{k: f.dtype for k, f in TRANSITION.items()}, "mu": "<f4"}
     with pytest.raises(ValueError, match="reward"):
-        record(*[got[k] for k in TRANSITION], extras={"reward": got["reward"]})
+        record(**{k: got[k] for k in TRANSITION}, extras={"reward": got["reward"]})
 
 
 def test_the_replay_holds_rows_to_the_declared_transition() -> None:

@@ -26,6 +26,7 @@ def test_gymnasium_check_env_through_registry() -> None:
     obs, _ = env.reset(seed=1)
     assert env.observation_space.contains(obs)
     frame = env.render()
+    assert isinstance(frame, np.ndarray)
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
 
 
@@ -45,4 +46,5 @@ def test_parallel_env_renders_the_crash_not_the_next_episode() -> None:
     assert all(terms.values()) and env.agents == []
     assert infos["agent_0"]["crashed"] and rewards["agent_0"] == -env.config.crash_penalty
     assert e.y[0].tolist() == [5, 5]  # still the crash scene, not a fresh spawn
-    assert env.render().shape == (env.config.width * 4, env.config.length * 4, 3)
+    frame = env.render()
+    assert frame is not None and frame.shape == (env.config.width * 4, env.config.length * 4, 3)

@@ -179,7 +179,7 @@ def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k,
     if n_agents + n_adv < 2:
         n_adv = 1
     observe_k = min(observe_k, n_agents + n_adv - 1)
-    road = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
+    road: dict[str, int | float | bool] = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
     if v3:  # the v3 rules' own randomness (spawn headings, a varying belt) and a stealthy adversary
         road |= {"spawn_heading_spread": 4, "treadmill_speed_max": 2, "treadmill_switch_prob": 0.3}
         road |= {"adversary_stealth": True, "adversary_speed": 5}

@@ -431,11 +431,20 @@ function updatePanel(job) {
   }
   if (job.last_checkpoint !== state.checkpointShown) {
     state.checkpointShown = job.last_checkpoint;
-    refreshDownloads(job.id);
+    refreshDownloads(job);
   }
 }
 
-async function refreshDownloads(id) {
+// What the download row says for a job with no checkpoint file of its own: a population job's checkpoints are its
+// seeds' (each in its seed-N folder, downloaded from that seed's job); a job that ended without one never had one.
+function noCheckpointText(job) {
+  if ((job.members || []).length) return `each seed's checkpoints are on its own job (${job.members.length}): `;
+  if (TERMINAL.has(job.state)) return `no checkpoint: the job was ${job.state} before its first`;
+  return "no checkpoint yet";
+}
+
+async function refreshDownloads(job) {
+  const id = job.id;
   try {
     const data = await api(`${jobPath(id)}/checkpoints`);
     if (id !== state.selected) return;
@@ -446,7 +455,17 @@ async function refreshDownloads(id) {
       a.textContent = `${c.name} (${fmtBytes(c.bytes)})`;
       return a;
     });
-    $("job-downloads").replaceChildren(...(links.length ? links : [document.createTextNode("no checkpoint yet")]));
+    if (!links.length) {
+      links.push(document.createTextNode(noCheckpointText(job)));
+      for (const member of job.members || []) {  // a population's seeds: select one to download its checkpoints
+        const a = document.createElement("a");
+        a.href = `#job=${encodeURIComponent(member)}`;
+        a.textContent = member;
+        a.addEventListener("click", (ev) => { ev.preventDefault(); selectJob(member); });
+        links.push(a);
+      }
+    }
+    $("job-downloads").replaceChildren(...links);
   } catch (err) {
     if (!(err instanceof ApiError)) setOffline(true, err);
   }
@@ -715,12 +734,20 @@ async function toggleCompare(id, on) {
   drawSweep();
 }
 
+// A summary group's curve as [x, mean, low, high]: its CI band within the returns its env allows (g.bounds: a
+// success rate's [0, 1]; a t-interval over few seeds runs past them, where no return lies).
+function groupBand(g) {
+  const [lo, hi] = g.bounds || [-Infinity, Infinity];
+  return g.curve.env_steps.map((x, j) => [x, g.curve.mean[j], g.curve.ci95[j] ?? 0]).filter((p) => p[1] != null)
+    .map(([x, m, c]) => [x, m, Math.max(lo, m - c), Math.min(hi, m + c)]);
+}
+
 // The sweep chart: each group's mean curve with its CI band, and every ticked job's greedy curve dashed.
 function drawSweep() {
   const canvas = $("chart-sweep");
   const groups = [];
   for (const [i, g] of ((state.summary && state.summary.groups) || []).entries()) {
-    const pts = g.curve.env_steps.map((x, j) => [x, g.curve.mean[j], g.curve.ci95[j] ?? 0]).filter((p) => p[1] != null);
+    const pts = groupBand(g);
     if (pts.length) groups.push({ label: `${g.group} (n=${Math.max(...g.curve.n)})`, pts, color: PALETTE[i % PALETTE.length] });
   }
   const overlays = [...state.compare].filter((id) => (state.compareSeries[id] || []).length)
@@ -735,7 +762,7 @@ function drawSweep() {
   ctx.clearRect(0, 0, w, h);
   ctx.font = "11px system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif";
   let bands = 0;
-  const all = [...groups.flatMap((g) => g.pts.flatMap(([x, m, c]) => [[x, m - c], [x, m + c]])), ...overlays.flatMap((o) => o.pts)];
+  const all = [...groups.flatMap((g) => g.pts.flatMap(([x, , lo, hi]) => [[x, lo], [x, hi]])), ...overlays.flatMap((o) => o.pts)];
   if (all.length === 0) {
     ctx.fillStyle = "#9aa5b1";
     ctx.textAlign = "center";
@@ -752,8 +779,8 @@ function drawSweep() {
     for (const v of xt.ticks) ctx.fillText(tickLabel(v, xt.step), sx(v), top + ph + 6);
     for (const g of groups) {
       ctx.beginPath();
-      g.pts.forEach(([x, m, c], i) => (i ? ctx.lineTo(sx(x), sy(m + c)) : ctx.moveTo(sx(x), sy(m + c))));
-      [...g.pts].reverse().forEach(([x, m, c]) => ctx.lineTo(sx(x), sy(m - c)));
+      g.pts.forEach(([x, , , hi], i) => (i ? ctx.lineTo(sx(x), sy(hi)) : ctx.moveTo(sx(x), sy(hi))));
+      [...g.pts].reverse().forEach(([x, , lo]) => ctx.lineTo(sx(x), sy(lo)));
       ctx.closePath();
       ctx.globalAlpha = 0.18; ctx.fillStyle = g.color; ctx.fill(); ctx.globalAlpha = 1;
       bands += 1;

@@ -98,7 +98,7 @@ class ParallelEnvBatch:
                 reward[b, i] = rew.get(a, 0.0)
                 for key, val in infos.get(a, {}).items():
                     if isinstance(val, (Number, np.number, np.bool_)):
-                        info.setdefault(key, np.zeros((B, N), dtype=np.float32))[b, i] = float(val)  # type: ignore[arg-type]
+                        info.setdefault(key, np.zeros((B, N), dtype=np.float32))[b, i] = float(val)  # type: ignore[arg-type]  # numbers.Number declares no __float__ (typeshed)
             self._write_obs(final_obs, b, obs)
             if env.agents:
                 self._obs[b] = final_obs[b]
