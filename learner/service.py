@@ -115,7 +115,7 @@ class Learner:
     ) -> None:
         """``on_data``: called once the job has its steps, before the actors are told (the local supervisor's
         word, which no peer on the job's keys can forge: ``ProcessGroup.poll`` then takes the actors' exits as the
-        job's end, however long the final evaluation takes)."""
+        job's end, however long the last chunk's updates, the final evaluation and the references take)."""
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.on_data = on_data
         self.stopping = False
@@ -175,6 +175,12 @@ class Learner:
         self.pub_weights.put(wire.encode("weights", body, "learner"))
 
     def _publish_budget(self, allowed: int, ingested: int, version: int) -> None:
+        """The actors' budget; one that says the job has its steps (actors leave on it) goes after ``on_data``.
+        The chunk that completes the job is credited at once (``_ingest``), before its updates, the end-of-run
+        curve point and checkpoint: on a loaded machine those take seconds, and the supervisor must not be left to
+        judge the actors' exits meanwhile."""
+        if ingested >= self.job.steps and self.on_data is not None:
+            self.on_data()
         body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
         self.pub_budget.put(wire.encode("budget", body, "learner"))
 
@@ -238,9 +244,8 @@ class Learner:
             if self.stopping:  # a signal before the job had its steps: not "done" (143 = killed by SIGTERM)
                 s.core.checkpoint()
                 return STOPPED
-            if self.on_data is not None:  # first the supervisor, so it reads the actors' exits as the end
-                self.on_data()
-            self._publish_budget(job.steps, s.core.env_steps, algo.updates)  # tells actors the job has its data
+            # tells actors the job has its data (again: the last chunk's budget did, after telling the supervisor)
+            self._publish_budget(job.steps, s.core.env_steps, algo.updates)
         finally:
             s.core.close()  # the metric files, whichever way the loop ends
         return self._finish(algo, s)

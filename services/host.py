@@ -53,10 +53,10 @@ class HostAgent:
         """Run the roles with ``settings`` (on one machine the agent's session is its children's router)."""
         session = open_session(settings)
         cmds, budget = Inbox({"command"}, 64), Inbox({"budget"}, 4)
-        keep = [
-            session.liveliness().declare_token(keys.alive(self.job_id, "host", self.name)),
+        keep = [  # the token last: whoever sees it (the job service) may send commands, and they are heard
             session.declare_subscriber(keys.host(self.name, "cmd"), cmds),
             session.declare_subscriber(keys.ctl(self.job_id, "budget"), budget),
+            session.liveliness().declare_token(keys.alive(self.job_id, "host", self.name)),
         ]
         child = settings.child()
         group = ProcessGroup(self.job_id, self.job, str(self.out_dir), child, roles=self.roles, host=self.name)
@@ -70,7 +70,8 @@ class HostAgent:
                 for msg in cmds.drain():
                     op, args = msg.body["op"], msg.body["args"]
                     if op == "scale" and "actor" in self.roles and isinstance(args.get("actors"), int):
-                        group.scale_actors(max(0, args["actors"]))
+                        if not self._has_data(group, ingested):  # at the job's end, no actor is started again
+                            group.scale_actors(max(0, args["actors"]))
                     elif op == "stop":
                         self.stopping = True
                 last = budget.latest()
@@ -89,6 +90,10 @@ class HostAgent:
             del keep
             session.close()
         return 0
+
+    def _has_data(self, group: ProcessGroup, ingested: int) -> bool:
+        """Whether the job has all its steps (the learner's budget, or this host's learner said so)."""
+        return ingested >= self.job.steps or (group.has_data is not None and group.has_data.is_set())
 
     def _done(self, group: ProcessGroup, ingested: int) -> bool:
         """A learner host is done when its learner finished; an actor host when the job has all its data."""

@@ -92,6 +92,9 @@ class Tracked:
         self.inbox = Inbox({"metrics"}, maxlen=4096)
         self.sub = session.declare_subscriber(keys.metrics_all(rec.id), self.inbox)
         self.stop_asked: float | None = None
+        # the actor count the host was told (its --actors at start; unknown after a reattach): a PATCH while the
+        # host cannot hear commands yet (starting, or linking back to a restarted service) is told once it can
+        self.told_actors: int | None = rec.actors if proc is not None else None
         self.ckpt_mtime: dict[str, float] = {}  # per job: a population's are its seeds'
         self.reports = MetricReports()
         self.events = ReportTail(Path(rec.out_dir or "") / REPORTS_FILE)  # its processes' reports from now on
@@ -250,7 +253,7 @@ class JobService:
             for member in self._members(rec):
                 self.store.update(member, actors=actors)
             if job_id in self.tracked:
-                self._command(job_id, "scale", {"actors": actors})
+                self._tell_actors(rec, self.tracked[job_id])
             return rec
 
     def stop(self, job_id: str) -> JobRecord:
@@ -382,6 +385,7 @@ class JobService:
             rec = self.store.get(job_id)
             if rec.state == JobState.starting and tracked.alive.count("learner"):
                 rec = self._move(job_id, JobState.running, "learner alive")
+            self._tell_actors(rec, tracked)
             self._note_checkpoint(rec, tracked)
             code = tracked.exited()
             if code is not None:
@@ -558,6 +562,17 @@ class JobService:
     def _out(self, job_id: str) -> Path:
         rec = self.store.get(job_id)
         return Path(rec.out_dir) if rec.out_dir else self.data_dir / "jobs" / job_id
+
+    def _tell_actors(self, rec: JobRecord, tracked: Tracked) -> None:
+        """Tell the job's host the actor count it should run, once it can hear it and unless it was told: its
+        liveliness token is declared after its command subscriber, so a host whose token is seen hears commands. A
+        scale sent before then (the host still starting, or not yet linked back to a restarted service) would be
+        lost, and the job would run on with its old count."""
+        if rec.state not in (JobState.starting, JobState.running) or tracked.told_actors == rec.actors:
+            return
+        if host_name(rec.id) in tracked.alive.ids("host"):
+            self._command(rec.id, "scale", {"actors": rec.actors})
+            tracked.told_actors = rec.actors
 
     def _command(self, job_id: str, op: str, args: dict[str, Any]) -> None:
         session = self.tracked[job_id].session

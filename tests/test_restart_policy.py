@@ -141,6 +141,28 @@ def test_the_learner_process_reports_divergence_by_its_exit_code(
     assert "training diverged: idqn: 100 updates in a row" in caplog.text
 
 
+def test_the_learner_tells_its_supervisor_the_job_has_its_data_before_it_tells_the_actors() -> None:
+    """The budget that completes the job (actors leave on it) goes out as the last chunk is credited, before its
+    updates, the end-of-run curve point and checkpoint, which take seconds on a loaded machine: the supervisor's
+    word (``ProcessGroup.has_data``) comes first, so the actors' exits are never judged before it."""
+    from convoy.learner.service import Learner
+    from convoy.protocol import wire
+
+    said: list[str] = []
+
+    class Publisher:
+        def put(self, payload: bytes) -> None:
+            said.append(f"budget {wire.decode(payload).body['ingested_steps']}")
+
+    job = job_config(algo="idqn", env="referential", steps=1000)
+    learner = Learner("order", job, "unused", ZenohSettings(), on_data=lambda: said.append("has data"))
+    learner.pub_budget = Publisher()
+    learner._publish_budget(1064, 936, 3)
+    learner._publish_budget(1128, 1000, 4)  # the chunk that completes the job
+    learner._publish_budget(1000, 1000, 9)  # the loop's last word
+    assert said == ["budget 936", "has data", "budget 1000", "has data", "budget 1000"]
+
+
 @pytest.mark.parametrize("role", ["actor", "learner"])
 def test_a_process_that_refuses_the_jobs_configuration_fails_the_job_at_once(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, role: str

@@ -11,6 +11,7 @@ import collections
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -32,6 +33,7 @@ from convoy.protocol.session import ZenohSettings, free_port, loopback, open_ses
 from convoy.services.jobrunner import AliveSet, JobRunner
 from convoy.services.procs import ProcessGroup, Slot
 from convoy.services.training import run_inprocess
+from tests.busy import busy_cores
 
 REFERENTIAL: dict[str, Any] = {
     "env": "referential",
@@ -719,22 +721,31 @@ def test_opening_a_session_gives_up_when_told_while_zenoh_open_hangs(monkeypatch
         open_session(ZenohSettings(), give_up=lambda: False)
 
 
+@pytest.mark.timeout(600)
 def test_a_normal_end_on_a_loaded_machine_is_no_crash(tmp_path: Path) -> None:
-    """Both cores busy: the actors leave when the learner's last budget says the job has its data, long before its
-    final evaluation and last row; the learner told its group first (``ProcessGroup.has_data``), so no exit is
-    taken for a crash and none is respawned."""
-    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
-    try:
-        job = job_config(algo="ma-mesn", steps=3_000, seed=2, runtime={"actors": 4},
-                         **{**TREADMILL, "eval_episodes": 64})  # fmt: skip
-        runner = JobRunner("loaded", job, tmp_path, progress=False)
-        with Background(runner) as bg:
-            summary = bg.join(600)
-    finally:
-        for p in busy:
+    """Both cores busy: ``convoy train --algo ma-mesn --actors 4 --steps 3000`` (a small treadmill) logs no crash and
+    no respawn. The actors leave when the learner's last budget says the job has its data, long before its final
+    evaluation and last row; the learner told its group first (``ProcessGroup.has_data``), so no exit is taken for a
+    crash. What the user reads is checked: the ``[kind] id`` lines the command prints for its processes' events."""
+    config = tmp_path / "job.json"
+    config.write_text(json.dumps({**TREADMILL, "eval_episodes": 64}))
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "convoy.cli", "train", "--config", str(config), "--algo", "ma-mesn", "--actors", "4",
+           "--steps", "3000", "--seed", "2", "--no-progress", "--out", str(out)]  # fmt: skip
+    log = tmp_path / "train.log"
+    with busy_cores(), log.open("wb") as sink:
+        # its own process group: the command's learner and actors (forks of its forkserver) end with it, by its PID
+        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            code = proc.wait(540)
+        finally:
             with contextlib.suppress(ProcessLookupError):
-                os.kill(p.pid, signal.SIGKILL)
-            p.wait(30)
-    assert summary["env_steps"] >= job.steps
-    assert not [e for e in runner.events if e.kind in ("crashed", "respawned", "backoff")], runner.events
-    assert [e.ident for e in runner.events if e.kind == "exited" and e.role == "actor"], runner.events
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(30)
+    text = log.read_text(errors="replace")
+    assert code == 0, text[-4000:]
+    events = re.findall(r"^\[(\w+)\] (\S+)", text, flags=re.MULTILINE)
+    assert not [e for e in events if e[0] in ("crashed", "respawned", "backoff", "failed")], text[-4000:]
+    assert len({ident for kind, ident in events if kind == "exited" and ident.startswith("actor-")}) == 4, text[-4000:]
+    assert ("exited", "learner-0") in events, text[-4000:]
+    assert json.loads((out / "summary.json").read_text())["env_steps"] >= 3000
