@@ -96,6 +96,7 @@ class Agent(Protocol):
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
     def n_parameters(self) -> int: ...
+    def reserve_replay(self, env_steps: int) -> None: ...  # replay rows for at most ``env_steps`` (per run)
 
 
 class Population(Agent, Protocol):
@@ -412,6 +413,11 @@ class NetworkAgent(ABC):
             return
         runs = {k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()}
         self.replay.add(runs, None if valid is None else valid.swapaxes(0, 1).reshape(self.runs, -1))
+
+    def reserve_replay(self, env_steps: int) -> None:
+        """Allocate replay for a run that observes at most ``env_steps`` joint env steps (summed over its envs),
+        not for all of ``replay_capacity``: one row per env step (an n-step row too), so ``env_steps`` rows."""
+        self.replay.reserve(max(1, env_steps))
 
     def can_update(self) -> bool:
         """Whether the replay holds enough transitions to learn from."""

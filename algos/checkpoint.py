@@ -154,7 +154,7 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
     return collapses (~40 → ~5) until the buffer refills; with the buffer back it carries on."""
     path = Path(path)
     buffers = replay_buffers(algo)
-    size = sum(len(b) * (b.nbytes // max(b.capacity, 1)) for b in buffers.values())
+    size = sum(len(b) * (b.nbytes // max(b.allocated, 1)) for b in buffers.values())  # filled rows × row bytes
     if not buffers or size > max_bytes:
         path.unlink(missing_ok=True)
         return 0

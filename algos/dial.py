@@ -209,6 +209,10 @@ class DIAL(NetworkAgent):
             k: v.reshape(-1, r, b, *v.shape[1:]).swapaxes(0, 1).reshape(r, -1, *v.shape[1:]) for k, v in rows.items()
         }
 
+    def reserve_replay(self, env_steps: int) -> None:
+        """One row per ``unroll`` steps of one env (a chunk of T = unroll steps of B envs is B rows)."""
+        self.replay.reserve(max(1, -(-env_steps // self.seq_len)))
+
     def can_update(self) -> bool:
         if not self.cfg.replay:
             return bool(self.pending)

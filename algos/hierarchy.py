@@ -333,6 +333,12 @@ class HierarchicalAgent:
     def n_parameters(self) -> int:
         return self.meta.n_parameters() + self.controller.n_parameters()
 
+    def reserve_replay(self, env_steps: int) -> None:
+        """Replay for at most ``env_steps`` joint env steps: the controller stores N rows per step (one per agent),
+        the meta level at most one per step (an option lasts ≥ 1 step)."""
+        self.controller.reserve_replay(env_steps * self.n_agents)
+        self.meta.reserve_replay(env_steps)
+
     # --- acting ------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> HierState:
         """Every env starts a new option at its first step (a population's: ``num_envs`` per run, ``[R, B, …]``)."""

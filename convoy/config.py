@@ -551,7 +551,7 @@ class RuntimeConfig(BaseModel):
         ge=0,
         description="A run saves its replay buffer (replay.npz beside checkpoint.pt) with each checkpoint while it "
         "holds at most this many MB, so a restarted learner or `convoy train --resume` goes on with its data "
-        "instead of an empty buffer; 0 = never. The treadmill's rows are ~0.7 KB: 2048 MB keeps ~3 M of them.",
+        "instead of an empty buffer; 0 = never. The treadmill's rows are ~1.2 KB: 2048 MB keeps ~1.7 M of them.",
     )
     keep_replay: bool = Field(
         False,
