@@ -7,9 +7,9 @@ something new about it — how well does a small classifier, fitted on one half 
 the other, recover the adversary's compass direction from the listener (one of 8) from what the listener heard and
 where it is itself (a word may name a window cell, which needs the listener's own place to become a direction)? It
 is scored beside the same probe on the listener's place alone (what it could guess without hearing anything: the
-chaser comes from behind more often) and on the hand-designed 16-bit planner word
-(``envs.treadmill.planner.encode_word``), which carries the chaser's cell by design: a learned channel that carries
-the information scores near that, a cut channel at the place-only figure.
+chaser comes from behind more often) and on a hand-designed 16-bit code (``envs.treadmill.drivers.encode16``, the
+team16 driver's word: the cell of the car a teammate sees closing in fastest), which carries the chaser's cell by
+design: a learned channel that carries the information scores near that, a cut channel at the place-only figure.
 """
 
 from __future__ import annotations
@@ -19,9 +19,8 @@ import torch
 
 from convoy.analysis.comm_metrics import MetricFigure
 from convoy.envs.treadmill.config import LONGITUDINAL
-from convoy.envs.treadmill.drivers import peer_index
+from convoy.envs.treadmill.drivers import encode16, peer_index
 from convoy.envs.treadmill.engine import TreadmillEngine
-from convoy.envs.treadmill.planner import WORD_BITS, encode_word
 from convoy.envs.treadmill.scripted import heading_towards
 
 SECTORS = 8
@@ -46,10 +45,10 @@ def adversary_sector(engine: TreadmillEngine) -> tuple[np.ndarray, np.ndarray]:
     return valid, heading_towards(dx, dy)
 
 
-def planner_words(obs: np.ndarray, engine: TreadmillEngine) -> np.ndarray:
-    """Every agent's 16-bit planner word as bits ``[B, N, 16]``: the reference channel the probe is compared with."""
-    words = encode_word(obs, engine.cfg).astype(np.int64)
-    return ((words[..., None] >> np.arange(WORD_BITS)) & 1).astype(np.int8)
+def code_words(obs: np.ndarray, engine: TreadmillEngine) -> np.ndarray:
+    """Every agent's 16-bit code word (``encode16``) as bits ``[B, N, 16]``: the reference channel of the probe."""
+    words = encode16(obs, engine.cfg).astype(np.int64)
+    return ((words[..., None] >> np.arange(16)) & 1).astype(np.int8)
 
 
 def heard(bits: np.ndarray) -> np.ndarray:
@@ -95,14 +94,14 @@ def own_place(obs: np.ndarray) -> np.ndarray:
 def probe_figures(
     messages: np.ndarray, words: np.ndarray, place: np.ndarray, valid: np.ndarray, labels: np.ndarray
 ) -> list[MetricFigure]:
-    """The probe on the listener's place alone, with the heard messages, and with the heard planner words
+    """The probe on the listener's place alone, with the heard messages, and with the heard code words
     (``[T, B, N, bits]`` each; ``place`` ``[T, B, N, 2]``)."""
     out = []
     for key, name, features in (
         ("probe_place", "Decoding probe: a chaser only teammates see, from the listener's place alone", place),
         ("probe_messages", "Decoding probe: the same, from the messages heard (and the place)",
          np.concatenate([heard(messages), place], axis=-1)),
-        ("probe_planner_word", "Decoding probe: the same, from the 16-bit planner words (reference channel)",
+        ("probe_code_word", "Decoding probe: the same, from a 16-bit code's words (reference channel)",
          np.concatenate([heard(words), place], axis=-1)),
     ):  # fmt: skip
         acc, majority, samples = probe_accuracy(features.astype(np.float32), labels, valid)

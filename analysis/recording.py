@@ -48,7 +48,7 @@ from convoy.analysis.comm_metrics import (
     symbols,
 )
 from convoy.analysis.evaluation import evaluate_policy, listening
-from convoy.analysis.probe import adversary_sector, own_place, planner_words, probe_figures
+from convoy.analysis.probe import adversary_sector, code_words, own_place, probe_figures
 from convoy.envs.batched import BatchedEnv
 from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.stats import ci95_half
@@ -66,10 +66,10 @@ class Recording:
     intervened_messages: np.ndarray
     intervened_actions: np.ndarray
     # on the treadmill, for the decoding probe (``analysis/probe.py``), ``[T, B, N]`` and ``[T, B, N, 16]``: where
-    # only teammates observe the adversary and its direction, and the 16-bit planner word each agent would send
+    # only teammates observe the adversary and its direction, and the 16-bit code word each agent would send
     probe_valid: np.ndarray | None = None
     probe_label: np.ndarray | None = None
-    planner_words: np.ndarray | None = None
+    code_words: np.ndarray | None = None
     place: np.ndarray | None = None  # [T, B, N, 2] each agent's place on the window
 
 
@@ -136,7 +136,7 @@ def record(
             v, lab = adversary_sector(engine)
             valid.append(v)
             label.append(lab)
-            words.append(planner_words(stepper.obs, engine))
+            words.append(code_words(stepper.obs, engine))
             place.append(own_place(stepper.obs))
         with listening(algo, intervention):
             i_acts.append(algo.act(stepper.obs, 0.0, stepper.state).actions)
@@ -154,7 +154,7 @@ def record(
             rec,
             probe_valid=np.stack(valid),
             probe_label=np.stack(label),
-            planner_words=np.stack(words),
+            code_words=np.stack(words),
             place=np.stack(place),
         )
     return rec
@@ -263,7 +263,7 @@ def analyze(
     cic = causal_influence(rec, rng, repeats)
     returns, diffs = return_figures(algo, env, episodes, seed, say)
     figures = [sc, ic, cic, message_entropy(flat_msgs), message_input_norm(algo), *returns, protocol_formed(cic, diffs)]
-    words, place, valid, label = rec.planner_words, rec.place, rec.probe_valid, rec.probe_label
+    words, place, valid, label = rec.code_words, rec.place, rec.probe_valid, rec.probe_label
     if (
         words is not None
         and place is not None

@@ -249,13 +249,13 @@ def variants(screen: dict[str, Any]) -> str:
     """docs/treadmill.md: the planners tuned on the default rules, on rule variants
     (``benchmarks/treadmill_variants.py``)."""
     rows = [
-        [label, *(_ci(v["returns"][level]) for level in ("private", "team16", "team", "full")),
+        [label, *(_ci(v["returns"][level]) for level in ("private", "team", "full")),
          *(f"{v['ratios'][level]['ratio']:.2f} ± {v['ratios'][level]['ratio_ci95']:.2f}" for level in ("team", "full"))]
         for label, v in screen["variants"].items()
     ]  # fmt: skip
-    header = [f"rules ({screen['episodes']} episodes)", "private planner", "16-bit planner", "team planner",
-              "full planner", "team ÷ private", "full ÷ private"]  # fmt: skip
-    return markdown_table(header, rows, [False, *[True] * 6])
+    header = [f"rules ({screen['episodes']} episodes)", "private planner", "team planner", "full planner",
+              "team ÷ private", "full ÷ private"]  # fmt: skip
+    return markdown_table(header, rows, [False, *[True] * 5])
 
 
 def causes(ends: dict[str, Any]) -> str:

@@ -1,5 +1,5 @@
 """The model-predictive references (``envs.treadmill.planner``): deterministic, told only what their level allows, and
-the 16-bit word they hear round-trips a car's cell and heading."""
+the 16-bit word they hear says where the speaker is, or where a chaser is."""
 
 import numpy as np
 import pytest
@@ -14,6 +14,7 @@ from convoy.envs.treadmill.planner import (
     decode_word,
     encode_word,
     from_vector,
+    heard_known,
     level_actions,
     planner_returns,
     to_vector,
@@ -43,23 +44,45 @@ def test_the_private_planner_reads_only_the_observation() -> None:
         e.reset(5)
 
 
-def test_the_word_round_trips_a_sensed_cars_cell_and_heading() -> None:
+def test_a_word_says_where_its_speaker_is_unless_it_sees_a_car_faster_than_any_agent() -> None:
+    for cfg in (TreadmillConfig(), TreadmillConfig(adversary_speed=5, adversary_stealth=True)):
+        e = TreadmillEngine(cfg, 64)
+        obs = e.reset(0)
+        reports = chasers = 0
+        for _ in range(40):
+            word = encode_word(obs, cfg)
+            assert word.dtype == np.uint16
+            seen, sure, x, y, heading = decode_word(word, cfg)
+            assert seen.all()  # every agent says something: where it is, or where the chaser is
+            cell = np.hypot((cfg.length - 1) / 63.0, (cfg.width - 1) / 31.0) / 2 + 1e-9
+            me = ~sure
+            assert (np.hypot(e.x[:, : cfg.n_agents] - x, e.y[:, : cfg.n_agents] - y)[me] <= cell).all()
+            assert (e.heading[:, : cfg.n_agents] == heading)[me].all()
+            chaser = np.hypot(e.x[:, cfg.n_agents :][:, :1] - x, e.y[:, cfg.n_agents :][:, :1] - y)  # one adversary
+            assert (chaser[sure] <= cell).all()
+            fast = np.broadcast_to(e.speed[:, cfg.n_agents :].max(axis=1)[:, None] > cfg.max_speed, sure.shape)
+            assert fast[sure].all()
+            reports, chasers = reports + seen.sum(), chasers + sure.sum()
+            obs = e.step(level_actions("private", e, obs, TUNED["private"])).obs
+        assert (chasers > 0) == (cfg.adversary_top > cfg.max_speed)
+
+
+def test_words_from_every_teammate_identify_the_cars_an_agent_senses() -> None:
+    """Told where every teammate is, a listener knows which car it senses is the adversary (its sensor cannot)."""
     cfg = TreadmillConfig()
     e = TreadmillEngine(cfg, 64)
-    obs = e.reset(0)
-    word = encode_word(obs, cfg)
-    assert word.dtype == np.uint16
-    seen, x, y, heading = decode_word(word, cfg)
-    assert seen.any() and not seen.all()
-    near, near_dist, _ = e.nearest()
-    cell = max(cfg.length - 1, cfg.width - 1) / 63.0
-    for b, i in zip(*np.nonzero(seen), strict=True):
-        cars = near[b, i][np.isfinite(near_dist[b, i])]
-        gap = np.hypot(e.x[b, cars] - x[b, i], e.y[b, cars] - y[b, i])
-        j = int(np.argmin(gap))
-        assert gap[j] <= cell  # to the code's precision
-        assert e.heading[b, cars[j]] == heading[b, i]
-    assert (word[~seen] == 0).all()
+    obs = e.reset(1)
+    right = wrong = 0
+    for _ in range(30):
+        cars = heard_known(obs, cfg, TUNED["team16"])
+        near, near_dist, _ = e.nearest()
+        k = cfg.observe_k
+        sensed = np.isfinite(near_dist)
+        truth = near >= cfg.n_agents  # [B, N, k]
+        told = cars.adversary[..., :k] > 0.5
+        right, wrong = right + (told == truth)[sensed].sum(), wrong + (told != truth)[sensed].sum()
+        obs = e.step(level_actions("private", e, obs, TUNED["private"])).obs
+    assert right / (right + wrong) > 0.97  # cars closer than the words' cells can be mistaken
 
 
 def test_parameters_round_trip_through_their_label_and_the_search_space() -> None:

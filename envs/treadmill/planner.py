@@ -8,15 +8,16 @@ between the levels is only the list of cars it knows of (``Known``):
 * ``private`` — the cars its own sensor reports (no ally/adversary flag);
 * ``team`` — also every car a teammate observes and every teammate's position, heading and speed (what
   ``team_observations`` hands a learner): a car some agent observes away from every teammate is an adversary;
-* ``team16`` — besides its own sensor, one 16-bit word per teammate (``encode_word``): the cell (6 + 6 bits) and
-  heading (3 bits) of the car that teammate observes closing in fastest on another car or on itself, and a seen bit;
+* ``team16`` — besides its own sensor, one 16-bit word per teammate (``encode_word``): the teammate's own cell
+  (6 + 5 bits) and heading (3 bits) — "I am here", which tells the listener which car it senses is not a teammate —
+  or, when the teammate sees a car faster than any agent can drive, that chaser's cell and heading;
 * ``full`` — every car, its heading and speed, and who is an adversary.
 
 Prediction. Motion relative to another car does not depend on the belt (it carries every car alike), so cars are
 predicted on the road: a known ally keeps its heading and speed; an adversary chases the planning agent, closing in
-at ``chase`` cells per step; a car of unknown identity is both, weighted by ``p_adversary`` (``p_reported`` if a
-teammate's word names it). Only leaving the window depends on the belt, which is unknown (1 or 2 cells per step):
-the front edge is judged with the slow belt, the back edge with the fast one.
+at ``chase`` cells per step; a car of unknown identity is both, weighted by ``p_adversary``. Only leaving the
+window depends on the belt, which is unknown (1 or 2 cells per step): the front edge is judged with the slow belt,
+the back edge with the fast one.
 
 Cost of a plan, summed over its horizon with discount ``discount``: ``w_danger`` × (1 − d / ``danger``)² per predicted
 car within ``danger`` cells, ``w_crash`` per predicted collision (within 1.5 cells) or predicted exit from the window,
@@ -33,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
-from convoy.envs.treadmill.drivers import closing_slot, peer_index, sensor_slots
+from convoy.envs.treadmill.drivers import peer_index, sensor_slots
 from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, DX, DY, TreadmillEngine
 from convoy.envs.treadmill.scripted import own_state
 
@@ -57,7 +58,6 @@ class PlannerParams:
     w_crash: float = 20.95
     chase: float = 3.5
     p_adversary: float = 0.547
-    p_reported: float = 0.874
     edge: float = 12.62
     w_edge: float = 3.639
     home: float = 0.355
@@ -93,7 +93,6 @@ SPACE: dict[str, tuple[float, float]] = {
     "w_crash": (1.0, 100.0),
     "chase": (0.5, 5.0),
     "p_adversary": (0.0, 1.0),
-    "p_reported": (0.0, 1.0),
     "edge": (2.0, 25.0),
     "w_edge": (0.0, 20.0),
     "home": (0.1, 0.9),
@@ -170,57 +169,63 @@ def full_known(engine: TreadmillEngine) -> Known:
 
 
 def encode_word(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
-    """Each agent's 16-bit word ``[B, N]`` (uint16): bit 15 = it observes a car; bits 9–14 / 3–8 = that car's window
-    cell along / across the road, each axis scaled to 0…63; bits 0–2 its heading. The car is the one the speaker
-    observes closing in fastest on another car it observes or on itself (``drivers.closing_slot``): a chaser, most of
-    the time — the speaker cannot tell an ally from an adversary either."""
-    x, y, _, _ = own_state(obs, cfg)
+    """Each agent's 16-bit word ``[B, N]`` (uint16): bit 15 = a report; bit 14 = it reports a chaser, else itself;
+    bits 8–13 / 3–7 = the reported car's window cell along / across the road, scaled to 0…63 / 0…31; bits 0–2 its
+    heading. An agent says where it is ("I am here": a listener that compares the words with the cars it senses can
+    tell its teammates from the adversary, which its own sensor cannot) unless it observes a car driving faster than
+    an agent can (``adversary_speed`` above ``max_speed``): then it reports the fastest such car, surely a chaser."""
+    x, y, heading, _ = own_state(obs, cfg)
     slots = sensor_slots(obs, cfg)
-    pick = closing_slot(obs, cfg)[..., None, None]
-    car = np.take_along_axis(slots, pick, axis=-2)[..., 0, :]
-    seen = car[..., 0] > 0.5
-    cx = np.clip(np.rint((x + car[..., 1] * cfg.sensor_range) * 63.0 / (cfg.length - 1)), 0, 63).astype(np.uint16)
-    cy = np.clip(np.rint((y + car[..., 2] * cfg.sensor_range) * 63.0 / (cfg.width - 1)), 0, 63).astype(np.uint16)
-    h = np.argmax(car[..., 3 : 3 + N_HEADINGS], axis=-1).astype(np.uint16)
-    return np.where(seen, (1 << 15) | (cx << 9) | (cy << 3) | h, 0).astype(np.uint16)
+    speed = np.where(slots[..., 0] > 0.5, np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed), -1.0)
+    fastest = np.argmax(speed, axis=-1)[..., None, None]
+    chaser = np.take_along_axis(slots, fastest, axis=-2)[..., 0, :]
+    sure = np.take_along_axis(speed, fastest[..., 0], axis=-1)[..., 0] > cfg.max_speed
+    cx = np.where(sure, x + chaser[..., 1] * cfg.sensor_range, x)
+    cy = np.where(sure, y + chaser[..., 2] * cfg.sensor_range, y)
+    h = np.where(sure, np.argmax(chaser[..., 3 : 3 + N_HEADINGS], axis=-1), heading).astype(np.uint16)
+    wx = np.clip(np.rint(cx * 63.0 / (cfg.length - 1)), 0, 63).astype(np.uint16)
+    wy = np.clip(np.rint(cy * 31.0 / (cfg.width - 1)), 0, 31).astype(np.uint16)
+    return ((1 << 15) | (sure.astype(np.uint16) << 14) | (wx << 8) | (wy << 3) | h).astype(np.uint16)
 
 
-def decode_word(word: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(seen, x, y, heading) of the car each word reports (inverse of ``encode_word``, to the cell's precision)."""
+def decode_word(word: np.ndarray, cfg: TreadmillConfig) -> tuple[np.ndarray, ...]:
+    """(a report, a chaser (else the speaker itself), x, y, heading) of each word (inverse of ``encode_word``, to
+    the cell's precision)."""
     w = word.astype(np.int64)
-    seen = (w >> 15) & 1 == 1
-    x = ((w >> 9) & 63) * (cfg.length - 1) / 63.0
-    y = ((w >> 3) & 63) * (cfg.width - 1) / 63.0
-    return seen, x, y, w & 7
+    x = ((w >> 8) & 63) * (cfg.length - 1) / 63.0
+    y = ((w >> 3) & 31) * (cfg.width - 1) / 31.0
+    return (w >> 15) & 1 == 1, (w >> 14) & 1 == 1, x, y, w & 7
 
 
 def heard_known(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Known:
-    """``team16``: the agent's own sensor plus each teammate's word. A reported car near one the agent senses is that
-    car (now more likely an adversary: ``p_reported``); a reported car near the listener itself is dropped (the
-    teammate reports the listener); any other is a new car at the reported cell and heading, at top speed."""
+    """``team16``: the agent's own sensor plus each teammate's word. A teammate that says where it is is a known ally
+    (at the belt's speed), and a sensed car at its cell is that ally; a reported chaser is an adversary at top
+    speed, and the sensed car at its cell is it. Once every teammate is placed, or the one adversary is reported,
+    every car is identified; until then a sensed car the words do not name is an adversary with chance
+    ``p_adversary``."""
     n = cfg.n_agents
     own = sensed(obs, cfg, p)
-    x, y, _, _ = own_state(obs, cfg)
-    seen, rx, ry, rh = decode_word(encode_word(obs, cfg), cfg)  # [B, N]: what each agent says
-    others = peer_index(n)
-    seen, rx, ry, rh = seen[:, others], rx[:, others], ry[:, others], rh[:, others]  # [B, N, N−1] heard by each
-    tol = 1.0 + max(cfg.length, cfg.width) / 63.0
-    heard = seen & (np.hypot(rx - x[..., None], ry - y[..., None]) > tol)
-    # a heard car that matches a sensed one marks it as reported
-    match = np.hypot(rx[..., None, :] - own.x[..., :, None], ry[..., None, :] - own.y[..., :, None]) <= tol
-    match &= own.known[..., :, None] & heard[..., None, :]  # [B, N, k, N−1]
-    reported = match.any(axis=-1)
-    new = heard & ~match.any(axis=-2)
+    seen, sure, rx, ry, rh = (a[:, peer_index(n)] for a in decode_word(encode_word(obs, cfg), cfg))  # [B, N, N−1]
+    tol = 1.0 + max((cfg.length - 1) / 63.0, (cfg.width - 1) / 31.0)
+    near = np.hypot(rx[..., None, :] - own.x[..., :, None], ry[..., None, :] - own.y[..., :, None]) <= tol
+    near &= own.known[..., :, None] & seen[..., None, :]  # [B, N, k, N−1]: sensed car k is what word j reports
+    is_ally = (near & ~sure[..., None, :]).any(axis=-1)
+    is_chaser = (near & sure[..., None, :]).any(axis=-1)
+    placed = (seen & ~sure).all(axis=-1, keepdims=True)  # every teammate said where it is
+    lone = (seen & sure).any(axis=-1, keepdims=True) & (cfg.n_adversaries == 1)
+    sensed_p = np.where(placed | lone, 1.0 - lone, p.p_adversary)  # identified: the unnamed are adversaries/allies
+    sensed_p = np.where(is_ally, 0.0, np.where(is_chaser, 1.0, sensed_p))
+    new = seen & ~(near.any(axis=-2))  # reported cars the agent does not sense
+    known_adv = (own.known * (sensed_p > 0.5)).sum(axis=-1) + (new & sure).sum(axis=-1)
+    belt = float(cfg.treadmill_speed_max or cfg.treadmill_speed)
     return Known(
         known=np.concatenate([own.known, new], axis=-1),
         x=np.concatenate([own.x, rx], axis=-1),
         y=np.concatenate([own.y, ry], axis=-1),
         heading=np.concatenate([own.heading, rh], axis=-1),
-        speed=np.concatenate([own.speed, np.full(rx.shape, float(cfg.top_speed))], axis=-1),
-        adversary=np.concatenate(
-            [np.where(reported, p.p_reported, own.adversary), np.where(new, p.p_reported, 0.0)], axis=-1
-        ),
-        unseen=np.where(heard.any(axis=-1), 1.0 - p.p_reported, 1.0),
+        speed=np.concatenate([own.speed, np.where(sure, float(cfg.adversary_top), belt)], axis=-1),
+        adversary=np.concatenate([np.where(own.known, sensed_p, 0.0), np.where(new & sure, 1.0, 0.0)], axis=-1),
+        unseen=np.where((placed[..., 0] | lone[..., 0]) & (known_adv >= cfg.n_adversaries), 0.0, 1.0),
     )
 
 
@@ -384,15 +389,15 @@ def tune_planner(
 # "planners"; a test keeps the two equal).
 TUNED: dict[str, PlannerParams] = {
     "private": PlannerParams.from_label(
-        "horizon=6,discount=0.8869,danger=22.96,w_danger=4.431,w_crash=27.93,chase=4.388,p_adversary=0.3581,p_reported=0.9281,edge=13.52,w_edge=0.4404,home=0.2588,w_home=0.01923,w_reward=1.193,w_blind=0.2518,w_phantom=7.939,phantom=8.314"
+        "horizon=6,discount=0.8869,danger=22.96,w_danger=4.431,w_crash=27.93,chase=4.388,p_adversary=0.3581,edge=13.52,w_edge=0.4404,home=0.2588,w_home=0.01923,w_reward=1.193,w_blind=0.2518,w_phantom=7.939,phantom=8.314"
     ),
     "team": PlannerParams.from_label(
-        "horizon=5,discount=0.8499,danger=20.13,w_danger=5.895,w_crash=20.76,chase=3.557,p_adversary=0.5336,p_reported=0.9313,edge=15.61,w_edge=5.137,home=0.3996,w_home=0.02688,w_reward=1.095,w_blind=0.006734,w_phantom=6.542,phantom=11.18"
+        "horizon=5,discount=0.8499,danger=20.13,w_danger=5.895,w_crash=20.76,chase=3.557,p_adversary=0.5336,edge=15.61,w_edge=5.137,home=0.3996,w_home=0.02688,w_reward=1.095,w_blind=0.006734,w_phantom=6.542,phantom=11.18"
     ),
     "team16": PlannerParams.from_label(
-        "horizon=6,discount=0.9113,danger=21.23,w_danger=7.7,w_crash=10.74,chase=2.608,p_adversary=0.5057,p_reported=0.8329,edge=14.23,w_edge=2.933,home=0.2884,w_home=0.02497,w_reward=1.37,w_blind=0.1967,w_phantom=10.0,phantom=7.477"
+        "horizon=5,discount=0.9129,danger=22.47,w_danger=3.057,w_crash=26.93,chase=2.92,p_adversary=0.5649,edge=11.34,w_edge=1.93,home=0.5232,w_home=0.0341,w_reward=0.8687,w_blind=0.0193,w_phantom=7.82,phantom=8.732"
     ),
     "full": PlannerParams.from_label(
-        "horizon=6,discount=0.9103,danger=18.01,w_danger=7.677,w_crash=5.774,chase=3.462,p_adversary=0.4923,p_reported=0.8481,edge=12.49,w_edge=6.146,home=0.4222,w_home=0.07518,w_reward=1.9,w_blind=0.05371,w_phantom=5.554,phantom=16.15"
+        "horizon=6,discount=0.9103,danger=18.01,w_danger=7.677,w_crash=5.774,chase=3.462,p_adversary=0.4923,edge=12.49,w_edge=6.146,home=0.4222,w_home=0.07518,w_reward=1.9,w_blind=0.05371,w_phantom=5.554,phantom=16.15"
     ),
 }
