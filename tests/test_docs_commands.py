@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.doc_output import strip_comment
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
@@ -42,19 +44,6 @@ def console_blocks() -> list[tuple[str, str, str]]:
                 out.append((where, strip_comment(text), shown))
             i += 1
     return out
-
-
-def strip_comment(text: str) -> str:
-    """The command without a trailing ``# comment`` (a ``#`` outside quotes, after a space)."""
-    quote = None
-    for i, ch in enumerate(text):
-        if quote:
-            quote = None if ch == quote else quote
-        elif ch in "'\"":
-            quote = ch
-        elif ch == "#" and (i == 0 or text[i - 1] == " "):
-            return text[:i].rstrip()
-    return text.rstrip()
 
 
 COMMANDS = console_commands()
