@@ -20,6 +20,7 @@ import numpy as np
 
 from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
+from convoy.catalog import return_bounds
 from convoy.config import ConfigError, JobConfig, algo_name
 from convoy.stats import curve_area, iqm_ci, mean_curve
 from convoy.stats import mean_ci as _mean_ci
@@ -172,8 +173,6 @@ def summarize_group(
     """One group: its jobs' states, the mean greedy curve ± CI at common steps (and ``bounds``, the returns its env
     allows, where the rules bound them), the final return (mean ± t-CI and interquartile mean with a bootstrap CI),
     the area under each completed job's greedy curve, the threshold."""
-    from convoy.envs.registry import return_bounds  # the envs load on first use
-
     states: dict[str, int] = {}
     curves, finals, areas, reached_steps, reached_wall, jobs = [], [], [], [], [], []
     bounds: tuple[float, float] | None = None

@@ -43,3 +43,11 @@ def algos() -> dict[str, dict[str, Any]]:
                      "env_defaults": {env: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
                                       for env, d in per_env.items()}}  # fmt: skip
     return out
+
+
+def return_bounds(env: str) -> tuple[float, float] | None:
+    """The returns env ``env`` allows, where its rules bound them (None: unbounded, or an unknown env): what a
+    plot's CI band is clipped to."""
+    from convoy.envs.registry import return_bounds as bounds  # the envs load on first use
+
+    return bounds(env)

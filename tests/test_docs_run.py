@@ -151,6 +151,7 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
         (root / "experiments" / path.name).write_text(shrink_toml(path.read_text()))
     (root / "job.toml").write_text(JOB_TOML)
     (root / "benchmarks").symlink_to(ROOT / "benchmarks")
+    (root / "examples").symlink_to(ROOT / "examples")
     (root / "docs").mkdir()
     yield root
 
@@ -195,6 +196,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                   "treadmill_variants.py": ["--episodes", "2", "--cache", "variants"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
+                  "ma_mesn_single.py": [],  # its documented 25 k steps take seconds
                   "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
                               "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued
                   "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
