@@ -34,6 +34,11 @@ def sensor_slots(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     return obs[..., OWN_FEATURES : OWN_FEATURES + k * NEIGHBOUR_FEATURES].reshape(*obs.shape[:-1], k, -1)
 
 
+def slot_speeds(slots: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
+    """Cells per step of the car in each sensor slot ``[..., k]`` (other cars' speeds are scaled by ``top_speed``)."""
+    return np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed)
+
+
 def peer_index(n: int) -> np.ndarray:
     """``[N, N−1]``: every agent's teammates in order (agent i's row skips i), to gather what each one hears."""
     return np.array([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int64).reshape(n, n - 1)
@@ -71,7 +76,7 @@ def closing_slot(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     seen, dx, dy = slot_cars(obs, cfg)
     slots = sensor_slots(obs, cfg)
     h = np.argmax(slots[..., 3 : 3 + N_HEADINGS], axis=-1)
-    v = np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed)
+    v = slot_speeds(slots, cfg)
     nx, ny = dx + v * DX[h], dy + v * DY[h]  # where each car is headed in one step (observer's frame)
     zero = np.zeros_like(dx[..., :1])
     tx, ty = np.concatenate([dx, zero], axis=-1), np.concatenate([dy, zero], axis=-1)  # the others and the observer

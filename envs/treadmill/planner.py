@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
-from convoy.envs.treadmill.drivers import peer_index, sensor_slots
+from convoy.envs.treadmill.drivers import peer_index, sensor_slots, slot_speeds
 from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, DX, DY, TreadmillEngine
 from convoy.envs.treadmill.scripted import own_state
 
@@ -130,7 +130,7 @@ def sensed(obs: np.ndarray, cfg: TreadmillConfig, p: PlannerParams) -> Known:
         x=x[..., None] + slots[..., 1] * cfg.sensor_range,
         y=y[..., None] + slots[..., 2] * cfg.sensor_range,
         heading=np.argmax(slots[..., 3 : 3 + N_HEADINGS], axis=-1),
-        speed=np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed),
+        speed=slot_speeds(slots, cfg),
         adversary=np.where(seen, p.p_adversary, 0.0),
         unseen=np.ones(x.shape),
     )
@@ -176,7 +176,7 @@ def encode_word(obs: np.ndarray, cfg: TreadmillConfig) -> np.ndarray:
     an agent can (``adversary_speed`` above ``max_speed``): then it reports the fastest such car, surely a chaser."""
     x, y, heading, _ = own_state(obs, cfg)
     slots = sensor_slots(obs, cfg)
-    speed = np.where(slots[..., 0] > 0.5, np.rint(slots[..., 3 + N_HEADINGS] * cfg.top_speed), -1.0)
+    speed = np.where(slots[..., 0] > 0.5, slot_speeds(slots, cfg), -1.0)
     fastest = np.argmax(speed, axis=-1)[..., None, None]
     chaser = np.take_along_axis(slots, fastest, axis=-2)[..., 0, :]
     sure = np.take_along_axis(speed, fastest[..., 0], axis=-1)[..., 0] > cfg.max_speed
