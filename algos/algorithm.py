@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from convoy.algos.nets import pick_device, run_state, stack_runs
 from convoy.algos.replay import JointReplay
+from convoy.algos.streams import STREAMS, RunStreams, legacy_counter, to_integers, to_uniform
 from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
 from convoy.transition import schema
@@ -134,25 +135,30 @@ def lr_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
 
 
 def epsilon_greedy(
-    q: Tensor, epsilon: float | np.ndarray, mask: Tensor, n_actions: np.ndarray, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(actions, greedy actions, ε per env and agent) from Q ``[B, N, A]``; random actions stay within each
-    agent's own action count (``mask`` ``[N, A]``). At ε = 0 no random number is drawn: greedy acting (an
-    evaluation in the middle of training) leaves the exploration stream, and so the training run, as it was."""
-    return explore(q.masked_fill(~mask, NEG).argmax(dim=-1).cpu().numpy(), epsilon, n_actions, rng)
+    q: Tensor, epsilon: np.ndarray, mask: Tensor, n_actions: Tensor, stream: RunStreams
+) -> tuple[np.ndarray, np.ndarray]:
+    """(actions, greedy actions) ``[R, B, N]`` from Q ``[R, B, N, A]`` of R runs and ε per run and env ``[R, B]``;
+    random actions stay within each agent's own action count (``mask`` ``[N, A]``, ``n_actions`` ``[N]``). A run
+    whose ε is 0 draws no random number: greedy acting (an evaluation in the middle of training) leaves the
+    exploration stream, and so the training run, as it was."""
+    return explore(q.masked_fill(~mask, NEG).argmax(dim=-1), epsilon, n_actions, stream)
 
 
 def explore(
-    greedy: np.ndarray, epsilon: float | np.ndarray, n_actions: np.ndarray, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``epsilon_greedy`` from the greedy actions ``[B, N]``."""
-    b, n = greedy.shape
-    eps = np.broadcast_to(np.asarray(epsilon, dtype=np.float64).reshape(-1, 1), (b, n))
-    if not eps.any():
-        return greedy, greedy, eps
-    explore = rng.random((b, n)) < eps
-    random_a = (rng.random((b, n)) * n_actions).astype(np.int64)
-    return np.where(explore, random_a, greedy), greedy, eps
+    greedy: Tensor, epsilon: np.ndarray, n_actions: Tensor, stream: RunStreams
+) -> tuple[np.ndarray, np.ndarray]:
+    """``epsilon_greedy`` from the greedy actions ``[R, B, N]`` (on the device): one draw for every run, from each
+    run's own stream, and one copy of the actions to the host."""
+    drawing = epsilon.reshape(len(epsilon), -1).any(axis=1)  # [R]: the runs that explore at all
+    if not drawing.any():
+        greedy_np = greedy.cpu().numpy()
+        return greedy_np, greedy_np
+    advance = None if drawing.all() else torch.as_tensor(drawing, device=greedy.device).long()
+    words = stream.bits((2, *greedy.shape[1:]), advance)  # [R, 2, B, N]: whether to explore, which action
+    eps = torch.as_tensor(np.array(epsilon, dtype=np.float32), device=greedy.device).unsqueeze(-1)  # [R, B, 1]
+    actions = torch.where(to_uniform(words[:, 0]) < eps, to_integers(words[:, 1], n_actions), greedy)
+    both = torch.stack([actions, greedy]).cpu().numpy()
+    return both[0], both[1]
 
 
 def taken(q: Tensor, action: Tensor) -> Tensor:
@@ -301,14 +307,15 @@ class NetworkAgent(ABC):
             self.runs = len(self.seeds)
         if self.runs == 0:
             raise ValueError("seed: a population needs at least one seed")
-        # the joint replay every step-based learner samples from: rows hold the declared transition (and the act's
-        # extras), allocated on the first chunk
-        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=schema(self.n_agents, self.obs_dim))
-        # explicit streams per run: replay draws and exploration (numpy), message noise (torch) — never global state
-        self.rngs = [np.random.default_rng(s) for s in self.seeds]
-        self.rng = self.rngs[0]
-        self.torch_rngs = [torch.Generator(device=self.device).manual_seed(s) for s in self.seeds]
+        # the joint replay every step-based learner samples from, on the device: rows hold the declared transition
+        # (and the act's extras), allocated on the first chunk
+        declared = schema(self.n_agents, self.obs_dim)
+        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=declared, device=self.device)
+        # explicit streams per run and purpose, on the device (``algos.streams``), never global state: replay draws,
+        # exploration (and CoDBC's teacher share), noise (DIAL's DRU, Gumbel messages, a noisy channel control)
+        self.streams = {name: RunStreams(self.seeds, name, self.device) for name in STREAMS}
         self.n_actions_np = np.asarray(spec.n_actions, dtype=np.int64)
+        self.action_counts = torch.as_tensor(self.n_actions_np, device=self.device)  # [N]
         mask = torch.arange(self.n_act)[None, :] < torch.as_tensor(spec.n_actions)[:, None]
         self.action_mask = mask.to(self.device)  # [N, A]
         self.progress = Progress()
@@ -428,9 +435,9 @@ class NetworkAgent(ABC):
         return n_transitions * self.cfg.replay_ratio / self.cfg.batch_size
 
     def sample(self) -> Batch:
-        """The next training batch (``batch_size`` joint transitions, each run's from its own replay), on the device."""
-        batch = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
-        return {k: torch.as_tensor(v, device=self.device) for k, v in batch.items()}
+        """The next training batch (``batch_size`` joint transitions, each run's from its own replay), drawn and
+        gathered on the device."""
+        return self.replay.sample(self.cfg.batch_size, self.streams["replay"])
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
@@ -447,25 +454,26 @@ class NetworkAgent(ABC):
         observations and the recurrent state after this act; none by default."""
         return {}
 
-    def rand_like(self, x: Tensor, draw: Callable[..., Tensor] = torch.rand) -> Tensor:
-        """Noise shaped like ``x`` (uniform; ``draw=torch.randn`` for normal) from each run's own generator (``x``'s
-        first dim is the run axis in a population): run k draws exactly what the single run of its seed draws."""
-        if self.runs is None:
-            return draw(x.shape, generator=self.torch_rngs[0], device=x.device, dtype=x.dtype)
-        shape = x.shape[1:]
-        return torch.stack([draw(shape, generator=g, device=x.device, dtype=x.dtype) for g in self.torch_rngs])
+    def rand_like(self, x: Tensor, normal: bool = False) -> Tensor:
+        """Noise shaped like ``x`` (uniform in [0, 1), or standard normal) from each run's own noise stream, one draw
+        for all runs (``x``'s first dim is the run axis in a population): run k draws exactly what the single run
+        of its seed draws."""
+        stream = self.streams["noise"]
+        shape = x.shape if self.runs is None else x.shape[1:]
+        noise = stream.normal(shape, x.dtype) if normal else stream.uniform(shape, x.dtype)
+        return noise[0] if self.runs is None else noise
 
     def explore(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``epsilon_greedy`` for this agent: a population takes one greedy pass for every run and draws each run's
-        exploration from its own stream (ε a scalar, one per run ``[R]`` or per run and env ``[R, B]``)."""
-        if self.runs is None:
-            return epsilon_greedy(q, epsilon, self.action_mask, self.n_actions_np, self.rng)
-        greedy = q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).cpu().numpy()
+        """``epsilon_greedy`` for this agent, one greedy pass and one draw for every run (ε a scalar or one per env
+        ``[B]``; a population's a scalar, one per run ``[R]`` or per run and env ``[R, B]``): the actions, the
+        greedy actions and ε per env and agent, ``[B, N]`` (a population's ``[R, B, N]``)."""
+        q_runs = q if self.runs is not None else q.unsqueeze(0)  # a single run as R = 1
         eps = np.asarray(epsilon, dtype=np.float64)
-        eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, greedy.shape[:2])
-        runs = [explore(g, e, self.n_actions_np, rng) for g, e, rng in zip(greedy, eps, self.rngs, strict=True)]
-        actions, greedy_a, eps_a = (np.stack(x) for x in zip(*runs, strict=True))
-        return actions, greedy_a, eps_a
+        per_run = eps.reshape(self.runs, -1) if eps.ndim and self.runs is not None else eps.reshape(1, -1)
+        eps = np.broadcast_to(per_run, q_runs.shape[:2])  # [R, B]
+        actions, greedy = epsilon_greedy(q_runs, eps, self.action_mask, self.action_counts, self.streams["explore"])
+        per_agent = np.broadcast_to(eps[..., None], actions.shape)
+        return (actions, greedy, per_agent) if self.runs is not None else (actions[0], greedy[0], per_agent[0])
 
     def sync_targets(self) -> None:
         """After an update: the target sync of every run, each at its own ``target_update`` period."""
@@ -620,7 +628,7 @@ class NetworkAgent(ABC):
             self.average.load_state_dict(state)
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume learning exactly: networks, targets, optimizer, counters, RNG."""
+        """Everything needed to resume learning exactly: networks, targets, optimizer, counters, random streams."""
         if self.runs is not None:
             raise TypeError("a population's state is saved per run: member(k).state_dict()")
         return {
@@ -629,8 +637,7 @@ class NetworkAgent(ABC):
             **({} if self.average is None else {"average": self.average.state_dict()}),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": self.torch_rngs[0].get_state(),
+            "streams": self.stream_state(0),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -642,9 +649,24 @@ class NetworkAgent(ABC):
             self.average.load_state_dict(state.get("average", state["online"]))
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
-        self.rng.bit_generator.state = state["rng"]
-        if "torch_rng" in state:  # written since message noise has its own generator
-            self.torch_rngs[0].set_state(state["torch_rng"])
+        self.load_streams(0, state)
+
+    def stream_state(self, k: int) -> dict[str, int]:
+        """Run k's random streams: the seed they are keyed by and each purpose's counter (``algos.streams``)."""
+        streams = self.streams.values()
+        return {"seed": next(iter(streams)).seeds[k], **{s.stream: s.state(k) for s in streams}}
+
+    def load_streams(self, k: int, state: dict[str, Any]) -> None:
+        """Run k's streams from a single run's state. A checkpoint written before the device streams holds numpy
+        and torch generator states instead ("rng", "torch_rng", DIAL's "dru_rng"): its streams start at
+        ``legacy_counter(seed, updates)``, so such a resumed run draws other numbers than the old code would have
+        (another generator), though the same ones at every resume of that file."""
+        saved = state.get("streams")
+        for name, stream in self.streams.items():
+            if saved is None:
+                stream.load(k, legacy_counter(stream.seeds[k], int(state["updates"])))
+            else:
+                stream.load(k, saved[name], saved["seed"])
 
     # --- a population's runs as single runs ------------------------------------------------------------------------
     def member(self, k: int) -> NetworkAgent:
@@ -665,8 +687,7 @@ class NetworkAgent(ABC):
                 **({} if self.average is None else {"average": run_state(self.average, k)}),
                 "optimizer": {"param_groups": opt["param_groups"], "state": moments},
                 "updates": self.updates,
-                "rng": self.rngs[k].bit_generator.state,
-                "torch_rng": self.torch_rngs[k].get_state(),
+                "streams": self.stream_state(k),
                 **self.member_state(k),
             }
         )
@@ -702,9 +723,7 @@ class NetworkAgent(ABC):
                 for n, v in st.items():
                     (opt.state[p][n] if n == "step" else opt.state[p][n][k]).copy_(v)
         self.updates = int(state["updates"])
-        self.rngs[k].bit_generator.state = state["rng"]
-        if "torch_rng" in state:
-            self.torch_rngs[k].set_state(state["torch_rng"])
+        self.load_streams(k, state)
         self.load_member_extra(k, state)
 
     def load_member_extra(self, k: int, state: dict[str, Any]) -> None:

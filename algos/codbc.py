@@ -90,11 +90,10 @@ class CoDBC(NetworkAgent):
         """The student's ε-greedy actions, with the teacher driving a decaying share of the envs (DAgger's β)."""
         out = super().act(obs, epsilon, state)
         beta = self.teacher_share()
-        if beta > 0:  # each run draws its envs from its own stream, after its exploration draws
-            if self.runs is None:
-                drive = np.asarray(self.rng.random(obs.shape[0]) < beta)
-            else:
-                drive = np.stack([rng.random(obs.shape[1]) < beta for rng in self.rngs])
+        if beta > 0:  # each run draws its envs from its own exploration stream, after its exploration draw
+            envs = obs.shape[0] if self.runs is None else obs.shape[1]
+            drive = (self.streams["explore"].uniform(envs) < beta).cpu().numpy()
+            drive = drive[0] if self.runs is None else drive
             if drive.any():
                 rows = torch.as_tensor(obs[drive], dtype=torch.float32, device=self.device)
                 out.actions[drive] = self.teacher_actions(rows).cpu().numpy()

@@ -74,10 +74,9 @@ class DIAL(NetworkAgent):
         super().__init__(spec, cfg, device=device, seed=seed)
         self.chunk_len = int(cfg.unroll)
         self.seq_len = int(cfg.unroll)
-        self.noise = self.torch_rngs[0]  # the DRU's noise: the run's own generator
         self.n_actions_t = torch.as_tensor(spec.n_actions, dtype=torch.float32, device=self.device)  # [N]
         # Replay (when on) holds whole sequences: one row = ``unroll`` steps of one env.
-        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs)
+        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs, device=self.device)
         self.pending: deque[dict[str, np.ndarray]] = deque(maxlen=MAX_PENDING)
         self.last_chunk_rows = 0
         self.t_dim = 0 if self.runs is None else 1  # batches are time-major [T, B, …], a population's [R, T, B, …]
@@ -86,7 +85,8 @@ class DIAL(NetworkAgent):
         self.synced_at: int | np.ndarray = 0 if self.runs is None else np.zeros(self.runs, dtype=np.int64)
 
     def randn(self, x: Tensor) -> Tensor:
-        return self.rand_like(x, torch.randn)
+        """The DRU's noise: normals from each run's own noise stream."""
+        return self.rand_like(x, normal=True)
 
     # --- networks ----------------------------------------------------------------------------------------------
     def build(self) -> dict[str, nn.Module]:
@@ -228,13 +228,12 @@ class DIAL(NetworkAgent):
     def sample(self) -> Batch:
         """The next sequence batch ``[T, B, …]``: the oldest queued chunk (on-policy) or ``batch_size`` sequences
         drawn uniformly from the ring."""
-        if self.cfg.replay:
-            rows = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
-            data = {k: v.swapaxes(self.t_dim, self.t_dim + 1) for k, v in rows.items()}  # [(R,) L, n, …]
-        else:
-            data = self.pending.popleft()
-            if self.runs is not None:
-                data = {k: v.swapaxes(0, 1) for k, v in data.items()}  # [T, R, B, …] → [R, T, B, …]
+        if self.cfg.replay:  # drawn and gathered on the device
+            rows = self.replay.sample(self.cfg.batch_size, self.streams["replay"])
+            return {k: v.transpose(self.t_dim, self.t_dim + 1).contiguous() for k, v in rows.items()}  # [(R,) L, n, …]
+        data = self.pending.popleft()
+        if self.runs is not None:
+            data = {k: v.swapaxes(0, 1) for k, v in data.items()}  # [T, R, B, …] → [R, T, B, …]
         return {k: torch.as_tensor(np.ascontiguousarray(v), device=self.device) for k, v in data.items()}
 
     # --- learning ----------------------------------------------------------------------------------------------
@@ -293,8 +292,7 @@ class DIAL(NetworkAgent):
 
     def member_state(self, k: int) -> dict[str, Any]:
         done, synced = np.asarray(self.episodes_done).reshape(-1), np.asarray(self.synced_at).reshape(-1)
-        counts = {"episodes_done": int(done[k]), "synced_at": int(synced[k])}
-        return {**counts, "dru_rng": self.torch_rngs[k].get_state()}
+        return {"episodes_done": int(done[k]), "synced_at": int(synced[k])}  # the DRU's noise: the noise stream
 
     def load_member_extra(self, k: int, state: dict[str, Any]) -> None:
         done, synced = cast(np.ndarray, self.episodes_done), cast(np.ndarray, self.synced_at)  # a population's: [R]
@@ -305,6 +303,3 @@ class DIAL(NetworkAgent):
         super().load_state_dict(state)
         self.episodes_done = int(state["episodes_done"])
         self.synced_at = int(state["synced_at"])
-        rng_state = state["dru_rng"]
-        if rng_state.numel() == self.noise.get_state().numel():  # a CPU ↔ CUDA checkpoint keeps this stream
-            self.noise.set_state(rng_state)

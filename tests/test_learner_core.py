@@ -16,6 +16,7 @@ from convoy.algos.dqn_ser import age_weights
 from convoy.algos.listening import Source
 from convoy.algos.registry import make_algorithm
 from convoy.algos.replay import JointReplay
+from convoy.algos.streams import RunStreams
 from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
@@ -91,11 +92,11 @@ def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     batch = random_batch(SPEC)
     grads = []
     for i in range(SPEC.n_agents):
-        algo.torch_rngs[0].manual_seed(1)  # same Gumbel noise in every pass (the agent's own generator)
+        algo.streams["noise"].load(0, 1)  # same Gumbel noise in every pass (the agent's own stream)
         algo.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(batch)[i].backward()
         grads.append(algo.online["message"].layers[0].weight.grad.clone())
-    algo.torch_rngs[0].manual_seed(1)
+    algo.streams["noise"].load(0, 1)
     algo.optimizer.zero_grad(set_to_none=True)
     algo.agent_losses(batch).sum().backward()
     torch.testing.assert_close(algo.online["message"].layers[0].weight.grad, sum(grads), rtol=1e-4, atol=1e-6)
@@ -168,9 +169,9 @@ def test_replay_is_a_bounded_ring() -> None:
     for start in range(0, 25, 5):
         buf.add({"x": np.arange(start, start + 5)[:, None], "y": np.zeros((5, 2, 3))})
     assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8
-    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(15, 25))
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][:, 0].tolist()) == set(range(15, 25))
     buf.add({"x": np.arange(100, 130)[:, None], "y": np.zeros((30, 2, 3))})  # more rows than capacity
-    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(120, 130))
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][:, 0].tolist()) == set(range(120, 130))
     with pytest.raises(ValueError, match="fields"):
         buf.add({"x": np.zeros((1, 1))})
 
@@ -383,8 +384,8 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
     assert save_replay(path, algo, env_steps=300, max_bytes=1 << 30) > 0
     fresh = build("idqn")
     assert load_replay(path, fresh, env_steps=300) == 300
-    a, b = algo.replay.sample(64, np.random.default_rng(1)), fresh.replay.sample(64, np.random.default_rng(1))
-    assert all(np.array_equal(a[k], b[k]) for k in a)
+    a, b = algo.replay.sample(64, RunStreams([1], "replay")), fresh.replay.sample(64, RunStreams([1], "replay"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
     assert load_replay(path, build("idqn"), env_steps=200) == 0  # saved at another step than the checkpoint's
     assert save_replay(path, algo, env_steps=300, max_bytes=1_000) == 0 and not path.exists()  # over the bound
     path.write_bytes(b"not a zip")

@@ -16,6 +16,7 @@ from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent, max_env_steps
 from convoy.algos.checkpoint import replay_buffers
 from convoy.algos.replay import JointReplay
+from convoy.algos.streams import RunStreams
 from convoy.config import JobConfig, job_config
 from convoy.learner.inprocess import Trainer
 from convoy.learner.population import PopulationTrainer
@@ -39,16 +40,16 @@ def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs:
     full, short = JointReplay(50, runs=runs), JointReplay(50, runs=runs)
     short.reserve(5)
     g = np.random.default_rng(0)
-    streams = [[np.random.default_rng(s) for s in range(runs or 1)] for _ in range(2)]
+    streams = [RunStreams(range(runs or 1), "replay") for _ in range(2)]
     for m in (3, 1, 7, 2, 11, 4, 30, 9, 25, 45):
         batch = rows(g, m, runs)
         valid = None if runs is None else g.random((runs, m)) < 0.7  # the runs' own rows (a meta level's)
         for buf in (full, short):
             buf.add(batch, valid)
         assert short.allocated <= 50 and full.allocated == 50
-        draws = [b.sample(8, s[0] if runs is None else s) for b, s in zip((full, short), streams, strict=True)]
+        draws = [b.sample(8, s) for b, s in zip((full, short), streams, strict=True)]
         for k in draws[0]:
-            np.testing.assert_array_equal(draws[0][k], draws[1][k])
+            assert torch.equal(draws[0][k], draws[1][k])
         a, b = full.state_dict(), short.state_dict()
         np.testing.assert_array_equal(a["size"], b["size"])
         np.testing.assert_array_equal(a["next"], b["next"])

@@ -118,12 +118,21 @@ def batch(spec: EnvSpec, m: int = 64, seed: int = 0) -> dict[str, Tensor]:
     }
 
 
+def same_noise(agent: NetworkAgent, seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The agent's message noise from a torch generator of ``seed``, as the single file draws it (the agent's own
+    streams are another generator: ``algos.streams``)."""
+    gen = torch.Generator().manual_seed(seed)
+    monkeypatch.setattr(agent, "rand_like", lambda x, normal=False: torch.rand(x.shape, generator=gen, dtype=x.dtype))
+
+
 @pytest.mark.parametrize("params", [REF, PLAIN], ids=["ref", "plain"])
-def test_losses_and_gradients_equal_the_products(single: ModuleType, params: dict, one_thread: None) -> None:
+def test_losses_and_gradients_equal_the_products(
+    single: ModuleType, params: dict, one_thread: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
     agent = product(params)
     args, online, target = twins(single, agent)
     data = batch(agent.spec)
-    agent.torch_rngs[0].manual_seed(7)  # the same Gumbel noise: both draw one uniform per bit from this state
+    same_noise(agent, 7, monkeypatch)  # the same Gumbel noise: both draw one uniform per bit from this state
     gen = torch.Generator().manual_seed(7)
 
     theirs = agent.loss(data).agents
@@ -149,7 +158,7 @@ def test_weights_after_adam_steps_equal_the_products(
     args, online, target = twins(single, agent)
     start = {k: v.clone() for k, v in online.state_dict().items()}
     optimizer = torch.optim.Adam(online.parameters(), lr=args.lr)
-    agent.torch_rngs[0].manual_seed(3)
+    same_noise(agent, 3, monkeypatch)
     gen = torch.Generator().manual_seed(3)
     updates = 0
     for step in range(3):
