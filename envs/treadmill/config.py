@@ -123,6 +123,11 @@ class TreadmillConfig(BaseModel):
         return self.max_speed if self.adversary_speed is None else self.adversary_speed
 
     @property
+    def adversary_steer_cap(self) -> int:
+        """The fastest an adversary steers at (``adversary_steer_speed``; unset: any speed it can drive)."""
+        return self.top_speed if self.adversary_steer_speed is None else self.adversary_steer_speed
+
+    @property
     def top_speed(self) -> int:
         """The fastest any car may go: the scale of other cars' speeds in an observation."""
         return max(self.max_speed, self.adversary_top)

@@ -90,8 +90,7 @@ class TreadmillEngine:
         self._counted_pair = pair & ~np.eye(c, dtype=bool)  # pairs whose collision matters
         self._top = np.where(self._is_agent, cfg.max_speed, cfg.adversary_top)  # [C] each car's top speed
         # [C] the fastest each car may steer at (``adversary_steer_speed``; agents always steer)
-        steer_cap = cfg.top_speed if cfg.adversary_steer_speed is None else cfg.adversary_steer_speed
-        self._steer_cap = np.where(self._is_agent, cfg.top_speed, steer_cap)
+        self._steer_cap = np.where(self._is_agent, cfg.top_speed, cfg.adversary_steer_cap)
         self._self_mask = np.where(np.eye(n, c, dtype=bool), np.inf, 0.0)  # excludes an agent's own car
         # every other car of each agent, agents first then adversaries (the full-information layout)
         self._others = np.array([[j for j in range(c) if j != i] for i in range(n)], dtype=np.int64).reshape(n, c - 1)

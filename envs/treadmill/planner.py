@@ -250,8 +250,7 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
     ay = np.broadcast_to(ky, ax.shape)
     unseen = cars.unseen.reshape(m, 1)
     # a car too fast to steer (``adversary_steer_speed``) drives on in a line, whoever it chases
-    steer_cap = cfg.adversary_steer_speed
-    charging = np.zeros(cv.shape, bool) if steer_cap is None else cv > steer_cap  # [M, 1, K]
+    charging = cv > cfg.adversary_steer_cap  # [M, 1, K]
     # phantoms: a possible chaser in each compass direction the agent's sensor cannot see now, ``phantom`` cells away
     blind = np.flatnonzero(~_sees(cfg, np.zeros(1, np.int64), np.arange(N_HEADINGS)))  # offsets from the heading
     ph = (heading.reshape(m, 1) + blind[None, :]) % N_HEADINGS  # [M, F]
