@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
-from convoy.validation import ConfigError
+from convoy.validation import ConfigError, flag_name
 
 WORDS_HEADER = "Convoy-Words"
 Words = Literal["api", "cli"]
@@ -41,11 +41,6 @@ COMMANDS: dict[str, tuple[str, str] | None] = {
 }
 
 
-def flag(name: str) -> str:
-    """The command line's flag for a body field: ``--num-envs`` for ``num_envs`` (``cli/args.add_model_flags``)."""
-    return "--" + name.replace("_", "-")
-
-
 @dataclass(frozen=True)
 class Step:
     """One request that helps: ``route`` (a key of ``COMMANDS``) for the job or sweep ``id`` (None: any, said
@@ -63,7 +58,7 @@ class Step:
         command = COMMANDS[self.route]
         if words == "cli" and command is not None:
             line, note = command
-            args = [line.replace("{id}", self.id or "ID"), *(f"{flag(k)} {v}" for k, v in self.body.items())]
+            args = [line.replace("{id}", self.id or "ID"), *(f"{flag_name(k)} {v}" for k, v in self.body.items())]
             return f"`{' '.join(args)}`" + (f" ({note})" if note else "")
         route = self.route.replace("{id}", self.id or "{id}")
         return f"{route} {json.dumps(dict(self.body))}" if self.body else route
