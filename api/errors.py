@@ -2,7 +2,8 @@
 
 The handlers turn FastAPI's validation errors, Starlette's routing errors, the config's ``ConfigError`` and the
 store's refusals into that shape; ``BodyLimit`` refuses an over-large body before any route reads it; and
-``ERROR_RESPONSES`` documents the real body for every status in the OpenAPI schema.
+``ERROR_RESPONSES`` documents the real body for every status in the OpenAPI schema. A fix that names a request
+(``api/remedy.py``) says it as the route, or as the convoy command when the request asked for ``Convoy-Words: cli``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from starlette.routing import Match
 
 from convoy.api.lifecycle import StoreError, UnknownEvaluation, UnknownJob, UnknownSweep
 from convoy.api.models import ErrorBody
+from convoy.api.remedy import WORDS_HEADER, ConfigRefusal, Fix, Step, words_of
 from convoy.config import ConfigError
 
 MAX_BODY = 64 * 1024
@@ -77,13 +79,25 @@ def error_response(status: int, field: str, problem: str, fix: str) -> JSONRespo
     return JSONResponse(ErrorBody(field=field, problem=problem, fix=fix).model_dump(), status_code=status)
 
 
-def _handler(status: int, field: str, fix: str) -> Any:
-    """An exception handler answering ``status`` with the exception's message as the problem."""
+def said(request: Request, fix: Fix) -> str:
+    """``fix`` in the words ``request`` asked for, for the job its path names (``/jobs/{job_id}…``)."""
+    return fix.of_job(request.path_params.get("job_id")).say(words_of(request.headers.get(WORDS_HEADER)))
 
-    async def handle(_: Request, exc: Exception) -> JSONResponse:
-        return error_response(status, field, str(exc), fix)
+
+def _handler(status: int, field: str, fix: Fix) -> Any:
+    """An exception handler answering ``status`` with the exception's message as the problem and its own ``fix``
+    (a ``StoreError``'s), else ``fix``."""
+
+    async def handle(request: Request, exc: Exception) -> JSONResponse:
+        own = getattr(exc, "fix", None)
+        return error_response(status, field, str(exc), said(request, own if isinstance(own, Fix) else fix))
 
     return handle
+
+
+# What a ConfigError's caller does: change the field, whose default and range the catalogues list.
+CONFIG_FIX = Fix("change this field ({} and {} list every parameter with its default and range)",
+                 Step("GET /envs"), Step("GET /algos"))  # fmt: skip
 
 
 # Every error any route can answer, documented with the body it really has (FastAPI would otherwise document its
@@ -110,7 +124,7 @@ def install_error_handlers(app: FastAPI) -> None:
         return JSONResponse(exc.body.model_dump(), status_code=exc.status)
 
     @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+    async def _invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
         err = exc.errors()[0] if exc.errors() else {"loc": (), "msg": "invalid request"}
         loc = [str(p) for p in err.get("loc", ()) if p not in ("body", "query", "path")]
         field = ".".join(loc) or "body"
@@ -119,7 +133,8 @@ def install_error_handlers(app: FastAPI) -> None:
         ctx = cast(dict[str, Any], err.get("ctx") or {})
         if isinstance(ctx.get("error"), ConfigError):  # a model's own check: it names the field and the fix
             cause = ctx["error"]
-            return error_response(422, cause.field, str(cause).split(": ", 1)[-1], "change this field")
+            fix = said(request, cause.fix) if isinstance(cause, ConfigRefusal) else "change this field"
+            return error_response(422, cause.field, str(cause).split(": ", 1)[-1], fix)
         words = {"ge": "≥", "gt": ">", "le": "≤", "lt": "<", "pattern": "matching", "expected": "one of"}
         bound = " and ".join(f"{words[k]} {v}" for k, v in ctx.items() if k in words)
         fix = f"give {field} {bound}" if bound else "see the schema at /docs"
@@ -145,19 +160,19 @@ def install_error_handlers(app: FastAPI) -> None:
         return sorted(methods - {"HEAD"})
 
     @app.exception_handler(ConfigError)
-    async def _config(_: Request, exc: ConfigError) -> JSONResponse:
+    async def _config(request: Request, exc: ConfigError) -> JSONResponse:
         text = str(exc).split(": ", 1)[-1]
-        fix = "change this field (GET /envs and GET /algos list every parameter with its default and range)"
-        return error_response(422, exc.field, text, fix)
+        fix = exc.fix if isinstance(exc, ConfigRefusal) else CONFIG_FIX
+        return error_response(422, exc.field, text, said(request, fix))
 
     # the store's and the files' errors: (status, field, fix); the most specific class wins (UnknownJob, then
     # StoreError for every other refusal, InvalidTransition included)
     for exc_type, (status, field, fix) in {
-        UnknownJob: (404, "id", "list the jobs with GET /jobs"),
-        UnknownSweep: (404, "id", "list the sweeps with GET /sweeps"),
-        StoreError: (409, "state", "check the job's state with GET /jobs/{id}"),
-        UnknownEvaluation: (404, "eval_id", "list the evaluations with GET /jobs/{id}/evaluations"),
-        FileNotFoundError: (404, "name", "list the files with GET /jobs/{id}/checkpoints"),
+        UnknownJob: (404, "id", Fix("list the jobs with {}", Step("GET /jobs"))),
+        UnknownSweep: (404, "id", Fix("list the sweeps with {}", Step("GET /sweeps"))),
+        StoreError: (409, "state", Fix("check the job's state with {}", Step("GET /jobs/{id}"))),
+        UnknownEvaluation: (404, "eval_id", Fix("list the evaluations with {}", Step("GET /jobs/{id}/evaluations"))),
+        FileNotFoundError: (404, "name", Fix("list the files with {}", Step("GET /jobs/{id}/checkpoints"))),
     }.items():
         app.add_exception_handler(exc_type, _handler(status, field, fix))
 

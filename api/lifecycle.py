@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
 
+from convoy.api.remedy import Fix
+
 
 class JobState(StrEnum):
     """A job's lifecycle state; a ``str`` so it compares equal to, and serialises as, its name."""
@@ -69,7 +71,12 @@ _STATE_ORDER: tuple[JobState, ...] = tuple(JobState)
 
 
 class StoreError(ValueError):
-    """Anything the caller asked for that the store cannot do; the message says what and how to fix it."""
+    """Anything the caller asked for that the store cannot do; the message says what, ``fix`` (when it is not the
+    API's usual "check the job's state") what to do instead."""
+
+    def __init__(self, message: str, fix: Fix | None = None) -> None:
+        super().__init__(message)
+        self.fix = fix
 
 
 class UnknownJob(StoreError):

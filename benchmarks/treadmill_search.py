@@ -21,7 +21,8 @@ against the private planner (goals: private planner ≥ 1.6 × the tuned private
 
 Run: ``python benchmarks/treadmill_search.py`` (about an hour on one core, most of it the planners' tuning);
 ``--part planners --json docs/figures/treadmill_search.json`` redoes only the planners and keeps the rest of that
-file; ``--quick`` for a smaller search; ``--set KEY=VALUE`` changes a rule.
+file, ``--part others`` the rest and keeps the planners; ``--quick`` for a smaller search; ``--set KEY=VALUE``
+changes a rule.
 """
 
 from __future__ import annotations
@@ -77,9 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     p.add_argument(
         "--part",
-        choices=("all", "planners"),
+        choices=("all", "planners", "others"),
         default="all",
-        help="all: every reference; planners: only the planners, the rest kept from --json's file (default: all)",
+        help="all: every reference; planners: only the planners, the rest kept from --json's file; others: every "
+        "reference but the planners, which keep their parameters from --json's file and are scored again "
+        "(default: all)",
     )
     p.add_argument(
         "--planner-iterations",
@@ -111,15 +114,18 @@ def main(argv: list[str] | None = None) -> int:
     kept: dict = {}
     refs: dict[str, np.ndarray] = {}
     drivers: dict = {}
-    if args.part == "planners":
+    if args.part != "all":
         kept = _kept(args.json, cfg, args.episodes)
-        if kept:
-            refs = kept_references(cfg, kept, args.episodes)
-    else:
+    if args.part == "planners" and kept:
+        refs = kept_references(cfg, kept, args.episodes)
+    if args.part != "planners":
         drivers = open_loop_and_drivers(cfg, args, returns, notes)
+    if args.part == "others":
+        args.levels = []  # every level keeps the kept file's planner (one missing from it is tuned)
     tuned = tune_planners(cfg, args, kept, returns, notes)
 
-    table = Table(title=f"treadmill references ({args.rules} rules): {args.episodes} scoring episodes each")
+    rules = f"{args.rules} rules" + "".join(f", {pair}" for pair in args.set or [])
+    table = Table(title=f"treadmill references ({rules}): {args.episodes} scoring episodes each")
     for col in ("policy", "return per agent (95 % CI)", "chosen on tuning episodes"):
         table.add_column(col, justify="left" if col != "return per agent (95 % CI)" else "right")
     for name, r in returns.items():
@@ -144,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         out["episode_returns"] = {n: v.tolist() for n, v in every.items() if n in PAIRED}
         out["planners"] = {level: p.label() for level, p in tuned.items()}
         out["planner_budget"] = planner_budget(args) | {"start": planner.START.label()}
-        if args.part == "all":
+        if args.part != "planners":
             out["params"] = {k: v.label() for k, v in drivers.items()}
         write_json(args.json, out)
     return 0

@@ -11,7 +11,7 @@ from typing import Any, Literal, get_args, get_origin
 from pydantic import BaseModel
 
 from convoy.config import ResourceLimits
-from convoy.validation import ConfigError
+from convoy.validation import ConfigError, flag_name
 
 EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
 
@@ -62,7 +62,7 @@ def add_model_flags(
     for a switch): only what the user gives overrides the model's default or a config file."""
     for name in names:
         info = model.model_fields[name]
-        flag = (flags or {}).get(name, "--" + name.replace("_", "-"))
+        flag = (flags or {}).get(name, flag_name(name))
         text = (info.description or name).rstrip(".")
         if info.annotation is bool:
             p.add_argument(flag, dest=name, action="store_const", const=True, help=f"{text} (default off)")
@@ -97,7 +97,7 @@ def add_limit_flags(p: argparse.ArgumentParser) -> None:
     """``--max-layer-width`` etc.: one flag per ``ResourceLimits`` field, with its default."""
     for name, field in ResourceLimits.model_fields.items():
         p.add_argument(
-            "--" + name.replace("_", "-"),
+            flag_name(name),
             type=int,
             default=field.default,
             metavar="N",
@@ -110,5 +110,5 @@ def limits_from_args(args: argparse.Namespace) -> ResourceLimits:
     values = {name: getattr(args, name) for name in ResourceLimits.model_fields}
     for name, value in values.items():
         if value < 1:
-            raise ConfigError("--" + name.replace("_", "-"), f"must be ≥ 1 (got {value})")
+            raise ConfigError(flag_name(name), f"must be ≥ 1 (got {value})")
     return ResourceLimits(**values)

@@ -14,7 +14,6 @@ import argparse
 import json
 import math
 import os
-import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -27,6 +26,7 @@ from rich.text import Text
 
 from convoy.api.lifecycle import FINAL_STATES, JobState
 from convoy.api.models import MAX_ACTORS, JobSubmit
+from convoy.api.remedy import WORDS_HEADER
 from convoy.cli.args import add_command, add_model_flags, env_params, given, parse_pairs
 from convoy.cli.train import add_job_flags
 from convoy.config import MESSAGE_SOURCES
@@ -56,34 +56,15 @@ class Unreachable(CliError):
         super().__init__("", f"cannot reach {url} (is `convoy serve` running?)")
 
 
-# The API's fixes name REST routes; at the command line the same step is a convoy command.
-CLI_FOR_ROUTE: tuple[tuple[str, str], ...] = (
-    (r'POST /jobs/([\w.-]+)/resume \{"actors": (\d+)\}', r"`convoy jobs resume \1 --actors \2`"),
-    (r"POST /jobs/([\w.-]+)/resume", r"`convoy jobs resume \1`"),
-    (r"GET /jobs/([\w.-]+)/logs", r"`convoy jobs logs \1`"),
-    (r"GET /jobs/([\w.-]+)/metrics", r"`convoy jobs metrics \1`"),
-    (r"GET /jobs/(\{id\}|[\w.-]+)/checkpoints", r"`convoy jobs status \1` (its last_checkpoint)"),
-    (r"GET /jobs/(\{id\}|[\w.-]+)(?![\w/])", r"`convoy jobs status \1`"),
-    (r"GET /jobs(?![\w/])", "`convoy jobs list`"),
-)
-
-
-def cli_words(text: str) -> str:
-    """``text`` with every REST route it names replaced by the convoy command that does the same."""
-    for route, command in CLI_FOR_ROUTE:
-        text = re.sub(route, command, text)
-    text = re.sub(r"`([^`]+)` or (convoy [\w .-]+)", lambda m: f"`{m[1]}`" if m[1] == m[2].strip() else m[0], text)
-    return text.replace("{id}", "ID")
-
-
 def api_error(resp: httpx.Response) -> CliError:
-    """The API's ``{"field", "problem", "fix"}`` body as a CliError; anything else still as one line."""
+    """The API's ``{"field", "problem", "fix"}`` body as a CliError (its fix in the command line's words: ``Api`` asks
+    for them); anything else still as one line."""
     try:
         body = resp.json()
     except ValueError:
         body = None
     if isinstance(body, dict) and {"field", "problem"} <= body.keys():
-        return CliError(str(body["field"]), cli_words(str(body["problem"])), cli_words(str(body.get("fix") or "")))
+        return CliError(str(body["field"]), str(body["problem"]), str(body.get("fix") or ""))
     text = " ".join(resp.text.split())[:200] or resp.reason_phrase
     problem = f"{resp.status_code} {resp.reason_phrase} from {resp.request.url}: {text}"
     return CliError("http", problem, "is --url the address of `convoy serve`? (its API docs are at URL/docs)")
@@ -94,7 +75,9 @@ class Api:
 
     def __init__(self, url: str, token: str | None, timeout: float = HTTP_TIMEOUT_S) -> None:
         self.url = url.rstrip("/")
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        headers = {WORDS_HEADER: "cli"}  # the API's fixes as convoy commands (api/remedy.py), not routes
+        if token:
+            headers["Authorization"] = f"Bearer {token}"
         try:
             self.client = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
         except (httpx.InvalidURL, ValueError) as exc:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from convoy.protocol.session import ZenohSettings
 from convoy.validation import ConfigError as ConfigError  # re-exported: the API, learner and services import it here
-from convoy.validation import build_config
+from convoy.validation import build_config, flag_name
 
 Device = Literal["auto", "cpu", "cuda"]  # where torch runs; auto = CUDA when present
 Fraction = Annotated[float, Field(ge=0, le=1)]  # a probability, a share, a discount
@@ -456,7 +456,7 @@ class ResourceLimits(BaseModel):
         for field, limit, value, what in asks:
             bound = getattr(self, limit)
             if value > bound:
-                flag = "--" + limit.replace("_", "-")
+                flag = flag_name(limit)
                 raise ConfigError(
                     field,
                     f"{what} is over this {command}'s limit {limit} = {bound:,}; ask for less (the paper's treadmill "

@@ -23,6 +23,11 @@ class ConfigError(ValueError):
         self.field = field
 
 
+def flag_name(field: str) -> str:
+    """The command line's flag for a config field: ``--num-envs`` for ``num_envs`` (every flag drawn from a model)."""
+    return "--" + field.replace("_", "-")
+
+
 def allowed_range(model: type[BaseModel], name: str) -> str | None:
     """Human-readable range of a numeric field, from its ``Field(ge=…, le=…)`` constraints."""
     head, _, rest = name.partition(".")

@@ -18,7 +18,7 @@ from typing import Any
 
 from convoy.api.lifecycle import StoreError, UnknownEvaluation
 from convoy.api.models import EvalRequest
-from convoy.config import ConfigError
+from convoy.api.remedy import ConfigRefusal, Fix, Step
 from convoy.services.procs import pid_alive
 
 MAX_RUNNING = 2  # evaluations at once, service-wide: each takes a core
@@ -70,18 +70,18 @@ def start(job_dir: Path, job_id: str, request: EvalRequest, running_elsewhere: i
     """Start ``convoy eval`` on the job's checkpoint; a ConfigError when there is none or the request is bad."""
     checkpoint = job_dir / request.checkpoint
     if not checkpoint.is_file():
-        raise ConfigError(
+        raise ConfigRefusal(
             "checkpoint",
-            f"job {job_id!r} has no {request.checkpoint} yet; it writes one every checkpoint_every env steps (list "
-            f"them with GET /jobs/{job_id}/checkpoints)",
+            f"job {job_id!r} has no {request.checkpoint} yet; it writes one every checkpoint_every env steps",
+            Fix("evaluate one it has: {}", Step("GET /jobs/{id}/checkpoints", job_id)),
         )
     if request.channel:
         from convoy.analysis.evaluation import parse_channel
 
         parse_channel(request.channel)
     if running_elsewhere >= MAX_RUNNING:
-        raise StoreError(f"{running_elsewhere} evaluations are running; this service runs {MAX_RUNNING} at once — "
-                         f"wait for one (GET /jobs/{job_id}/evaluations)")  # fmt: skip
+        raise StoreError(f"{running_elsewhere} evaluations are running; this service runs {MAX_RUNNING} at once",
+                         Fix("wait for one to end: {}", Step("GET /jobs/{id}/evaluations", job_id)))  # fmt: skip
     folder = job_dir / "evaluations" / secrets.token_hex(3)
     folder.mkdir(parents=True)
     cmd = [python, "-m", "convoy.cli", "eval", str(checkpoint), "--episodes", str(request.episodes),

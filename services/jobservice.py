@@ -48,6 +48,7 @@ import numpy as np
 
 from convoy.api.lifecycle import ACTIVE_STATES, InvalidTransition, JobRecord, JobState, StoreError, SweepRecord
 from convoy.api.models import EvalRequest, SweepSubmit
+from convoy.api.remedy import Fix, Step
 from convoy.api.sweeps import expand, group_name, packs, population
 from convoy.config import ConfigError, JobConfig, ResourceLimits, job_config
 from convoy.learner.metrics import read_rows
@@ -241,10 +242,8 @@ class JobService:
                 self.scale(self._runner(job_id), actors)
                 return self.store.get(job_id)
             if rec.state not in ACTIVE_STATES:  # named as the caller named it (resuming a seed resumes its population)
-                raise StoreError(
-                    f"job {job_id!r} is {rec.state}; scale it by resuming: POST /jobs/{job_id}/resume "
-                    f'{{"actors": {actors}}}'
-                )
+                resume = Step("POST /jobs/{id}/resume", job_id, {"actors": actors})
+                raise StoreError(f"job {job_id!r} is {rec.state}", Fix("scale it by resuming: {}", resume))
             if actors + 2 > self.max_processes:
                 raise ConfigError("actors", f"{actors} actors need {actors + 2} processes; the limit is "
                                   f"{self.max_processes} (convoy serve --max-processes)")  # fmt: skip
@@ -332,9 +331,7 @@ class JobService:
     def checkpoint_file(self, job_id: str, name: str) -> Path:
         path = self._out(job_id) / name
         if not name.endswith(".pt") or not path.is_file():
-            raise FileNotFoundError(
-                f"job {job_id!r} has no checkpoint {name!r}; list them with GET /jobs/{job_id}/checkpoints"
-            )
+            raise FileNotFoundError(f"job {job_id!r} has no checkpoint {name!r}")  # the API's fix lists them
         return path
 
     def evaluate(self, job_id: str, request: EvalRequest) -> dict[str, Any]:

@@ -32,6 +32,9 @@ NUMBER = re.compile(r"(?<![\w.,])[-−]?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?(?:e
 ID = re.compile(r"\b(?:[a-z][a-z0-9-]*?-[0-9a-f]{6}(?:-\d{3}|-pop\d+)?|(?=[a-f]*\d)[0-9a-f]{6})\b")
 BOX = re.compile(r"[│┃─━┏┓┗┛┡┩┣┫╇┳┻╋└┘┌┐├┤┬┴┼╭╮╰╯]")
 ELIDED = re.compile(r"^\s*(?:…|\(….*…\))\s*$")
+# a process supervisor's event ("[exited] actor-1"): processes end in any order and between any two progress lines,
+# so an event is matched anywhere in the output, not in sequence
+EVENT = re.compile(r"^\[(?:exited|crashed|respawned|started)\] ")
 
 Rule = tuple[str, "float | None"]
 
@@ -150,9 +153,15 @@ def compare(
     first printed line after the previous match with its template whose numbers agree (else the first with its
     template, and the numbers that disagree are the problem)."""
     out = [line for line in printed.splitlines() if not layout_only(line)]
-    problems, at, skip = [], 0, False
+    events = [line.strip() for line in out if EVENT.match(line.strip())]
+    out = [line for line in out if not EVENT.match(line.strip())]
+    documented_events = [line.strip() for line in documented if EVENT.match(line.strip())]
+    problems = [f"not printed: {e!r}" for e in documented_events if e not in events]
+    if whole:
+        problems += [f"printed, not documented: {e!r}" for e in events if e not in documented_events]
+    at, skip = 0, False
     for line in documented:
-        if layout_only(line):
+        if layout_only(line) or EVENT.match(line.strip()):
             continue
         if ELIDED.match(line):
             skip = True

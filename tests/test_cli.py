@@ -100,14 +100,60 @@ def test_building_the_cli_imports_no_torch() -> None:
 
 
 def test_api_fixes_become_convoy_commands_at_the_command_line() -> None:
-    from convoy.cli.jobs import cli_words
+    """A fix names the requests that help once (``api/remedy.py``): the API says them as routes, the command line
+    (``Convoy-Words: cli``) as the convoy command that sends them, a body field as its flag."""
+    from convoy.api.remedy import Fix, Step
 
-    cases = {
-        'scale it by resuming: POST /jobs/ma-1/resume {"actors": 4}': "`convoy jobs resume ma-1 --actors 4`",
-        "list the jobs with GET /jobs": "list the jobs with `convoy jobs list`",
-        "check the job's state with GET /jobs/{id}": "check the job's state with `convoy jobs status ID`",
-        "the whole log: GET /jobs/ab-12/logs or convoy jobs logs ab-12": "the whole log: `convoy jobs logs ab-12`",
+    cases = [
+        (Fix("scale it by resuming: {}", Step("POST /jobs/{id}/resume", "ma-1", {"actors": 4})),
+         'scale it by resuming: POST /jobs/ma-1/resume {"actors": 4}',
+         "scale it by resuming: `convoy jobs resume ma-1 --actors 4`"),
+        (Fix("list the jobs with {}", Step("GET /jobs")), "list the jobs with GET /jobs",
+         "list the jobs with `convoy jobs list`"),
+        (Fix("check the job's state with {}", Step("GET /jobs/{id}")), "check the job's state with GET /jobs/{id}",
+         "check the job's state with `convoy jobs status ID`"),
+        (Fix("the whole log: {}", Step("GET /jobs/{id}/logs", "ab-12")).of_job("x"),
+         "the whole log: GET /jobs/ab-12/logs", "the whole log: `convoy jobs logs ab-12`"),
+        (Fix("list the files with {}", Step("GET /jobs/{id}/checkpoints")).of_job("ab-12"),
+         "list the files with GET /jobs/ab-12/checkpoints",
+         "list the files with `convoy jobs status ab-12` (its last checkpoint)"),
+        (Fix("wait: {}", Step("GET /jobs/{id}/evaluations", "ab-12")), "wait: GET /jobs/ab-12/evaluations",
+         "wait: GET /jobs/ab-12/evaluations"),  # no command lists evaluations: the route, in both
+        (Fix("a pattern {1,3} is no slot"), "a pattern {1,3} is no slot", "a pattern {1,3} is no slot"),
+    ]  # fmt: skip
+    for fix, api_text, cli_text in cases:
+        assert (fix.say("api"), fix.say("cli")) == (api_text, cli_text)
+    with pytest.raises(KeyError):
+        Step("GET /nowhere")
+
+
+def test_every_command_a_fix_names_is_one_the_cli_takes() -> None:
+    """Each route a fix may name is a route of the app, and its command (with a body's flags) parses with the CLI's
+    own parser into the same request: the words cannot drift from the commands."""
+    import shlex
+
+    from fastapi.routing import APIRoute
+
+    from convoy.api.remedy import COMMANDS, Step
+    from convoy.api.routes import jobs, metrics, service, sweeps
+
+    routes = {
+        f"{m} {r.path.replace('{job_id}', '{id}').replace('{sweep_id}', '{id}')}"
+        for module in (jobs, metrics, service, sweeps)
+        for r in module.router.routes
+        if isinstance(r, APIRoute)
+        for m in r.methods or ()
     }
-    for api_text, cli_text in cases.items():
-        assert cli_words(api_text).endswith(cli_text), (api_text, cli_words(api_text))
-    assert cli_words("nothing to translate") == "nothing to translate"
+    parser = build_parser()
+    for route, command in COMMANDS.items():
+        assert route in routes, route
+        body = {"actors": 3, "steps": 40_000} if route.startswith("POST") else {}
+        said = Step(route, "ab-12", body).say("cli")
+        if command is None:
+            assert said == route.replace("{id}", "ab-12")
+            continue
+        argv = shlex.split(said.split("`")[1])
+        assert argv[0] == "convoy", said
+        args = parser.parse_args(argv[1:])
+        assert getattr(args, "id", "ab-12") == "ab-12", said
+        assert all(getattr(args, k) == v for k, v in body.items()), said

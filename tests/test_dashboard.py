@@ -127,6 +127,19 @@ def test_dashboard_draws_a_sweep_with_ci_bands_and_acts_on_a_finished_job(tmp_pa
             other.goto(f"{svc.url}/#job={first}&sweep={sid}")
             other.wait_for_function(f"window.convoy.selected === {first!r} && window.convoy.sweep.groups === 2")
             other.close()
+            # a link to the sweep alone: its chart scrolled into view, no job opened above it (on a page 800 high
+            # the sweep card starts below the fold)
+            linked = browser.new_page(viewport={"width": 1280, "height": 800})
+            linked.on("pageerror", lambda exc: errors.append(str(exc)))
+            linked.goto(f"{svc.url}/#sweep={sid}")
+            linked.wait_for_function(f"window.convoy.revealed === {sid!r} && window.convoy.sweep.groups === 2")
+            linked.wait_for_timeout(2500)  # the jobs table's next refresh opens no job either
+            assert linked.evaluate("window.convoy.selected") is None
+            box = linked.evaluate(
+                "[document.querySelector('#sweep-figure').getBoundingClientRect().toJSON(), innerHeight]"
+            )
+            assert box[0]["top"] >= 0 and box[0]["bottom"] <= box[1] and box[0]["height"] > 200, box
+            linked.close()
             page.wait_for_selector('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
             link = page.inner_text('#job-downloads a[href$="checkpoints/checkpoint.pt"]')
             assert re.fullmatch(r"checkpoint\.pt \(\d+(\.\d)? [kMG]?B\)", link), link  # "1.3 MB", not "1.32M B"

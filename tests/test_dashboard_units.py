@@ -83,3 +83,55 @@ def test_the_sweep_chart_keeps_a_success_rates_band_within_its_bounds() -> None:
     assert [[round(v, 6) for v in p] for p in clipped] == [[1000, 0.4, 0, 1], [3000, 0.73, 0.53, 0.93]]
     assert [round(v, 6) for v in whole[0]] == [1000, 0.4, -0.68, 1.48]
     assert "groupBand(g)" in js_function("drawSweep")
+
+
+@pytest.mark.skipif(NODE is None, reason="needs node (apt-get install nodejs)")
+def test_the_greedy_chart_fits_its_curve_and_marks_far_references_at_the_edge() -> None:
+    """A completed job's greedy chart put a return of ~17 on one axis with references up to 174: the curve and its
+    band were a flat line at the bottom. The axis now fits the curve and its band; a reference joins it, nearest
+    first, while the curve keeps 1 / REF_ZOOM of its height, and the others are drawn at the edge they lie beyond
+    ("▲ scripted 174"). References near the curve are lines on it, as before."""
+    curve = [[10_000 * i, 12 + 0.6 * i] for i in range(10)]  # 12 → 17.4
+    band = [[x, y - 2, y + 2] for x, y in curve]  # its 95 % CI: 10 → 19.4
+    far = [["random", 16.1], ["constant-8", 23.7], ["scripted", 60.1], ["bound", 174.0], ["floor", -500.0]]
+    near = [["random", 15.0], ["scripted", 21.0]]
+    script = f"{js_function('niceTicks')}\n{js_const('REF_ZOOM')}\n{js_function('yAxis')}\n"
+    cases = [[curve, band, far], [curve, band, near], [curve, band, []], [[[0, 5.0]], [], [["bound", 174.0]]]]
+    shown = run_js(script + f"console.log(JSON.stringify({json.dumps(cases)}.map((c) => yAxis(...c))));")
+    names = [[[name for name, _ in axis[side]] for side in ("shown", "above", "below")] for axis in shown]
+    assert names[0] == [["random", "constant-8"], ["scripted", "bound"], ["floor"]]
+    assert names[1] == [["random", "scripted"], [], []] and names[2] == [[], [], []]
+    assert names[3] == [[], ["bound"], []]  # a single point: the axis fits it, the bound waits at the top
+    for axis in shown[:3]:
+        lo, hi = axis["ticks"]["lo"], axis["ticks"]["hi"]
+        assert lo <= 10 and hi >= 19.4  # the whole band is on the axis
+        assert (19.4 - 10) / (hi - lo) >= 0.3, axis["ticks"]  # ... and fills a third of it or more (174: 0.05)
+    ticks = shown[0]["ticks"]
+    assert all(ticks["lo"] <= v <= ticks["hi"] for _, v in shown[0]["shown"])  # a line only where it is on the axis
+    assert all(v > ticks["hi"] for _, v in shown[0]["above"]) and all(v < ticks["lo"] for _, v in shown[0]["below"])
+    draw = js_function("drawChart")
+    assert "yAxis(points, bandPts, refList)" in draw and "axis.shown" in draw
+    assert re.search(r'edge\(axis\.above, .*"▲"\)', draw) and re.search(r'edge\(axis\.below, .*"▼"\)', draw)
+
+
+@pytest.mark.skipif(NODE is None, reason="needs node (apt-get install nodejs)")
+def test_a_sweep_link_shows_the_sweep_and_opens_no_job() -> None:
+    """A ``#sweep=ID`` link opened the running (or newest) job, whose panel pushed the sweep's chart below the fold.
+    A link naming only a sweep now opens no job and scrolls the sweep's chart into view once drawn; a link naming a
+    job opens it (with its sweep selected below it), as before."""
+    hashes = ["#sweep=fig8-1a2b3c", "#job=idqn-0a1b2c&sweep=fig8-1a2b3c", "#job=idqn-0a1b2c", "", "#sweep="]
+    script = f"{js_function('linkTarget')}\nconsole.log(JSON.stringify({json.dumps(hashes)}.map(linkTarget)));"
+    targets = run_js(script)
+    assert targets == [
+        {"job": None, "sweep": "fig8-1a2b3c", "showSweep": True},
+        {"job": "idqn-0a1b2c", "sweep": "fig8-1a2b3c", "showSweep": False},
+        {"job": "idqn-0a1b2c", "sweep": None, "showSweep": False},
+        {"job": None, "sweep": None, "showSweep": False},
+        {"job": None, "sweep": None, "showSweep": False},
+    ]
+    read, reveal = js_function("readHash"), js_function("revealSweep")
+    assert "state.openFirstJob = false" in read and "state.revealSweep = link.sweep" in read
+    assert "scrollIntoView" in reveal and '$("sweep-figure")' in reveal
+    refresh = re.search(r"^async function refreshJobs\(.*?^\}$", APP.read_text(), re.S | re.M)
+    assert refresh and "state.openFirstJob" in refresh.group(0)  # the jobs' first answer opens one only without it
+    assert "revealSweep();" in js_function("drawSweep")

@@ -90,6 +90,16 @@ def convoy(argv: list[str], cwd: Path, timeout: float = 600) -> str:
     return done.stdout + done.stderr
 
 
+def test_process_events_match_in_any_order_and_a_missing_one_is_reported() -> None:
+    documented = ["step 1 · return 0.20", "[exited] actor-0", "[exited] actor-1", "done"]
+    printed = "step 1 · return 0.20\n[exited] actor-1\ndone\n[exited] actor-0\n"
+    assert compare(documented, printed, 0.0, whole=True) == []
+    assert compare(documented, printed.replace("[exited] actor-0\n", ""), 0.0) == ["not printed: '[exited] actor-0'"]
+    assert compare(documented[:2] + documented[3:], printed, 0.0, whole=True) == [
+        "printed, not documented: '[exited] actor-1'"
+    ]
+
+
 @pytest.mark.parametrize(
     ("start", "figures", "rules"),
     [

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -190,6 +191,55 @@ def test_unknown_job(capsys: pytest.CaptureFixture[str], service: Service) -> No
         assert code == 2 and not out, argv
         one_line_error(err, "error: id:", "not found", "— list the jobs with `convoy jobs list`")
         assert "GET /jobs" not in err and err.count("jobs list") == 1, err  # says it once, as a command
+
+
+def test_the_service_says_its_fixes_in_the_cli_words_the_cli_asks_for(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The job service's own refusals, served by the app in this process (no job runs), to `convoy jobs`: the CLI
+    asks for its words (``Convoy-Words: cli``) and prints the fix as the service said it — a command, with the flag
+    of the body's field — where a plain HTTP client gets the route. Nothing rewrites the text on the way."""
+    import threading
+    import time
+
+    import httpx
+    import uvicorn
+
+    from convoy.api.app import create_app
+    from convoy.services.jobservice import JobService
+    from convoy.services.store import JobStore
+    from tests.service_fixture import AUTH, SMALL_JOB
+
+    store = JobStore(tmp_path / "jobs.sqlite")  # a job that ran and stopped, before the service opens the store
+    store.create("ma-1", SMALL_JOB, actors=1, out_dir=str(tmp_path / "jobs" / "ma-1"), state="stopped")
+    store.close()
+    control = JobService(tmp_path, max_processes=4)
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(control, TOKEN), port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        t_end = time.monotonic() + 60
+        while not server.started and thread.is_alive() and time.monotonic() < t_end:
+            time.sleep(0.02)
+        url = f"http://127.0.0.1:{port}"
+        body = httpx.patch(f"{url}/jobs/ma-1", json={"actors": 2}, headers=AUTH).json()
+        assert body["fix"] == 'scale it by resuming: POST /jobs/ma-1/resume {"actors": 2}', body
+        code, out, err = jobs(capsys, url, "scale", "ma-1", "2")
+        assert code == 2 and not out
+        line = "error: state: job 'ma-1' is stopped — scale it by resuming: `convoy jobs resume ma-1 --actors 2`"
+        assert err.strip() == line, err
+        code, _, err = jobs(capsys, url, "stop", "ma-1")
+        assert code == 2 and err.strip().endswith("— check the job's state with `convoy jobs status ma-1`"), err
+        code, _, err = jobs(capsys, url, "status", "nope")
+        assert code == 2 and err.strip().endswith("— list the jobs with `convoy jobs list`"), err
+        code, _, err = jobs(capsys, url, "evaluate", "ma-1", "--checkpoint", "best.pt")
+        one_line_error(err, "error: checkpoint:", "no best.pt yet", "— evaluate one it has: `convoy jobs status ma-1`")
+        assert code == 2 and "GET /" not in err, err
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        control.close()
 
 
 def test_wrong_and_missing_token(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:

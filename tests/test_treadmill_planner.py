@@ -91,3 +91,25 @@ def test_parameters_round_trip_through_their_label_and_the_search_space() -> Non
     q = from_vector(to_vector(START))
     assert PlannerParams.from_label(q.label()) == q
     assert abs(q.danger - START.danger) < 1e-3
+
+
+def test_a_planner_predicts_a_charger_in_its_line_and_steps_out_of_its_way() -> None:
+    """A chaser too fast to steer (``adversary_steer_speed``) drives on in a line: a planner that knows of one coming
+    up its lane from behind steers out of it; one driving on in a lane of its own changes nothing."""
+    from convoy.envs.treadmill.planner import Known, plan_actions
+
+    cfg = TreadmillConfig(adversary_speed=7, adversary_steer_speed=3, adversary_stealth=True)
+    p = TUNED["full"]
+
+    def act(charger_y: float, known: bool = True) -> int:
+        cars = Known(
+            known=np.full((1, 1, 1), known), x=np.array([[[40.0]]]), y=np.array([[[charger_y]]]),
+            heading=np.zeros((1, 1, 1), np.int64), speed=np.array([[[7.0]]]), adversary=np.ones((1, 1, 1)),
+            unseen=np.zeros((1, 1)),
+        )  # fmt: skip
+        return int(plan_actions(cfg, p, np.array([[50.0]]), np.array([[50.0]]), np.zeros((1, 1), np.int64),
+                                np.array([[2.0]]), cars)[0, 0])  # fmt: skip
+
+    steer = lambda a: a // 3 - 1  # noqa: E731  (−1, 0, +1: the action's steering)
+    assert steer(act(50.0)) != 0  # in its lane, 10 cells back at 7 a step: out of the way
+    assert act(80.0) == act(80.0, known=False)  # 30 cells to the side, driving on: as if there were none

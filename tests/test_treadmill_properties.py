@@ -182,7 +182,7 @@ def test_batch_equals_envs_stepped_one_by_one(seeds, n_agents, n_adv, observe_k,
     road: dict[str, int | float | bool] = {"length": 30, "width": 12, "spawn_gap": 3, "max_steps": 15}
     if v3:  # the v3 rules' own randomness (spawn headings, a varying belt) and a stealthy adversary
         road |= {"spawn_heading_spread": 4, "treadmill_speed_max": 2, "treadmill_switch_prob": 0.3}
-        road |= {"adversary_stealth": True, "adversary_speed": 5}
+        road |= {"adversary_stealth": True, "adversary_speed": 5, "adversary_steer_speed": 3}
     cfg = TreadmillConfig(n_agents=n_agents, n_adversaries=n_adv, observe_k=observe_k, aggression=0.5, **road)
     b = len(seeds)
     batch = TreadmillEngine(cfg, b)
@@ -322,6 +322,24 @@ def test_a_faster_adversary_reaches_its_own_top_speed_and_agents_keep_theirs() -
     assert cfg.top_speed == 5 and TreadmillConfig().top_speed == TreadmillConfig().max_speed
     with pytest.raises(ValueError, match="adversary_speed"):
         TreadmillConfig(adversary_speed=0)
+
+
+def test_a_chaser_too_fast_to_steer_keeps_its_heading_until_it_slows_down() -> None:
+    cfg = TreadmillConfig(n_agents=2, n_adversaries=1, aggression=1.0, adversary_speed=7, adversary_steer_speed=3)
+    e = TreadmillEngine(cfg, 256)
+    e.reset(0)
+    steered_fast = steered_slow = 0
+    for _ in range(60):
+        heading, speed = e.heading[:, 2].copy(), e.speed[:, 2].copy()
+        e.step(np.full((256, 2), KEEP))
+        alive = ~e.last_crashed[:, 2] & (e.x[:, 2] > 0) & (e.x[:, 2] < cfg.length - 1)  # no bounce, no re-entry
+        alive &= (e.y[:, 2] > 0) & (e.y[:, 2] < cfg.width - 1)
+        turned = (e.heading[:, 2] != heading) & alive
+        steered_fast += int((turned & (speed > 3)).sum())
+        steered_slow += int((turned & (speed <= 3)).sum())
+    assert steered_fast == 0 and steered_slow > 0  # it chases, turning only at 3 cells a step or slower
+    free = TreadmillConfig(n_agents=2, n_adversaries=1, aggression=1.0, adversary_speed=7)
+    assert TreadmillEngine(free, 1)._steer_cap.tolist() == [7, 7, 7]
 
 
 def test_treadmill_carries_cars_back() -> None:

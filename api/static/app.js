@@ -31,6 +31,9 @@ const state = {
   compareSeries: {},     // job id -> [[env_steps, eval_return], ...]
   evaluation: null,      // [job id, evaluation id] being followed
   checkpointShown: null, // last_checkpoint the download links were made for
+  openFirstJob: true,    // select the running (else the newest) job once the jobs arrive; not for a #sweep= link
+  revealSweep: null,     // a sweep a link named: its chart is scrolled into view once drawn
+  jobsShown: false,      // the jobs table has had its first answer
 };
 
 window.convoy = {
@@ -39,6 +42,7 @@ window.convoy = {
   sweep: { id: null, groups: 0, bands: 0, overlays: 0 },
   evaluation: null,
   logs: 0,
+  revealed: null, // the sweep a #sweep= link scrolled into view
 };
 
 // ---------------------------------------------------------------- formatting
@@ -163,8 +167,32 @@ function tickLabel(v, step) {
   return v.toFixed(decimals);
 }
 
+// A curve's y-axis beside reference returns: it fits the curve and its band (bandPts: [[x, low, high]]); a
+// reference ([name, y]) widens it, the nearest first, only while the curve and band keep at least 1 / REF_ZOOM of
+// its height, so a return of 17 stays readable beside a scripted 174. Returns the axis's niceTicks and the
+// references on it (shown, as lines) and beyond it (above, below: arrows at that edge), each in the refs' order.
+const REF_ZOOM = 2.5;
+function yAxis(points, bandPts, refs) {
+  let lo = Infinity, hi = -Infinity;
+  for (const [, y] of points) { lo = Math.min(lo, y); hi = Math.max(hi, y); }
+  for (const [, l, h] of bandPts) { lo = Math.min(lo, l); hi = Math.max(hi, h); }
+  // no zoom into noise: the axis spans at least 10 % of the values' size (23.47 → 23.22 is a flat line)
+  const minSpan = 0.1 * Math.max(Math.abs(lo), Math.abs(hi), 1e-9);
+  if (hi - lo < minSpan) { const mid = (hi + lo) / 2; lo = mid - minSpan / 2; hi = mid + minSpan / 2; }
+  const limit = REF_ZOOM * (hi - lo), curve = [lo, hi];
+  const away = (v) => Math.max(curve[0] - v, v - curve[1], 0);
+  const joins = new Set();
+  for (const [name, v] of [...refs].sort((a, b) => away(a[1]) - away(b[1]))) {
+    if (Math.max(hi, v) - Math.min(lo, v) <= limit) { joins.add(name); lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  }
+  const ticks = niceTicks(lo, hi, 4);
+  return { ticks, shown: refs.filter(([, v]) => v >= ticks.lo && v <= ticks.hi),
+           above: refs.filter(([, v]) => v > ticks.hi), below: refs.filter(([, v]) => v < ticks.lo) };
+}
+
 // Draws one learning curve (points: [[x, y], ...], nulls already skipped), with an optional band ([[x, half]]:
-// y ± half at the points' steps) and reference lines ({name: y}). Returns the number of points drawn.
+// y ± half at the points' steps) and reference lines ({name: y}): those within yAxis's range as dashed lines,
+// the others as arrows with their value at the top or bottom edge. Returns the axis and the points drawn.
 function drawChart(canvas, points, color, band = [], refs = {}) {
   const dpr = window.devicePixelRatio || 1;
   const w = canvas.clientWidth || 300, h = canvas.clientHeight || 180;
@@ -182,23 +210,16 @@ function drawChart(canvas, points, color, band = [], refs = {}) {
     ctx.textAlign = "center";
     ctx.textBaseline = "middle";
     ctx.fillText("no data yet", w / 2, h / 2);
-    return 0;
+    return { points: 0 };
   }
 
   const half = new Map(band);
   const bandPts = points.filter(([x]) => half.has(x)).map(([x, y]) => [x, y - half.get(x), y + half.get(x)]);
   const refList = Object.entries(refs).filter(([, v]) => Number.isFinite(v));
-  let xmin = Infinity, xmax = -Infinity, ymin = Infinity, ymax = -Infinity;
-  for (const [x, y] of points) {
-    if (x < xmin) xmin = x; if (x > xmax) xmax = x;
-    if (y < ymin) ymin = y; if (y > ymax) ymax = y;
-  }
-  for (const [, lo, hi] of bandPts) { ymin = Math.min(ymin, lo); ymax = Math.max(ymax, hi); }
-  for (const [, v] of refList) { ymin = Math.min(ymin, v); ymax = Math.max(ymax, v); }
-  // no zoom into noise: the axis spans at least 10 % of the values' size (23.47 → 23.22 is a flat line)
-  const minSpan = 0.1 * Math.max(Math.abs(ymin), Math.abs(ymax), 1e-9);
-  if (ymax - ymin < minSpan) { const mid = (ymax + ymin) / 2; ymin = mid - minSpan / 2; ymax = mid + minSpan / 2; }
-  const yt = niceTicks(ymin, ymax, 4);
+  const refColor = new Map(refList.map(([name], i) => [name, REF_COLORS[i % REF_COLORS.length]]));
+  let xmin = Infinity, xmax = -Infinity;
+  for (const [x] of points) { if (x < xmin) xmin = x; if (x > xmax) xmax = x; }
+  const axis = yAxis(points, bandPts, refList), yt = axis.ticks;
   const xt = niceTicks(xmin, xmax, Math.max(2, Math.floor(w / 110)));
   const yLabels = yt.ticks.map((v) => tickLabel(v, yt.step));
   const left = 10 + Math.max(...yLabels.map((s) => ctx.measureText(s).width));
@@ -231,7 +252,7 @@ function drawChart(canvas, points, color, band = [], refs = {}) {
   ctx.strokeStyle = "#c5ccd6";
   ctx.beginPath(); ctx.moveTo(left + 0.5, top); ctx.lineTo(left + 0.5, top + ph + 0.5); ctx.lineTo(left + pw, top + ph + 0.5); ctx.stroke();
 
-  // the CI band, then the reference lines (dashed, labelled at the right)
+  // the CI band, then the reference lines within the axis (dashed, labelled at the right)
   if (bandPts.length > 1) {
     ctx.beginPath();
     bandPts.forEach(([x, , hi], i) => (i ? ctx.lineTo(sx(x), sy(hi)) : ctx.moveTo(sx(x), sy(hi))));
@@ -245,12 +266,12 @@ function drawChart(canvas, points, color, band = [], refs = {}) {
   ctx.setLineDash([4, 3]);
   ctx.textAlign = "right";
   ctx.textBaseline = "bottom";
-  refList.forEach(([name, v], i) => {
-    const y = Math.round(sy(v)) + 0.5, c = REF_COLORS[i % REF_COLORS.length];
+  for (const [name, v] of axis.shown) {
+    const y = Math.round(sy(v)) + 0.5, c = refColor.get(name);
     ctx.strokeStyle = c; ctx.lineWidth = 1;
     ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + pw, y); ctx.stroke();
     ctx.fillStyle = c; ctx.fillText(name, left + pw - 2, y - 1);
-  });
+  }
   ctx.setLineDash([]);
   // the curve: soft area fill then line
   ctx.beginPath();
@@ -269,7 +290,21 @@ function drawChart(canvas, points, color, band = [], refs = {}) {
   // mark the latest point
   const [lx, ly] = points[points.length - 1];
   ctx.beginPath(); ctx.arc(sx(lx), sy(ly), 3, 0, Math.PI * 2); ctx.fillStyle = color; ctx.fill();
-  return points.length;
+  // over it, the references beyond the axis, where a rising curve leaves room and no reference line has its
+  // label: "▲ scripted 174" down from the top left corner, highest first; "▼ …" up from the bottom right, lowest
+  ctx.textBaseline = "middle";
+  const edge = (list, x0, y0, dy, arrow) => [...list].sort((a, b) => dy * (b[1] - a[1])).forEach(([name, v], i) => {
+    const text = `${arrow} ${name} ${fmtValue(v)}`, tw = ctx.measureText(text).width, y = y0 + dy * i * 14;
+    const x = dy > 0 ? x0 : x0 - tw;
+    ctx.fillStyle = "rgba(255, 255, 255, 0.85)";
+    ctx.fillRect(x - 2, y - 7, tw + 4, 14);
+    ctx.fillStyle = refColor.get(name);
+    ctx.textAlign = "left";
+    ctx.fillText(text, x, y);
+  });
+  edge(axis.above, left + 6, top + 7, 1, "▲");
+  edge(axis.below, left + pw - 4, top + ph - 7, -1, "▼");
+  return { points: points.length, lo: yt.lo, hi: yt.hi, offscale: axis.above.length + axis.below.length };
 }
 
 function redrawCharts() {
@@ -277,8 +312,12 @@ function redrawCharts() {
     const greedy = m === "eval_return";
     const band = greedy ? state.series[BAND] || [] : [];
     const refs = greedy ? references(state.job) : {};
-    window.convoy.points[m] = drawChart($(`chart-${m}`), state.series[m] || [], COLORS[m], band, refs);
-    if (greedy) window.convoy.greedy = { band: band.length, references: Object.keys(refs).length };
+    const drawn = drawChart($(`chart-${m}`), state.series[m] || [], COLORS[m], band, refs);
+    window.convoy.points[m] = drawn.points;
+    if (greedy) {
+      window.convoy.greedy = { band: band.length, references: Object.keys(refs).length, offscale: drawn.offscale ?? 0,
+                               axis: [drawn.lo, drawn.hi] };
+    }
   }
   window.convoy.selected = state.selected;
 }
@@ -368,8 +407,9 @@ async function refreshJobs() {
   try {
     const data = await api("jobs");
     state.jobs = (data.jobs || []).slice().sort((a, b) => (b.created_at ?? 0) - (a.created_at ?? 0));
+    state.jobsShown = true;
     setOffline(false);
-    if (state.selected == null && state.jobs.length) {
+    if (state.selected == null && state.jobs.length && state.openFirstJob) {
       const running = state.jobs.find((j) => j.state === "running");
       selectJob((running || state.jobs[0]).id);
     } else {
@@ -377,6 +417,7 @@ async function refreshJobs() {
       if (sel) updatePanel(sel);
     }
     renderJobs();
+    revealSweep();
   } catch (err) {
     setOffline(true, err);
   }
@@ -507,10 +548,33 @@ function writeHash() {
   history.replaceState(null, "", parts.length ? `#${parts.join("&")}` : location.pathname + location.search);
 }
 
+// What a link shows: #job=ID opens that job; #sweep=ID alone shows that sweep's chart (scrolled into view) and
+// opens no job; both: the job, with the sweep selected below it.
+function linkTarget(hash) {
+  const params = new URLSearchParams(hash.replace(/^#/, ""));
+  const job = params.get("job") || null, sweep = params.get("sweep") || null;
+  return { job, sweep, showSweep: sweep != null && job == null };
+}
+
 function readHash() {
-  const params = new URLSearchParams(location.hash.slice(1));
-  if (params.get("sweep")) selectSweep(params.get("sweep"));
-  if (params.get("job")) selectJob(params.get("job"));
+  const link = linkTarget(location.hash);
+  if (link.showSweep) {
+    state.openFirstJob = false;
+    state.revealSweep = link.sweep;
+  }
+  if (link.sweep) selectSweep(link.sweep);
+  if (link.job) selectJob(link.job);
+}
+
+// Scrolls a linked sweep's chart into view once it is drawn and the jobs table above it has its rows (the page is
+// laid out): once per link.
+function revealSweep() {
+  if (state.revealSweep == null || state.revealSweep !== state.sweep || !state.summary || !state.jobsShown) return;
+  state.revealSweep = null;
+  $("sweeps-card").scrollIntoView({ block: "start" });   // its heading and table, then its chart if below them
+  $("sweep-figure").scrollIntoView({ block: "nearest" });
+  $("sweeps-card").focus({ preventScroll: true });
+  window.convoy.revealed = state.sweep;
 }
 
 function selectJob(id) {
@@ -707,6 +771,10 @@ async function refreshSummary() {
     drawSweep();
   } catch (err) {
     if (!(err instanceof ApiError)) setOffline(true, err);
+    else if (id === state.revealSweep) {  // a link to a sweep that is not there
+      state.revealSweep = null;
+      showMessage(`Could not load sweep ${id}: ${err.message}`);
+    }
   }
 }
 
@@ -808,6 +876,7 @@ function drawSweep() {
     ? `sweep ${state.sweep}: mean greedy return over seeds, shaded 95 % CI` + (overlays.length ? `; ${overlays.length} job(s) dashed` : "")
     : "greedy return by group (select a sweep, or tick jobs to compare)";
   window.convoy.sweep = { id: state.sweep, groups: groups.length, bands, overlays: overlays.length };
+  revealSweep();
 }
 
 function replaceJob(job) {
@@ -844,6 +913,7 @@ function boot() {
   refreshSweeps();
   drawSweep();
   readHash();
+  window.addEventListener("hashchange", readHash);  // a link followed on this page, or an address edited
   setInterval(refreshJobs, JOBS_EVERY_MS);
   setInterval(pollMetrics, METRICS_EVERY_MS);
   setInterval(refreshSweeps, SWEEPS_EVERY_MS);

@@ -42,6 +42,12 @@ class TreadmillConfig(BaseModel):
         description="Top speed of the adversaries if set (≥ 1; default: max_speed). Above max_speed a chaser "
         "cannot be outrun, only dodged as it arrives: that needs to know where it is.",
     )
+    adversary_steer_speed: Speed | None = Field(
+        None,
+        description="If set, an adversary driving faster than this cannot steer (its steering actions keep its "
+        "heading): a fast chaser charges in a line and must slow down to turn, so a car that knows it is coming "
+        "can step out of its way (default: it steers at any speed).",
+    )
     aggression: Probability = Field(
         0.8,
         description="Chance an adversary chases the closest agent, else it acts at random (0.8: what teammates "
@@ -115,6 +121,11 @@ class TreadmillConfig(BaseModel):
     def adversary_top(self) -> int:
         """The adversaries' top speed."""
         return self.max_speed if self.adversary_speed is None else self.adversary_speed
+
+    @property
+    def adversary_steer_cap(self) -> int:
+        """The fastest an adversary steers at (``adversary_steer_speed``; unset: any speed it can drive)."""
+        return self.top_speed if self.adversary_steer_speed is None else self.adversary_steer_speed
 
     @property
     def top_speed(self) -> int:

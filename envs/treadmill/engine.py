@@ -14,7 +14,8 @@ the front at speed 0 (so it falls back into the traffic); at a side it bounces (
 Actions. 9 per car: (steer −45°, 0, +45°) × (decelerate, keep, accelerate), index ``3 * steer_index +
 accel_index``. Cars 0…N−1 are the agents; N…N+M−1 are adversaries that each step, with probability
 ``aggression``, take the action whose one-step outcome lands closest to the nearest agent, else a uniformly
-random action.
+random action. An adversary driving faster than ``adversary_steer_speed`` (when set) cannot steer: its steering
+actions keep its heading, so a fast chaser charges in a line and must slow down to turn.
 
 Motion and collisions. A step is split into ``top_speed`` micro-steps (the fastest car's top speed:
 ``max_speed``, or ``adversary_speed`` if that is higher); a car with speed v moves one cell along its
@@ -88,6 +89,8 @@ class TreadmillEngine:
         pair = self._is_agent[:, None] | self._is_agent[None, :]
         self._counted_pair = pair & ~np.eye(c, dtype=bool)  # pairs whose collision matters
         self._top = np.where(self._is_agent, cfg.max_speed, cfg.adversary_top)  # [C] each car's top speed
+        # [C] the fastest each car may steer at (``adversary_steer_speed``; agents always steer)
+        self._steer_cap = np.where(self._is_agent, cfg.top_speed, cfg.adversary_steer_cap)
         self._self_mask = np.where(np.eye(n, c, dtype=bool), np.inf, 0.0)  # excludes an agent's own car
         # every other car of each agent, agents first then adversaries (the full-information layout)
         self._others = np.array([[j for j in range(c) if j != i] for i in range(n)], dtype=np.int64).reshape(n, c - 1)
@@ -157,7 +160,7 @@ class TreadmillEngine:
             self.belt = np.where(u[:, 0] < cfg.treadmill_switch_prob, self._belt_draw(u[:, 1]), self.belt)
         if cfg.n_adversaries:
             acts = np.concatenate([acts, self._adversary_actions()], axis=1)
-        self.heading = (self.heading + ACTION_STEER[acts]) % N_HEADINGS
+        self.heading = (self.heading + np.where(self.speed <= self._steer_cap, ACTION_STEER[acts], 0)) % N_HEADINGS
         self.speed = np.clip(self.speed + ACTION_ACCEL[acts], 0, self._top)
         crashed, bounced = self._move()
         self.heading[:, n:] = np.where(bounced, (N_HEADINGS - self.heading[:, n:]) % N_HEADINGS, self.heading[:, n:])
@@ -198,7 +201,8 @@ class TreadmillEngine:
         target = np.argmin(distance(ax[..., None], ay[..., None], gx, gy), axis=-1)  # [B, M]
         tx = np.take_along_axis(self.x[:, :n], target, axis=1)[..., None]
         ty = np.take_along_axis(self.y[:, :n], target, axis=1)[..., None]
-        h = (ah[..., None] + ACTION_STEER) % N_HEADINGS  # [B, M, 9] outcome of each action
+        steers = (av <= self._steer_cap[n:])[..., None]  # a chaser too fast to steer keeps its heading
+        h = (ah[..., None] + np.where(steers, ACTION_STEER, 0)) % N_HEADINGS  # [B, M, 9] outcome of each action
         v = np.clip(av[..., None] + ACTION_ACCEL, 0, cfg.adversary_top)
         cx = ax[..., None] + v * DX[h] - self.belt[:, None, None]
         cy = np.clip(ay[..., None] + v * DY[h], 0, cfg.width - 1)

@@ -15,9 +15,10 @@ between the levels is only the list of cars it knows of (``Known``):
 
 Prediction. Motion relative to another car does not depend on the belt (it carries every car alike), so cars are
 predicted on the road: a known ally keeps its heading and speed; an adversary chases the planning agent, closing in
-at ``chase`` cells per step; a car of unknown identity is both, weighted by ``p_adversary``. Only leaving the
-window depends on the belt, which is unknown (1 or 2 cells per step): the front edge is judged with the slow belt,
-the back edge with the fast one.
+at ``chase`` cells per step — unless it drives too fast to steer (``adversary_steer_speed``): then it keeps its
+heading and speed, as the engine moves it; a car of unknown identity is both, weighted by ``p_adversary``. Only
+leaving the window depends on the belt, which is unknown (1 or 2 cells per step): the front edge is judged with the
+slow belt, the back edge with the fast one.
 
 Cost of a plan, summed over its horizon with discount ``discount``: ``w_danger`` × (1 − d / ``danger``)² per predicted
 car within ``danger`` cells, ``w_crash`` per predicted collision (within 1.5 cells) or predicted exit from the window,
@@ -248,6 +249,8 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
     ax = np.broadcast_to(kx, (m, len(PLAN_FIRST), kx.shape[-1]))
     ay = np.broadcast_to(ky, ax.shape)
     unseen = cars.unseen.reshape(m, 1)
+    # a car too fast to steer (``adversary_steer_speed``) drives on in a line, whoever it chases
+    charging = cv > cfg.adversary_steer_cap  # [M, 1, K]
     # phantoms: a possible chaser in each compass direction the agent's sensor cannot see now, ``phantom`` cells away
     blind = np.flatnonzero(~_sees(cfg, np.zeros(1, np.int64), np.arange(N_HEADINGS)))  # offsets from the heading
     ph = (heading.reshape(m, 1) + blind[None, :]) % N_HEADINGS  # [M, F]
@@ -265,10 +268,13 @@ def plan_actions(cfg: TreadmillConfig, p: PlannerParams, x, y, heading, speed, c
         v = np.clip(v + ACTION_ACCEL[act], 0, cfg.max_speed)
         px = px + v * DX[h]
         py = py + v * DY[h]
-        # allies keep heading and speed; adversaries close in on where the agent will be
+        # allies keep heading and speed; adversaries close in on where the agent will be, chargers drive on
         bx, by = kx + t * cv * cdx, ky + t * cv * cdy  # [M, 1, K]
         ax, ay, d_adv = _close_in(ax, ay, px, py, p.chase)  # [M, P, K]
         d_ally = np.hypot(px[..., None] - bx, py[..., None] - by)
+        if charging.any():
+            ax, ay = np.where(charging, bx, ax), np.where(charging, by, ay)
+            d_adv = np.where(charging, d_ally, d_adv)
         danger = adv * (p.w_danger * near(d_adv) + p.w_crash * (d_adv < COLLIDE))
         danger += (1.0 - adv) * (p.w_danger * near(d_ally) + p.w_crash * (d_ally < COLLIDE))
         closest = np.where(known, adv * d_adv + (1 - adv) * d_ally, np.inf).min(axis=-1)
