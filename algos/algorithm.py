@@ -30,7 +30,8 @@ from convoy.envs.batched import EnvSpec
 from convoy.transition import schema
 
 # Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
-# many means the weights or the data are broken and going on would only hide it.
+# many means the weights or the data are broken and going on would only hide it. Checked when the figures are read
+# (``Figures``), not in the update: the trainer reads them every ``READ_EVERY`` updates (learner/core.py).
 MAX_NONFINITE_IN_A_ROW = 100
 NEG = -1e9  # Q-value given to actions an agent does not have (heterogeneous action spaces)
 
@@ -72,6 +73,78 @@ class Loss(NamedTuple):
         return Loss(self.agents, total, {**self.stats, **stats})
 
 
+class Figures(ABC):
+    """One update's figures (loss, gradient norm, the algorithm's own), left on the device where they were
+    computed: reading them is a host sync, so an update never reads them and the trainer reads many updates' at
+    once (:func:`read_figures`). Reading is also where a run that had ``MAX_NONFINITE_IN_A_ROW`` non-finite updates
+    in a row fails, with a ``FloatingPointError``."""
+
+    runs: int | None  # a population's R, or None for a single run
+
+    @abstractmethod
+    def tensors(self) -> list[Tensor]:
+        """The device tensors reading copies to the host."""
+
+    @abstractmethod
+    def rows(self, host: list[np.ndarray]) -> list[dict[str, float]]:
+        """One dict of figures per run (a single run's: one) from the host copies of ``tensors()``."""
+
+    def read(self) -> dict[str, float] | list[dict[str, float]]:
+        """The figures, one host sync: a single run's dict, or a population's one per run."""
+        rows = read_figures([self])[0]
+        return rows[0] if self.runs is None else rows
+
+
+def read_figures(batch: Sequence[Figures]) -> list[list[dict[str, float]]]:
+    """Many updates' figures in one host read, in update order: each update's one dict per run. Raises
+    ``FloatingPointError`` at the first update that ends a run (``MAX_NONFINITE_IN_A_ROW``)."""
+    tensors = [t for figures in batch for t in figures.tensors()]
+    if not tensors:
+        return [figures.rows([]) for figures in batch]
+    flat = torch.cat([t.detach().reshape(-1).float() for t in tensors])
+    values = np.asarray(flat.cpu(), dtype=np.float64)  # the one host sync
+    host = np.split(values, np.cumsum([t.numel() for t in tensors])[:-1])
+    out, i = [], 0
+    for figures in batch:
+        n = len(figures.tensors())
+        out.append(figures.rows(host[i : i + n]))
+        i += n
+    return out
+
+
+@dataclass(frozen=True)
+class StepFigures(Figures):
+    """A :class:`NetworkAgent` update's figures: ``table [len(names) + 1, R]`` (a single run's R = 1), the figures
+    as computed (a skipped run's loss and gradient norm too, for the failure's message) and, last, each run's count
+    of non-finite updates in a row up to this one (> 0: this update was skipped, its loss and norm read as NaN)."""
+
+    agent: str  # the algorithm's name, for the failure's message
+    seeds: tuple[int, ...]
+    runs: int | None
+    names: tuple[str, ...]
+    table: Tensor
+
+    def tensors(self) -> list[Tensor]:
+        return [self.table]
+
+    def rows(self, host: list[np.ndarray]) -> list[dict[str, float]]:
+        table = host[0].reshape(len(self.names) + 1, -1)
+        streak = table[-1]
+        worst = int(np.argmax(streak))
+        if streak[worst] >= MAX_NONFINITE_IN_A_ROW:
+            run = "" if self.runs is None else f" (run of seed {self.seeds[worst]})"
+            raise FloatingPointError(
+                f"{self.agent}{run}: {int(streak[worst])} updates in a row had a non-finite loss "
+                f"({table[0, worst]}) or gradient norm ({table[1, worst]}); the weights were kept as they were. "
+                "Check the env's rewards and observations for NaN/inf, or lower lr"
+            )
+        rows = [dict(zip(self.names, col, strict=True)) for col in table[:-1].T.tolist()]
+        for row, skipped in zip(rows, streak > 0, strict=True):
+            if skipped:
+                row.update(loss=float("nan"), grad_norm=float("nan"))
+        return rows
+
+
 class Agent(Protocol):
     """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
 
@@ -91,7 +164,7 @@ class Agent(Protocol):
     def observe(self, chunk: dict[str, np.ndarray]) -> None: ...
     def can_update(self) -> bool: ...
     def updates_for(self, n_transitions: int) -> float: ...
-    def update(self) -> dict[str, float] | list[dict[str, float]]: ...  # a population's: one per run
+    def update(self) -> Figures: ...  # left on the device: ``read()`` them (a population's: one dict per run)
     def policy_state(self) -> dict[str, Tensor]: ...
     def load_policy_state(self, state: dict[str, Tensor]) -> None: ...
     def state_dict(self) -> dict[str, Any]: ...
@@ -246,19 +319,22 @@ def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
     return F.smooth_l1_loss(q, y, reduction="none") if cfg.huber else 0.5 * (q - y) ** 2
 
 
-def polyak_(average: nn.Module, online: nn.Module, tau: float) -> None:
-    """average ← (1 − τ)·average + τ·online, in place (the Polyak target and the averaged policy)."""
+def per_run(x: Tensor, like: Tensor) -> Tensor:
+    """One value per run ``[R]`` shaped to broadcast over a stacked tensor ``like [R, …]`` (a 0-dim one as it is)."""
+    return x if x.dim() == 0 else x.reshape(-1, *([1] * (like.dim() - 1)))
+
+
+def polyak_(average: nn.Module, online: nn.Module, tau: float | Tensor) -> None:
+    """average ← (1 − τ)·average + τ·online, in place (the Polyak target and the averaged policy). ``tau`` may be a
+    device tensor, one weight per run ``[R]`` (or 0-dim): 0 leaves a run as it is and 1 copies it exactly (lerp
+    computes ``online − (online − average)·(1 − τ)`` for τ ≥ 0.5), so it is also a masked copy with no host read."""
+    avg: list[Tensor] = list(average.parameters())
+    new: list[Tensor] = list(online.parameters())
     with torch.no_grad():
-        torch._foreach_lerp_(list(average.parameters()), list(online.parameters()), tau)
-
-
-def update_target(target: nn.Module, online: nn.Module, updates: int, cfg: AlgoConfig) -> None:
-    """Copy the online weights every ``target_update`` updates, or move a step ``target_tau`` towards them after
-    every update."""
-    if cfg.target_tau < 1.0:
-        polyak_(target, online, cfg.target_tau)
-    elif updates % cfg.target_update == 0:
-        target.load_state_dict(online.state_dict())
+        if isinstance(tau, Tensor):
+            torch._foreach_lerp_(avg, new, [per_run(tau, p) for p in avg])
+        else:
+            torch._foreach_lerp_(avg, new, tau)
 
 
 # --- the plumbing every network agent shares -------------------------------------------------------------------------
@@ -319,9 +395,13 @@ class NetworkAgent(ABC):
         mask = torch.arange(self.n_act)[None, :] < torch.as_tensor(spec.n_actions)[:, None]
         self.action_mask = mask.to(self.device)  # [N, A]
         self.progress = Progress()
-        self.updates = 0
-        self.skipped_updates = 0  # updates whose loss or gradient was not finite: no step taken
-        self._nonfinite_in_a_row = np.zeros(len(self.seeds), dtype=np.int64)
+        self.updates = 0  # update() calls, a skipped one too (whether a run skipped is known on the device only)
+        run_shape = () if self.runs is None else (self.runs,)
+        # on the device, so that no update reads them: updates with a run whose loss or gradient was not finite
+        # (``skipped_updates``), and each run's count of them in a row (read with the figures)
+        self._skipped = torch.zeros((), dtype=torch.int64, device=self.device)
+        self._nonfinite_in_a_row = torch.zeros(run_shape, dtype=torch.int64, device=self.device)
+        self._compiled: Callable[[Batch], tuple[tuple[str, ...], Tensor]] | None = None
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
         per_run = []
@@ -338,11 +418,21 @@ class NetworkAgent(ABC):
         if cfg.policy_ema < 1.0:
             self.average = copy.deepcopy(self.online)
             self.average.requires_grad_(False)
-        self._optimizer: torch.optim.Optimizer | None = None
+        self._optimizer: RunAdam | None = None
         self._members: dict[int, NetworkAgent] = {}
         self.run_cfgs: list[AlgoConfig] = [cfg] * len(self.seeds)
         self.gamma: float | Tensor = cfg.gamma
         self.alpha: float | Tensor = cfg.advantage_learning
+        self._periods: Tensor | None = None  # each run's target_update [R], when they differ
+
+    @property
+    def skipped_updates(self) -> int:
+        """Updates in which some run's loss or gradient was not finite (that run took no step); a host read."""
+        return int(self._skipped)
+
+    @skipped_updates.setter
+    def skipped_updates(self, value: int) -> None:
+        self._skipped.fill_(value)
 
     def set_run_configs(self, configs: Sequence[AlgoConfig]) -> None:
         """Give each run of a population its own hyper-parameters among ``PER_RUN`` (a grid over seeds × lr × γ ×
@@ -368,31 +458,27 @@ class NetworkAgent(ABC):
         gammas, alphas = [c.gamma for c in configs], [c.advantage_learning for c in configs]
         self.gamma = gammas[0] if len(set(gammas)) == 1 else torch.tensor(gammas, device=self.device).reshape(-1, 1)
         self.alpha = alphas[0] if len(set(alphas)) == 1 else torch.tensor(alphas, device=self.device).reshape(-1, 1, 1)
+        periods = [c.target_update for c in configs]
+        self._periods = None if len(set(periods)) == 1 else torch.tensor(periods, device=self.device)
 
     @property
-    def optimizer(self) -> torch.optim.Optimizer:
-        """Adam, made on first use: actors never update, and the first optimizer of a process costs ~2 s of imports.
-        Fused: one kernel for all parameters instead of ~10 elementwise passes (2.3× faster steps on CPU). A
-        population whose runs have different learning rates steps with :class:`RunAdam`."""
+    def optimizer(self) -> RunAdam:
+        """Adam with one learning rate per run on the device (:class:`RunAdam`), made on first use: actors never
+        update, and the first optimizer of a process costs ~2 s of imports."""
         if self._optimizer is None:
-            if len({(c.lr, c.lr_end) for c in self.run_cfgs}) == 1:
-                self._optimizer = torch.optim.Adam(self.online.parameters(), lr=self.cfg.lr, fused=True)
-            else:
-                lrs = torch.tensor([c.lr for c in self.run_cfgs], device=self.device)
-                ends = torch.tensor([lr_at(c, 1, 1) for c in self.run_cfgs], device=self.device)  # at the run's end
-                self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends)
+            lrs = torch.tensor([c.lr for c in self.run_cfgs], device=self.device)
+            ends = torch.tensor([lr_at(c, 1, 1) for c in self.run_cfgs], device=self.device)  # at the run's end
+            if self.runs is None:
+                lrs, ends = lrs[0], ends[0]
+            self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends, runs=self.runs)
         return self._optimizer
 
     def anneal_lr(self) -> None:
-        """Set the optimizer's learning rate(s) for where training stands (``lr_end``); a no-op at constant lr."""
-        if all(c.lr_end is None for c in self.run_cfgs):
-            return
-        p, opt = self.progress, self.optimizer
-        if isinstance(opt, RunAdam):  # lr + f·(lr_end − lr) per run, on the device: no host copy per update
-            opt.anneal(run_fraction(p.env_steps, p.total_steps))
-        else:
-            for group in opt.param_groups:
-                group["lr"] = lr_at(self.cfg, p.env_steps, p.total_steps)
+        """Set each run's learning rate for where training stands (``lr_end``): one op on the device, from the
+        host's progress; a no-op at constant lr."""
+        if any(c.lr_end is not None for c in self.run_cfgs):
+            p = self.progress
+            self.optimizer.anneal(run_fraction(p.env_steps, p.total_steps))
 
     # --- what each algorithm writes ------------------------------------------------------------------------------
     @abstractmethod
@@ -476,14 +562,17 @@ class NetworkAgent(ABC):
         return (actions, greedy, per_agent) if self.runs is not None else (actions[0], greedy[0], per_agent[0])
 
     def sync_targets(self) -> None:
-        """After an update: the target sync of every run, each at its own ``target_update`` period."""
-        periods = {c.target_update for c in self.run_cfgs}
-        if len(periods) == 1 or self.cfg.target_tau < 1.0:
-            update_target(self.target, self.online, self.updates, self.cfg)
+        """After an update: copy the online weights into the target of every run whose ``target_update`` period
+        the update count has reached. The count is the host's, so this ``if`` reads nothing from the device and
+        stays outside the compiled step; runs with their own periods are picked by a 0/1 mask made on the device.
+        Polyak targets (``target_tau`` < 1) move in the step itself."""
+        if self.cfg.target_tau < 1.0 or not any(self.updates % c.target_update == 0 for c in self.run_cfgs):
+            return
+        if self._periods is None:  # every run is due
+            with torch.no_grad():
+                torch._foreach_copy_(list(self.target.parameters()), list(self.online.parameters()))
         else:
-            due = np.array([self.updates % c.target_update == 0 for c in self.run_cfgs])
-            if due.any():
-                self.sync_runs(due)
+            polyak_(self.target, self.online, (torch.remainder(self.updates, self._periods) == 0).float())
 
     def sync_runs(self, due: np.ndarray) -> None:
         """Copy the online weights into the target of the runs ``due`` (a population whose runs sync apart)."""
@@ -530,88 +619,62 @@ class NetworkAgent(ABC):
         """Each agent's loss ``[N]`` on ``batch`` (tests back-propagate one to see which weights it reaches)."""
         return self.loss(batch).agents
 
-    def update(self) -> dict[str, float] | list[dict[str, float]]:
+    def update(self) -> Figures:
         """One gradient step on a sampled batch (the agents' losses summed, plus any auxiliary term), then the
-        target sync. A non-finite loss or gradient never reaches the weights; many in a row end the run.
+        target sync; the figures stay on the device (``Figures``: ``read()`` them, or let the trainer read them in
+        batches). Nothing in the update waits for the device: a non-finite loss or gradient is caught by a mask
+        on the device and never reaches the weights, and the run fails (``FloatingPointError``) when figures that
+        counted ``MAX_NONFINITE_IN_A_ROW`` such updates in a row are read, so at most one read interval late
+        (``READ_EVERY`` updates in the trainer).
 
         A population takes one step for all runs: their losses are summed (no weight is shared between runs, so
         each run's gradient is its own loss's), each run's gradient is clipped to its own norm, and a run whose
-        loss or gradient is not finite keeps its weights and optimizer state. Figures come back per run."""
-        out = self.loss(self.sample())
+        loss or gradient is not finite keeps its weights, target, Adam moments and step count while the others
+        step. ``updates`` counts every call, skipped or not: the host cannot know without a read. With ``compile``
+        the step from the batch on runs as one captured graph (``torch.compile(fullgraph=True)``).
+        """
+        batch = self.sample()
+        self.anneal_lr()
+        names, table = self._compiled_step(batch) if self.cfg.compile else self._step(batch)
+        self.updates += 1
+        if self.syncs_by_updates:
+            self.sync_targets()
+        return StepFigures(self.name, self.seeds, self.runs, names, table)
+
+    def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
+        """``_step`` compiled whole on first use (no graph break: a break is an error)."""
+        if self._compiled is None:
+            self.optimizer  # noqa: B018  (made before tracing: its state is the graph's input, not built in it)
+            self._compiled = torch.compile(self._step, fullgraph=True)
+        with torch._dynamo.config.patch(trace_autograd_ops=True):  # autograd.grad inside the graph
+            return self._compiled(batch)
+
+    def _step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
+        """Loss → gradients → each run's clip → the non-finite guard → Adam → Polyak target and policy average,
+        all on the device. Returns the figures' names and their table (``StepFigures``)."""
+        out = self.loss(batch)
         loss = out.agents.sum(dim=-1)  # [] or [R]
         total = loss.sum() if out.extra is None else loss.sum() + out.extra.sum()
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        if self.runs is None:
-            grad_norm = nn.utils.clip_grad_norm_(self.online.parameters(), self.cfg.grad_clip)
-        else:
-            grad_norm = clip_grad_norm_per_run(list(self.online.parameters()), self.cfg.grad_clip)
-        names = ["loss", "grad_norm", *out.stats]
-        figures = torch.stack([loss.detach(), grad_norm, *(torch.as_tensor(v) for v in out.stats.values())])
-        table = np.asarray(figures.float().cpu(), dtype=np.float64).reshape(len(names), -1)  # one host sync
-        ok = np.isfinite(table[0]) & np.isfinite(table[1])
-        self._nonfinite_in_a_row = np.where(ok, 0, self._nonfinite_in_a_row + 1)
-        if not ok.all():
-            self._refuse_nonfinite(ok, table)
-        if ok.any():
-            kept = None if ok.all() else self._snapshot(~ok)
-            self.anneal_lr()
-            self.optimizer.step()
-            if kept is not None:
-                self._restore(~ok, kept)
-            self.updates += 1
-            if self.syncs_by_updates:
-                self.sync_targets()
-            if self.average is not None:
-                polyak_(self.average, self.online, self.cfg.policy_ema)
-        rows = [dict(zip(names, col, strict=True)) for col in table.T.tolist()]
-        for row, good in zip(rows, ok, strict=True):
-            if not good:
-                row.update(loss=float("nan"), grad_norm=float("nan"))
-        return rows[0] if self.runs is None else rows
-
-    def _refuse_nonfinite(self, ok: np.ndarray, table: np.ndarray) -> None:
-        """Count a skipped update; fail the run once a run had ``MAX_NONFINITE_IN_A_ROW`` in a row."""
-        self.skipped_updates += 1
-        worst = int(np.argmax(self._nonfinite_in_a_row))
-        if self._nonfinite_in_a_row[worst] >= MAX_NONFINITE_IN_A_ROW:
-            run = "" if self.runs is None else f" (run of seed {self.seeds[worst]})"
-            raise FloatingPointError(
-                f"{self.name}{run}: {self._nonfinite_in_a_row[worst]} updates in a row had a non-finite loss "
-                f"({table[0, worst]}) or gradient norm ({table[1, worst]}); the weights were kept as they were. "
-                "Check the env's rewards and observations for NaN/inf, or lower lr"
-            )
-        if self.runs is None:
-            self.optimizer.zero_grad(set_to_none=True)
-
-    def _snapshot(self, bad: np.ndarray) -> tuple[list[Tensor], list[Tensor]]:
-        """The weights and optimizer moments of the runs ``bad`` (a population), to put back after the step."""
-        idx = torch.as_tensor(np.flatnonzero(bad), device=self.device)
-        for p in self.online.parameters():  # a non-finite gradient must not reach the fused step's arithmetic
-            if p.grad is not None:
-                p.grad.index_fill_(0, idx, 0.0)
-        return [p.detach().index_select(0, idx) for p in self.online.parameters()], [
-            m.index_select(0, idx) for m in self._moments()
-        ]
-
-    def _restore(self, bad: np.ndarray, kept: tuple[list[Tensor], list[Tensor]]) -> None:
-        idx = torch.as_tensor(np.flatnonzero(bad), device=self.device)
-        params, moments = kept
+        params = self.optimizer.params
+        raw = torch.autograd.grad(total, params, allow_unused=True)
+        # a weight no loss reaches (a cut channel's message net) gets a zero gradient: Adam then leaves it as it is
+        grads = [torch.zeros_like(p) if g is None else g.contiguous() for p, g in zip(params, raw, strict=True)]
+        grad_norm = clip_grad_norm_per_run(grads, self.cfg.grad_clip, self.runs is not None)
+        ok = torch.isfinite(loss) & torch.isfinite(grad_norm)  # [] or [R]: which runs step
+        self.optimizer.step_runs(grads, ok)
         with torch.no_grad():
-            for p, old in zip(self.online.parameters(), params, strict=True):
-                p.index_copy_(0, idx, old)
-            now = self._moments()
-            if moments:
-                for m, old in zip(now, moments, strict=True):
-                    m.index_copy_(0, idx, old)
-            else:  # the optimizer's first step made them: the skipped runs' moments stay zero
-                for m in now:
-                    m.index_fill_(0, idx, 0.0)
-
-    def _moments(self) -> list[Tensor]:
-        """The optimizer's per-element state tensors (Adam's two moments) in parameter order."""
-        states = [self.optimizer.state.get(p, {}) for p in self.online.parameters()]
-        return [v for st in states for k, v in sorted(st.items()) if k != "step" and v.dim() > 0]
+            skipped = ~ok
+            self._skipped.add_(skipped.any())
+            self._nonfinite_in_a_row.add_(1).mul_(skipped)
+            if self.syncs_by_updates and self.cfg.target_tau < 1.0:
+                polyak_(self.target, self.online, self.cfg.target_tau * ok.float())
+            if self.average is not None:
+                polyak_(self.average, self.online, self.cfg.policy_ema * ok.float())
+            # a figure given as a float is filled in on the device (a tensor made from it would be a host copy)
+            stats = [v.float().expand_as(loss) if isinstance(v, Tensor) else torch.full_like(loss, v)
+                     for v in out.stats.values()]  # fmt: skip
+            table = torch.stack([loss.detach(), grad_norm, *stats, self._nonfinite_in_a_row.float()])
+        return ("loss", "grad_norm", *out.stats), table.reshape(table.shape[0], -1)
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.online.state_dict())
@@ -679,7 +742,7 @@ class NetworkAgent(ABC):
         if agent is None:
             agent = self._members[k] = type(self)(self.spec, self.run_cfgs[k], device=self.device, seed=self.seeds[k])
         opt = self.optimizer.state_dict()
-        moments = {i: {n: v if n == "step" else v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}
+        moments = {i: {n: v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}  # step: run k's
         agent.load_state_dict(
             {
                 "online": run_state(self.online, k),
@@ -714,14 +777,9 @@ class NetworkAgent(ABC):
             for module, key in modules:
                 for name, value in module.state_dict().items():
                     value[k].copy_(state[key][name])
-            saved = sorted(state["optimizer"]["state"].items())
-            if saved and not opt.state:  # a fresh optimizer: its first step's structure, zero for every run
-                stacked = {i: {n: v.clone() if n == "step" else torch.zeros(self.runs, *v.shape, device=self.device)
-                               for n, v in st.items()} for i, st in saved}  # fmt: skip
-                opt.load_state_dict({"param_groups": opt.state_dict()["param_groups"], "state": stacked})
-            for p, (_, st) in zip(self.online.parameters(), saved, strict=bool(saved)):
+            for i, st in state["optimizer"]["state"].items():  # a single run's Adam state (torch.optim.Adam's too)
                 for n, v in st.items():
-                    (opt.state[p][n] if n == "step" else opt.state[p][n][k]).copy_(v)
+                    opt.state[opt.params[int(i)]][n][k].copy_(v)
         self.updates = int(state["updates"])
         self.load_streams(k, state)
         self.load_member_extra(k, state)
@@ -743,16 +801,59 @@ PER_RUN: tuple[str, ...] = (
 
 
 class RunAdam(torch.optim.Optimizer):
-    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) with one learning rate per run ``lrs [R]`` over stacked
-    parameters ``[R, …]``; its state has ``torch.optim.Adam``'s layout, so a run's share loads into a single run's
-    Adam. Equal to it up to float rounding (the fused kernel orders the same arithmetic differently)."""
+    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) over one run's parameters or R runs' stacked ``[R, …]``,
+    with one learning rate per run on the device (``lrs``, annealed there) and a per-run ``ok`` mask
+    (``step_runs``): a run not ok keeps its weights, moments and step count, with no host read.
+
+    Its state has ``torch.optim.Adam``'s layout, ``step``, ``exp_avg`` and ``exp_avg_sq`` per parameter, made up
+    front (a compiled step never branches on it) and, for a population, with a leading run axis (``step`` one count
+    per run ``[R]``): a run's share is a single run's state, and a single run's, or a checkpoint that
+    ``torch.optim.Adam(fused=True)`` wrote, loads. Every parameter steps at every update (one a loss does not reach
+    with a zero gradient), so all of them share one ``step`` tensor.
+
+    Two kernels, one arithmetic (equal to ``torch.optim.Adam`` up to float rounding): a single run steps with
+    torch's fused Adam, one kernel whose ``found_inf`` skips the step on the device; a population, and any step
+    under ``torch.compile``, with ``torch._foreach_*`` ops whose per-run factors mask the step — the fused kernel
+    takes one learning rate and one skip flag per call, so per-run ones would cost a call per run.
+    """
 
     def __init__(
-        self, params: list[Tensor], lrs: Tensor, ends: Tensor | None = None, betas: tuple[float, float] = (0.9, 0.999)
+        self,
+        params: list[Tensor],
+        lrs: Tensor,
+        ends: Tensor | None = None,
+        runs: int | None = None,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
     ) -> None:
-        super().__init__(params, {"lr": 0.0, "betas": betas, "eps": 1e-8})
+        super().__init__(params, {"lr": 0.0, "betas": betas, "eps": eps})  # the rates live in ``lrs``
+        self.params: list[Tensor] = list(params)
+        self.runs = runs
         self.lrs, self.start = lrs, lrs.clone()
         self.span = torch.zeros_like(lrs) if ends is None else ends - lrs  # to each run's ``lr_end`` by the run's end
+        self._fill_state()
+
+    def _fill_state(self) -> None:
+        """Zero moments for every parameter without them, and one shared step count (the largest loaded)."""
+        shape = () if self.runs is None else (self.runs,)
+        device = self.params[0].device
+        counts = [self.state[p]["step"] for p in self.params if "step" in self.state[p]]
+        step = torch.zeros(shape, dtype=torch.float32, device=device)
+        if counts:
+            step = torch.stack([c.to(device=device, dtype=torch.float32).reshape(shape) for c in counts]).amax(0)
+        for p in self.params:
+            st = self.state[p]
+            st["step"] = step
+            for name in ("exp_avg", "exp_avg_sq"):
+                if name not in st:
+                    st[name] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        self._steps = step
+        self._m = [self.state[p]["exp_avg"] for p in self.params]
+        self._v = [self.state[p]["exp_avg_sq"] for p in self.params]
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        super().load_state_dict(state_dict)
+        self._fill_state()
 
     def anneal(self, fraction: float) -> None:
         """Each run's rate ``fraction`` of the way to its end rate, computed on the device (no host copy)."""
@@ -762,33 +863,60 @@ class RunAdam(torch.optim.Optimizer):
     def step(self, closure: None = None) -> None: ...
     @overload
     def step(self, closure: Callable[[], float]) -> float: ...
-    @torch.no_grad()
     def step(self, closure: Callable[[], float] | None = None) -> float | None:  # the closure is never called
-        for group in self.param_groups:
-            b1, b2 = group["betas"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                st = self.state[p]
-                if not st:
-                    st["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
-                    st["exp_avg"], st["exp_avg_sq"] = torch.zeros_like(p), torch.zeros_like(p)
-                st["step"] += 1
-                step = float(st["step"])
-                st["exp_avg"].lerp_(p.grad, 1 - b1)
-                st["exp_avg_sq"].mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
-                denom = (st["exp_avg_sq"].sqrt() / math.sqrt(1 - b2**step)).add_(group["eps"])
-                lr = self.lrs.reshape(-1, *([1] * (p.dim() - 1)))
-                p.addcdiv_(st["exp_avg"] * (-lr / (1 - b1**step)), denom)
+        """``torch.optim``'s step: every run, from the parameters' ``.grad``."""
+        grads = [torch.zeros_like(p) if p.grad is None else p.grad for p in self.params]
+        self.step_runs(grads, torch.ones_like(self._steps, dtype=torch.bool))
         return None
 
+    @torch.no_grad()
+    def step_runs(self, grads: Sequence[Tensor], ok: Tensor) -> None:
+        """One Adam step of the runs with ``ok`` (``[R]``, or 0-dim for a single run) from ``grads`` (parameter
+        order, used as scratch: a run not ok may hold NaN there)."""
+        b1, b2 = self.defaults["betas"]
+        eps: float = self.defaults["eps"]
+        okf = ok.float()
+        self._steps.add_(okf)
+        params, m, v = self.params, self._m, self._v
+        if self.runs is None and not torch.compiler.is_compiling():
+            torch._fused_adam_(params, list(grads), m, v, [], [self._steps] * len(params), lr=self.lrs,
+                               beta1=b1, beta2=b2, weight_decay=0.0, eps=eps, amsgrad=False, maximize=False,
+                               found_inf=1.0 - okf)  # fmt: skip
+            return
 
-def clip_grad_norm_per_run(params: list[Tensor], max_norm: float) -> Tensor:
-    """Each run's gradient clipped to its own global norm (``clip_grad_norm_`` per run); the norms ``[R]``."""
-    grads = [p.grad for p in params if p.grad is not None]
-    norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
-    total: Tensor = torch.linalg.vector_norm(norms, dim=0)  # [R]
+        def each(x: Tensor) -> list[Tensor]:  # one value per run, for every parameter
+            return [per_run(x, p) for p in params]
+
+        grads = list(grads)
+        for g, bad in zip(grads, each(~ok), strict=True):
+            g.masked_fill_(bad, 0.0)  # NaN·0 is NaN: a skipped run's gradient must go, not be scaled
+        # m ← m + (1 − β1)(g − m), v ← β2·v + (1 − β2)·g², as the fused kernel rounds them; unchanged where not ok
+        torch._foreach_lerp_(m, grads, each(torch.where(ok, 1 - b1, 0.0)))
+        torch._foreach_mul_(v, each(torch.where(ok, b2, 1.0)))
+        torch._foreach_addcmul_(v, grads, grads, value=1 - b2)
+        # bias corrections in float64, as torch's kernels take them (1 − 0.999 in float32 is off by 6e-5); a run
+        # never stepped counts 0, clamped: any correction will do, it moves by 0
+        t = self._steps.double().clamp(min=1.0)
+        bias1, bias2 = 1 - b1**t, (1 - b2**t).sqrt()
+        size = self.lrs.double() * bias2 / bias1  # Δp = −size · m / (√v + ε·bias2), torch's step rearranged
+        # the denominator over ``size``, in the gradients' memory: ∞ for a run not ok, whose step is then m / ∞ = 0
+        scale = torch.where(ok, 1 / size, 0.0).float()
+        offset = torch.where(ok, eps * bias2 / size, math.inf).float()
+        for g, sq in zip(grads, v, strict=True):
+            torch.sqrt(sq, out=g)
+        torch._foreach_mul_(grads, each(scale))
+        torch._foreach_add_(grads, each(offset))
+        torch._foreach_addcdiv_(params, m, grads, value=-1.0)
+
+
+def clip_grad_norm_per_run(grads: list[Tensor], max_norm: float, runs: bool = True) -> Tensor:
+    """Each run's gradient scaled in place to at most ``max_norm`` (``clip_grad_norm_`` per run); the norms before
+    the clip ``[R]``. ``runs`` False: one run's gradients, clipped as ``clip_grad_norm_`` does (a 0-dim norm)."""
+    if runs:
+        norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
+        total: Tensor = torch.linalg.vector_norm(norms, dim=0)  # [R]
+    else:
+        total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
     coef = (max_norm / (total + 1e-6)).clamp(max=1.0)
-    for g in grads:
-        g.mul_(coef.reshape(-1, *([1] * (g.dim() - 1))))
+    torch._foreach_mul_(grads, [per_run(coef, g) for g in grads])
     return total

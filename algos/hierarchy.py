@@ -84,7 +84,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from convoy.algos.algorithm import ActOutput, NetworkAgent, Progress
+from convoy.algos.algorithm import ActOutput, Figures, NetworkAgent, Progress
 from convoy.algos.idqn import IndependentDQN
 from convoy.algos.nets import pick_device
 from convoy.algos.registry import make_algorithm
@@ -219,6 +219,29 @@ class LockstepQueue:
             v[:, : self.capacity - t] = v[:, t:].copy()
         self.count -= t
         return out
+
+
+@dataclass(frozen=True)
+class LevelFigures(Figures):
+    """Both levels' figures of one update: ``controller_loss`` and ``meta_loss`` (NaN for a level that did not
+    learn) and ``loss``, their sum; read as each level's are, in the same host read."""
+
+    runs: int | None
+    n_runs: int
+    levels: dict[str, Figures]  # the levels that learned in this update
+
+    def tensors(self) -> list[Tensor]:
+        return [t for figures in self.levels.values() for t in figures.tensors()]
+
+    def rows(self, host: list[np.ndarray]) -> list[dict[str, float]]:
+        rows = [{"loss": 0.0, "controller_loss": math.nan, "meta_loss": math.nan} for _ in range(self.n_runs)]
+        for level, figures in self.levels.items():
+            n = len(figures.tensors())
+            own, host = host[:n], host[n:]
+            for row, values in zip(rows, figures.rows(own), strict=True):
+                row[f"{level}_loss"] = values["loss"]
+                row["loss"] += values["loss"]
+        return rows
 
 
 class HierarchicalAgent:
@@ -513,24 +536,20 @@ class HierarchicalAgent:
         """Updates owed for ``n_transitions`` joint env steps: the controller's replay ratio over its N rows each."""
         return self.controller.updates_for(n_transitions * self.n_agents)
 
-    def update(self) -> dict[str, float] | list[dict[str, float]]:
-        """One controller step and one meta step, each when its level can learn (a population's figures per run).
+    def update(self) -> LevelFigures:
+        """One controller step and one meta step, each when its level can learn (a population's figures per run,
+        left on the device as each level's are).
 
         An option spans ≥ 1 steps, so the meta level receives at most as many meta-transitions as there are joint
         env steps; one meta step per call gives it at least the controller's replay ratio on its own (scarcer) data.
         """
-        rows = [{"loss": 0.0, "controller_loss": float("nan"), "meta_loss": float("nan")} for _ in self.seeds]
-        for level, algo, ready in (
-            ("controller", self.controller, self.controller.can_update()),
-            ("meta", self.meta, self.meta_can_update()),
-        ):
-            if ready:
-                out = algo.update()
-                for row, figures in zip(rows, [out] if isinstance(out, dict) else out, strict=True):
-                    row[f"{level}_loss"] = figures["loss"]
-                    row["loss"] += figures["loss"]
+        learns = {"controller": self.controller.can_update(), "meta": self.meta_can_update()}  # asked before either
+        levels: dict[str, Figures] = {}
+        for level, algo in (("controller", self.controller), ("meta", self.meta)):
+            if learns[level]:
+                levels[level] = algo.update()
         self.updates += 1
-        return rows[0] if self.runs is None else rows
+        return LevelFigures(self.runs, len(self.seeds), levels)
 
     # --- persistence -------------------------------------------------------------------------------------------
     def policy_state(self) -> dict[str, Tensor]:

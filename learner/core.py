@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from convoy.algos.algorithm import Agent, Progress, epsilon_at
+from convoy.algos.algorithm import Agent, Figures, Progress, epsilon_at, read_figures
 from convoy.algos.checkpoint import (
     BEST_CHECKPOINT,
     PREVIOUS_CHECKPOINT,
@@ -30,13 +30,21 @@ from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 from convoy.learner.trackers import Trackers
 
+# Updates whose figures wait on the device before the trainer reads them, all at once: one host sync per READ_EVERY
+# updates instead of one per update (on a GPU each sync stalls the queue of launched kernels), and a run whose loss
+# stays non-finite fails at most READ_EVERY updates after its MAX_NONFINITE_IN_A_ROW-th (algos/algorithm.py). A
+# metric row, and the end of the run, read whatever waits, so rows hold every update before them.
+READ_EVERY = 64
+
 
 class UpdateClock:
     """The updates a run owes the data it observed: ``updates_for`` per chunk (samples per insert exactly), the
-    fraction carried over — one rule for a single run and a population."""
+    fraction carried over — one rule for a single run and a population. It also holds the updates' figures until
+    they are read (``READ_EVERY``)."""
 
     def __init__(self, algo: Agent) -> None:
         self.algo, self.owed = algo, 0.0
+        self.pending: list[Figures] = []
 
     def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
         """A chunk of ``steps`` env steps (per run) goes into the algorithm and is owed ``updates_for(steps)``."""
@@ -44,11 +52,20 @@ class UpdateClock:
         if self.algo.can_update():
             self.owed += self.algo.updates_for(steps)
 
-    def updates(self) -> Iterator[Any]:
-        """Run the owed updates, yielding each one's figures (a population's: one dict per run)."""
+    def updates(self) -> Iterator[list[dict[str, float]]]:
+        """Run the owed updates; yield the figures read meanwhile (every ``READ_EVERY`` updates), each update's one
+        dict per run (a single run's: one)."""
         while self.owed >= 1.0 and self.algo.can_update():
-            yield self.algo.update()
+            self.pending.append(self.algo.update())
             self.owed -= 1.0
+            if len(self.pending) >= READ_EVERY:
+                yield from self.read()
+
+    def read(self) -> list[list[dict[str, float]]]:
+        """The figures of every update not read yet, in one host read (``read_figures``: a run that stayed
+        non-finite fails here)."""
+        pending, self.pending = self.pending, []
+        return read_figures(pending)
 
 
 class TrainingCore:
@@ -140,15 +157,21 @@ class TrainingCore:
         self.clock.observe(chunk, steps)
 
     def update(self) -> None:
-        """Run the updates observed data is owed."""
+        """Run the updates observed data is owed (their figures reach the log as they are read)."""
         for figures in self.clock.updates():
-            self.log.update(figures)
+            self.log.update(figures[0])
+
+    def read_figures(self) -> None:
+        """Every update's figures into the log, before a row or the summary counts them."""
+        for figures in self.clock.read():
+            self.log.update(figures[0])
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> dict[str, Any] | None:
         """The metric row due at this step (with a greedy-curve point when one is due, and ``extra(env_steps)``),
         or None."""
         figures: dict[str, float] = {}
         if self.log.row_due(self.env_steps):
+            self.read_figures()
             if self.evaluator.due(self.env_steps, self.job.steps):
                 figures.update(self.evaluator.point(self.algo, self.env_steps))
             if extra is not None:
@@ -207,6 +230,7 @@ class TrainingCore:
         ``curve.png``; the summary. ``final_return`` is the mean ε-greedy return of the last 10 % of this
         process's episodes. ``end``: when training ended (``perf_counter``), if not now (a population's runs end
         together, then evaluate one after another)."""
+        self.read_figures()
         self.close()
         if self.out_dir is not None:
             keep = self.job.runtime.keep_replay

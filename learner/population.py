@@ -20,7 +20,7 @@ batched update of R runs costs about what one run's does. On a CPU the batched u
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -112,12 +112,17 @@ class PopulationCore:
         self.clock.observe(chunk, steps)
 
     def update(self) -> None:
-        for figures in self.clock.updates():  # one batched update: each run's figures to its own log
+        self._log(self.clock.updates())
+
+    def _log(self, read: Iterable[list[dict[str, float]]]) -> None:
+        for figures in read:  # one batched update: each run's figures to its own log
             for core, run_figures in zip(self.cores, figures, strict=True):
                 core.log.update(run_figures)
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> list[dict[str, Any]]:
         """The metric rows due at this step, one per run (all runs' fall due together), or none."""
+        if any(core.log.row_due(core.env_steps) for core in self.cores):
+            self._log(self.clock.read())  # the updates' figures not read yet, before a row counts them
         rows = []
         for k, core in enumerate(self.cores):
             if core.log.row_due(core.env_steps) or core.checkpoint_due:
@@ -153,6 +158,7 @@ class PopulationCore:
         """Each run's summary (``TrainingCore.finish`` over its member), in run order; training time ends now for
         all runs, though they are evaluated one after another."""
         end = time.perf_counter()
+        self._log(self.clock.read())
         if self.replay is not None and self.jobs[0].runtime.keep_replay:
             self._save_replay()  # beside the runs' last checkpoints, when asked
         elif self.replay is not None:

@@ -123,4 +123,4 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     with torch.no_grad():
         expected = float(ref.loss(batch))
     algo.sample = lambda: batch
-    assert abs(algo.update()["loss"] - expected) <= 1e-5 * max(1.0, abs(expected))
+    assert abs(algo.update().read()["loss"] - expected) <= 1e-5 * max(1.0, abs(expected))

@@ -33,7 +33,7 @@ from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
-from tests.conftest import single_update
+from tests.conftest import population_update, single_update
 
 # forward spawns on a belt of constant speed: the goals' "cruise" is the belt's speed (the critic reads it from the
 # config), and the spawn pose is then a cruise
@@ -386,7 +386,7 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
                 np.testing.assert_array_equal(ours._data[f][k, : sizes[k]], v, err_msg=f"{level} {f} run {k}")
     assert pop.can_update() and pop.meta_can_update() and all(s.meta_can_update() for s in singles)
     for _ in range(150):
-        rows = pop.update()
+        rows = population_update(pop)
         single_rows = [single_update(s) for s in singles]
     assert isinstance(rows, list)  # a population's: one dict per run
     for k, single in enumerate(singles):

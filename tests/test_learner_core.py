@@ -21,6 +21,7 @@ from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError
+from tests.conftest import single_update
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
 
@@ -326,6 +327,9 @@ def test_channel_information_counts_codewords_not_bits() -> None:
 
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
 def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
+    """The skip is decided on the device: the weights, Adam's moments and its step count stay as they were, the
+    update counts (the host cannot know it was skipped) and the run fails when figures that counted
+    ``MAX_NONFINITE_IN_A_ROW`` in a row are read, whenever that is."""
     from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW
 
     algo = build(name)
@@ -333,13 +337,17 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
     b["reward"][:] = float("nan")
     algo.observe({k: v.numpy()[None] for k, v in b.items()})
     before = {k: v.clone() for k, v in algo.online.state_dict().items()}
-    stats = algo.update()
-    assert np.isnan(stats["loss"]) and algo.skipped_updates == 1 and algo.updates == 0
+    stats = single_update(algo)
+    assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.skipped_updates == 1
+    assert algo.updates == 1
     assert all(torch.equal(before[k], v) for k, v in algo.online.state_dict().items())
-    for _ in range(MAX_NONFINITE_IN_A_ROW - 2):
-        algo.update()
-    with pytest.raises(FloatingPointError, match="non-finite loss"):
-        algo.update()
+    state = algo.optimizer.state_dict()["state"]
+    assert all(not st["exp_avg"].any() and not st["exp_avg_sq"].any() and st["step"] == 0 for st in state.values())
+    unread = [algo.update() for _ in range(MAX_NONFINITE_IN_A_ROW - 2)]  # nothing read: nothing fails yet
+    last = algo.update()
+    assert math.isnan(unread[-1].read()["loss"])  # read one short of the limit: skipped, not failed
+    with pytest.raises(FloatingPointError, match=f"{MAX_NONFINITE_IN_A_ROW} updates in a row had a non-finite loss"):
+        last.read()
 
 
 def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:

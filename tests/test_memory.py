@@ -132,7 +132,7 @@ def test_update_trains_memory_and_reports_its_figures(name: str, monkeypatch: py
     batch = random_batch(algo)
     monkeypatch.setattr(algo, "sample", lambda: batch)  # replay draws replaced by one fixed batch
     before = {k: v.clone() for k, v in algo.online["memory"].state_dict().items()}
-    stats = algo.update()
+    stats = single_update(algo)
     assert {"loss", "memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
     after = algo.online["memory"].state_dict()
     assert all(not torch.equal(before[k], after[k]) for k in before)

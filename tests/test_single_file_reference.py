@@ -164,7 +164,7 @@ def test_weights_after_adam_steps_equal_the_products(
     for step in range(3):
         data = batch(agent.spec, seed=10 + step)
         monkeypatch.setattr(agent, "sample", lambda data=data: data)  # the update's batch: this one
-        figures = agent.update()
+        figures = agent.update().read()
         loss, updates = single.train_step(online, target, optimizer, data, args, gen, updates)
         assert isinstance(figures, dict) and updates == agent.updates
         assert loss == pytest.approx(figures["loss"], rel=1e-5, abs=1e-5)
