@@ -226,17 +226,13 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         ("ma-mesn", NOISELESS["ma-mesn"]),
         ("ma-bon", NOISELESS["ma-bon"]),
         ("dial", NOISELESS["dial"]),
-        pytest.param(
-            "dial",
-            {},
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="the DRU's noise: rand_like draws from one torch.Generator per run, which Dynamo cannot put "
-                "in a graph (a break per draw); the random streams' change is to make it capturable",
-            ),
-        ),
+        # noise drawn in training (the DRU's, Gumbel messages, a noise control): one draw from the runs' counter
+        # streams (algos/streams.py), inside the graph
+        ("dial", {}),
+        ("ma-mesn", {}),
+        ("ma-bon", {"channel_control": "noise"}),
     ],
-    ids=["idqn", "ma-mesn", "ma-bon", "dial-noiseless", "dial"],
+    ids=["idqn", "ma-mesn-noiseless", "ma-bon-noiseless", "dial-noiseless", "dial", "ma-mesn", "ma-bon-noise-control"],
 )
 def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any]) -> None:
     pop = filled(name, SEEDS, **params)
