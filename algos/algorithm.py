@@ -642,12 +642,22 @@ class NetworkAgent(ABC):
         return StepFigures(self.name, self.seeds, self.runs, names, table)
 
     def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
-        """``_step`` compiled whole on first use (no graph break: a break is an error)."""
+        """``_step`` compiled whole on first use (no graph break: a break is an error). On CUDA the graph is also
+        captured as a CUDA graph (``mode="reduce-overhead"``): one launch per update instead of one per kernel.
+        A CUDA graph replays fixed addresses, so the state the step writes in place (Adam's moments and counts, the
+        learning rates, the guard's counters, the noise streams' counters) is marked static, and the figures are
+        copied out: the next replay overwrites its outputs, and figures are read many updates later."""
+        cuda = self.device.type == "cuda"
         if self._compiled is None:
-            self.optimizer  # noqa: B018  (made before tracing: its state is the graph's input, not built in it)
-            self._compiled = torch.compile(self._step, fullgraph=True)
+            opt = self.optimizer  # made before tracing: its state is the graph's input, not built in it
+            if cuda:
+                mutated = [*opt._m, *opt._v, opt._steps, opt.lrs, self._skipped, self._nonfinite_in_a_row]
+                for t in mutated + [s.counters for s in self.streams.values()]:
+                    torch._dynamo.mark_static_address(t)
+            self._compiled = torch.compile(self._step, fullgraph=True, mode="reduce-overhead" if cuda else None)
         with torch._dynamo.config.patch(trace_autograd_ops=True):  # autograd.grad inside the graph
-            return self._compiled(batch)
+            names, table = self._compiled(batch)
+        return names, table.clone() if cuda else table
 
     def _step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
         """Loss → gradients → each run's clip → the non-finite guard → Adam → Polyak target and policy average,

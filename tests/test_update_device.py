@@ -1,8 +1,8 @@
 """The update on the device: ``RunAdam`` is torch's Adam per run, an update reads nothing back to the host and
 dispatches as many ops for 20 runs as for one, and ``compile`` captures it whole, equal to the eager update.
 
-Sampling is left out of the op counts (each test hands the update a fixed batch): moving it onto the device is a
-change of its own, with its own random streams.
+The op counts include sampling: the replay lives on the update's device and draws every run's indices at once
+from the runs' counter streams (``algos/streams.py``).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import math
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,9 +23,12 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW, NetworkAgent, RunAdam, read_figures
 from convoy.algos.nets import run_state
 from convoy.algos.registry import make_algorithm
-from tests.test_population import SEEDS, SPEC, chunk, config
+from tests.test_population import POPULATION_ALGOS, SEEDS, SPEC, chunk, config, save_teacher
 
-SHAPES = [(2, 6, 5), (2, 5), (1, 5, 3)]  # GroupLinear-like weights and biases
+SHAPES = [(2, 6, 5), (2, 5), (1, 5, 3)]
+CUDA = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"
+)  # GroupLinear-like weights and biases
 
 
 class Dispatches(TorchDispatchMode):
@@ -61,10 +65,10 @@ def host_reads(ops: Counter[str]) -> dict[str, int]:
     return {op: n for op, n in ops.items() if "_local_scalar_dense" in op or op.startswith("host:")}
 
 
-def filled(name: str, seeds: int | list[int], **params: Any) -> NetworkAgent:
+def filled(name: str, seeds: int | list[int], device: str = "cpu", **params: Any) -> NetworkAgent:
     """``name`` (small networks) with replay rows and its update's batch fixed (``sample`` returns it)."""
     cfg = config(name, False, hidden=(16,), batch_size=8, **params)
-    agent = make_algorithm(name, SPEC, cfg, device="cpu", seed=seeds)
+    agent = make_algorithm(name, SPEC, cfg, device=device, seed=seeds)
     g = np.random.default_rng(0)
     runs = len(seeds) if isinstance(seeds, list) else 1
     for _ in range(2):
@@ -177,18 +181,34 @@ def test_an_update_reads_nothing_back_to_the_host(monkeypatch: pytest.MonkeyPatc
     assert pop.skipped_updates == 7 and grid.skipped_updates == 0
 
 
-def test_an_update_dispatches_as_many_ops_for_20_runs_as_for_one(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Independent DQN's update is the same ops whatever the population's size: no per-run loop anywhere (loss,
-    clip, guard, Adam, figures), so on a GPU twenty runs launch what one does. One run's axis of size 1 lets a few
-    ``reshape``s return views where R > 1 copies (``clone`` + ``_unsafe_view``): counted as views, the ops of R = 1
-    are those of R = 20, and R = 2's are R = 20's exactly."""
+def sampling(name: str, runs: int, teacher: Path | None) -> NetworkAgent:
+    """``name`` at its noisy defaults (the DRU's σ, Gumbel messages) with replay rows, sampling as in training."""
+    cfg = config(name, False, teacher, hidden=(16,), batch_size=8)
+    agent = make_algorithm(name, SPEC, cfg, device="cpu", seed=list(range(runs)))
+    g = np.random.default_rng(0)
+    for _ in range(2):
+        agent.observe(chunk(g, runs))
+    return agent
+
+
+@pytest.mark.parametrize("name", POPULATION_ALGOS)
+def test_an_update_dispatches_as_many_ops_for_20_runs_as_for_one(
+    name: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Every algorithm's update — the replay's sample, the noise draws (DIAL's DRU, Gumbel messages), loss, clip,
+    guard, Adam, figures — is the same ops whatever the population's size: no per-run loop anywhere, so on a GPU
+    twenty runs launch what one does, and none reads back to the host. One run's axis of size 1 lets a few
+    ``reshape``s return views where R > 1 copies (``clone`` + ``_unsafe_view``): counted as views, the ops of
+    R = 1 are those of R = 20, and R = 2's are R = 20's exactly."""
+    teacher = save_teacher(tmp_path / "teacher.pt") if name == "codbc" else None
     counts = {}
     for runs in (1, 2, 20):
-        agent = filled("idqn", list(range(runs)))
+        agent = sampling(name, runs, teacher)
         agent.update()
         with counting(monkeypatch) as mode:
             agent.update()
         counts[runs] = mode.ops
+        assert not host_reads(mode.ops), f"R = {runs}: host reads {host_reads(mode.ops)}"
     assert counts[2] == counts[20]
 
     def as_views(ops: Counter[str]) -> Counter[str]:
@@ -243,23 +263,27 @@ def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any
 
 
 @pytest.mark.slow  # compiles (Inductor, C++): ~20 s apiece on a 2-core machine
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
 @pytest.mark.parametrize("name, seeds", [("idqn", SEEDS[:2]), ("ma-mesn", 3)], ids=["idqn-population", "ma-mesn"])
-def test_a_compiled_update_is_the_eager_update(name: str, seeds: int | list[int]) -> None:
-    """``compile``: the same figures and weights as eager updates over 100 updates, to 1e-5 (measured: ≤ 6e-8;
-    Inductor fuses the same arithmetic in another order), from one compiled graph; a run whose loss is not finite
-    keeps its weights there too."""
+def test_a_compiled_update_is_the_eager_update(name: str, seeds: int | list[int], device: str) -> None:
+    """``compile``: the same figures and weights as eager updates over 100 updates, to 1e-5 (measured on a CPU:
+    ≤ 6e-8; Inductor fuses the same arithmetic in another order), from one compiled graph — on CUDA also one CUDA
+    graph, whose figures stay right when read after later replays; a run whose loss is not finite keeps its
+    weights there too."""
     torch.set_num_threads(1)
-    eager = filled(name, seeds, **NOISELESS.get(name, {}))
-    compiled = filled(name, seeds, compile=True, **NOISELESS.get(name, {}))
+    eager = filled(name, seeds, device, **NOISELESS.get(name, {}))
+    compiled = filled(name, seeds, device, compile=True, **NOISELESS.get(name, {}))
     torch._dynamo.reset()
     torch._dynamo.utils.counters.clear()
-    for _ in range(100):
-        want, got = eager.update().read(), compiled.update().read()
-    for w, g in zip(want if isinstance(want, list) else [want], got if isinstance(got, list) else [got], strict=True):
-        assert w.keys() == g.keys() and all(g[k] == pytest.approx(v, rel=1e-5, abs=1e-6) for k, v in w.items())
+    for _ in range(20):  # figures read in fives, as the trainer reads them in batches
+        wants, gots = [eager.update() for _ in range(5)], [compiled.update() for _ in range(5)]
+        for want, got in zip(read_figures(wants), read_figures(gots), strict=True):
+            for w, g in zip(want, got, strict=True):
+                assert w.keys() == g.keys() and all(g[k] == pytest.approx(v, rel=1e-5, abs=1e-6) for k, v in w.items())
     for (n, a), b in zip(eager.online.state_dict().items(), compiled.online.state_dict().values(), strict=True):
         torch.testing.assert_close(b, a, rtol=0, atol=1e-5, msg=n)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # compiled once, never again
+    assert torch._dynamo.utils.counters["inductor"]["cudagraph_skips"] == 0  # on CUDA: replayed as a CUDA graph
     batch = compiled.sample()
     batch["reward"][-1] = math.nan  # the last run (a single run: the whole batch)
     compiled.sample = lambda: batch  # type: ignore[method-assign]
