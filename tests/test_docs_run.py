@@ -231,6 +231,7 @@ def check(where: str, command: str, code: int, out: str, shown: str | None = Non
         assert code == 0, f"{where}: `{command}` exited {code}:\n{out[-4000:]}"
 
 
+@pytest.mark.timeout(1200)  # a hang guard: an 8-agent run's planner references take minutes on a loaded machine
 @pytest.mark.parametrize(("where", "command"), GENERIC, ids=[w for w, _ in GENERIC])
 def test_every_documented_command_runs(where: str, command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out = run_documented(command, ws, capsys)
