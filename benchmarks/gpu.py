@@ -107,12 +107,12 @@ def train_args(steps: int, out: Path) -> list[str]:
             "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
 
 
-def training_figures(sizes: list[int], steps: int, device: str, work: Path) -> dict[str, Any]:
+def training_figures(sizes: list[int], steps: int, device: str, work: Path) -> dict[str | int, Any]:
     """Aggregate env-steps/s of P captured runs on ``device`` and of one run on one pinned CPU core."""
     core = sorted(os.sched_getaffinity(0))[0]
     one = [*train_args(steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
     t_core = run_all([one], [pinned(core)])
-    out: dict[str, Any] = {"cpu_core_steps_per_s": steps / t_core, "steps": steps}
+    out: dict[str | int, Any] = {"cpu_core_steps_per_s": steps / t_core, "steps": steps}
     for p in sizes:
         cmd = [*train_args(steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
                "--hp", "compile=true"]  # fmt: skip
