@@ -15,6 +15,7 @@ from fastapi import Request
 from convoy.api.errors import ApiError
 from convoy.api.lifecycle import JobReader, JobRecord, JobState, SweepRecord
 from convoy.api.models import EvalRequest, FinalEvaluation, JobView, Progress, SweepSubmit
+from convoy.api.remedy import WORDS_HEADER, words_of
 from convoy.config import JobConfig
 from convoy.output import json_safe
 
@@ -59,12 +60,10 @@ def authorised(request: Request) -> None:
     header = request.headers.get("authorization", "")
     scheme, _, given = header.partition(" ")
     if scheme.lower() != "bearer" or not secrets.compare_digest(given.strip().encode(), token.encode()):
-        raise ApiError(
-            401,
-            "Authorization",
-            "missing or wrong bearer token",
-            "send 'Authorization: Bearer <token>' (printed by `convoy serve`, or set CONVOY_API_TOKEN)",
-        )
+        api_fix = "send 'Authorization: Bearer <token>' (printed by `convoy serve`, or set CONVOY_API_TOKEN)"
+        cli_fix = "pass --token TOKEN (printed by `convoy serve`) or set CONVOY_API_TOKEN"
+        fix = cli_fix if words_of(request.headers.get(WORDS_HEADER)) == "cli" else api_fix
+        raise ApiError(401, "Authorization", "missing or wrong bearer token", fix)
 
 
 def view(rec: JobRecord, control: JobControl) -> JobView:

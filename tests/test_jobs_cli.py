@@ -245,10 +245,11 @@ def test_the_service_says_its_fixes_in_the_cli_words_the_cli_asks_for(
 def test_wrong_and_missing_token(capsys: pytest.CaptureFixture[str], service: Service, job_id: str) -> None:
     code, _, err = jobs(capsys, service.url, "scale", job_id, "1", token="wrong-token")
     assert code == 2
-    one_line_error(err, "error: Authorization:", "bearer token", "—")
+    one_line_error(err, "error: Authorization:", "bearer token", "—", "pass --token TOKEN")  # the CLI's words
+    assert "Authorization: Bearer" not in err
     code, _, err = jobs(capsys, service.url, "submit", *SMALL, token="")
     assert code == 2
-    one_line_error(err, "error: Authorization:")
+    one_line_error(err, "error: Authorization:", "CONVOY_API_TOKEN")
 
 
 def test_api_validation_errors(capsys: pytest.CaptureFixture[str], service: Service) -> None:
