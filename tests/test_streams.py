@@ -9,13 +9,11 @@ any R; greedy acting draws nothing; and checkpoints carry the counters, so a res
 from __future__ import annotations
 
 import io
-from collections import Counter
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.algos.registry import make_algorithm
@@ -23,6 +21,7 @@ from convoy.algos.replay import JointReplay
 from convoy.algos.streams import STREAMS, RunStreams, hash32, legacy_counter
 from convoy.config import resolve_algo
 from convoy.envs.batched import EnvSpec
+from tests.test_update_device import Dispatches
 
 SEEDS = [3, 7, 11, 0, 12345]
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 3, 5), max_steps=10)
@@ -147,18 +146,6 @@ def chunk(g: np.random.Generator, runs: int | None, t: int = 4, b: int = 4) -> d
     }
 
 
-class CountOps(TorchDispatchMode):
-    """The aten ops dispatched inside the ``with`` block, by name."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.ops: Counter[str] = Counter()
-
-    def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
-        self.ops[str(func)] += 1
-        return func(*args, **(kwargs or {}))
-
-
 @pytest.mark.parametrize("name", ["idqn", "dial"])
 def test_a_sample_and_a_noise_draw_cost_the_same_ops_for_1_and_20_runs(name: str) -> None:
     """Kernels per update independent of the population size: one batched draw, one gather per field."""
@@ -168,7 +155,7 @@ def test_a_sample_and_a_noise_draw_cost_the_same_ops_for_1_and_20_runs(name: str
         agent.observe(chunk(np.random.default_rng(0), runs))
         x = torch.zeros(runs, 8, 3, 4)
         agent.sample(), agent.rand_like(x), agent.rand_like(x, normal=True)  # warm: first-call set-up aside
-        with CountOps() as counted:
+        with Dispatches() as counted:
             agent.sample()
             agent.rand_like(x)
             agent.rand_like(x, normal=True)
