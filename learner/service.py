@@ -56,7 +56,7 @@ BUDGET_EVERY_S = 0.02
 def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple[int, ...]]]:
     """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: the declared transition
     (``convoy.transition``) for this env, and the algorithm's extras from one probe step (one env per run; a
-    population's chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
+    chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
     env = make_batched(job.env, job.runs or 1, **job.env_params)
     try:
         stepper = EnvStepper(env, algo, seed=0)
@@ -64,8 +64,7 @@ def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple
         chunk = stepper.take_chunk()
     finally:
         env.close()
-    skip = 3 if job.runs else 2
-    extras = {k: (v.dtype.str, v.shape[skip:]) for k, v in chunk.items() if k not in TRANSITION}
+    extras = {k: (v.dtype.str, v.shape[3:]) for k, v in chunk.items() if k not in TRANSITION}
     return {**declared_schema(algo.spec.n_agents, algo.spec.obs_dim), **extras}
 
 
