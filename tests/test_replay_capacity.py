@@ -193,7 +193,9 @@ def test_a_run_resumed_past_its_budget_gets_replay_for_its_new_one(tmp_path: Pat
     try:
         resumed = make_agent(longer, env.spec)
         replay = replay_buffers(resumed)["replay"]
-        counters = restore(resumed, longer, tmp_path, strict=True)
+        restored = restore(resumed, longer, tmp_path, strict=True)
+        assert restored is not None
+        (counters,) = restored  # one dict per run
         assert counters["replay_rows"] == first.steps == len(replay)
         assert replay.allocated == max_env_steps(longer, resumed.chunk_len) > old
         Trainer(longer, env, resumed, out_dir=tmp_path, progress=False, counters=counters).run()
