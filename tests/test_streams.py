@@ -197,9 +197,8 @@ def test_greedy_acting_draws_nothing_and_each_run_draws_only_where_it_explores()
 def continue_training(agent: NetworkAgent, g: np.random.Generator, steps: int) -> list[np.ndarray]:
     """Act, observe and update ``steps`` times: what a run goes on doing after a resume."""
     acted = []
-    runs = () if agent.runs is None else (agent.runs,)
     for _ in range(steps):
-        obs = g.normal(size=(*runs, 4, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
+        obs = g.normal(size=(agent.runs, 4, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
         acted.append(agent.act(obs, 0.3).actions)
         agent.observe(chunk(g, agent.runs))
         agent.update()
