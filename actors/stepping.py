@@ -11,11 +11,9 @@ stamps count each run's own episodes.
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 
-from convoy.algos.algorithm import ActOutput, Agent, Population
+from convoy.algos.algorithm import ActOutput, Agent
 from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
 from convoy.transition import ENV_MAJOR, record
 
@@ -35,13 +33,12 @@ class EnvStepper:
         self.env, self.algo, self.record = env, algo, record
         self.last: ActOutput | None = None
         b, n = env.num_envs, env.spec.n_agents
-        population = cast(Population, algo)
-        self.runs = population.runs
+        self.runs = algo.runs
         if b % self.runs:
             raise ValueError(f"num_envs: {b} envs do not split evenly among the population's {self.runs} runs")
         # a run of one seeds its envs with ``seed`` (an actor's own, a recording's); a population's runs each with
         # their own seed, as the single run of that seed does
-        seeds = population.seeds if self.runs > 1 else (seed,)
+        seeds = algo.seeds if self.runs > 1 else (seed,)
         self.obs = env.reset(seed=np.concatenate([env_seeds(s, b // self.runs) for s in seeds]))
         self.run_of_env = np.repeat(np.arange(self.runs), b // self.runs)
         self.state = algo.initial_state(b // self.runs)

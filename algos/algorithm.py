@@ -158,8 +158,11 @@ class StepFigures(Figures):
 
 
 class Agent(Protocol):
-    """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
+    """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper,
+    R ≥ 1 runs of it trained as one agent (a single run: R = 1)."""
 
+    runs: int
+    seeds: tuple[int, ...]  # run k's seed
     spec: EnvSpec
     device: torch.device
     progress: Progress
@@ -183,16 +186,8 @@ class Agent(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
     def n_parameters(self) -> int: ...
     def reserve_replay(self, env_steps: int) -> None: ...  # replay rows for at most ``env_steps`` (per run)
-
-
-class Population(Agent, Protocol):
-    """R runs of one algorithm trained as one agent (a single run: R = 1): a ``NetworkAgent`` or the hierarchical
-    wrapper. What the population trainers call beyond ``Agent``."""
-
-    runs: int
-    seeds: tuple[int, ...]
-
     def member(self, k: int) -> Agent: ...  # run k as the single run of its seed (evaluation, checkpoints)
+    def load_member_state(self, k: int, state: dict[str, Any]) -> None: ...  # a single run's state into run k
 
 
 # --- the shared pieces ---------------------------------------------------------------------------------------------
@@ -360,9 +355,6 @@ class NetworkAgent(ABC):
     # rows in four span all n steps — a return never reaches past its chunk)
     chunk_len: int = 1
     uses_messages: ClassVar[bool] = False
-    # whether R runs of it train as one population (``seed`` a sequence): every layer a GroupLinear, losses reduced
-    # over the batch dim −2, per-run state only where ``member`` carries it
-    population: ClassVar[bool] = False
     # ``update`` syncs the targets every target_update updates; DIAL syncs by finished episodes instead and
     # behaviour cloning has no bootstrap target at all
     syncs_by_updates: ClassVar[bool] = True

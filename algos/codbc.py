@@ -43,7 +43,6 @@ class CoDBC(NetworkAgent):
     name = "codbc"
     cfg: CoDBCConfig
     syncs_by_updates = False  # no bootstrapping: no target to sync
-    population = True  # the runs share one frozen teacher
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents

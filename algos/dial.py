@@ -67,7 +67,6 @@ class DIAL(NetworkAgent):
     cfg: DIALConfig
     uses_messages = True
     syncs_by_updates = False  # targets follow finished episodes (``observe``), each run's own in a population
-    population = True
 
     def __init__(
         self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0

@@ -31,7 +31,6 @@ class DQNSER(IndependentDQN):
     """Independent DQN whose sampled losses are weighted by sample age (and optionally fingerprinted)."""
 
     name = "dqn-ser"
-    population = True
     cfg: SERConfig
     FP_DIM = 2
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
-from convoy.algos.algorithm import Agent, Population
+from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
@@ -48,7 +48,7 @@ class Trainer:
 
     def run(self) -> TrainResult:
         replay = self.out_dir / REPLAY_FILE if self.out_dir is not None else None
-        (result,) = PopulationTrainer([self.job], self.env, cast("Population", self.algo), self.make_eval_env,
+        (result,) = PopulationTrainer([self.job], self.env, self.algo, self.make_eval_env,
                                       [self.out_dir], self.show_progress, replay, [self.counters],
                                       self.on_row).run()  # fmt: skip
         return result

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import Population, Progress
+from convoy.algos.algorithm import Agent, Progress
 from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
@@ -44,7 +44,7 @@ class PopulationCore:
     def __init__(
         self,
         jobs: list[JobConfig],
-        algo: Population,
+        algo: Agent,
         out_dirs: list[Path] | list[Path | None] | None,
         make_eval_env: Callable[[int], BatchedEnv] | None,
         *,
@@ -191,7 +191,7 @@ class PopulationTrainer:
         self,
         jobs: list[JobConfig],
         env: BatchedEnv,
-        algo: Population,
+        algo: Agent,
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
         out_dirs: list[Path] | list[Path | None] | None = None,
         progress: bool = True,

@@ -87,7 +87,7 @@ def restore_population(
     payloads = [b[step][0] for b in by_step]
     for k, payload in enumerate(payloads):
         try:
-            algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined]
+            algo.load_member_state(k, payload["state"])
         except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
             _unusable(by_step[k][step][1], f"does not match the job's networks ({exc})", strict)
             return None

@@ -24,14 +24,14 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent, Population
+from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
@@ -192,7 +192,7 @@ class Learner:
         replay_bytes = job.runtime.replay_checkpoint_mb << 20
         say = log.info  # the final evaluation's lines (the treadmill's references) in the host's log
         dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
-        return PopulationCore(job.members(), cast(Population, algo), dirs, make_eval_env, counters=counters or None,
+        return PopulationCore(job.members(), algo, dirs, make_eval_env, counters=counters or None,
                               replay=replay, say=say)  # fmt: skip
 
     def _take(self, core: PopulationCore, msg: wire.Message) -> str | None:

@@ -6,14 +6,13 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
 from convoy.config import JobConfig, job_config
 from convoy.envs import make_batched
 from convoy.envs.batched import BatchedEnv
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
-    from convoy.algos.algorithm import Population
     from convoy.learner.inprocess import TrainResult
 
 
@@ -84,7 +83,7 @@ def run_population(
         if resume and replay is not None:
             dirs = [d for d in out_dirs if d is not None]
             counters = restore_population(agent, jobs, dirs, replay, strict=True)
-        trainer = PopulationTrainer(jobs, env, cast("Population", agent), lambda n: make_env(job, n), out_dirs,
+        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs,
                                     progress=progress, replay=replay, counters=counters)  # fmt: skip
         return trainer.run()
     finally:

@@ -88,7 +88,7 @@ def train(job: JobConfig, reserve: int | None) -> tuple[Any, list[dict[str, Any]
         if reserve is not None:
             agent.reserve_replay(reserve)
         if job.runs:
-            results = PopulationTrainer(job.members(), env, agent, progress=False).run()  # type: ignore[arg-type]
+            results = PopulationTrainer(job.members(), env, agent, progress=False).run()
         else:
             results = [Trainer(job, env, agent, progress=False).run()]
     finally:
