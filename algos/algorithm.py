@@ -44,7 +44,7 @@ class Progress:
     """Where training stands; the trainer (or learner process) keeps it current for schedules and fingerprints."""
 
     env_steps: int = 0
-    episodes: int | np.ndarray = 0  # a population's: one count per run [R]
+    episodes: int | np.ndarray = 0  # one count for every run, or one per run [R]
     total_steps: int = 1
     training: bool = False  # set by the loops that collect training data (schedules that only apply to them)
 
@@ -80,8 +80,8 @@ class Loss(NamedTuple):
     """What one batch costs: each agent's loss ``[N]`` (their sum is minimised), an auxiliary term trained on the
     same batch (positive signalling, a memory module's message prediction) and figures to report."""
 
-    agents: Tensor  # [N], or [R, N] for a population of R runs
-    extra: Tensor | None = None  # a scalar, or [R]
+    agents: Tensor  # [R, N]
+    extra: Tensor | None = None  # [R]
     stats: dict[str, float | Tensor] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
 
     def plus(self, extra: Tensor | None, stats: Mapping[str, float | Tensor]) -> Loss:
@@ -362,11 +362,11 @@ class NetworkAgent(ABC):
     def __init__(
         self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
     ) -> None:
-        """One run of ``seed``; or, given a sequence of seeds, a population: R runs whose weights, optimizer state,
-        replay and random streams carry a leading run axis, run k being the run of ``seed[k]`` (its initial
-        weights, replay draws, exploration and message noise are that single run's), all updated by one batched
-        step. A population acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` returns one
-        dict of figures per run."""
+        """R runs, one per seed of ``seed`` (an int: a single run, R = 1), whose weights, optimizer state, replay
+        and random streams carry a leading run axis, run k being the run of ``seed[k]`` (its initial weights,
+        replay draws, exploration and message noise are that single run's), all updated by one batched step. It
+        acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` reads as one dict of figures
+        per run; a single run's caller may leave the run axis out of ``act``, ``observe`` and ``reset_state``."""
         model = ALGORITHMS[self.name].config
         if not isinstance(cfg, model):
             raise TypeError(f"{self.name} needs a {model.__name__}, got {type(cfg).__name__}")
@@ -567,7 +567,7 @@ class NetworkAgent(ABC):
             polyak_(self.target, self.online, (torch.remainder(self.updates, self._periods) == 0).float())
 
     def sync_runs(self, due: np.ndarray) -> None:
-        """Copy the online weights into the target of the runs ``due`` (a population whose runs sync apart)."""
+        """Copy the online weights into the target of the runs ``due`` (runs that sync apart, DIAL's)."""
         idx = torch.as_tensor(np.flatnonzero(due), device=self.device)
         with torch.no_grad():
             for t, o in zip(self.target.parameters(), self.online.parameters(), strict=True):
@@ -789,18 +789,18 @@ PER_RUN: tuple[str, ...] = (
 
 
 class RunAdam(torch.optim.Optimizer):
-    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) over one run's parameters or R runs' stacked ``[R, …]``,
+    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) over R ≥ 1 runs' stacked parameters ``[R, …]``,
     with one learning rate per run on the device (``lrs``, annealed there) and a per-run ``ok`` mask
     (``step_runs``): a run not ok keeps its weights, moments and step count, with no host read.
 
     Its state has ``torch.optim.Adam``'s layout, ``step``, ``exp_avg`` and ``exp_avg_sq`` per parameter, made up
-    front (a compiled step never branches on it) and, for a population, with a leading run axis (``step`` one count
-    per run ``[R]``): a run's share is a single run's state, and a single run's, or a checkpoint that
-    ``torch.optim.Adam(fused=True)`` wrote, loads. Every parameter steps at every update (one a loss does not reach
-    with a zero gradient), so all of them share one ``step`` tensor.
+    front (a compiled step never branches on it), with a leading run axis (``step`` one count per run ``[R]``): a
+    run's share is a single run's state, and a single run's, or a checkpoint that ``torch.optim.Adam(fused=True)``
+    wrote, loads into a run (``NetworkAgent.load_member_state``). Every parameter steps at every update (one a loss
+    does not reach with a zero gradient), so all of them share one ``step`` tensor.
 
-    Two kernels, one arithmetic (equal to ``torch.optim.Adam`` up to float rounding): a single run steps with
-    torch's fused Adam, one kernel whose ``found_inf`` skips the step on the device; a population, and any step
+    Two kernels, one arithmetic (equal to ``torch.optim.Adam`` up to float rounding): a run of one steps with
+    torch's fused Adam, one kernel whose ``found_inf`` skips the step on the device; R > 1 runs, and any step
     under ``torch.compile``, with ``torch._foreach_*`` ops whose per-run factors mask the step — the fused kernel
     takes one learning rate and one skip flag per call, so per-run ones would cost a call per run.
     """

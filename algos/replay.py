@@ -66,12 +66,12 @@ class JointReplay:
         self._run = torch.arange(runs, device=self.device)[:, None]  # [R, 1]: where each run's rows start
 
     def __len__(self) -> int:
-        """Rows held (a population's: the fewest any run holds)."""
+        """Rows held (the fewest any run holds)."""
         return int(self._size.min())
 
     @property
     def nbytes(self) -> int:
-        """Bytes allocated (a population's: all runs')."""
+        """Bytes allocated (all runs')."""
         return sum(v.numel() * v.element_size() for v in self._data.values())
 
     @property
