@@ -202,3 +202,11 @@ def test_a_run_resumed_past_its_budget_gets_replay_for_its_new_one(tmp_path: Pat
     finally:
         env.close()
     assert len(replay) == longer.steps <= replay.allocated
+
+
+def test_a_single_runs_replay_file_from_before_the_run_axis_loads_as_run_0() -> None:
+    """Replay files written before a single run was a run of one hold rows ``[rows, …]`` and 0-dim pointers."""
+    buf = JointReplay(10)
+    buf.load_state_dict({"data": {"x": np.arange(6, dtype=np.float32)[:, None]}, "next": np.array(6), "size": 6})
+    assert len(buf) == 6 and buf.state_dict()["next"].tolist() == [6]
+    np.testing.assert_array_equal(buf.state_dict()["data"]["x"][0, :, 0], np.arange(6))
