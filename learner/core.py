@@ -1,9 +1,10 @@
-"""The one trainer core: what a training run does with experience, whoever steps the envs.
+"""What a training run does with experience, whoever steps the envs: one run's bookkeeping (``TrainingCore``).
 
-The in-process trainer (``learner/inprocess.py``) feeds it the chunks of its own envs; the learner process
-(``learner/service.py``) feeds it the chunks actors send over Zenoh. Both then share one rule for the updates a
-chunk is owed (``updates_for``: samples per insert exactly), one metric row, one greedy curve with its best
-policy (``best.pt``), one checkpoint cadence and one summary.
+The one trainer core (``learner/population.py``'s ``PopulationCore``, for R ≥ 1 runs) keeps one of these per run.
+The in-process trainer feeds it the chunks of its own envs; the learner process (``learner/service.py``) the
+chunks actors send over Zenoh. Both then share one rule for the updates a chunk is owed (``updates_for``: samples
+per insert exactly), one metric row, one greedy curve with its best policy (``best.pt``), one checkpoint cadence
+and one summary.
 """
 
 from __future__ import annotations
