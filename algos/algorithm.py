@@ -44,27 +44,44 @@ class Progress:
     """Where training stands; the trainer (or learner process) keeps it current for schedules and fingerprints."""
 
     env_steps: int = 0
-    episodes: int | np.ndarray = 0  # a population's: one count per run [R]
+    episodes: int | np.ndarray = 0  # one count for every run, or one per run [R]
     total_steps: int = 1
     training: bool = False  # set by the loops that collect training data (schedules that only apply to them)
 
 
 @dataclass
 class ActOutput:
-    """Actions ``[B, N]`` plus what the algorithm wants stored with the transition (``extras``)."""
+    """Actions ``[R, B, N]`` plus what the algorithm wants stored with the transition (``extras``)."""
 
     actions: np.ndarray
-    messages: np.ndarray | None = None  # [B, N, bits] sent this step, for metrics and the channel model
+    messages: np.ndarray | None = None  # [R, B, N, bits] sent this step, for metrics and the channel model
     extras: dict[str, np.ndarray] = field(default_factory=dict)
-    state: Any = None  # recurrent state to pass to the next act (DIAL's messages from t−1)
+    state: Any = None  # recurrent state to pass to the next act (DIAL's messages from t−1), with the run axis
+
+    def shaped(self, lead: tuple[int, ...]) -> ActOutput:
+        """This output ``[R, B, …]`` with the caller's leading dims ``lead`` (a single run's ``(B,)`` leaves the
+        run axis out); the recurrent state keeps the run axis, as ``act`` and ``reset_state`` take it back."""
+
+        def like(v: np.ndarray) -> np.ndarray:
+            return v.reshape(*lead, *v.shape[2:])
+
+        messages = None if self.messages is None else like(self.messages)
+        return ActOutput(like(self.actions), messages, {k: like(v) for k, v in self.extras.items()}, self.state)
+
+
+def with_run_axis(chunk: dict[str, np.ndarray], runs: int) -> dict[str, np.ndarray]:
+    """A chunk ``[T, R, B, …]`` as it is, or a single run's ``[T, B, …]`` with its run axis put in (the leading
+    dims read from ``terminated``, ``[T, B]`` or ``[T, R, B]``)."""
+    lead = np.ndim(chunk["terminated"]) if "terminated" in chunk else 3
+    return {k: np.reshape(v, (np.shape(v)[0], runs, -1, *np.shape(v)[lead:])) for k, v in chunk.items()}
 
 
 class Loss(NamedTuple):
     """What one batch costs: each agent's loss ``[N]`` (their sum is minimised), an auxiliary term trained on the
     same batch (positive signalling, a memory module's message prediction) and figures to report."""
 
-    agents: Tensor  # [N], or [R, N] for a population of R runs
-    extra: Tensor | None = None  # a scalar, or [R]
+    agents: Tensor  # [R, N]
+    extra: Tensor | None = None  # [R]
     stats: dict[str, float | Tensor] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
 
     def plus(self, extra: Tensor | None, stats: Mapping[str, float | Tensor]) -> Loss:
@@ -79,8 +96,6 @@ class Figures(ABC):
     once (:func:`read_figures`). Reading is also where a run that had ``MAX_NONFINITE_IN_A_ROW`` non-finite updates
     in a row fails, with a ``FloatingPointError``."""
 
-    runs: int | None  # a population's R, or None for a single run
-
     @abstractmethod
     def tensors(self) -> list[Tensor]:
         """The device tensors reading copies to the host."""
@@ -89,10 +104,9 @@ class Figures(ABC):
     def rows(self, host: list[np.ndarray]) -> list[dict[str, float]]:
         """One dict of figures per run (a single run's: one) from the host copies of ``tensors()``."""
 
-    def read(self) -> dict[str, float] | list[dict[str, float]]:
-        """The figures, one host sync: a single run's dict, or a population's one per run."""
-        rows = read_figures([self])[0]
-        return rows[0] if self.runs is None else rows
+    def read(self) -> list[dict[str, float]]:
+        """The figures, one host sync: one dict per run (a single run's: one)."""
+        return read_figures([self])[0]
 
 
 def read_figures(batch: Sequence[Figures]) -> list[list[dict[str, float]]]:
@@ -120,7 +134,6 @@ class StepFigures(Figures):
 
     agent: str  # the algorithm's name, for the failure's message
     seeds: tuple[int, ...]
-    runs: int | None
     names: tuple[str, ...]
     table: Tensor
 
@@ -132,11 +145,10 @@ class StepFigures(Figures):
         streak = table[-1]
         worst = int(np.argmax(streak))
         if streak[worst] >= MAX_NONFINITE_IN_A_ROW:
-            run = "" if self.runs is None else f" (run of seed {self.seeds[worst]})"
             raise FloatingPointError(
-                f"{self.agent}{run}: {int(streak[worst])} updates in a row had a non-finite loss "
-                f"({table[0, worst]}) or gradient norm ({table[1, worst]}); the weights were kept as they were. "
-                "Check the env's rewards and observations for NaN/inf, or lower lr"
+                f"{self.agent} (run of seed {self.seeds[worst]}): {int(streak[worst])} updates in a row had a "
+                f"non-finite loss ({table[0, worst]}) or gradient norm ({table[1, worst]}); the weights were kept as "
+                "they were. Check the env's rewards and observations for NaN/inf, or lower lr"
             )
         rows = [dict(zip(self.names, col, strict=True)) for col in table[:-1].T.tolist()]
         for row, skipped in zip(rows, streak > 0, strict=True):
@@ -146,8 +158,11 @@ class StepFigures(Figures):
 
 
 class Agent(Protocol):
-    """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper."""
+    """What the trainers, actors, evaluation and checkpoints call: every algorithm and the hierarchical wrapper,
+    R ≥ 1 runs of it trained as one agent (a single run: R = 1)."""
 
+    runs: int
+    seeds: tuple[int, ...]  # run k's seed
     spec: EnvSpec
     device: torch.device
     progress: Progress
@@ -164,23 +179,15 @@ class Agent(Protocol):
     def observe(self, chunk: dict[str, np.ndarray]) -> None: ...
     def can_update(self) -> bool: ...
     def updates_for(self, n_transitions: int) -> float: ...
-    def update(self) -> Figures: ...  # left on the device: ``read()`` them (a population's: one dict per run)
+    def update(self) -> Figures: ...  # left on the device: ``read()`` them, one dict per run
     def policy_state(self) -> dict[str, Tensor]: ...
     def load_policy_state(self, state: dict[str, Tensor]) -> None: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
     def n_parameters(self) -> int: ...
     def reserve_replay(self, env_steps: int) -> None: ...  # replay rows for at most ``env_steps`` (per run)
-
-
-class Population(Agent, Protocol):
-    """R runs of one algorithm trained as one agent (``seed`` a sequence): a ``NetworkAgent`` or the hierarchical
-    wrapper. What the population trainers call beyond ``Agent``."""
-
-    runs: int | None
-    seeds: tuple[int, ...]
-
     def member(self, k: int) -> Agent: ...  # run k as the single run of its seed (evaluation, checkpoints)
+    def load_member_state(self, k: int, state: dict[str, Any]) -> None: ...  # a single run's state into run k
 
 
 # --- the shared pieces ---------------------------------------------------------------------------------------------
@@ -348,9 +355,6 @@ class NetworkAgent(ABC):
     # rows in four span all n steps — a return never reaches past its chunk)
     chunk_len: int = 1
     uses_messages: ClassVar[bool] = False
-    # whether R runs of it train as one population (``seed`` a sequence): every layer a GroupLinear, losses reduced
-    # over the batch dim −2, per-run state only where ``member`` carries it
-    population: ClassVar[bool] = False
     # ``update`` syncs the targets every target_update updates; DIAL syncs by finished episodes instead and
     # behaviour cloning has no bootstrap target at all
     syncs_by_updates: ClassVar[bool] = True
@@ -358,11 +362,11 @@ class NetworkAgent(ABC):
     def __init__(
         self, spec: EnvSpec, cfg: AlgoConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
     ) -> None:
-        """One run of ``seed``; or, given a sequence of seeds, a population: R runs whose weights, optimizer state,
-        replay and random streams carry a leading run axis, run k being the run of ``seed[k]`` (its initial
-        weights, replay draws, exploration and message noise are that single run's), all updated by one batched
-        step. A population acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` returns one
-        dict of figures per run."""
+        """R runs, one per seed of ``seed`` (an int: a single run, R = 1), whose weights, optimizer state, replay
+        and random streams carry a leading run axis, run k being the run of ``seed[k]`` (its initial weights,
+        replay draws, exploration and message noise are that single run's), all updated by one batched step. It
+        acts on ``[R, B, N, D]``, observes chunks ``[T, R, B, …]`` and its ``update`` reads as one dict of figures
+        per run; a single run's caller may leave the run axis out of ``act``, ``observe`` and ``reset_state``."""
         model = ALGORITHMS[self.name].config
         if not isinstance(cfg, model):
             raise TypeError(f"{self.name} needs a {model.__name__}, got {type(cfg).__name__}")
@@ -374,13 +378,8 @@ class NetworkAgent(ABC):
         self.device = pick_device(device) if isinstance(device, str) else device
         self.n_agents, self.obs_dim, self.n_act = spec.n_agents, spec.obs_dim, spec.max_actions
         self.shared: bool = bool(cfg.share_params)
-        self.seeds: tuple[int, ...]
-        self.runs: int | None
-        if isinstance(seed, int | np.integer):
-            self.seeds, self.runs = (int(seed),), None
-        else:
-            self.seeds = tuple(int(s) for s in seed)
-            self.runs = len(self.seeds)
+        self.seeds = (int(seed),) if isinstance(seed, int | np.integer) else tuple(int(s) for s in seed)
+        self.runs = len(self.seeds)  # a single run is a population of one
         if self.runs == 0:
             raise ValueError("seed: a population needs at least one seed")
         # the joint replay every step-based learner samples from, on the device: rows hold the declared transition
@@ -396,11 +395,10 @@ class NetworkAgent(ABC):
         self.action_mask = mask.to(self.device)  # [N, A]
         self.progress = Progress()
         self.updates = 0  # update() calls, a skipped one too (whether a run skipped is known on the device only)
-        run_shape = () if self.runs is None else (self.runs,)
         # on the device, so that no update reads them: updates with a run whose loss or gradient was not finite
         # (``skipped_updates``), and each run's count of them in a row (read with the figures)
         self._skipped = torch.zeros((), dtype=torch.int64, device=self.device)
-        self._nonfinite_in_a_row = torch.zeros(run_shape, dtype=torch.int64, device=self.device)
+        self._nonfinite_in_a_row = torch.zeros(self.runs, dtype=torch.int64, device=self.device)
         self._compiled: Callable[[Batch], tuple[tuple[str, ...], Tensor]] | None = None
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
@@ -409,8 +407,7 @@ class NetworkAgent(ABC):
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(s)
                 per_run.append(nn.ModuleDict(self.build()))
-        online = per_run[0] if self.runs is None else stack_runs(per_run)
-        self.online: nn.ModuleDict = online.to(self.device)
+        self.online: nn.ModuleDict = stack_runs(per_run).to(self.device)
         self.target: nn.ModuleDict = copy.deepcopy(self.online)
         self.target.requires_grad_(False)
         # ``policy_ema`` < 1: the Polyak average of the online weights that evaluation acts with (``evaluated``)
@@ -438,7 +435,7 @@ class NetworkAgent(ABC):
         """Give each run of a population its own hyper-parameters among ``PER_RUN`` (a grid over seeds × lr × γ ×
         target period × ε schedule in one population); every other field must agree, since it sets shapes or the
         update's structure."""
-        if self.runs is None or len(configs) != self.runs:
+        if len(configs) != self.runs:
             raise ValueError(f"configs: one per run of the population ({self.runs}), got {len(configs)}")
         base = configs[0].model_dump()
         for cfg in configs[1:]:
@@ -468,9 +465,7 @@ class NetworkAgent(ABC):
         if self._optimizer is None:
             lrs = torch.tensor([c.lr for c in self.run_cfgs], device=self.device)
             ends = torch.tensor([lr_at(c, 1, 1) for c in self.run_cfgs], device=self.device)  # at the run's end
-            if self.runs is None:
-                lrs, ends = lrs[0], ends[0]
-            self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends, runs=self.runs)
+            self._optimizer = RunAdam(list(self.online.parameters()), lrs, ends)
         return self._optimizer
 
     def anneal_lr(self) -> None:
@@ -495,17 +490,17 @@ class NetworkAgent(ABC):
 
     # --- data: the joint replay (DIAL brings its own sequences) ------------------------------------------------
     def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
-        """Chunks ``[T, B, …]`` (a population's ``[T, R, B, …]``) as rows in time-major order, per run; a
-        population's ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical DQN).
-        With ``n_step`` > 1 the rows are multi-step transitions (``n_step_rows``)."""
+        """Chunks ``[T, R, B, …]`` (a single run's may leave out its run axis, ``[T, B, …]``) as rows in time-major
+        order, per run; ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical
+        DQN). With ``n_step`` > 1 the rows are multi-step transitions (``n_step_rows``)."""
+        chunk = with_run_axis(chunk, self.runs)
         if self.cfg.n_step > 1:
             gamma = self.gamma.cpu().numpy().reshape(-1) if isinstance(self.gamma, Tensor) else self.gamma
             chunk = n_step_rows(chunk, self.cfg.n_step, gamma)
-        if self.runs is None:
-            self.replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in chunk.items()})
-            return
-        runs = {k: v.swapaxes(0, 1).reshape(v.shape[1], -1, *v.shape[3:]) for k, v in chunk.items()}
-        self.replay.add(runs, None if valid is None else valid.swapaxes(0, 1).reshape(self.runs, -1))
+        runs = {k: v.swapaxes(0, 1).reshape(self.runs, -1, *v.shape[3:]) for k, v in chunk.items()}
+        if valid is not None:
+            valid = valid.reshape(len(valid), self.runs, -1).swapaxes(0, 1).reshape(self.runs, -1)
+        self.replay.add(runs, valid)
 
     def reserve_replay(self, env_steps: int) -> None:
         """Allocate replay for a run that observes at most ``env_steps`` joint env steps (summed over its envs),
@@ -527,12 +522,15 @@ class NetworkAgent(ABC):
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
-        """Recurrent state for a fresh batch of envs (None for feed-forward algorithms); a population's for
-        ``num_envs`` envs per run, ``[R, B, …]``."""
+        """Recurrent state for ``num_envs`` fresh envs per run, ``[R, B, …]`` (None for feed-forward algorithms)."""
         return None
 
     def reset_state(self, state: Any, done: np.ndarray) -> Any:
-        """Clear the recurrent state of envs whose episode just ended."""
+        """Clear the recurrent state of envs whose episode just ended (``done [R, B]``, a single run's ``[B]``)."""
+        return self.reset_runs(state, np.asarray(done, dtype=bool).reshape(self.runs, -1))
+
+    def reset_runs(self, state: Any, done: np.ndarray) -> Any:
+        """``reset_state`` with ``done [R, B]``."""
         return state
 
     def extras(self, obs: np.ndarray, state: Any = None) -> dict[str, np.ndarray]:
@@ -541,25 +539,19 @@ class NetworkAgent(ABC):
         return {}
 
     def rand_like(self, x: Tensor, normal: bool = False) -> Tensor:
-        """Noise shaped like ``x`` (uniform in [0, 1), or standard normal) from each run's own noise stream, one draw
-        for all runs (``x``'s first dim is the run axis in a population): run k draws exactly what the single run
-        of its seed draws."""
+        """Noise shaped like ``x [R, …]`` (uniform in [0, 1), or standard normal) from each run's own noise stream,
+        one draw for all runs: run k draws exactly what the single run of its seed draws."""
         stream = self.streams["noise"]
-        shape = x.shape if self.runs is None else x.shape[1:]
-        noise = stream.normal(shape, x.dtype) if normal else stream.uniform(shape, x.dtype)
-        return noise[0] if self.runs is None else noise
+        return stream.normal(x.shape[1:], x.dtype) if normal else stream.uniform(x.shape[1:], x.dtype)
 
     def explore(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``epsilon_greedy`` for this agent, one greedy pass and one draw for every run (ε a scalar or one per env
-        ``[B]``; a population's a scalar, one per run ``[R]`` or per run and env ``[R, B]``): the actions, the
-        greedy actions and ε per env and agent, ``[B, N]`` (a population's ``[R, B, N]``)."""
-        q_runs = q if self.runs is not None else q.unsqueeze(0)  # a single run as R = 1
+        """``epsilon_greedy`` for this agent on Q ``[R, B, N, A]``, one greedy pass and one draw for every run (ε a
+        scalar, one per run ``[R]`` or per run and env ``[R, B]``; a single run's may be one per env ``[B]``): the
+        actions, the greedy actions and ε per env and agent, ``[R, B, N]``."""
         eps = np.asarray(epsilon, dtype=np.float64)
-        per_run = eps.reshape(self.runs, -1) if eps.ndim and self.runs is not None else eps.reshape(1, -1)
-        eps = np.broadcast_to(per_run, q_runs.shape[:2])  # [R, B]
-        actions, greedy = epsilon_greedy(q_runs, eps, self.action_mask, self.action_counts, self.streams["explore"])
-        per_agent = np.broadcast_to(eps[..., None], actions.shape)
-        return (actions, greedy, per_agent) if self.runs is not None else (actions[0], greedy[0], per_agent[0])
+        eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, q.shape[:2])  # [R, B]
+        actions, greedy = epsilon_greedy(q, eps, self.action_mask, self.action_counts, self.streams["explore"])
+        return actions, greedy, np.broadcast_to(eps[..., None], actions.shape)
 
     def sync_targets(self) -> None:
         """After an update: copy the online weights into the target of every run whose ``target_update`` period
@@ -575,7 +567,7 @@ class NetworkAgent(ABC):
             polyak_(self.target, self.online, (torch.remainder(self.updates, self._periods) == 0).float())
 
     def sync_runs(self, due: np.ndarray) -> None:
-        """Copy the online weights into the target of the runs ``due`` (a population whose runs sync apart)."""
+        """Copy the online weights into the target of the runs ``due`` (runs that sync apart, DIAL's)."""
         idx = torch.as_tensor(np.flatnonzero(due), device=self.device)
         with torch.no_grad():
             for t, o in zip(self.target.parameters(), self.online.parameters(), strict=True):
@@ -586,11 +578,17 @@ class NetworkAgent(ABC):
         """The weights a policy is judged by: the online ones, or their average when ``policy_ema`` < 1."""
         return self.online if self.average is None else self.average
 
-    @torch.no_grad()
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
-        """ε-greedy actions for ``obs [B, N, D]``; ε may be a scalar or one value per env (Ape-X style). A
-        population acts on ``[R, B, N, D]`` with ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``.
-        Outside training (``progress.training`` off: evaluation, a loaded checkpoint) it acts with ``evaluated``."""
+        """ε-greedy actions for ``obs [R, B, N, D]``, ε a scalar, one per run ``[R]`` or one per run and env ``[R, B]``
+        (Ape-X style). A single run may leave out its run axis, ``[B, N, D]`` with ε a scalar or one per env
+        ``[B]``: what comes back has the caller's leading dims (``ActOutput.shaped``)."""
+        runs = np.reshape(obs, (self.runs, -1, *np.shape(obs)[-2:]))
+        return self.act_runs(runs, epsilon, state).shaped(np.shape(obs)[:-2])
+
+    @torch.no_grad()
+    def act_runs(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
+        """``act`` on ``obs [R, B, N, D]``. Outside training (``progress.training`` off: evaluation, a loaded
+        checkpoint) it acts with ``evaluated``."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         if self.progress.training or self.average is None:
             q, msgs, new_state = self.greedy_q(obs_t, state)
@@ -616,7 +614,8 @@ class NetworkAgent(ABC):
         )
 
     def agent_losses(self, batch: Batch) -> Tensor:
-        """Each agent's loss ``[N]`` on ``batch`` (tests back-propagate one to see which weights it reaches)."""
+        """Each run's agents' losses ``[R, N]`` on ``batch`` (tests back-propagate one to see which weights it
+        reaches)."""
         return self.loss(batch).agents
 
     def update(self) -> Figures:
@@ -639,7 +638,7 @@ class NetworkAgent(ABC):
         self.updates += 1
         if self.syncs_by_updates:
             self.sync_targets()
-        return StepFigures(self.name, self.seeds, self.runs, names, table)
+        return StepFigures(self.name, self.seeds, names, table)
 
     def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
         """``_step`` compiled whole on first use (no graph break: a break is an error). On CUDA the graph is also
@@ -669,7 +668,7 @@ class NetworkAgent(ABC):
         raw = torch.autograd.grad(total, params, allow_unused=True)
         # a weight no loss reaches (a cut channel's message net) gets a zero gradient: Adam then leaves it as it is
         grads = [torch.zeros_like(p) if g is None else g.contiguous() for p, g in zip(params, raw, strict=True)]
-        grad_norm = clip_grad_norm_per_run(grads, self.cfg.grad_clip, self.runs is not None)
+        grad_norm = clip_grad_norm_per_run(grads, self.cfg.grad_clip)
         ok = torch.isfinite(loss) & torch.isfinite(grad_norm)  # [] or [R]: which runs step
         self.optimizer.step_runs(grads, ok)
         with torch.no_grad():
@@ -701,28 +700,31 @@ class NetworkAgent(ABC):
             self.average.load_state_dict(state)
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume learning exactly: networks, targets, optimizer, counters, random streams."""
-        if self.runs is not None:
+        """Everything needed to resume learning exactly: networks, targets, optimizer, counters, random streams —
+        a single run's, in the layout its checkpoints have always had (no run axis): ``run_state_dict(0)``."""
+        if self.runs != 1:
             raise TypeError("a population's state is saved per run: member(k).state_dict()")
-        return {
-            "online": self.online.state_dict(),
-            "target": self.target.state_dict(),
-            **({} if self.average is None else {"average": self.average.state_dict()}),
-            "optimizer": self.optimizer.state_dict(),
-            "updates": self.updates,
-            "streams": self.stream_state(0),
-        }
+        return self.run_state_dict(0)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if self.runs is not None:
+        """A single run's state (``state_dict``, a checkpoint's) into a run of one: ``load_member_state(0, …)``."""
+        if self.runs != 1:
             raise TypeError("a population loads a single run's state per run: load_member_state(k, state)")
-        self.online.load_state_dict(state["online"])
-        self.target.load_state_dict(state["target"])
-        if self.average is not None:  # a checkpoint written without one starts the average at its online weights
-            self.average.load_state_dict(state.get("average", state["online"]))
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.updates = int(state["updates"])
-        self.load_streams(0, state)
+        self.load_member_state(0, state)
+
+    def run_state_dict(self, k: int) -> dict[str, Any]:
+        """Run k's state as a single run's ``state_dict``: every tensor without the run axis."""
+        opt = self.optimizer.state_dict()
+        moments = {i: {n: v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}  # step: run k's
+        return {
+            "online": run_state(self.online, k),
+            "target": run_state(self.target, k),
+            **({} if self.average is None else {"average": run_state(self.average, k)}),
+            "optimizer": {"param_groups": opt["param_groups"], "state": moments},
+            "updates": self.updates,
+            "streams": self.stream_state(k),
+            **self.member_state(k),
+        }
 
     def stream_state(self, k: int) -> dict[str, int]:
         """Run k's random streams: the seed they are keyed by and each purpose's counter (``algos.streams``)."""
@@ -745,25 +747,13 @@ class NetworkAgent(ABC):
     def member(self, k: int) -> NetworkAgent:
         """Run k of a population as a single-run agent of its seed holding the run's current state (weights,
         targets, optimizer, counters, random streams): what evaluation and checkpoints of that run use. The
-        replay stays with the population."""
-        if self.runs is None:
+        replay stays with the population. A run of one is its own member."""
+        if self.runs == 1:
             return self
         agent = self._members.get(k)
         if agent is None:
             agent = self._members[k] = type(self)(self.spec, self.run_cfgs[k], device=self.device, seed=self.seeds[k])
-        opt = self.optimizer.state_dict()
-        moments = {i: {n: v[k].clone() for n, v in st.items()} for i, st in opt["state"].items()}  # step: run k's
-        agent.load_state_dict(
-            {
-                "online": run_state(self.online, k),
-                "target": run_state(self.target, k),
-                **({} if self.average is None else {"average": run_state(self.average, k)}),
-                "optimizer": {"param_groups": opt["param_groups"], "state": moments},
-                "updates": self.updates,
-                "streams": self.stream_state(k),
-                **self.member_state(k),
-            }
-        )
+        agent.load_state_dict(self.run_state_dict(k))
         p = self.progress
         episodes = int(np.broadcast_to(p.episodes, (self.runs,))[k])  # one count for all runs, or one per run
         agent.progress = Progress(p.env_steps, episodes, p.total_steps, p.training)
@@ -775,10 +765,8 @@ class NetworkAgent(ABC):
         return {}
 
     def load_member_state(self, k: int, state: dict[str, Any]) -> None:
-        """Put a single run's state (``member(k).state_dict()``, a checkpoint's) into run k of a population: how a
-        population resumes from its runs' checkpoints."""
-        if self.runs is None:
-            raise TypeError("load_member_state is for populations; use load_state_dict")
+        """Put a single run's state (``member(k).state_dict()``, a checkpoint's: no run axis) into run k: how a
+        run resumes from its checkpoint, and a population from its runs'."""
         opt = self.optimizer
         with torch.no_grad():
             modules = [(self.online, "online"), (self.target, "target")]
@@ -811,18 +799,18 @@ PER_RUN: tuple[str, ...] = (
 
 
 class RunAdam(torch.optim.Optimizer):
-    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) over one run's parameters or R runs' stacked ``[R, …]``,
+    """Adam (torch's defaults: β = (0.9, 0.999), ε = 1e-8) over R ≥ 1 runs' stacked parameters ``[R, …]``,
     with one learning rate per run on the device (``lrs``, annealed there) and a per-run ``ok`` mask
     (``step_runs``): a run not ok keeps its weights, moments and step count, with no host read.
 
     Its state has ``torch.optim.Adam``'s layout, ``step``, ``exp_avg`` and ``exp_avg_sq`` per parameter, made up
-    front (a compiled step never branches on it) and, for a population, with a leading run axis (``step`` one count
-    per run ``[R]``): a run's share is a single run's state, and a single run's, or a checkpoint that
-    ``torch.optim.Adam(fused=True)`` wrote, loads. Every parameter steps at every update (one a loss does not reach
-    with a zero gradient), so all of them share one ``step`` tensor.
+    front (a compiled step never branches on it), with a leading run axis (``step`` one count per run ``[R]``): a
+    run's share is a single run's state, and a single run's, or a checkpoint that ``torch.optim.Adam(fused=True)``
+    wrote, loads into a run (``NetworkAgent.load_member_state``). Every parameter steps at every update (one a loss
+    does not reach with a zero gradient), so all of them share one ``step`` tensor.
 
-    Two kernels, one arithmetic (equal to ``torch.optim.Adam`` up to float rounding): a single run steps with
-    torch's fused Adam, one kernel whose ``found_inf`` skips the step on the device; a population, and any step
+    Two kernels, one arithmetic (equal to ``torch.optim.Adam`` up to float rounding): a run of one steps with
+    torch's fused Adam, one kernel whose ``found_inf`` skips the step on the device; R > 1 runs, and any step
     under ``torch.compile``, with ``torch._foreach_*`` ops whose per-run factors mask the step — the fused kernel
     takes one learning rate and one skip flag per call, so per-run ones would cost a call per run.
     """
@@ -832,20 +820,19 @@ class RunAdam(torch.optim.Optimizer):
         params: list[Tensor],
         lrs: Tensor,
         ends: Tensor | None = None,
-        runs: int | None = None,
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-8,
     ) -> None:
         super().__init__(params, {"lr": 0.0, "betas": betas, "eps": eps})  # the rates live in ``lrs``
         self.params: list[Tensor] = list(params)
-        self.runs = runs
+        self.runs = len(lrs)
         self.lrs, self.start = lrs, lrs.clone()
         self.span = torch.zeros_like(lrs) if ends is None else ends - lrs  # to each run's ``lr_end`` by the run's end
         self._fill_state()
 
     def _fill_state(self) -> None:
         """Zero moments for every parameter without them, and one shared step count (the largest loaded)."""
-        shape = () if self.runs is None else (self.runs,)
+        shape = (self.runs,)
         device = self.params[0].device
         counts = [self.state[p]["step"] for p in self.params if "step" in self.state[p]]
         step = torch.zeros(shape, dtype=torch.float32, device=device)
@@ -888,10 +875,11 @@ class RunAdam(torch.optim.Optimizer):
         okf = ok.float()
         self._steps.add_(okf)
         params, m, v = self.params, self._m, self._v
-        if self.runs is None and not torch.compiler.is_compiling():
-            torch._fused_adam_(params, list(grads), m, v, [], [self._steps] * len(params), lr=self.lrs,
+        if self.runs == 1 and not torch.compiler.is_compiling():  # one run: torch's fused kernel, its rounding
+            steps = self._steps.view(())
+            torch._fused_adam_(params, list(grads), m, v, [], [steps] * len(params), lr=self.lrs.view(()),
                                beta1=b1, beta2=b2, weight_decay=0.0, eps=eps, amsgrad=False, maximize=False,
-                               found_inf=1.0 - okf)  # fmt: skip
+                               found_inf=(1.0 - okf).view(()))  # fmt: skip
             return
 
         def each(x: Tensor) -> list[Tensor]:  # one value per run, for every parameter
@@ -919,14 +907,14 @@ class RunAdam(torch.optim.Optimizer):
         torch._foreach_addcdiv_(params, m, grads, value=-1.0)
 
 
-def clip_grad_norm_per_run(grads: list[Tensor], max_norm: float, runs: bool = True) -> Tensor:
-    """Each run's gradient scaled in place to at most ``max_norm`` (``clip_grad_norm_`` per run); the norms before
-    the clip ``[R]``. ``runs`` False: one run's gradients, clipped as ``clip_grad_norm_`` does (a 0-dim norm)."""
-    if runs:
-        norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
-        total: Tensor = torch.linalg.vector_norm(norms, dim=0)  # [R]
+def clip_grad_norm_per_run(grads: list[Tensor], max_norm: float) -> Tensor:
+    """Each run's gradient ``[R, …]`` scaled in place to at most ``max_norm`` (``clip_grad_norm_`` per run); the
+    norms before the clip ``[R]``. One run's norm is summed as ``clip_grad_norm_`` sums it, bit for bit."""
+    if grads[0].shape[0] == 1:
+        total: Tensor = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))).reshape(1)
     else:
-        total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
+        norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # [params, R]
+        total = torch.linalg.vector_norm(norms, dim=0)  # [R]
     coef = (max_norm / (total + 1e-6)).clamp(max=1.0)
     torch._foreach_mul_(grads, [per_run(coef, g) for g in grads])
     return total

@@ -13,10 +13,9 @@ S env steps never stores more than about S rows, so a 20 k-step run with the tre
 Until a ring wraps its rows sit at 0 … size − 1 whatever its allocation, and samples draw ``[0, size)``: a run
 that fits reads and samples exactly what it did with every row allocated up front.
 
-A population of R runs keeps R rings in one tensor ``[R, rows, …]`` (a single run: R = 1, without the run axis in
-what goes in and out), each with its own write pointer and size: usually every run inserts the same rows at the
-same times, but a hierarchical meta-controller gets a transition only where an option ended, so
-``add(rows, valid)`` inserts each run's valid rows only.
+R runs (a single run is R = 1) keep R rings in one tensor ``[R, rows, …]``, each with its own write pointer and
+size: usually every run inserts the same rows at the same times, but a hierarchical meta-controller gets a
+transition only where an option ended, so ``add(rows, valid)`` inserts each run's valid rows only.
 
 Why on the device. An update samples a batch: drawn on the host, that was one generator call per run and a copy of
 every field to the device, every update. Here the rows live where the networks train (``device``), inserts copy the
@@ -49,7 +48,7 @@ class JointReplay:
     def __init__(
         self,
         capacity: int,
-        runs: int | None = None,
+        runs: int = 1,
         declared: dict[str, tuple[str, tuple[int, ...]]] | None = None,
         device: str | torch.device = "cpu",
     ) -> None:
@@ -59,20 +58,20 @@ class JointReplay:
         self.runs = runs
         self.declared = declared or {}  # field → (dtype, per-row shape) every insert must hold
         self.device = torch.device(device)
-        self._data: dict[str, Tensor] = {}  # field → [R, rows, …], R = 1 for a single run
+        self._data: dict[str, Tensor] = {}  # field → [R, rows, …]
         self._reserve = capacity  # rows allocated at the first insert (``reserve``)
-        self._next = np.zeros(runs or 1, dtype=np.int64)  # per run [R]
-        self._size = np.zeros(runs or 1, dtype=np.int64)
-        self._high = torch.zeros(runs or 1, 1, dtype=torch.int64, device=self.device)  # the sizes, on the device
-        self._run = torch.arange(runs or 1, device=self.device)[:, None]  # [R, 1]: where each run's rows start
+        self._next = np.zeros(runs, dtype=np.int64)  # per run [R]
+        self._size = np.zeros(runs, dtype=np.int64)
+        self._high = torch.zeros(runs, 1, dtype=torch.int64, device=self.device)  # the sizes, on the device
+        self._run = torch.arange(runs, device=self.device)[:, None]  # [R, 1]: where each run's rows start
 
     def __len__(self) -> int:
-        """Rows held (a population's: the fewest any run holds)."""
+        """Rows held (the fewest any run holds)."""
         return int(self._size.min())
 
     @property
     def nbytes(self) -> int:
-        """Bytes allocated (a population's: all runs')."""
+        """Bytes allocated (all runs')."""
         return sum(v.numel() * v.element_size() for v in self._data.values())
 
     @property
@@ -109,11 +108,13 @@ class JointReplay:
             self._data[k] = new
 
     def add(self, rows: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
-        """Append rows (every array shares the leading dim M; a population's ``[R, M, …]``); the oldest rows are
-        overwritten when full. ``valid [R, M]`` (``[M]`` for a single run): only those rows, each run's in order,
-        to its ring."""
-        self._check_declared(rows)
-        runs = {k: np.asarray(v) if self.runs is not None else np.asarray(v)[None] for k, v in rows.items()}
+        """Append rows ``[R, M, …]`` (every array shares the leading dims); the oldest rows are overwritten when full.
+        ``valid [R, M]``: only those rows, each run's in order, to its ring."""
+        runs = {k: np.asarray(v) for k, v in rows.items()}
+        if any(v.ndim < 2 or v.shape[0] != self.runs for v in runs.values()):
+            shapes = {k: v.shape for k, v in runs.items()}
+            raise ValueError(f"rows: every field needs the leading shape [R = {self.runs}, M], got {shapes}")
+        self._check_declared(runs)
         if valid is not None or (self._next != self._next[0]).any():
             ones = np.ones(np.shape(next(iter(runs.values())))[:2], bool)
             self._add_valid(runs, ones if valid is None else np.asarray(valid, bool).reshape(len(self._next), -1))
@@ -138,13 +139,12 @@ class JointReplay:
         self._sync_sizes()
 
     def _check_declared(self, rows: dict[str, np.ndarray]) -> None:
-        lead = 1 if self.runs is None else 2
         for name, (dtype, shape) in self.declared.items():
             if name not in rows:
                 raise ValueError(f"rows: no {name!r}, a field of the declared transition (convoy.transition)")
             v = rows[name]
-            if v.dtype.str != dtype or v.shape[lead:] != shape:
-                raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[lead:]} per row; the declared "
+            if v.dtype.str != dtype or v.shape[2:] != shape:
+                raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[2:]} per row; the declared "
                                  f"transition holds {dtype} {shape}")  # fmt: skip
 
     def _fields(self, runs: dict[str, np.ndarray]) -> None:
@@ -194,36 +194,33 @@ class JointReplay:
         return torch.zeros((v.shape[0], n, *v.shape[2:]), dtype=torch_dtype(v.dtype), device=self.device)
 
     def sample(self, n: int, streams: RunStreams) -> dict[str, Tensor]:
-        """``n`` rows drawn uniformly with replacement, on the device; a population's ``[R, n, …]``, run k's rows
-        drawn by its stream in ``streams`` (one batched draw for all runs) exactly as its single run's buffer
-        would draw them."""
+        """``n`` rows per run drawn uniformly with replacement, on the device, ``[R, n, …]``: run k's rows drawn by its
+        stream in ``streams`` (one batched draw for all runs) exactly as its single run's buffer would draw them."""
         if len(self) == 0:
             raise ValueError("sample() from an empty replay buffer")
         if streams.runs != len(self._next):
             raise ValueError(f"streams: one per run ({len(self._next)}), got {streams.runs}")
         idx = streams.integers(self._high, n)  # [R, n], run k's in [0, size_k)
         flat = idx.add(self._run, alpha=self.allocated).flatten()  # rows of the runs laid end to end
-        lead = (n,) if self.runs is None else (self.runs, n)
-        return {k: v.flatten(0, 1).index_select(0, flat).view(*lead, *v.shape[2:]) for k, v in self._data.items()}
+        return {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
 
     def state_dict(self) -> dict[str, Any]:
-        """Contents for a full checkpoint, as numpy arrays (only the filled part; a population's up to its fullest
+        """Contents for a full checkpoint, as numpy arrays ``[R, rows, …]`` (only the filled part: up to the fullest
         run's size)."""
         top = int(self._size.max(initial=0))
-        data = {k: _host(v[:, :top] if self.runs is not None else v[0, :top]) for k, v in self._data.items()}
-        if self.runs is None:
-            return {"data": data, "next": np.array(self._next[0]), "size": np.array(self._size[0])}
+        data = {k: _host(v[:, :top]) for k, v in self._data.items()}
         return {"data": data, "next": self._next.copy(), "size": self._size.copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length)."""
+        """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length). A single run's
+        file written before the run axis (rows ``[rows, …]``, 0-dim ``next`` and ``size``) loads as run 0's."""
         self._data = {}
         self._next = np.zeros(len(self._next), dtype=np.int64)
         self._size = np.zeros(len(self._next), dtype=np.int64)
         if state["data"]:
-            data = {
-                k: np.asarray(v) if self.runs is not None else np.asarray(v)[None] for k, v in state["data"].items()
-            }
+            data = {k: np.asarray(v) for k, v in state["data"].items()}
+            if np.ndim(state["next"]) == 0:  # a single run's file from before the run axis
+                data = {k: v[None] for k, v in data.items()}
             rows = next(iter(data.values())).shape[1]
             if rows > self.capacity:
                 raise ValueError(f"replay: {rows} rows saved, more than the capacity {self.capacity}")

@@ -1,9 +1,10 @@
-"""The one trainer core: what a training run does with experience, whoever steps the envs.
+"""What a training run does with experience, whoever steps the envs: one run's bookkeeping (``TrainingCore``).
 
-The in-process trainer (``learner/inprocess.py``) feeds it the chunks of its own envs; the learner process
-(``learner/service.py``) feeds it the chunks actors send over Zenoh. Both then share one rule for the updates a
-chunk is owed (``updates_for``: samples per insert exactly), one metric row, one greedy curve with its best
-policy (``best.pt``), one checkpoint cadence and one summary.
+The one trainer core (``learner/population.py``'s ``PopulationCore``, for R ≥ 1 runs) keeps one of these per run.
+The in-process trainer feeds it the chunks of its own envs; the learner process (``learner/service.py``) the
+chunks actors send over Zenoh. Both then share one rule for the updates a chunk is owed (``updates_for``: samples
+per insert exactly), one metric row, one greedy curve with its best policy (``best.pt``), one checkpoint cadence
+and one summary.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +37,37 @@ from convoy.learner.trackers import Trackers
 # stays non-finite fails at most READ_EVERY updates after its MAX_NONFINITE_IN_A_ROW-th (algos/algorithm.py). A
 # metric row, and the end of the run, read whatever waits, so rows hold every update before them.
 READ_EVERY = 64
+
+
+@dataclass
+class TrainResult:
+    """What a finished run reports; also written to ``summary.json``."""
+
+    env_steps: int
+    updates: int
+    episodes: int
+    wall_s: float
+    env_steps_per_s: float
+    updates_per_s: float
+    final_return: float  # mean ε-greedy training return of the last 10 % of episodes
+    eval_return: float  # greedy, on the fixed evaluation seeds
+    eval_ci95: float
+    random_return: float
+    references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
+    best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
+    best_eval_step: int = -1
+    algo: str = ""
+    env: str = ""
+    seed: int = 0
+    env_params: dict[str, Any] = field(default_factory=dict)
+    hyper_parameters: dict[str, Any] = field(default_factory=dict)  # the algorithm's resolved config
+    out_dir: str | None = None
+    rows: list[dict[str, float]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d.pop("rows")
+        return d
 
 
 class UpdateClock:

@@ -87,14 +87,11 @@ def grad(module: nn.Module, name: str) -> Tensor:
 
 
 def single_update(algo: Agent) -> dict[str, float]:
-    """``algo.update()`` of a single run, read: its one dict of figures (a population's has one per run)."""
-    figures = algo.update().read()
-    assert isinstance(figures, dict), "a population's update: one dict per run"
+    """``algo.update()`` of a single run (a population of one), read: its one dict of figures."""
+    (figures,) = algo.update().read()
     return figures
 
 
 def population_update(algo: Agent) -> list[dict[str, float]]:
     """``algo.update()`` of a population, read: one dict of figures per run."""
-    figures = algo.update().read()
-    assert isinstance(figures, list), "a single run's update: one dict"
-    return figures
+    return algo.update().read()

@@ -29,20 +29,20 @@ SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_acti
 def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> dict[str, torch.Tensor]:
     g = np.random.default_rng(seed)
     n, d = spec.n_agents, spec.obs_dim
-    return {
-        "obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
-        "next_obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
-        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(m, n))),
-        "reward": torch.as_tensor(g.normal(size=(m, n)), dtype=torch.float32),
-        "terminated": torch.as_tensor(g.random(m) < 0.2),
-        "truncated": torch.zeros(m, dtype=torch.bool),
-        "episode": torch.zeros(m, dtype=torch.long),
+    return {  # one run's: [R = 1, M, …]
+        "obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        "next_obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(1, m, n))),
+        "reward": torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
+        "terminated": torch.as_tensor(g.random((1, m)) < 0.2),
+        "truncated": torch.zeros(1, m, dtype=torch.bool),
+        "episode": torch.zeros(1, m, dtype=torch.long),
     }
 
 
 def fill(algo, spec: EnvSpec, rows: int = 256) -> None:
     b = random_batch(spec, rows)
-    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})  # a chunk [T = 1, R = 1, B, …]
 
 
 def build(name: str, spec: EnvSpec = SPEC, **params):
@@ -56,9 +56,9 @@ def test_mesn_td_loss_of_agent_i_reaches_other_message_nets_and_only_its_own_pol
     batch = random_batch(SPEC)
     for i in range(SPEC.n_agents):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[i].backward()
-        policy_grad = algo.online["policy"].layers[0].weight.grad.abs().sum(dim=(1, 2))  # per agent
-        message_grad = algo.online["message"].layers[0].weight.grad.abs().sum(dim=(1, 2))
+        algo.agent_losses(batch)[0, i].backward()
+        policy_grad = algo.online["policy"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))  # per agent
+        message_grad = algo.online["message"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))
         for j in range(SPEC.n_agents):
             if j == i:
                 assert policy_grad[j] > 0, "agent i's loss must train its own policy network f″_i"
@@ -78,7 +78,7 @@ def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_
     _, sent, heard = cut.speak(cut.online, batch["obs"], train=True)
     assert sent.abs().sum() > 0 and not heard.any()
     cut.optimizer.zero_grad(set_to_none=True)
-    sum(cut.agent_losses(batch)).backward()
+    cut.agent_losses(batch).sum().backward()
     message = [p.grad for n, p in cut.online.named_parameters() if n.startswith(("message", "encoder"))]
     assert message and all(g is None or not g.any() for g in message)
     noisy = build(name, share_params=False, channel_control="noise")
@@ -95,7 +95,7 @@ def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     for i in range(SPEC.n_agents):
         algo.streams["noise"].load(0, 1)  # same Gumbel noise in every pass (the agent's own stream)
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[i].backward()
+        algo.agent_losses(batch)[0, i].backward()
         grads.append(algo.online["message"].layers[0].weight.grad.clone())
     algo.streams["noise"].load(0, 1)
     algo.optimizer.zero_grad(set_to_none=True)
@@ -168,13 +168,15 @@ def test_heterogeneous_agents_only_take_their_own_actions() -> None:
 def test_replay_is_a_bounded_ring() -> None:
     buf = JointReplay(10)
     for start in range(0, 25, 5):
-        buf.add({"x": np.arange(start, start + 5)[:, None], "y": np.zeros((5, 2, 3))})
+        buf.add({"x": np.arange(start, start + 5)[None, :, None], "y": np.zeros((1, 5, 2, 3))})
     assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8
-    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][:, 0].tolist()) == set(range(15, 25))
-    buf.add({"x": np.arange(100, 130)[:, None], "y": np.zeros((30, 2, 3))})  # more rows than capacity
-    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][:, 0].tolist()) == set(range(120, 130))
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(15, 25))
+    buf.add({"x": np.arange(100, 130)[None, :, None], "y": np.zeros((1, 30, 2, 3))})  # more rows than capacity
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(120, 130))
     with pytest.raises(ValueError, match="fields"):
-        buf.add({"x": np.zeros((1, 1))})
+        buf.add({"x": np.zeros((1, 1, 1))})
+    with pytest.raises(ValueError, match="leading shape"):
+        buf.add({"x": np.zeros((5, 1)), "y": np.zeros((5, 2, 3))})
 
 
 def test_checkpoint_reload_gives_identical_actions(tmp_path) -> None:
@@ -335,7 +337,7 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
     algo = build(name)
     b = random_batch(SPEC, 256)
     b["reward"][:] = float("nan")
-    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})
     before = {k: v.clone() for k, v in algo.online.state_dict().items()}
     stats = single_update(algo)
     assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.skipped_updates == 1
@@ -345,7 +347,7 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
     assert all(not st["exp_avg"].any() and not st["exp_avg_sq"].any() and st["step"] == 0 for st in state.values())
     unread = [algo.update() for _ in range(MAX_NONFINITE_IN_A_ROW - 2)]  # nothing read: nothing fails yet
     last = algo.update()
-    assert math.isnan(unread[-1].read()["loss"])  # read one short of the limit: skipped, not failed
+    assert math.isnan(unread[-1].read()[0]["loss"])  # read one short of the limit: skipped, not failed
     with pytest.raises(FloatingPointError, match=f"{MAX_NONFINITE_IN_A_ROW} updates in a row had a non-finite loss"):
         last.read()
 

@@ -117,7 +117,7 @@ def test_causal_influence_sees_a_speaker_listener_listener_act_on_what_it_hears(
     assert isinstance(agent, MAMeSN)
     with torch.no_grad():
         first = agent.online["policy"].get_parameter("layers.0.weight")
-        first[:, -agent.senders * agent.bits :] = 0.0
+        first[:, :, -agent.senders * agent.bits :] = 0.0  # [R = 1, G, inputs, out]: messages last
     cut = causal_influence(record(agent, env, 50, seed=1), np.random.default_rng(0), 10)
     assert cut.shuffled is not None and cut.value < cut.shuffled + 0.01, cut
     assert "changed 0.0% of listener actions" in cut.note, cut.note

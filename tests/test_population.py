@@ -32,7 +32,7 @@ from tests.conftest import population_update, single_update
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
 SEEDS = [3, 7, 11]
-POPULATION_ALGOS = [n for n in ALGORITHMS if algorithm_class(n).population]
+POPULATION_ALGOS = list(ALGORITHMS)  # every algorithm: a single run is a population of one
 T, B = 8, 4
 WINDOW = 4  # the -mm variants' observation window
 
@@ -90,7 +90,7 @@ def save_teacher(path: Path) -> Path:
 
 def max_weight_gap(pop, singles) -> float:
     return max(
-        float((a.online.state_dict()[n] - w).abs().max())
+        float((run_state(a.online, 0)[n] - w).abs().max())
         for k, a in enumerate(singles)
         for n, w in run_state(pop.online, k).items()
     )
@@ -106,7 +106,7 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     singles = [make_algorithm(name, SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
     # identical initial weights, bit for bit
     for k, single in enumerate(singles):
-        for n, w in single.online.state_dict().items():
+        for n, w in run_state(single.online, 0).items():
             assert torch.equal(run_state(pop.online, k)[n], w), f"{name}: run {k}'s initial {n}"
     # the same data in, the same first batch out
     # each run its own episode clock (stabilised experience replay weighs samples by their age in episodes)
@@ -119,7 +119,7 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     first = pop.sample()
     for k, single in enumerate(singles):
         for f, v in single.sample().items():
-            assert torch.equal(first[f][k], v), f"{name}: run {k}'s first batch differs in {f}"
+            assert torch.equal(first[f][k], v[0]), f"{name}: run {k}'s first batch differs in {f}"
     # the same exploration: ε-greedy actions from each run's own stream
     obs = g.normal(size=(len(SEEDS), B, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
     acted = pop.act(obs, np.array([0.0, 0.3, 1.0])).actions
@@ -129,7 +129,7 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     x = torch.zeros(len(SEEDS), 5, 4)
     noise = pop.rand_like(x)
     for k, single in enumerate(singles):
-        assert torch.equal(noise[k], single.rand_like(x[k]))
+        assert torch.equal(noise[k], single.rand_like(x[k : k + 1])[0])
     # updates: equal up to float32 rounding (module docstring)
     updates = 50 if algorithm_class(name).uses_messages else 300
     for _ in range(updates):
@@ -170,7 +170,7 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
         assert torch.equal(w, before[n]), "the non-finite run's weights moved"
     assert not pop.optimizer.state_dict()["state"][0]["exp_avg"][2].any(), "its Adam moments moved"
     for n, w in run_state(pop.online, 0).items():
-        torch.testing.assert_close(w, single.online.state_dict()[n], rtol=0, atol=1e-6)
+        torch.testing.assert_close(w, run_state(single.online, 0)[n], rtol=0, atol=1e-6)
 
 
 def test_a_run_gone_non_finite_keeps_its_weights_and_adam_state_while_the_others_step() -> None:
@@ -335,7 +335,7 @@ def test_runs_of_a_population_may_differ_in_lr_gamma_and_target_period(name: str
     assert max_weight_gap(pop, singles) < 2e-4  # measured: see the docstring
     for k, single in enumerate(singles):  # each run's target synced at its own period
         for n, w in run_state(pop.target, k).items():
-            torch.testing.assert_close(w, single.target.state_dict()[n], rtol=0, atol=2e-4)
+            torch.testing.assert_close(w, run_state(single.target, 0)[n], rtol=0, atol=2e-4)
     assert pop.member(1).cfg == cfgs[1]
     wider = config(name, False, hidden=(64, 32))
     with pytest.raises(ValueError, match="hidden"):
@@ -366,7 +366,7 @@ def test_lr_end_anneals_each_runs_learning_rate_over_the_run() -> None:
     want = [1e-3 * (1 - at), 1e-3, 2e-3 - at * 1e-3]
     assert isinstance(pop.optimizer, RunAdam)
     np.testing.assert_allclose(pop.optimizer.lrs.numpy(), want, rtol=1e-6)
-    for single, lr in zip(singles, want, strict=True):  # a single run's: one rate, a 0-dim device tensor
+    for single, lr in zip(singles, want, strict=True):  # a single run's: one rate, on the device
         assert float(single.optimizer.lrs) == pytest.approx(lr, rel=1e-6)
     assert max_weight_gap(pop, singles) < 1e-5
     assert lr_at(cfgs[0], 2 * total, total) == 0.0 and lr_at(cfgs[1], total, total) == 1e-3  # held past the end

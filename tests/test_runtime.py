@@ -657,7 +657,7 @@ def test_a_distributed_population_writes_each_run_and_resumes_every_run_after_a_
         assert steps == sorted(steps) and len(steps) == len(set(steps)), f"seed {s}: duplicate rows after restart"
         assert any(r["env_steps"] <= resumed_steps for r in rows) and rows[-1]["env_steps"] >= job.steps
         agent, run_job, counters = load_checkpoint(d / "checkpoint.pt", device="cpu")  # a plain single run
-        assert run_job.seed == s and not run_job.seeds and getattr(agent, "runs", None) is None
+        assert run_job.seed == s and not run_job.seeds and getattr(agent, "runs", None) == 1
         assert counters["env_steps"] == summary["env_steps"]
     weights = [read_checkpoint(d / "checkpoint.pt")["state"]["online"] for d in dirs]
     first = next(iter(weights[0]))

@@ -184,9 +184,8 @@ def test_greedy_acting_draws_nothing_and_each_run_draws_only_where_it_explores()
 def continue_training(agent: NetworkAgent, g: np.random.Generator, steps: int) -> list[np.ndarray]:
     """Act, observe and update ``steps`` times: what a run goes on doing after a resume."""
     acted = []
-    runs = () if agent.runs is None else (agent.runs,)
     for _ in range(steps):
-        obs = g.normal(size=(*runs, 4, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
+        obs = g.normal(size=(agent.runs, 4, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
         acted.append(agent.act(obs, 0.3).actions)
         agent.observe(chunk(g, agent.runs))
         agent.update()
@@ -266,17 +265,17 @@ def test_replay_samples_on_its_device_with_one_draw_for_every_run() -> None:
     }
     valid = g.random((3, 30)) < 0.6
     buf.add(rows, valid)
-    single.add({f: v[1][valid[1]] for f, v in rows.items()})
+    single.add({f: v[1:2, valid[1]] for f, v in rows.items()})
     streams = RunStreams([4, 5, 6], "replay")
     got = buf.sample(16, streams)
     assert got["x"].device == buf.device and got["x"].shape == (3, 16, 2) and got["k"].dtype == torch.int64
     assert streams.counters.tolist() == [1, 1, 1]
     alone = single.sample(16, RunStreams([5], "replay"))
-    assert all(torch.equal(got[f][1], alone[f]) for f in alone)
+    assert all(torch.equal(got[f][1], alone[f][0]) for f in alone)
     with pytest.raises(ValueError, match="one per run"):
         buf.sample(4, RunStreams([0], "replay"))
     saved = single.state_dict()
-    assert isinstance(saved["data"]["x"], np.ndarray) and saved["data"]["x"].shape == (int(valid[1].sum()), 2)
+    assert isinstance(saved["data"]["x"], np.ndarray) and saved["data"]["x"].shape == (1, int(valid[1].sum()), 2)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

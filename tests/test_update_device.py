@@ -93,7 +93,7 @@ def test_run_adam_is_torch_adam_per_run_and_a_run_not_ok_keeps_its_state() -> No
     count exactly, and the others step as if it were not there."""
     lrs = [1e-3, 3e-4, 2e-3]
     stacked, singles = adams(lrs)
-    opt = RunAdam(stacked, torch.tensor(lrs), runs=len(lrs))
+    opt = RunAdam(stacked, torch.tensor(lrs))
     theirs = [torch.optim.Adam(p, lr=lr, fused=True) for p, lr in zip(singles, lrs, strict=True)]
     g = torch.Generator().manual_seed(1)
     for i in range(60):
@@ -123,11 +123,12 @@ def test_run_adam_is_torch_adam_per_run_and_a_run_not_ok_keeps_its_state() -> No
 
 
 def test_a_single_runs_adam_is_torchs_fused_adam_and_loads_its_checkpoints() -> None:
-    """A single run steps with torch's fused kernel (the same arithmetic, its learning rate a device tensor) and
-    takes over the state ``torch.optim.Adam(fused=True)`` wrote (every checkpoint before RunAdam): steps go on
-    equal. A skipped step (``found_inf`` on the device) changes nothing."""
+    """A single run (a run axis of 1) steps with torch's fused kernel (the same arithmetic, its learning rate a
+    device tensor) and takes over the state ``torch.optim.Adam(fused=True)`` wrote (every checkpoint before RunAdam),
+    given the run axis as ``NetworkAgent.load_member_state`` gives it: steps go on equal. A skipped step
+    (``found_inf`` on the device) changes nothing."""
     stacked, (params,) = adams([1e-3])
-    ours = [p[0].clone() for p in stacked]
+    ours = [p.clone() for p in stacked]
     theirs = torch.optim.Adam(params, lr=1e-3, fused=True)
     g = torch.Generator().manual_seed(2)
 
@@ -139,12 +140,14 @@ def test_a_single_runs_adam_is_torchs_fused_adam_and_loads_its_checkpoints() -> 
             p.grad = gr
         theirs.step()
     for mine, p in zip(ours, params, strict=True):
-        mine.copy_(p.detach())
-    opt = RunAdam(ours, torch.tensor(1e-3))
-    opt.load_state_dict(copy.deepcopy(theirs.state_dict()))  # as from a file: no tensor shared with theirs
+        mine[0].copy_(p.detach())
+    opt = RunAdam(ours, torch.tensor([1e-3]))
+    saved = copy.deepcopy(theirs.state_dict())  # as from a file: no tensor shared with theirs
+    saved["state"] = {i: {k: v[None] for k, v in st.items()} for i, st in saved["state"].items()}  # run axis
+    opt.load_state_dict(saved)
     assert opt.state_dict()["state"][0]["step"] == 5
     before = [p.clone() for p in ours]
-    opt.step_runs([torch.full(s, math.nan) for s in SHAPES], torch.tensor(False))
+    opt.step_runs([torch.full((1, *s), math.nan) for s in SHAPES], torch.tensor([False]))
     assert all(torch.equal(a, b) for a, b in zip(ours, before, strict=True))
     assert opt.state_dict()["state"][0]["step"] == 5
     for _ in range(20):
@@ -152,9 +155,9 @@ def test_a_single_runs_adam_is_torchs_fused_adam_and_loads_its_checkpoints() -> 
         for p, gr in zip(params, gs, strict=True):
             p.grad = gr.clone()
         theirs.step()
-        opt.step_runs(gs, torch.tensor(True))
+        opt.step_runs([gr[None] for gr in gs], torch.tensor([True]))
     for mine, p in zip(ours, params, strict=True):
-        torch.testing.assert_close(mine, p.detach(), rtol=1e-6, atol=1e-9)  # lr: float32 here, float64 there
+        torch.testing.assert_close(mine[0], p.detach(), rtol=1e-6, atol=1e-9)  # lr: float32 here, float64 there
 
 
 def test_an_update_reads_nothing_back_to_the_host(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -197,9 +200,8 @@ def test_an_update_dispatches_as_many_ops_for_20_runs_as_for_one(
 ) -> None:
     """Every algorithm's update — the replay's sample, the noise draws (DIAL's DRU, Gumbel messages), loss, clip,
     guard, Adam, figures — is the same ops whatever the population's size: no per-run loop anywhere, so on a GPU
-    twenty runs launch what one does, and none reads back to the host. One run's axis of size 1 lets a few
-    ``reshape``s return views where R > 1 copies (``clone`` + ``_unsafe_view``): counted as views, the ops of
-    R = 1 are those of R = 20, and R = 2's are R = 20's exactly."""
+    twenty runs launch what two do, and none reads back to the host. A run of one takes the one-run kernels
+    (``addmm``, torch's fused Adam: a single run's numbers, bit for bit), no more ops than those."""
     teacher = save_teacher(tmp_path / "teacher.pt") if name == "codbc" else None
     counts = {}
     for runs in (1, 2, 20):
@@ -210,17 +212,7 @@ def test_an_update_dispatches_as_many_ops_for_20_runs_as_for_one(
         counts[runs] = mode.ops
         assert not host_reads(mode.ops), f"R = {runs}: host reads {host_reads(mode.ops)}"
     assert counts[2] == counts[20]
-
-    def as_views(ops: Counter[str]) -> Counter[str]:
-        copies = ops["aten._unsafe_view.default"]
-        return (
-            ops
-            - Counter({"aten._unsafe_view.default": copies, "aten.clone.default": copies})
-            + Counter({"aten.view.default": copies})
-        )
-
-    assert as_views(counts[1]) == as_views(counts[20])
-    assert sum(counts[1].values()) > 50  # ops were counted
+    assert 50 < sum(counts[1].values()) <= sum(counts[20].values())  # ops were counted
 
 
 def test_read_figures_fails_a_run_that_stayed_non_finite_naming_its_seed() -> None:
@@ -287,9 +279,9 @@ def test_a_compiled_update_is_the_eager_update(name: str, seeds: int | list[int]
     batch = compiled.sample()
     batch["reward"][-1] = math.nan  # the last run (a single run: the whole batch)
     compiled.sample = lambda: batch  # type: ignore[method-assign]
-    before = compiled.online.state_dict() if compiled.runs is None else run_state(compiled.online, 1)
+    before = run_state(compiled.online, compiled.runs - 1)
     before = {k: v.clone() for k, v in before.items()}
     figures = compiled.update().read()
-    assert math.isnan((figures[-1] if isinstance(figures, list) else figures)["loss"])
-    after = compiled.online.state_dict() if compiled.runs is None else run_state(compiled.online, 1)
+    assert math.isnan(figures[-1]["loss"])
+    after = run_state(compiled.online, compiled.runs - 1)
     assert all(torch.equal(before[k], v) for k, v in after.items())
