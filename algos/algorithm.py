@@ -76,6 +76,15 @@ def with_run_axis(chunk: dict[str, np.ndarray], runs: int) -> dict[str, np.ndarr
     return {k: np.reshape(v, (np.shape(v)[0], runs, -1, *np.shape(v)[lead:])) for k, v in chunk.items()}
 
 
+def cuda_graph_options() -> dict[str, Any]:
+    """Inductor's options for the step on CUDA: replayed as a CUDA graph (what ``mode="reduce-overhead"`` sets),
+    loop reordering after fusion off — torch 2.11's inductor asserts on the per-run Adam's foreach kernels there
+    (seen on an H200; 2.13 does not), and it only tunes memory order inside fused kernels."""
+    from torch._inductor import config  # imported when a step is compiled, not with the package
+
+    return {"triton.cudagraphs": True, **{k: False for k in ("loop_ordering_after_fusion",) if hasattr(config, k)}}
+
+
 class Loss(NamedTuple):
     """What one batch costs: each agent's loss ``[N]`` (their sum is minimised), an auxiliary term trained on the
     same batch (positive signalling, a memory module's message prediction) and figures to report."""
@@ -642,7 +651,7 @@ class NetworkAgent(ABC):
 
     def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
         """``_step`` compiled whole on first use (no graph break: a break is an error). On CUDA the graph is also
-        captured as a CUDA graph (``mode="reduce-overhead"``): one launch per update instead of one per kernel.
+        captured as a CUDA graph (``cuda_graph_options``): one launch per update instead of one per kernel.
         A CUDA graph replays fixed addresses, so the state the step writes in place (Adam's moments and counts, the
         learning rates, the guard's counters, the noise streams' counters) is marked static, and the figures are
         copied out: the next replay overwrites its outputs, and figures are read many updates later."""
@@ -653,7 +662,7 @@ class NetworkAgent(ABC):
                 mutated = [*opt._m, *opt._v, opt._steps, opt.lrs, self._skipped, self._nonfinite_in_a_row]
                 for t in mutated + [s.counters for s in self.streams.values()]:
                     torch._dynamo.mark_static_address(t)
-            self._compiled = torch.compile(self._step, fullgraph=True, mode="reduce-overhead" if cuda else None)
+            self._compiled = torch.compile(self._step, fullgraph=True, options=cuda_graph_options() if cuda else None)
         with torch._dynamo.config.patch(trace_autograd_ops=True):  # autograd.grad inside the graph
             names, table = self._compiled(batch)
         return names, table.clone() if cuda else table
