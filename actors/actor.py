@@ -170,8 +170,8 @@ class Actor:
 
     def _publish_chunk(self, pub: Any, s: _Acting) -> None:
         # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
-        arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in s.stepper.take_chunk().items()}
-        body = wire.chunk_body(arrays, self.ident, s.version, s.t_len * s.b, s.chunk_returns, s.chunk_runs)
+        chunk = s.stepper.take_chunk().map(lambda v: v.reshape(v.shape[0], -1, *v.shape[3:]))
+        body = wire.chunk_body(chunk, self.ident, s.version, s.t_len * s.b, s.chunk_returns, s.chunk_runs)
         s.seq += 1
         pub.put(wire.encode("chunk", body, self.ident, s.seq))
         self.stats.env_steps += s.t_len * s.stepper.env.num_envs  # every run's: the actor's throughput

@@ -15,14 +15,7 @@ import numpy as np
 
 from convoy.algos.algorithm import ActOutput, Agent
 from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
-from convoy.transition import ENV_MAJOR, record
-
-
-def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.ndarray) -> dict[str, np.ndarray]:
-    """One step of B envs as the joint transition (``convoy.transition``) every algorithm's ``observe`` expects."""
-    return record(
-        obs, out.actions, res.reward, res.final_obs, res.terminated, res.truncated, episode.copy(), out.extras
-    )
+from convoy.transition import Transition, record, stack
 
 
 class EnvStepper:
@@ -46,7 +39,7 @@ class EnvStepper:
         self.episode_id = np.zeros(b, dtype=np.int64)  # episodes of its run finished when each env's episode began
         self.episodes_by_run = np.zeros(self.runs, dtype=np.int64)
         self.ended_runs = np.zeros(0, dtype=np.int64)  # the run of each return the last step reported
-        self._chunk: dict[str, list[np.ndarray]] = {}
+        self._chunk: list[Transition[np.ndarray]] = []
 
     @property
     def episodes(self) -> int:
@@ -61,9 +54,11 @@ class EnvStepper:
         out = self.algo.act(self._split(self.obs), epsilon, self.state)
         res = self.env.step(out.actions.reshape(self.env.num_envs, -1))
         self.last = out.shaped((self.env.num_envs,))
-        if self.record:
-            for k, v in transition(self.obs, out, res, self.episode_id).items():
-                self._chunk.setdefault(k, []).append(self._split(v) if k in ENV_MAJOR else v)
+        if self.record:  # the env's arrays [R·B, …] as the act's [R, B, …]
+            split = self._split
+            self._chunk.append(record(split(self.obs), out.actions, split(res.reward), split(res.final_obs),
+                                      split(res.terminated), split(res.truncated), split(self.episode_id.copy()),
+                                      out.extras))  # fmt: skip
         self.ep_ret += res.reward
         done = res.done
         returns: list[float] = []
@@ -80,12 +75,12 @@ class EnvStepper:
     @property
     def chunk_steps(self) -> int:
         """Steps recorded since the last ``take_chunk``."""
-        return len(self._chunk.get("obs", ()))
+        return len(self._chunk)
 
-    def take_chunk(self) -> dict[str, np.ndarray]:
-        """The recorded steps as arrays ``[T, B, …]``; recording starts afresh."""
-        chunk = {k: np.stack(v) for k, v in self._chunk.items()}
-        self._chunk = {}
+    def take_chunk(self) -> Transition[np.ndarray]:
+        """The recorded steps as one chunk ``[T, R, B, …]``; recording starts afresh."""
+        chunk = stack(self._chunk)
+        self._chunk = []
         return chunk
 
 

@@ -14,7 +14,7 @@ import copy
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, NamedTuple, Protocol, overload
 
 import numpy as np
@@ -27,7 +27,7 @@ from convoy.algos.replay import JointReplay
 from convoy.algos.streams import STREAMS, RunStreams, legacy_counter, to_integers, to_uniform
 from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
-from convoy.transition import schema
+from convoy.transition import Transition, schema
 
 # Updates in a row whose loss or gradient is not finite before the run fails: one is skipped (a bad batch), this
 # many means the weights or the data are broken and going on would only hide it. Checked when the figures are read
@@ -35,7 +35,7 @@ from convoy.transition import schema
 MAX_NONFINITE_IN_A_ROW = 100
 NEG = -1e9  # Q-value given to actions an agent does not have (heterogeneous action spaces)
 
-Batch = dict[str, Tensor]
+Batch = Transition[Tensor]  # a sampled batch [R, M, …] (DIAL's sequences [R, T, B, …]), on the device
 QFn = Callable[[nn.ModuleDict, Tensor], Tensor]  # (networks, observations [M, N, D]) → Q [M, N, A]
 
 
@@ -69,11 +69,11 @@ class ActOutput:
         return ActOutput(like(self.actions), messages, {k: like(v) for k, v in self.extras.items()}, self.state)
 
 
-def with_run_axis(chunk: dict[str, np.ndarray], runs: int) -> dict[str, np.ndarray]:
+def with_run_axis(chunk: Transition[np.ndarray], runs: int) -> Transition[np.ndarray]:
     """A chunk ``[T, R, B, …]`` as it is, or a single run's ``[T, B, …]`` with its run axis put in (the leading
     dims read from ``terminated``, ``[T, B]`` or ``[T, R, B]``)."""
-    lead = np.ndim(chunk["terminated"]) if "terminated" in chunk else 3
-    return {k: np.reshape(v, (np.shape(v)[0], runs, -1, *np.shape(v)[lead:])) for k, v in chunk.items()}
+    lead = np.ndim(chunk.terminated)
+    return chunk.map(lambda v: np.reshape(v, (np.shape(v)[0], runs, -1, *np.shape(v)[lead:])))
 
 
 def cuda_graph_options() -> dict[str, Any]:
@@ -185,7 +185,7 @@ class Agent(Protocol):
     def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput: ...
     def initial_state(self, num_envs: int) -> Any: ...
     def reset_state(self, state: Any, done: np.ndarray) -> Any: ...
-    def observe(self, chunk: dict[str, np.ndarray]) -> None: ...
+    def observe(self, chunk: Transition[np.ndarray]) -> None: ...
     def can_update(self) -> bool: ...
     def updates_for(self, n_transitions: int) -> float: ...
     def update(self) -> Figures: ...  # left on the device: ``read()`` them, one dict per run
@@ -289,25 +289,25 @@ def bootstrap_target(q_fn: QFn, online: nn.ModuleDict, target: nn.ModuleDict, ba
     advantage learning's action gap ``max_b Q̄(s, b) − Q̄(s, a)`` subtracted when ``advantage_learning`` > 0.
     ``gamma`` and ``alpha`` override ``cfg.gamma`` and ``cfg.advantage_learning`` (a population's one per run:
     ``[R, 1]`` like a per-sample discount, ``[R, 1, 1]``)."""
-    q_next_t = q_fn(target, batch["next_obs"])
-    q_next_o = q_fn(online, batch["next_obs"]) if cfg.double_q else None
-    discount = batch.get("discount", cfg.gamma if gamma is None else gamma)
-    y = td_target(batch["reward"], batch["terminated"], discount, q_next_t, q_next_o, mask)
+    q_next_t = q_fn(target, batch.next_obs)
+    q_next_o = q_fn(online, batch.next_obs) if cfg.double_q else None
+    discount = batch.extras.get("discount", cfg.gamma if gamma is None else gamma)
+    y = td_target(batch.reward, batch.terminated, discount, q_next_t, q_next_o, mask)
     alpha = cfg.advantage_learning if alpha is None else alpha
     if isinstance(alpha, Tensor) or alpha:
-        q_now = q_fn(target, batch["obs"])
-        gap = q_now.masked_fill(~mask, NEG).max(dim=-1).values - taken(q_now, batch["action"])
+        q_now = q_fn(target, batch.obs)
+        gap = q_now.masked_fill(~mask, NEG).max(dim=-1).values - taken(q_now, batch.action)
         y = y - alpha * gap
     return y
 
 
-def n_step_rows(chunk: dict[str, np.ndarray], n: int, gamma: float | np.ndarray) -> dict[str, np.ndarray]:
+def n_step_rows(chunk: Transition[np.ndarray], n: int, gamma: float | np.ndarray) -> Transition[np.ndarray]:
     """A chunk ``[T, …]`` of one-step transitions as multi-step ones: step t's reward becomes
     ``Σ_k γ^k r_{t+k}`` over the m ≤ n steps up to the first that ended its episode or the chunk's last, its
     ``next_obs``, ``terminated`` and ``truncated`` those of step t+m−1, and ``discount = γ^m`` for the bootstrap
     (a per-sample discount, as an option's). ``gamma`` may be one per run, ``[R]`` for a population's
     ``[T, R, B, …]``. Chunks hold consecutive steps of the same envs, so no step's return reaches past them."""
-    reward, done = chunk["reward"], chunk["terminated"] | chunk["truncated"]
+    reward, done = chunk.reward, chunk.terminated | chunk.truncated
     t_len, lead = reward.shape[0], done.shape[1:]
     g = np.asarray(gamma, dtype=np.float32).reshape(-1, *([1] * (len(lead) - 1))) if np.ndim(gamma) else gamma
     ret = np.zeros_like(reward)
@@ -326,8 +326,8 @@ def n_step_rows(chunk: dict[str, np.ndarray], n: int, gamma: float | np.ndarray)
         idx = last.reshape(*last.shape, *([1] * (v.ndim - last.ndim)))
         return np.take_along_axis(v, idx, axis=0)
 
-    return {**chunk, "reward": ret, "next_obs": at_last(chunk["next_obs"]), "terminated": at_last(chunk["terminated"]),
-            "truncated": at_last(chunk["truncated"]), "discount": discount}  # fmt: skip
+    return replace(chunk, reward=ret, next_obs=at_last(chunk.next_obs), terminated=at_last(chunk.terminated),
+                   truncated=at_last(chunk.truncated), extras={**chunk.extras, "discount": discount})  # fmt: skip
 
 
 def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
@@ -498,7 +498,7 @@ class NetworkAgent(ABC):
         """The batch's loss, in the order of the algorithm's paper."""
 
     # --- data: the joint replay (DIAL brings its own sequences) ------------------------------------------------
-    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+    def observe(self, chunk: Transition[np.ndarray], valid: np.ndarray | None = None) -> None:
         """Chunks ``[T, R, B, …]`` (a single run's may leave out its run axis, ``[T, B, …]``) as rows in time-major
         order, per run; ``valid [T, R, B]`` keeps only those rows (each run's meta-transitions, in hierarchical
         DQN). With ``n_step`` > 1 the rows are multi-step transitions (``n_step_rows``)."""
@@ -506,7 +506,7 @@ class NetworkAgent(ABC):
         if self.cfg.n_step > 1:
             gamma = self.gamma.cpu().numpy().reshape(-1) if isinstance(self.gamma, Tensor) else self.gamma
             chunk = n_step_rows(chunk, self.cfg.n_step, gamma)
-        runs = {k: v.swapaxes(0, 1).reshape(self.runs, -1, *v.shape[3:]) for k, v in chunk.items()}
+        runs = chunk.map(lambda v: v.swapaxes(0, 1).reshape(self.runs, -1, *v.shape[3:]))
         if valid is not None:
             valid = valid.reshape(len(valid), self.runs, -1).swapaxes(0, 1).reshape(self.runs, -1)
         self.replay.add(runs, valid)

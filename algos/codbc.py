@@ -100,9 +100,9 @@ class CoDBC(NetworkAgent):
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's cross-entropy to the teacher's greedy action in every visited state (DAgger's labels)."""
-        logits = self.logits(batch["obs"])  # [R, M, N, A]
+        logits = self.logits(batch.obs)  # [R, M, N, A]
         with torch.no_grad():
-            labels = self.teacher_actions(batch["obs"])  # [M, N]
+            labels = self.teacher_actions(batch.obs)  # [M, N]
             agreement = (logits.argmax(dim=-1) == labels).float().mean(dim=(-2, -1))
         ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), labels.flatten(), reduction="none").view_as(labels)
         return Loss(ce.mean(dim=-2), None, {"teacher_agreement": agreement})

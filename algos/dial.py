@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -41,9 +42,10 @@ from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, w
 from convoy.algos.replay import JointReplay
 from convoy.config import DIALConfig, resolved
 from convoy.envs.batched import EnvSpec
+from convoy.transition import Transition
 
-# Fields of an observed chunk that learning needs (anything else the trainer adds is not kept).
-SEQ_KEYS: tuple[str, ...] = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "msg_in")
+# The act's extras that learning needs besides the transitions (any other extra is not kept); ``mu`` under replay.
+SEQ_EXTRAS: tuple[str, ...] = ("msg_in",)
 MAX_PENDING = 8  # on-policy chunks waiting for their update; older ones are stale and dropped
 
 
@@ -77,7 +79,7 @@ class DIAL(NetworkAgent):
         self.n_actions_t = torch.as_tensor(spec.n_actions, dtype=torch.float32, device=self.device)  # [N]
         # Replay (when on) holds whole sequences: one row = ``unroll`` steps of one env.
         self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs, device=self.device)
-        self.pending: deque[dict[str, np.ndarray]] = deque(maxlen=MAX_PENDING)
+        self.pending: deque[Transition[np.ndarray]] = deque(maxlen=MAX_PENDING)
         self.last_chunk_rows = 0
         self.t_dim = 1  # batches are per run, time-major: [R, T, B, …]
         # finished episodes seen in observed chunks (drives target syncs) and their count at the last sync, per run
@@ -159,16 +161,16 @@ class DIAL(NetworkAgent):
         return ActOutput(actions=actions, messages=sent.cpu().numpy(), extras=extras, state=sent)
 
     # --- data --------------------------------------------------------------------------------------------------
-    def observe(self, chunk: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+    def observe(self, chunk: Transition[np.ndarray], valid: np.ndarray | None = None) -> None:
         """Count finished episodes (target sync), then queue the chunk (on-policy) or store its sequences."""
         if valid is not None:
             raise ValueError("valid: DIAL takes whole chunks (hierarchical DIAL trains one seed per process)")
-        keys = (*SEQ_KEYS, "mu") if self.cfg.replay else SEQ_KEYS
-        missing = [k for k in keys if k not in chunk]
+        keys = (*SEQ_EXTRAS, "mu") if self.cfg.replay else SEQ_EXTRAS
+        missing = [k for k in keys if k not in chunk.extras]
         if missing:
             raise KeyError(f"DIAL chunk lacks {missing}: collect it with DIAL.act and stack out.extras into it")
-        data = with_run_axis({k: chunk[k] for k in keys}, self.runs)  # [T, R, B, …]
-        ended = data["terminated"] | data["truncated"]
+        data = with_run_axis(replace(chunk, extras={k: chunk.extras[k] for k in keys}), self.runs)  # [T, R, B, …]
+        ended = data.terminated | data.truncated
         self.episodes_done += ended.sum(axis=(0, -1))
         due = self.episodes_done - self.synced_at >= self.cfg.target_update_episodes  # per run [R]
         if due.any():
@@ -180,10 +182,10 @@ class DIAL(NetworkAgent):
         else:
             self.pending.append(data)
 
-    def to_sequences(self, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def to_sequences(self, data: Transition[np.ndarray]) -> Transition[np.ndarray]:
         """``[T, B, …]`` → rows ``[S, L, …]`` of length L = ``unroll`` (split, zero-padded; ``valid`` marks real
         steps), so chunks of any length fit one fixed-shape ring."""
-        t, b = data["terminated"].shape
+        t, b = data.terminated.shape
         length = self.seq_len
         pieces = -(-t // length)
         pad = pieces * length - t
@@ -193,18 +195,16 @@ class DIAL(NetworkAgent):
             v = v.reshape(pieces, length, *v.shape[1:]).swapaxes(1, 2)  # [P, B, L, ...]
             return v.reshape(pieces * b, length, *v.shape[3:])
 
-        rows = {k: cut(v) for k, v in data.items()}
+        rows = data.map(cut)
         valid = np.arange(pieces * length).reshape(pieces, 1, length) < t
-        rows["valid"] = np.broadcast_to(valid, (pieces, b, length)).reshape(pieces * b, length)
-        return rows
+        valid = np.broadcast_to(valid, (pieces, b, length)).reshape(pieces * b, length)
+        return replace(rows, extras={**rows.extras, "valid": valid})
 
-    def run_sequences(self, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def run_sequences(self, data: Transition[np.ndarray]) -> Transition[np.ndarray]:
         """A chunk ``[T, R, B, …]`` → each run's sequences ``[R, S, L, …]``, in a single run's order."""
-        t, r, b = data["terminated"].shape
-        rows = self.to_sequences({k: v.reshape(t, r * b, *v.shape[3:]) for k, v in data.items()})
-        return {
-            k: v.reshape(-1, r, b, *v.shape[1:]).swapaxes(0, 1).reshape(r, -1, *v.shape[1:]) for k, v in rows.items()
-        }
+        t, r, b = data.terminated.shape
+        rows = self.to_sequences(data.map(lambda v: v.reshape(t, r * b, *v.shape[3:])))
+        return rows.map(lambda v: v.reshape(-1, r, b, *v.shape[1:]).swapaxes(0, 1).reshape(r, -1, *v.shape[1:]))
 
     def reserve_replay(self, env_steps: int) -> None:
         """One row per ``unroll`` steps of one env (a chunk of T = unroll steps of B envs is B rows)."""
@@ -227,9 +227,9 @@ class DIAL(NetworkAgent):
         drawn uniformly from the ring."""
         if self.cfg.replay:  # drawn and gathered on the device
             rows = self.replay.sample(self.cfg.batch_size, self.streams["replay"])
-            return {k: v.transpose(self.t_dim, self.t_dim + 1).contiguous() for k, v in rows.items()}  # [(R,) L, n, …]
-        data = {k: v.swapaxes(0, 1) for k, v in self.pending.popleft().items()}  # [T, R, B, …] → [R, T, B, …]
-        return {k: torch.as_tensor(np.ascontiguousarray(v), device=self.device) for k, v in data.items()}
+            return rows.map(lambda v: v.transpose(self.t_dim, self.t_dim + 1).contiguous())  # [R, L, n, …]
+        data = self.pending.popleft().map(lambda v: v.swapaxes(0, 1))  # [T, R, B, …] → [R, T, B, …]
+        return data.map(lambda v: torch.as_tensor(np.ascontiguousarray(v), device=self.device))
 
     # --- learning ----------------------------------------------------------------------------------------------
     def sequence_q(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
@@ -241,18 +241,18 @@ class DIAL(NetworkAgent):
         chunk's last step. Target messages come from the target network's own unroll; both use the training DRU,
         as in Foerster et al.'s implementation, so the target sees the inputs the online net is trained on.
         """
-        obs, done = batch["obs"], batch["terminated"] | batch["truncated"]
-        heard0 = batch["msg_in"].select(self.t_dim, 0).float()  # what was heard at the first step; detached data
+        obs, done = batch.obs, batch.terminated | batch.truncated
+        heard0 = batch.extras["msg_in"].select(self.t_dim, 0).float()  # what was heard at the first step; detached
         q_all, sent = self.unroll(self.online, obs, heard0, done, train=True)
-        q = q_all.gather(-1, batch["action"].unsqueeze(-1)).squeeze(-1)
+        q = q_all.gather(-1, batch.action.unsqueeze(-1)).squeeze(-1)
         with torch.no_grad():
             _, sent_target = self.unroll(self.target, obs, heard0, done, train=True)
-            q_next_t, _ = self.cnet(self.target, batch["next_obs"], self.hear(sent_target))
+            q_next_t, _ = self.cnet(self.target, batch.next_obs, self.hear(sent_target))
             q_next_o = (
-                self.cnet(self.online, batch["next_obs"], self.hear(sent.detach()))[0] if self.cfg.double_q else None
+                self.cnet(self.online, batch.next_obs, self.hear(sent.detach()))[0] if self.cfg.double_q else None
             )
             gamma = self.gamma if isinstance(self.gamma, float) else self.gamma.reshape(-1, 1, 1)  # [R, T, B]
-            y = td_target(batch["reward"], batch["terminated"], gamma, q_next_t, q_next_o, self.action_mask)
+            y = td_target(batch.reward, batch.terminated, gamma, q_next_t, q_next_o, self.action_mask)
         return q_all, q, y
 
     def is_weights(self, q_all: Tensor, batch: Batch) -> Tensor:
@@ -266,15 +266,15 @@ class DIAL(NetworkAgent):
         """
         eps = epsilon_at(self.cfg, self.progress.env_steps, self.progress.total_steps)
         greedy = q_all.detach().masked_fill(~self.action_mask, NEG).argmax(dim=-1)
-        pi = (1.0 - eps) * (batch["action"] == greedy).float() + eps / self.n_actions_t
-        return (pi / batch["mu"].clamp_min(1e-8)).prod(dim=-1).clamp(max=1.0)
+        pi = (1.0 - eps) * (batch.action == greedy).float() + eps / self.n_actions_t
+        return (pi / batch.extras["mu"].clamp_min(1e-8)).prod(dim=-1).clamp(max=1.0)
 
     def loss(self, batch: Batch) -> Loss:
         """One sequence batch: the unroll (messages through time) → Q → double-Q targets → each agent's TD loss
         ``[N]``, a mean over steps and envs (importance-weighted under replay)."""
         q_all, q, y = self.sequence_q(batch)
         err = td_loss(q, y, self.cfg)
-        valid = batch["valid"].float() if "valid" in batch else torch.ones_like(err[..., 0])
+        valid = batch.extras["valid"].float() if "valid" in batch.extras else torch.ones_like(err[..., 0])
         w = valid * self.is_weights(q_all, batch) if self.cfg.replay else valid
         steps = valid.sum(dim=(-2, -1)).clamp_min(1.0).unsqueeze(-1)  # per run
         return Loss((err * w.unsqueeze(-1)).sum(dim=(-3, -2)) / steps)

@@ -55,7 +55,7 @@ class DQNSER(IndependentDQN):
         if not self.cfg.fingerprint:
             return x
         if batch is not None:
-            fp = batch["fingerprint"]  # [M, 2]: the stage the sample was collected at
+            fp = batch.extras["fingerprint"]  # [M, 2]: the stage the sample was collected at
         else:
             fp = torch.as_tensor(self.fingerprint(), device=obs.device).expand(*obs.shape[:-2], self.FP_DIM)
         fp = fp.to(x.dtype).unsqueeze(-2).expand(*x.shape[:-1], self.FP_DIM)
@@ -70,5 +70,5 @@ class DQNSER(IndependentDQN):
         """
         err = td_loss(*self.q_and_y(batch), self.cfg)
         now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
-        w = age_weights(batch["episode"], now, self.cfg.ser_horizon)
+        w = age_weights(batch.episode, now, self.cfg.ser_horizon)
         return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))

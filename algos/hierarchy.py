@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -91,6 +92,7 @@ from convoy.algos.registry import make_algorithm
 from convoy.config import AlgoConfig, IDQNConfig, JobConfig
 from convoy.envs.batched import EnvSpec
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
+from convoy.transition import Transition, from_columns
 
 GOALS: tuple[str, ...] = ("cruise", "left", "right", "faster", "slower")
 CRUISE, LEFT, RIGHT, FASTER, SLOWER = range(len(GOALS))
@@ -429,93 +431,94 @@ class HierarchicalAgent:
         )
 
     # --- learning ----------------------------------------------------------------------------------------------
-    def observe(self, chunk: dict[str, np.ndarray]) -> None:
+    def observe(self, chunk: Transition[np.ndarray]) -> None:
         """Controller rows for every step of a ``[T, R, B]`` chunk (a single run's may be ``[T, B]``),
         meta-transitions for the options that ended."""
         chunk = with_run_axis(chunk, self.runs)
-        for t in range(chunk["obs"].shape[0]):
-            self._observe_step({k: np.asarray(v[t]) for k, v in chunk.items()})
-            self._envs = chunk["obs"].shape[-3]
+        for t in range(chunk.obs.shape[0]):
+            self._observe_step(chunk.map(itemgetter(t)))
+            self._envs = chunk.obs.shape[-3]
             self.meta_steps += self._envs
 
-    def _open_options(self, s: dict[str, np.ndarray]) -> dict[str, Any]:
+    def _open_options(self, s: Transition[np.ndarray]) -> dict[str, Any]:
         """The learner's per-env option bookkeeping (first obs, critic anchors, reward sums, the meta's extras),
         reset where ``act`` started an option. An option still open there was cut short unseen and is dropped."""
-        lead = s["obs"].shape[:-2]
+        lead = s.obs.shape[:-2]
         p = self._pending
         if not p or p["open"].shape != lead:
             p.clear()
             p.update(
                 open=np.zeros(lead, dtype=bool),
-                first=np.zeros_like(s["obs"], dtype=np.float32),
-                anchor=np.zeros_like(s["obs"], dtype=np.float32),
+                first=np.zeros_like(s.obs, dtype=np.float32),
+                anchor=np.zeros_like(s.obs, dtype=np.float32),
                 ret=np.zeros((*lead, self.n_agents), dtype=np.float32),
                 disc=np.ones(lead, dtype=np.float32),
-                extras={k: np.zeros_like(v) for k, v in s.items() if k.startswith(META_PREFIX)},
+                extras={k: np.zeros_like(v) for k, v in s.extras.items() if k.startswith(META_PREFIX)},
             )
-        new = s["h_start"].astype(bool)
+        new = s.extras["h_start"].astype(bool)
         if new.any():
             p["open"][new] = True
-            p["first"][new] = s["obs"][new]
-            p["anchor"][new] = s["obs"][new]
+            p["first"][new] = s.obs[new]
+            p["anchor"][new] = s.obs[new]
             p["ret"][new] = 0.0
             p["disc"][new] = 1.0
             for k, v in p["extras"].items():
-                v[new] = s[k][new]
+                v[new] = s.extras[k][new]
         return p
 
-    def _observe_step(self, s: dict[str, np.ndarray]) -> None:
+    def _observe_step(self, s: Transition[np.ndarray]) -> None:
         """One step ``[R, B, …]``: every agent's controller transition, then the meta-transitions of ended options."""
         p = self._open_options(s)
-        obs, nxt = s["obs"], s["next_obs"]
-        term, trunc = s["terminated"].astype(bool), s["truncated"].astype(bool)
-        goal, reward = s["h_goal"].astype(np.int64), s["reward"].astype(np.float32)
+        obs, nxt = s.obs, s.next_obs
+        term, trunc = s.terminated.astype(bool), s.truncated.astype(bool)
+        goal, reward = s.extras["h_goal"].astype(np.int64), s.reward.astype(np.float32)
         lead, n = goal.shape[:-1], goal.shape[-1]
         rows = (*lead[:-1], -1)  # the controller's: one per (env, agent), per run
-        episode = s.get("episode", np.zeros(lead, dtype=np.int64))
         hit = self.critic.reached(goal, p["anchor"], nxt) & ~term[..., None]
 
-        ctrl = {
-            "obs": self.controller_input(obs, goal),
-            "action": s["action"].reshape(*rows, 1),
-            "reward": (hit + self.env_reward_scale * reward).reshape(*rows, 1).astype(np.float32),
-            "next_obs": self.controller_input(nxt, goal),
-            "terminated": (hit | term[..., None]).reshape(rows),
-            "truncated": np.repeat(trunc, n, axis=-1),
-            "episode": np.repeat(episode, n, axis=-1),
-        }
-        self.controller.observe({k: v[None] for k, v in ctrl.items()})
+        ctrl = Transition(
+            obs=self.controller_input(obs, goal),
+            action=s.action.reshape(*rows, 1),
+            reward=(hit + self.env_reward_scale * reward).reshape(*rows, 1).astype(np.float32),
+            next_obs=self.controller_input(nxt, goal),
+            terminated=(hit | term[..., None]).reshape(rows),
+            truncated=np.repeat(trunc, n, axis=-1),
+            episode=np.repeat(s.episode, n, axis=-1),
+        )
+        self.controller.observe(ctrl.map(lambda v: v[None]))
         p["anchor"] = np.where(hit[..., None], nxt, p["anchor"])  # fixed options: the goal is pursued again
 
         p["ret"] += p["disc"][..., None] * reward
         p["disc"] *= float(self.meta.cfg.gamma)
-        ended = p["open"] & (self.option_over(s["h_steps"], hit) | term | trunc)
+        ended = p["open"] & (self.option_over(s.extras["h_steps"], hit) | term | trunc)
         if not ended.any():
             return
-        meta_rows = {  # [R, B, …]: every env's, ``ended`` the ones that are meta-transitions
-            "obs": p["first"],
-            "action": goal,
-            "reward": p["ret"],
-            "next_obs": nxt,
-            "terminated": term,
-            "truncated": trunc,
-            "episode": episode,
-            **({} if self.fixed_options else {"discount": p["disc"]}),
-            **{k[len(META_PREFIX) :]: v for k, v in p["extras"].items()},
-        }
+        meta_rows = Transition(  # [R, B, …]: every env's, ``ended`` the ones that are meta-transitions
+            obs=p["first"],
+            action=goal,
+            reward=p["ret"],
+            next_obs=nxt,
+            terminated=term,
+            truncated=trunc,
+            episode=s.episode,
+            extras={
+                **({} if self.fixed_options else {"discount": p["disc"]}),
+                **{k[len(META_PREFIX) :]: v for k, v in p["extras"].items()},
+            },
+        )
         p["open"][ended] = False
         if self._queue is None:
-            self.meta.observe({k: v[None] for k, v in meta_rows.items()}, valid=ended[None])
+            self.meta.observe(meta_rows.map(lambda v: v[None]), valid=ended[None])
             return
         envs = np.flatnonzero(ended[0])  # DIAL's lockstep sequences: fixed options, one run
-        self._feed_meta(lead[-1], envs, {k: v[0, envs] for k, v in meta_rows.items()})
+        self._feed_meta(lead[-1], envs, meta_rows.map(lambda v: v[0, envs]))
 
-    def _feed_meta(self, num_envs: int, envs: np.ndarray, rows: dict[str, np.ndarray]) -> None:
+    def _feed_meta(self, num_envs: int, envs: np.ndarray, rows: Transition[np.ndarray]) -> None:
         """Hand DIAL's meta-transitions to the meta-controller as ``[T, B]`` lockstep chunks."""
         assert self._queue is not None
-        self._queue.push(num_envs, envs, rows)
+        self._queue.push(num_envs, envs, rows.columns())
         while (chunk := self._queue.pop()) is not None:
-            self.meta.observe(chunk)
+            self.meta.observe(from_columns(chunk))
 
     def meta_can_update(self) -> bool:
         """The meta level learns once the clock every run shares says its replay is warm (module docstring); DIAL

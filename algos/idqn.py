@@ -39,7 +39,7 @@ class IndependentDQN(NetworkAgent):
 
     def q_and_y(self, batch: Batch) -> tuple[Tensor, Tensor]:
         """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network."""
-        q = taken(self.online["q"](self.features(batch["obs"], batch)), batch["action"])
+        q = taken(self.online["q"](self.features(batch.obs, batch)), batch.action)
         q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
         return q, self.bootstrap(q_fn, batch)
 

@@ -117,7 +117,7 @@ class IMS(NetworkAgent):
     def loss(self, batch: Batch) -> Loss:
         """P rounds of averaged messages → Q → double-Q target → per-agent TD losses (summed by ``update``)."""
         # the centralised pass: every round's messages stay in the graph, so each agent's loss reaches every encoder
-        q = taken(self.forward(self.online, batch["obs"], train=True)[0], batch["action"])
+        q = taken(self.forward(self.online, batch.obs, train=True)[0], batch.action)
         # double-Q target from the target copy of the whole stack
         y = self.bootstrap(self.q_values, batch)
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
@@ -126,6 +126,6 @@ class IMS(NetworkAgent):
         """The positive-signalling term (``signalling_coef``) on the first round's discrete messages."""
         if not (self.cfg.discrete and self.cfg.signalling_coef):
             return None, {}
-        h0 = F.relu(self.online["encoder"](with_agent_id(batch["obs"], self.shared)))
+        h0 = F.relu(self.online["encoder"](with_agent_id(batch.obs, self.shared)))
         comm = cast(CommStep, self.online["comm"])
         return signalling_loss(comm.speak(h0), self.bits, self.cfg, self.runs)

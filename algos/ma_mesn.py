@@ -84,9 +84,9 @@ class MAMeSN(HearsMessages, NetworkAgent):
     def loss(self, batch: Batch) -> Loss:
         """Algorithm 1 on one batch: messages → Q → double-Q target → per-agent TD losses (summed by ``update``)."""
         # every agent's message m_j = f′_j(o_j) (Gumbel bits, straight-through) and what agent i hears: m_−i
-        x, _, heard = self.speak(self.online, batch["obs"], train=True)
+        x, _, heard = self.speak(self.online, batch.obs, train=True)
         # Q_i = f″_i(o_i, m_−i) of the actions taken
-        q = taken(self.listen(self.online, x, heard), batch["action"])
+        q = taken(self.listen(self.online, x, heard), batch.action)
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
         y = self.bootstrap(self.q_values, batch)
         # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
@@ -94,6 +94,4 @@ class MAMeSN(HearsMessages, NetworkAgent):
         if not self.cfg.signalling_coef:
             return Loss(td)
         # positive signalling (off on the treadmill): −coef·I(o; m) over the batch, from f′'s logits
-        return Loss(
-            td, *signalling_loss(self.message_logits(self.online, batch["obs"]), self.bits, self.cfg, self.runs)
-        )
+        return Loss(td, *signalling_loss(self.message_logits(self.online, batch.obs), self.bits, self.cfg, self.runs))

@@ -208,14 +208,14 @@ class MemoryModule(_Speaker):
         hears from its own observation window (no gradient of it reaches the message or policy networks)."""
         return super().loss(batch).plus(*self.memory_loss(batch))
 
-    def memory_loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+    def memory_loss(self, batch: Batch) -> tuple[Tensor, dict[str, Tensor]]:
         """``memory_coef`` × the BCE of the predicted bits against the messages each agent truly hears, and the
         prediction's accuracy per bit and per whole message."""
-        if HISTORY not in batch:
+        if HISTORY not in batch.extras:
             raise KeyError(f"{type(self).__name__} needs '{HISTORY}' in its transitions: collect them with its act()")
-        logits = self.predict(self.online, batch[HISTORY])
+        logits = self.predict(self.online, batch.extras[HISTORY])
         with torch.no_grad():
-            _, _, heard = self.speak(self.online, batch["obs"], False)
+            _, _, heard = self.speak(self.online, batch.obs, False)
             target = heard.reshape(logits.shape)
         per_run = tuple(range(1, logits.dim()))  # figures per run
         bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none").mean(dim=per_run)

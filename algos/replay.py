@@ -5,7 +5,7 @@ and t+1, their actions and rewards, the termination flag and the episode id (wha
 weighs by), plus whatever else an algorithm asked to keep (a fingerprint, received messages). Rows are written
 and read as whole slices, never one element at a time; tensors are allocated on the first insert, from its
 shapes and dtypes, and never grow past ``capacity``. Given the declared transition (``convoy.transition.schema``),
-every insert is held to it: a declared field missing, or of another dtype or shape, is refused with its name.
+every insert is held to it: a declared field of another dtype or shape is refused with its name.
 
 ``capacity`` is where the ring wraps; the tensors hold only the rows a run can store, ``reserve(rows)``: a run of
 S env steps never stores more than about S rows, so a 20 k-step run with the treadmill's 1 M capacity allocates
@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from convoy.algos.streams import RunStreams
+from convoy.transition import TRANSITION, Transition, from_columns
 
 
 def torch_dtype(dtype: np.dtype[Any]) -> torch.dtype:
@@ -43,7 +44,8 @@ def torch_dtype(dtype: np.dtype[Any]) -> torch.dtype:
 
 
 class JointReplay:
-    """Fixed-capacity ring of transitions; ``add`` takes numpy rows, ``sample`` returns a dict of device tensors."""
+    """Fixed-capacity ring of transitions; ``add`` takes numpy rows, ``sample`` returns device tensors. The rows are
+    kept as one tensor per field (the declared ones and the algorithm's extras alike), by name."""
 
     def __init__(
         self,
@@ -107,10 +109,10 @@ class JointReplay:
             new[:, :held] = v
             self._data[k] = new
 
-    def add(self, rows: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+    def add(self, rows: Transition[np.ndarray], valid: np.ndarray | None = None) -> None:
         """Append rows ``[R, M, …]`` (every array shares the leading dims); the oldest rows are overwritten when full.
         ``valid [R, M]``: only those rows, each run's in order, to its ring."""
-        runs = {k: np.asarray(v) for k, v in rows.items()}
+        runs = {k: np.asarray(v) for k, v in rows.columns().items()}
         if any(v.ndim < 2 or v.shape[0] != self.runs for v in runs.values()):
             shapes = {k: v.shape for k, v in runs.items()}
             raise ValueError(f"rows: every field needs the leading shape [R = {self.runs}, M], got {shapes}")
@@ -140,8 +142,6 @@ class JointReplay:
 
     def _check_declared(self, rows: dict[str, np.ndarray]) -> None:
         for name, (dtype, shape) in self.declared.items():
-            if name not in rows:
-                raise ValueError(f"rows: no {name!r}, a field of the declared transition (convoy.transition)")
             v = rows[name]
             if v.dtype.str != dtype or v.shape[2:] != shape:
                 raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[2:]} per row; the declared "
@@ -193,7 +193,7 @@ class JointReplay:
         n = min(max(self._reserve, rows), self.capacity)
         return torch.zeros((v.shape[0], n, *v.shape[2:]), dtype=torch_dtype(v.dtype), device=self.device)
 
-    def sample(self, n: int, streams: RunStreams) -> dict[str, Tensor]:
+    def sample(self, n: int, streams: RunStreams) -> Transition[Tensor]:
         """``n`` rows per run drawn uniformly with replacement, on the device, ``[R, n, …]``: run k's rows drawn by its
         stream in ``streams`` (one batched draw for all runs) exactly as its single run's buffer would draw them."""
         if len(self) == 0:
@@ -202,7 +202,9 @@ class JointReplay:
             raise ValueError(f"streams: one per run ({len(self._next)}), got {streams.runs}")
         idx = streams.integers(self._high, n)  # [R, n], run k's in [0, size_k)
         flat = idx.add(self._run, alpha=self.allocated).flatten()  # rows of the runs laid end to end
-        return {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
+        return from_columns(
+            {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
+        )
 
     def state_dict(self) -> dict[str, Any]:
         """Contents for a full checkpoint, as numpy arrays ``[R, rows, …]`` (only the filled part: up to the fullest
@@ -221,6 +223,8 @@ class JointReplay:
             data = {k: np.asarray(v) for k, v in state["data"].items()}
             if np.ndim(state["next"]) == 0:  # a single run's file from before the run axis
                 data = {k: v[None] for k, v in data.items()}
+            if "valid" in data:  # DIAL's sequences [R, S, L] from before they held every field: ``episode`` unread
+                data.update({k: np.zeros(data["valid"].shape, TRANSITION[k].dtype) for k in TRANSITION.keys() - data})
             rows = next(iter(data.values())).shape[1]
             if rows > self.capacity:
                 raise ValueError(f"replay: {rows} rows saved, more than the capacity {self.capacity}")

@@ -75,6 +75,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -195,9 +196,9 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
             returns: list[float] = []
             for _ in range(steps):
                 returns.extend(stepper.step(1.0))
-            arrays = stepper.take_chunk()
-            schema = {k: (a.dtype.str, tuple(a.shape[2:])) for k, a in arrays.items()}
-            body = wire.chunk_body(arrays, "actor-0", 0, steps * num_envs, returns)
+            chunk = stepper.take_chunk()
+            schema = {k: (a.dtype.str, tuple(a.shape[2:])) for k, a in chunk.columns().items()}
+            body = wire.chunk_body(chunk, "actor-0", 0, steps * num_envs, returns)
             payloads.append(wire.encode("chunk", body, "actor-0", c + 1))
     finally:
         env.close()
@@ -266,6 +267,7 @@ def _ingest_subscriber(
             import numpy as np
 
             from convoy.algos.replay import JointReplay
+            from convoy.protocol import wire
             from convoy.protocol.inbox import Inbox
 
             inbox = Inbox({"chunk"}, maxlen=window + 8)
@@ -287,10 +289,10 @@ def _ingest_subscriber(
                 ):  # the learner's schema check (Learner._valid)
                     bad += 1
                 else:
-                    arrays = dict(arrays)
-                    arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
-                    replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in arrays.items()})  # Algorithm.observe
-                    t_len, b = arrays["obs"].shape[:2]
+                    chunk = wire.chunk_transitions(msg.body)
+                    chunk = replace(chunk, episode=np.full_like(chunk.episode, episodes))  # the learner's clock
+                    replay.add(chunk.map(lambda v: v.reshape(-1, *v.shape[2:])))  # Algorithm.observe
+                    t_len, b = chunk.obs.shape[:2]
                     steps += t_len * b
                     episodes += len(msg.body["returns"])
                 processed += 1
@@ -358,6 +360,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
     import numpy as np
 
     from convoy.algos.replay import JointReplay
+    from convoy.protocol import wire
     from convoy.protocol.inbox import Inbox
 
     inbox, replay = Inbox({"chunk"}, maxlen=8), JointReplay(100_000)
@@ -369,9 +372,8 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
         arrays = msg.body["arrays"]
         if set(arrays) != set(schema) or any(a.dtype.str != schema[k][0] for k, a in arrays.items()):
             raise RuntimeError("chunk does not match its own schema")
-        arrays = dict(arrays)
-        arrays["episode"] = np.full_like(arrays["episode"], i)
-        replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in arrays.items()})
+        chunk = wire.chunk_transitions(msg.body)
+        replay.add(replace(chunk, episode=np.full_like(chunk.episode, i)).map(lambda v: v.reshape(-1, *v.shape[2:])))
     return time.perf_counter() - t0
 
 

@@ -31,6 +31,7 @@ from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 from convoy.learner.trackers import Trackers
+from convoy.transition import Transition
 
 # Updates whose figures wait on the device before the trainer reads them, all at once: one host sync per READ_EVERY
 # updates instead of one per update (on a GPU each sync stalls the queue of launched kernels), and a run whose loss
@@ -79,7 +80,7 @@ class UpdateClock:
         self.algo, self.owed = algo, 0.0
         self.pending: list[Figures] = []
 
-    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+    def observe(self, chunk: Transition[np.ndarray], steps: int) -> None:
         """A chunk of ``steps`` env steps (per run) goes into the algorithm and is owed ``updates_for(steps)``."""
         self.algo.observe(chunk)
         if self.algo.can_update():
@@ -185,7 +186,7 @@ class TrainingCore:
         self.returns.extend(returns)
         self.log.episodes(returns)
 
-    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+    def observe(self, chunk: Transition[np.ndarray], steps: int) -> None:
         """A chunk ``[T, B, …]`` of ``steps`` env steps goes into the algorithm; it is owed ``updates_for(steps)``."""
         self.clock.observe(chunk, steps)
 

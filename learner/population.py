@@ -34,6 +34,7 @@ from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.core import TrainingCore, TrainResult, UpdateClock, print_line
+from convoy.transition import Transition
 
 
 class PopulationCore:
@@ -109,7 +110,7 @@ class PopulationCore:
         for k, core in enumerate(self.cores):
             core.stepped(steps, [r for r, run in zip(returns, runs, strict=True) if run == k])
 
-    def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
+    def observe(self, chunk: Transition[np.ndarray], steps: int) -> None:
         """A chunk ``[T, R, B, …]`` of ``steps`` env steps per run; every run is owed ``updates_for(steps)``."""
         self.clock.observe(chunk, steps)
 

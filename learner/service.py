@@ -23,6 +23,7 @@ import logging
 import signal
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,7 @@ from convoy.protocol import keys, wire
 from convoy.protocol.exitcodes import DIVERGED, NO_DATA, STOPPED, ParentWatch, dump_stacks_on_sigusr1
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.session import SessionAbandoned, ZenohSettings, open_session
-from convoy.transition import TRANSITION
+from convoy.transition import Transition
 from convoy.transition import schema as declared_schema
 
 log = logging.getLogger(__name__)
@@ -63,7 +64,7 @@ def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple
         chunk = stepper.take_chunk()
     finally:
         env.close()
-    extras = {k: (v.dtype.str, v.shape[3:]) for k, v in chunk.items() if k not in TRANSITION}
+    extras = {k: (v.dtype.str, v.shape[3:]) for k, v in chunk.extras.items()}
     return {**declared_schema(algo.spec.n_agents, algo.spec.obs_dim), **extras}
 
 
@@ -75,7 +76,7 @@ UNIT_INTERVAL_FIELDS = ("mu", "msg_in")
 
 
 def chunk_problem(
-    arrays: dict[str, np.ndarray], schema: dict[str, tuple[str, tuple[int, ...]]], n_actions: tuple[int, ...]
+    chunk: Transition[np.ndarray], schema: dict[str, tuple[str, tuple[int, ...]]], n_actions: tuple[int, ...]
 ) -> str | None:
     """Why a decoded chunk must not reach replay (a drop-counter reason), or None when it may.
 
@@ -84,11 +85,12 @@ def chunk_problem(
     finite floats of sane magnitude, probabilities in [0, 1]. One out-of-range action would index past a Q-row,
     one NaN reward would turn every later loss and weight into NaN.
     """
+    arrays = chunk.columns()
     if set(arrays) != set(schema):
         return "schema"
     if not all(a.dtype.str == schema[k][0] and a.shape[2:] == schema[k][1] for k, a in arrays.items()):
         return "schema"
-    action = arrays["action"]
+    action = chunk.action
     if action.size and ((action < 0).any() or (action >= np.asarray(n_actions)).any()):
         return "action-range"
     for name, a in arrays.items():
@@ -195,21 +197,22 @@ class Learner:
         return PopulationCore(job.members(), algo, dirs, make_eval_env, counters=counters or None,
                               replay=replay, say=say)  # fmt: skip
 
-    def _take(self, core: PopulationCore, msg: wire.Message) -> str | None:
-        """Chunk ``msg`` into the core (its transitions, steps and finished episodes), or why not (a drop reason)."""
-        arrays, returns, runs = dict(msg.body["arrays"]), list(msg.body["returns"]), len(core.jobs)
-        t_len, b = arrays["obs"].shape[:2]
+    def _take(self, core: PopulationCore, chunk: Transition[np.ndarray], body: dict[str, Any]) -> str | None:
+        """A chunk ``[T, R·B, …]`` into the core (its transitions, and from its ``body`` its steps and finished
+        episodes), or why not (a drop reason)."""
+        returns, runs = list(body["returns"]), len(core.jobs)
+        t_len, b = chunk.obs.shape[:2]
         # each return's run; a chunk that names none is a single run's (R = 1)
-        named = msg.body.get("return_runs", [] if runs > 1 else [0] * len(returns))
+        named = body.get("return_runs", [] if runs > 1 else [0] * len(returns))
         return_runs = np.asarray(named, dtype=np.int64)
         if b % runs or len(return_runs) != len(returns):
             return "schema"  # not a chunk of this population's runs
         if return_runs.size and (return_runs.min() < 0 or return_runs.max() >= runs):
             return "out-of-range"
-        arrays = {k: v.reshape(t_len, runs, b // runs, *v.shape[2:]) for k, v in arrays.items()}
-        arrays["episode"] = np.broadcast_to(core.episodes[:, None], arrays["episode"].shape).copy()  # the learner's
+        chunk = chunk.map(lambda v: v.reshape(t_len, runs, b // runs, *v.shape[2:]))
+        episode = np.broadcast_to(core.episodes[:, None], chunk.episode.shape).copy()  # the learner's count
         core.set_progress()
-        core.observe(arrays, t_len * (b // runs))
+        core.observe(replace(chunk, episode=episode), t_len * (b // runs))
         core.stepped(t_len * (b // runs), returns, return_runs)
         return None
 
@@ -266,7 +269,8 @@ class Learner:
     def _ingest(self, msg: wire.Message, schema: dict, algo: Agent, s: _Ingest) -> bool:
         """Take a chunk into the replay if it is this job's and its values are possible (else count why not), and
         credit the actors at once, before the chunk's updates."""
-        problem = chunk_problem(msg.body["arrays"], schema, algo.spec.n_actions) or self._take(s.core, msg)
+        chunk = wire.chunk_transitions(msg.body)
+        problem = chunk_problem(chunk, schema, algo.spec.n_actions) or self._take(s.core, chunk, msg.body)
         if problem is not None:
             self.rejected[problem] = self.rejected.get(problem, 0) + 1
             return False

@@ -32,7 +32,7 @@ from typing import Any, SupportsFloat, SupportsIndex, TypeGuard
 import msgpack
 import numpy as np
 
-from convoy.transition import TRANSITION
+from convoy.transition import TRANSITION, Transition, from_columns
 
 VERSION = 1
 ARRAY_EXT = 1
@@ -215,16 +215,17 @@ def validate(kind: str, body: dict[str, Any]) -> None:
 
 # ------------------------------------------------------------------------------------------ typed constructors
 def chunk_body(
-    arrays: dict[str, np.ndarray],
+    transitions: Transition[np.ndarray],
     actor: str,
     policy_version: SupportsIndex,
     env_steps: SupportsIndex,
     returns: Sequence[SupportsFloat],
     return_runs: Sequence[SupportsIndex] | None = None,
 ) -> dict[str, Any]:
-    """A chunk's body; numpy scalars are taken and sent as plain ints and floats."""
+    """A chunk's body, its transitions ``[T, B, …]`` as a map of names; numpy scalars are taken and sent as plain
+    ints and floats."""
     body = {
-        "arrays": arrays,
+        "arrays": transitions.columns(),
         "actor": actor,
         "policy_version": int(policy_version),
         "env_steps": int(env_steps),
@@ -233,6 +234,11 @@ def chunk_body(
     if return_runs is not None:  # each return's run (R ≥ 1 runs' envs, run by run)
         body["return_runs"] = [int(r) for r in return_runs]
     return body
+
+
+def chunk_transitions(body: dict[str, Any]) -> Transition[np.ndarray]:
+    """The transitions ``[T, B, …]`` of a validated chunk's body (read-only views on the received bytes)."""
+    return from_columns(body["arrays"])
 
 
 def weights_body(version: SupportsIndex, algo: str, state: dict[str, np.ndarray]) -> dict[str, Any]:

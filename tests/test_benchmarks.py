@@ -123,7 +123,7 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     copy(ref.target, algo.target["q"])
     batch = algo.sample()
     with torch.no_grad():
-        expected = float(ref.loss({k: v[0] for k, v in batch.items()}))  # the run's (a run of one)
+        expected = float(ref.loss({k: v[0] for k, v in batch.columns().items()}))  # the run's (a run of one)
     algo.sample = lambda: batch
     assert abs(algo.update().read()[0]["loss"] - expected) <= 1e-5 * max(1.0, abs(expected))
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,9 @@ from convoy.algos.dial import DIAL, dru
 from convoy.algos.registry import make_algorithm
 from convoy.config import DIALConfig, resolve_algo
 from convoy.envs import make_batched
+from convoy.transition import Transition, from_columns
 from tests.conftest import single_update
+from tests.transitions import batch
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -37,7 +40,7 @@ class Loop:
         self.state = algo.initial_state(env.num_envs)
         self.owed = 0.0
 
-    def chunk(self, eps: float) -> dict[str, np.ndarray]:
+    def chunk(self, eps: float) -> Transition[np.ndarray]:
         steps = []
         for _ in range(self.algo.chunk_len):
             out = self.algo.act(self.obs, eps, self.state)
@@ -56,7 +59,7 @@ class Loop:
             )
             self.state = self.algo.reset_state(out.state, res.done)
             self.obs = res.obs
-        return {k: np.stack([s[k] for s in steps]) for k in steps[0]}
+        return from_columns({k: np.stack([s[k] for s in steps]) for k in steps[0]})
 
     def train(self, chunks: int, total_steps: int | None = None) -> list[dict[str, float]]:
         algo, b = self.algo, self.env.num_envs
@@ -65,9 +68,9 @@ class Loop:
         for _ in range(chunks):
             eps = epsilon_at(algo.cfg, algo.progress.env_steps, algo.progress.total_steps)
             chunk = self.chunk(eps)
-            algo.progress.env_steps += chunk["obs"].shape[0] * b
+            algo.progress.env_steps += chunk.obs.shape[0] * b
             algo.observe(chunk)
-            self.owed += algo.updates_for(chunk["obs"].shape[0] * b)
+            self.owed += algo.updates_for(chunk.obs.shape[0] * b)
             while self.owed >= 1 and algo.can_update():
                 stats.append(single_update(algo))
                 self.owed -= 1
@@ -171,8 +174,7 @@ def test_messages_do_not_cross_an_episode_boundary() -> None:
 def test_every_agent_loss_reaches_the_speaker_through_its_messages() -> None:
     """The speaker's only action is a no-op, so its C-Net's message head learns only from the listener's loss."""
     algo, env = make_dial(num_envs=16)
-    batch = Loop(algo, env).chunk(eps=1.0)
-    data = {k: torch.as_tensor(v)[None] for k, v in batch.items() if k != "episode"}  # [R = 1, T, B, …]
+    data = Loop(algo, env).chunk(eps=1.0).map(lambda v: torch.as_tensor(v)[None])  # [R = 1, T, B, …]
     losses = algo.agent_losses(data)
     assert losses.shape == (1, 2)
     speaker_w = algo.online.get_parameter("cnet.layers.0.weight")
@@ -182,12 +184,12 @@ def test_every_agent_loss_reaches_the_speaker_through_its_messages() -> None:
 
 def test_truncated_steps_bootstrap_and_terminated_steps_do_not() -> None:
     algo, env = make_dial(num_envs=4, gamma=0.9)
-    data = {k: torch.as_tensor(v)[None] for k, v in Loop(algo, env).chunk(eps=1.0).items() if k != "episode"}
-    data["reward"] = torch.zeros_like(data["reward"])
-    data["terminated"][:] = True
+    data = Loop(algo, env).chunk(eps=1.0).map(lambda v: torch.as_tensor(v)[None])
+    data = replace(data, reward=torch.zeros_like(data.reward))
+    data.terminated[:] = True
     _, _, y = algo.sequence_q(data)
     assert torch.equal(y, torch.zeros_like(y))
-    data["terminated"][:], data["truncated"][:] = False, True
+    data.terminated[:], data.truncated[:] = False, True
     _, _, y = algo.sequence_q(data)
     assert y.abs().sum() > 0  # γ · Q_target(final obs, messages sent on the last step)
 
@@ -263,10 +265,25 @@ def test_replay_variant_stores_sequences_and_updates() -> None:
     assert all(np.isfinite(s["loss"]) for s in stats)
     assert len(algo.replay) == algo.replay.capacity  # bounded ring, full
     batch = algo.sample()
-    assert batch["obs"].shape == (1, 3, 8, 2, algo.obs_dim) and batch["valid"].all()  # [R = 1, T, B, …]
+    assert batch.obs.shape == (1, 3, 8, 2, algo.obs_dim) and batch.extras["valid"].all()  # [R = 1, T, B, …]
     # A chunk of another length is split and zero-padded; the padding is marked invalid.
-    rows = algo.to_sequences({k: v[:2] for k, v in loop.chunk(eps=1.0).items() if k in batch})
-    assert rows["obs"].shape == (8, 3, 2, algo.obs_dim) and rows["valid"][:, :2].all() and not rows["valid"][:, 2].any()
+    rows = algo.to_sequences(loop.chunk(eps=1.0).map(lambda v: v[:2]))
+    valid = rows.extras["valid"]
+    assert rows.obs.shape == (8, 3, 2, algo.obs_dim) and valid[:, :2].all() and not valid[:, 2].any()
+
+
+def test_a_replay_saved_before_sequences_held_every_field_loads_and_goes_on() -> None:
+    """DIAL's replay kept only what its loss reads; its sequences are transitions now, ``episode`` too: a replay
+    file without it loads (zeros, never read) and takes the next chunks."""
+    algo, env = make_dial(num_envs=4, replay=True, replay_capacity=64, unroll=3)
+    loop = Loop(algo, env)
+    algo.observe(loop.chunk(eps=1.0))
+    old = algo.replay.state_dict()
+    del old["data"]["episode"]
+    fresh, _ = make_dial(num_envs=4, replay=True, replay_capacity=64, unroll=3)
+    fresh.replay.load_state_dict(old)
+    fresh.observe(loop.chunk(eps=1.0))
+    assert len(fresh.replay) == 2 * 4 and not fresh.sample().episode.any()
 
 
 def test_importance_weights_are_clipped_joint_ratios() -> None:
@@ -275,7 +292,7 @@ def test_importance_weights_are_clipped_joint_ratios() -> None:
     q_all[..., 2] = 1.0  # current greedy action: 2 (the speaker only has action 0)
     action = torch.tensor([[[0, 2], [0, 1], [0, 1]]])
     mu = torch.tensor([[[1.0, 0.5], [0.5, 0.1], [1.0, 0.85]]])
-    w = algo.is_weights(q_all, {"action": action, "mu": mu})
+    w = algo.is_weights(q_all, batch(action=action, mu=mu))
     pi_other = 0.2 / 4  # current ε-greedy probability of a non-greedy action
     # greedy now but rarer before: 0.85 / 0.5 > 1 → clipped to 1; product over agents (1 / 0.5 · 0.05 / 0.1);
     # a greedy-then action that is exploratory now: 0.05 / 0.85.

@@ -21,7 +21,9 @@ from convoy.envs import make_batched
 from convoy.envs.batched import ENTITY_SOURCES, EnvSpec
 from convoy.envs.layout import entity_layout
 from convoy.envs.treadmill.config import N_HEADINGS
+from convoy.transition import Transition, from_columns
 from convoy.validation import ConfigError
+from tests.transitions import batch, run_of
 
 SIGHTINGS = {"team_sightings": True}
 SEEDS = [3, 7, 11]
@@ -176,7 +178,7 @@ def test_shapes_with_and_without_the_run_axis_and_a_member_is_the_single_run(sha
         torch.testing.assert_close(q[k], single.greedy_q(x[None], None)[0][0], rtol=0, atol=1e-6)
 
 
-def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> dict[str, np.ndarray]:
+def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> Transition[np.ndarray]:
     """``steps`` random-action transitions of the treadmill, ``[T, R, B, …]`` (the env's B split into R runs)."""
     b, n = env.num_envs, env.spec.n_agents
     obs = env.reset(int(g.integers(1 << 30)))
@@ -187,7 +189,7 @@ def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> di
         done = {"terminated": res.terminated, "truncated": res.truncated, "episode": np.zeros(b, np.int64)}
         rows.append({"obs": obs, "next_obs": res.final_obs, "action": action, "reward": res.reward, **done})
         obs = res.obs
-    return {k: np.stack([r[k].reshape(runs, b // runs, *r[k].shape[1:]) for r in rows]) for k in rows[0]}
+    return from_columns({k: np.stack([r[k].reshape(runs, b // runs, *r[k].shape[1:]) for r in rows]) for k in rows[0]})
 
 
 @pytest.mark.parametrize("share", [True, False], ids=["shared", "per-agent"])
@@ -204,7 +206,7 @@ def test_a_population_member_trains_as_the_single_run_of_its_seed(name: str, sha
         c = env_chunk(env, len(SEEDS), g)
         pop.observe(c)
         for k, single in enumerate(singles):
-            single.observe({f: v[:, k] for f, v in c.items()})
+            single.observe(run_of(c, k))
     for agent in (pop, *singles):
         agent.progress = Progress(100, 1, 1000, training=True)
     for _ in range(40 if name == "ma-mesn" else 150):
@@ -223,18 +225,17 @@ def test_mesn_listener_loss_reaches_the_other_agents_message_networks_through_he
     algo = build("ma-mesn", env.spec, share=False)
     g = np.random.default_rng(0)
     m, n = 16, env.spec.n_agents
-    batch = {  # one run's: [R = 1, M, …]
-        "obs": torch.as_tensor(obs[0])[None],
-        "next_obs": torch.as_tensor(obs[1])[None],
-        "action": torch.as_tensor(g.integers(0, 9, size=(1, m, n))),
-        "reward": torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
-        "terminated": torch.zeros(1, m, dtype=torch.bool),
-        "truncated": torch.zeros(1, m, dtype=torch.bool),
-    }
+    rows = batch(  # one run's: [R = 1, M, …]
+        obs=torch.as_tensor(obs[0])[None],
+        next_obs=torch.as_tensor(obs[1])[None],
+        action=torch.as_tensor(g.integers(0, 9, size=(1, m, n))),
+        reward=torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
+        terminated=torch.zeros(1, m, dtype=torch.bool),
+    )
     heard_in = algo.online["policy"][0].heard.layers[0]
     for i in range(n):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[0, i].backward()
+        algo.agent_losses(rows)[0, i].backward()
         message = sum(
             p.grad[0].abs().flatten(1).sum(1) for p in algo.online["message"].parameters() if p.grad is not None
         )

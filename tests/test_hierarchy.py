@@ -33,7 +33,9 @@ from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
+from convoy.transition import Transition, from_columns
 from tests.conftest import population_update, single_update
+from tests.transitions import batch
 
 # forward spawns on a belt of constant speed: the goals' "cruise" is the belt's speed (the critic reads it from the
 # config), and the spawn pose is then a cruise
@@ -183,11 +185,11 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
     ctrl_chunks: list[dict[str, np.ndarray]] = []
     monkeypatch.setattr(agent.meta, "act", fixed_goals)
 
-    def meta_observe(chunk: dict[str, np.ndarray], valid: np.ndarray) -> None:  # [T = 1, R = 1, B]: the ended
-        meta_chunks.append({k: v[valid][None] for k, v in chunk.items()})
+    def meta_observe(chunk: Transition[np.ndarray], valid: np.ndarray) -> None:  # [T = 1, R = 1, B]: the ended
+        meta_chunks.append({k: v[valid][None] for k, v in chunk.columns().items()})
 
     monkeypatch.setattr(agent.meta, "observe", meta_observe)
-    monkeypatch.setattr(agent.controller, "observe", ctrl_chunks.append)
+    monkeypatch.setattr(agent.controller, "observe", lambda chunk: ctrl_chunks.append(chunk.columns()))
 
     b = 3  # env 0 times out, env 1's agent 0 reaches its goal on the 2nd step, env 2 crashes on the 1st
     first = np.stack([pair_obs(BASE, BASE)] * b)
@@ -213,7 +215,7 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
             "episode": np.zeros(b, dtype=np.int64),
             **out.extras,
         }
-        agent.observe({k: np.asarray(v)[None] for k, v in chunk.items()})
+        agent.observe(from_columns({k: np.asarray(v)[None] for k, v in chunk.items()}))
         state = agent.reset_state(out.state, term)
         obs = np.where(term[:, None, None], first, nxt)  # the crashed env restarts
 
@@ -243,16 +245,16 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
 def test_meta_target_bootstraps_with_the_option_discount() -> None:
     agent = HierarchicalAgent(job(), make_env(job(), 1).spec, device="cpu")
     q_next = torch.tensor([[[0.0, 2.0, 1.0, 0.0, 0.0]] * 2] * 3)  # [M=3, N=2, G]
-    batch = {
-        "reward": torch.ones(3, 2),
-        "terminated": torch.tensor([False, False, True]),
-        "discount": torch.tensor([1.0, 0.5, 0.5]),
-        "next_obs": torch.zeros(3, 2, 1),
-        "obs": torch.zeros(3, 2, 1),
-        "action": torch.ones(3, 2, dtype=torch.long),  # the greedy goal: advantage learning's gap is 0
-    }
+    rows = batch(
+        reward=torch.ones(3, 2),
+        terminated=torch.tensor([False, False, True]),
+        discount=torch.tensor([1.0, 0.5, 0.5]),
+        next_obs=torch.zeros(3, 2, 1),
+        obs=torch.zeros(3, 2, 1),
+        action=torch.ones(3, 2, dtype=torch.long),  # the greedy goal: advantage learning's gap is 0
+    )
     meta = agent.meta
-    y = bootstrap_target(lambda nets, obs: q_next, meta.online, meta.target, batch, meta.cfg, meta.action_mask)
+    y = bootstrap_target(lambda nets, obs: q_next, meta.online, meta.target, rows, meta.cfg, meta.action_mask)
     np.testing.assert_allclose(y.numpy(), [[3.0, 3.0], [2.0, 2.0], [1.0, 1.0]])
 
 
@@ -376,8 +378,8 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
         pop.observe(chunk)
         for k, (st, single) in enumerate(zip(steppers, singles, strict=True)):
             own_chunk = st.take_chunk()
-            np.testing.assert_array_equal(chunk["h_goal"][:, k], own_chunk["h_goal"][:, 0])  # [T, R = 1, B, …]
-            np.testing.assert_array_equal(chunk["action"][:, k], own_chunk["action"][:, 0])
+            np.testing.assert_array_equal(chunk.extras["h_goal"][:, k], own_chunk.extras["h_goal"][:, 0])  # [T, R, B]
+            np.testing.assert_array_equal(chunk.action[:, k], own_chunk.action[:, 0])
             single.observe(own_chunk)
     for level in ("controller", "meta"):
         sizes = [len(getattr(s, level).replay) for s in singles]

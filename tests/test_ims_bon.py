@@ -18,8 +18,9 @@ from convoy.algos.nets import GroupLinear, GroupMLP
 from convoy.algos.registry import make_algorithm
 from convoy.config import resolve_algo
 from convoy.envs import EnvSpec, make_batched
-from convoy.transition import record
+from convoy.transition import Transition, record
 from tests.conftest import grad, synthetic_spec
+from tests.transitions import batch
 
 SMALL: dict[str, Any] = {"hidden": (64,), "learning_starts": 64, "batch_size": 32}
 
@@ -42,16 +43,16 @@ def build_bon(spec: EnvSpec, seed: int = 0, **params: object) -> MABoN:
     return algo
 
 
-def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
+def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> Transition[Tensor]:
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
-    return {
-        "obs": torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
-        "action": torch.randint(0, a, (1, m, n), generator=g),
-        "reward": torch.randn(1, m, n, generator=g),
-        "next_obs": torch.randn(1, m, n, d, generator=g),
-        "terminated": torch.rand(1, m, generator=g) < 0.3,
-    }
+    return batch(
+        obs=torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
+        action=torch.randint(0, a, (1, m, n), generator=g),
+        reward=torch.randn(1, m, n, generator=g),
+        next_obs=torch.randn(1, m, n, d, generator=g),
+        terminated=torch.rand(1, m, generator=g) < 0.3,
+    )
 
 
 class CallCounter:
@@ -230,7 +231,7 @@ def train_referential(algo_name: str, seed: int = 0, iterations: int = 300) -> t
         res = env.step(out.actions)
         step = record(obs, out.actions, res.reward, res.final_obs, res.terminated, res.truncated,
                       np.zeros(num_envs, np.int64), out.extras)  # fmt: skip
-        algo.observe({k: v[None] for k, v in step.items()})
+        algo.observe(step.map(lambda v: v[None]))
         obs = res.obs
         if algo.can_update():
             for _ in range(2):

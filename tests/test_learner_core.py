@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,29 +21,32 @@ from convoy.algos.streams import RunStreams
 from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
+from convoy.transition import TRANSITION, Transition, from_columns
+from convoy.transition import schema as declared_schema
 from convoy.validation import ConfigError
 from tests.conftest import single_update
+from tests.transitions import filled
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
 
 
-def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> dict[str, torch.Tensor]:
+def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> Transition[torch.Tensor]:
     g = np.random.default_rng(seed)
     n, d = spec.n_agents, spec.obs_dim
-    return {  # one run's: [R = 1, M, …]
-        "obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
-        "next_obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
-        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(1, m, n))),
-        "reward": torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
-        "terminated": torch.as_tensor(g.random((1, m)) < 0.2),
-        "truncated": torch.zeros(1, m, dtype=torch.bool),
-        "episode": torch.zeros(1, m, dtype=torch.long),
-    }
+    return Transition(  # one run's: [R = 1, M, …]
+        obs=torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        next_obs=torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        action=torch.as_tensor(g.integers(0, spec.max_actions, size=(1, m, n))),
+        reward=torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
+        terminated=torch.as_tensor(g.random((1, m)) < 0.2),
+        truncated=torch.zeros(1, m, dtype=torch.bool),
+        episode=torch.zeros(1, m, dtype=torch.long),
+    )
 
 
 def fill(algo, spec: EnvSpec, rows: int = 256) -> None:
     b = random_batch(spec, rows)
-    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})  # a chunk [T = 1, R = 1, B, …]
+    algo.observe(b.map(lambda v: v.numpy()[:, None]))  # a chunk [T = 1, R = 1, B, …]
 
 
 def build(name: str, spec: EnvSpec = SPEC, **params):
@@ -75,14 +79,14 @@ def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_
     its greedy Q-values ignore the messages; with noise they hear fresh random bits at every call."""
     batch = random_batch(SPEC)
     cut = build(name, share_params=False, channel_control="cut")
-    _, sent, heard = cut.speak(cut.online, batch["obs"], train=True)
+    _, sent, heard = cut.speak(cut.online, batch.obs, train=True)
     assert sent.abs().sum() > 0 and not heard.any()
     cut.optimizer.zero_grad(set_to_none=True)
     cut.agent_losses(batch).sum().backward()
     message = [p.grad for n, p in cut.online.named_parameters() if n.startswith(("message", "encoder"))]
     assert message and all(g is None or not g.any() for g in message)
     noisy = build(name, share_params=False, channel_control="noise")
-    first, second = (noisy.speak(noisy.online, batch["obs"], train=False)[2] for _ in range(2))
+    first, second = (noisy.speak(noisy.online, batch.obs, train=False)[2] for _ in range(2))
     assert ((first == 0) | (first == 1)).all() and 0.3 < float(first.mean()) < 0.7 and (first != second).any()
     with pytest.raises(ConfigError, match="channel_control"):
         resolve_algo("ims", "referential", {"channel_control": "cut"})
@@ -167,16 +171,17 @@ def test_heterogeneous_agents_only_take_their_own_actions() -> None:
 
 def test_replay_is_a_bounded_ring() -> None:
     buf = JointReplay(10)
+    declared = sum(np.dtype(f.dtype).itemsize for f in TRANSITION.values())  # zeros [R, M] each: one item a row
     for start in range(0, 25, 5):
-        buf.add({"x": np.arange(start, start + 5)[None, :, None], "y": np.zeros((1, 5, 2, 3))})
-    assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8
-    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(15, 25))
-    buf.add({"x": np.arange(100, 130)[None, :, None], "y": np.zeros((1, 30, 2, 3))})  # more rows than capacity
-    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(120, 130))
+        buf.add(filled((1, 5), x=np.arange(start, start + 5)[None, :, None], y=np.zeros((1, 5, 2, 3))))
+    assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8 + 10 * declared
+    assert set(buf.sample(200, RunStreams([0], "replay")).extras["x"][0, :, 0].tolist()) == set(range(15, 25))
+    buf.add(filled((1, 30), x=np.arange(100, 130)[None, :, None], y=np.zeros((1, 30, 2, 3))))  # more than capacity
+    assert set(buf.sample(200, RunStreams([0], "replay")).extras["x"][0, :, 0].tolist()) == set(range(120, 130))
     with pytest.raises(ValueError, match="fields"):
-        buf.add({"x": np.zeros((1, 1, 1))})
+        buf.add(filled((1, 1), x=np.zeros((1, 1, 1))))
     with pytest.raises(ValueError, match="leading shape"):
-        buf.add({"x": np.zeros((5, 1)), "y": np.zeros((5, 2, 3))})
+        buf.add(filled((5,), x=np.zeros((5, 1)), y=np.zeros((5, 2, 3))))
 
 
 def test_checkpoint_reload_gives_identical_actions(tmp_path) -> None:
@@ -336,8 +341,8 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
 
     algo = build(name)
     b = random_batch(SPEC, 256)
-    b["reward"][:] = float("nan")
-    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})
+    b.reward[:] = float("nan")
+    algo.observe(b.map(lambda v: v.numpy()[:, None]))
     before = {k: v.clone() for k, v in algo.online.state_dict().items()}
     stats = single_update(algo)
     assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.skipped_updates == 1
@@ -355,13 +360,13 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
 def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
     from convoy.learner.service import chunk_problem
 
-    schema = {"obs": ("<f4", (3, 5)), "action": ("<i8", (3,)), "reward": ("<f4", (3,)), "mu": ("<f4", (3,))}
+    schema = {**declared_schema(3, 5), "mu": ("<f4", (3,))}
 
-    def chunk(**change: float) -> dict[str, np.ndarray]:
+    def chunk(**change: float) -> Transition[np.ndarray]:
         arrays = {k: np.zeros((2, 4, *shape), dtype=np.dtype(dtype)) for k, (dtype, shape) in schema.items()}
         for name, value in change.items():
             arrays[name][1, 2] = value
-        return arrays
+        return from_columns(arrays)
 
     n_actions = (4, 4, 2)  # heterogeneous: agent 2 has two actions
     assert chunk_problem(chunk(), schema, n_actions) is None
@@ -372,17 +377,16 @@ def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
     assert chunk_problem(chunk(obs=float("inf")), schema, n_actions) == "non-finite"
     assert chunk_problem(chunk(obs=1e30), schema, n_actions) == "non-finite"
     assert chunk_problem(chunk(mu=2.0), schema, n_actions) == "out-of-range"
-    bad_dtype = {**chunk(), "reward": np.zeros((2, 4, 3), dtype=np.float64)}
+    bad_dtype = replace(chunk(), reward=np.zeros((2, 4, 3), dtype=np.float64))
     assert chunk_problem(bad_dtype, schema, n_actions) == "schema"
-    assert chunk_problem({k: v for k, v in chunk().items() if k != "mu"}, schema, n_actions) == "schema"
+    assert chunk_problem(replace(chunk(), extras={}), schema, n_actions) == "schema"
     # MA-MeSN-MM's history travels as float16: its check must not overflow the bound into a warning per chunk
-    half = {"action": schema["action"], "history": ("<f2", (3, 4))}
-    action = np.zeros((2, 4, 3), np.int64)
+    half = {**declared_schema(3, 5), "history": ("<f2", (3, 4))}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         for value, problem in ((60000.0, None), (np.inf, "non-finite")):
             history = np.full((2, 4, 3, 4), value, np.float16)
-            assert chunk_problem({"action": action, "history": history}, half, n_actions) == problem
+            assert chunk_problem(replace(chunk(), extras={"history": history}), half, n_actions) == problem
 
 
 def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) -> None:
@@ -395,7 +399,7 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
     fresh = build("idqn")
     assert load_replay(path, fresh, env_steps=300) == 300
     a, b = algo.replay.sample(64, RunStreams([1], "replay")), fresh.replay.sample(64, RunStreams([1], "replay"))
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert all(torch.equal(v, b.columns()[k]) for k, v in a.columns().items())
     assert load_replay(path, build("idqn"), env_steps=200) == 0  # saved at another step than the checkpoint's
     assert save_replay(path, algo, env_steps=300, max_bytes=1_000) == 0 and not path.exists()  # over the bound
     path.write_bytes(b"not a zip")
@@ -432,7 +436,7 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     real = IndependentDQN.loss
     calls = {"n": 0, "every": 3}
 
-    def sometimes_nan(self: IndependentDQN, batch: dict) -> Loss:
+    def sometimes_nan(self: IndependentDQN, batch: Transition[torch.Tensor]) -> Loss:
         calls["n"] += 1
         out = real(self, batch)
         return out._replace(agents=out.agents * float("nan")) if calls["n"] % calls["every"] == 0 else out
@@ -507,12 +511,15 @@ def test_a_populations_chunks_name_runs_it_has(tmp_path: Path) -> None:
                   "action": np.zeros((2, envs, n), np.int64), "reward": np.zeros((2, envs, n), np.float32),
                   "terminated": np.zeros((2, envs), bool), "truncated": np.zeros((2, envs), bool),
                   "episode": np.zeros((2, envs), np.int64)}  # fmt: skip
-        return wire.Message("chunk", "a", 0, 0.0, wire.chunk_body(arrays, "a", 0, 2 * envs // 2, returns, runs))
+        return wire.Message("chunk", "a", 0, 0.0, wire.chunk_body(from_columns(arrays), "a", 0, envs, returns, runs))
 
-    assert learner._take(core, chunk(7, [], [])) == "schema"  # 7 envs do not split into 2 runs
-    assert learner._take(core, chunk(8, [1.0], [2])) == "out-of-range"  # the job has runs 0 and 1
-    assert learner._take(core, chunk(8, [1.0], [-1])) == "out-of-range"
+    def take(msg: wire.Message) -> str | None:
+        return learner._take(core, wire.chunk_transitions(msg.body), msg.body)
+
+    assert take(chunk(7, [], [])) == "schema"  # 7 envs do not split into 2 runs
+    assert take(chunk(8, [1.0], [2])) == "out-of-range"  # the job has runs 0 and 1
+    assert take(chunk(8, [1.0], [-1])) == "out-of-range"
     assert len(algo.replay) == 0 and core.env_steps == 0 and np.asarray(core.episodes).tolist() == [0, 0]
-    assert learner._take(core, chunk(8, [1.0, 2.0, 3.0], [1, 1, 0])) is None
+    assert take(chunk(8, [1.0, 2.0, 3.0], [1, 1, 0])) is None
     assert len(algo.replay) == 2 * 4 and core.env_steps == 2 * 4 and np.asarray(core.episodes).tolist() == [1, 2]
     core.close()

@@ -35,6 +35,7 @@ from convoy.envs import EnvSpec, make_batched
 from convoy.envs.channel import ChannelConfig, MessageChannel
 from convoy.envs.particle.referential import ReferentialBatch
 from convoy.services.training import run_inprocess
+from convoy.transition import Transition
 from convoy.validation import ConfigError
 from tests.conftest import single_update, synthetic_spec
 
@@ -63,21 +64,23 @@ def build_mm(name: str, spec: EnvSpec | None = None, seed: int = 0) -> MemoryMod
     return algo
 
 
-def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Tensor]:
+def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> Transition[Tensor]:
     """A replay-like batch with a float16 history window whose valid steps are marked, as ``act`` stores them."""
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
-    batch = {
-        "obs": torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
-        "action": torch.randint(0, a, (1, m, n), generator=g),
-        "reward": torch.randn(1, m, n, generator=g),
-        "next_obs": torch.randn(1, m, n, d, generator=g),
-        "terminated": torch.rand(1, m, generator=g) < 0.3,
-    }
+    batch = Transition(
+        obs=torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
+        action=torch.randint(0, a, (1, m, n), generator=g),
+        reward=torch.randn(1, m, n, generator=g),
+        next_obs=torch.randn(1, m, n, d, generator=g),
+        terminated=torch.rand(1, m, generator=g) < 0.3,
+        truncated=torch.zeros(1, m, dtype=torch.bool),
+        episode=torch.zeros(1, m, dtype=torch.int64),
+    )
     if isinstance(algo, MemoryModule):
         window = torch.randn(1, m, algo.window, n, d + 1, generator=g)
         window[..., -1] = 1.0
-        batch[HISTORY] = window.to(torch.float16)
+        batch.extras[HISTORY] = window.to(torch.float16)
     return batch
 
 
@@ -141,7 +144,7 @@ def test_update_trains_memory_and_reports_its_figures(name: str, monkeypatch: py
 def test_memory_loss_without_history_says_what_is_missing() -> None:
     algo = build_mm("ma-mesn-mm")
     batch = random_batch(algo)
-    del batch[HISTORY]
+    del batch.extras[HISTORY]
     with pytest.raises(KeyError, match="history"):
         algo.memory_loss(batch)
 
@@ -201,7 +204,7 @@ def test_env_stepper_records_history_and_clears_it_between_episodes() -> None:
     for _ in range(3):  # two rounds = one whole episode, then the first step of the next
         stepper.step(0.5)
     chunk = stepper.take_chunk()
-    hist, obs = chunk[HISTORY][:, 0], chunk["obs"][:, 0]  # [T, R = 1, B, …]: the run's
+    hist, obs = chunk.extras[HISTORY][:, 0], chunk.obs[:, 0]  # [T, R = 1, B, …]: the run's
     d = env.spec.obs_dim
     assert hist.dtype == np.float16 and hist.shape == (3, 8, algo.window, 2, d + 1)
     np.testing.assert_array_equal(hist[:, :, -1, :, :d], obs.astype(np.float16))  # the window ends with obs

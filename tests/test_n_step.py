@@ -11,7 +11,7 @@ from convoy.algos.algorithm import NetworkAgent, n_step_rows
 from convoy.algos.registry import make_algorithm
 from convoy.config import job_config, resolve_algo
 from convoy.envs import make_batched
-from convoy.transition import record
+from convoy.transition import Transition, record, stack
 from convoy.validation import ConfigError
 from tests.conftest import single_update
 
@@ -37,23 +37,23 @@ def loop_rows(chunk: dict[str, np.ndarray], n: int, gamma: np.ndarray) -> dict[s
     return out
 
 
-def random_chunk(lead: tuple[int, ...], t_len: int = 9, n_agents: int = 2, seed: int = 0) -> dict[str, np.ndarray]:
+def random_chunk(lead: tuple[int, ...], t_len: int = 9, n_agents: int = 2, seed: int = 0) -> Transition[np.ndarray]:
     g = np.random.default_rng(seed)
     obs = g.normal(size=(t_len, *lead, n_agents, 3)).astype(np.float32)
-    return {"obs": obs, "next_obs": obs + 1, "action": g.integers(0, 4, (t_len, *lead, n_agents)),
-            "reward": g.normal(size=(t_len, *lead, n_agents)).astype(np.float32),
-            "terminated": g.random((t_len, *lead)) < 0.15, "truncated": g.random((t_len, *lead)) < 0.1,
-            "episode": np.zeros((t_len, *lead), np.int64)}  # fmt: skip
+    return Transition(obs=obs, next_obs=obs + 1, action=g.integers(0, 4, (t_len, *lead, n_agents)),
+                      reward=g.normal(size=(t_len, *lead, n_agents)).astype(np.float32),
+                      terminated=g.random((t_len, *lead)) < 0.15, truncated=g.random((t_len, *lead)) < 0.1,
+                      episode=np.zeros((t_len, *lead), np.int64))  # fmt: skip
 
 
 @pytest.mark.parametrize("n", [1, 2, 4, 20])
 @pytest.mark.parametrize(("lead", "gamma"), [((5,), np.float32(0.9)), ((3, 4), np.array([0.9, 0.5, 0.99]))])
 def test_rows_match_the_definition(n: int, lead: tuple[int, ...], gamma: np.ndarray) -> None:
     chunk = random_chunk(lead)
-    got, want = n_step_rows(chunk, n, gamma), loop_rows(chunk, n, gamma)
+    got, want = n_step_rows(chunk, n, gamma).columns(), loop_rows(chunk.columns(), n, gamma)
     for name in want:
         np.testing.assert_allclose(got[name], want[name], rtol=1e-5, atol=1e-6, err_msg=name)
-    assert got["obs"] is chunk["obs"] and got["action"] is chunk["action"]  # step t's own fields untouched
+    assert got["obs"] is chunk.obs and got["action"] is chunk.action  # step t's own fields untouched
 
 
 def test_an_agent_learns_from_n_step_rows_and_keeps_them_apart_from_one_step() -> None:
@@ -71,10 +71,10 @@ def test_an_agent_learns_from_n_step_rows_and_keeps_them_apart_from_one_step() -
             steps.append(record(obs, out.actions, res.reward, res.final_obs, res.terminated, res.truncated,
                                 np.zeros(4, np.int64), out.extras))  # fmt: skip
             obs = res.obs
-        algo.observe({k: np.stack([s[k] for s in steps]) for k in steps[0]})
+        algo.observe(stack(steps))
         assert np.isfinite(single_update(algo)["loss"])
         rows[n] = algo.replay.sample(8, algo.streams["replay"])
-    assert "discount" not in rows[1] and "discount" in rows[3]
+    assert "discount" not in rows[1].extras and "discount" in rows[3].extras
 
 
 @pytest.mark.parametrize(("algo", "hierarchical"), [("dial", False), ("idqn", True)])
@@ -97,5 +97,5 @@ def test_the_trainer_collects_chunks_long_enough_for_n_steps(tmp_path) -> None:
         Trainer(job, env, algo, make_eval_env=lambda n: make_env(job, n), out_dir=tmp_path, progress=False).run()
     finally:
         env.close()
-    discount = algo.replay.sample(256, algo.streams["replay"])["discount"].cpu().numpy()
+    discount = algo.replay.sample(256, algo.streams["replay"]).extras["discount"].cpu().numpy()
     assert np.mean(np.isclose(discount, 0.125)) > 0.5  # most rows span all three steps: γ³

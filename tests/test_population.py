@@ -28,7 +28,9 @@ from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
 from convoy.config import ALGORITHMS, job_config, resolve_algo
 from convoy.envs.batched import EnvSpec
+from convoy.transition import Transition, from_columns
 from tests.conftest import population_update, single_update
+from tests.transitions import run_of
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 5, 5), max_steps=10)
 SEEDS = [3, 7, 11]
@@ -55,22 +57,24 @@ def config(name: str, share: bool, teacher: Path | None = None, **extra: object)
     return resolve_algo(name, "treadmill", {**hp, **extra})
 
 
-def chunk(g: np.random.Generator, runs: int) -> dict[str, np.ndarray]:
+def chunk(g: np.random.Generator, runs: int) -> Transition[np.ndarray]:
     """Random joint transitions ``[T, R, B, …]`` (the data need not come from an env to test the updates)."""
     n, d = SPEC.n_agents, SPEC.obs_dim
-    return {
-        "fingerprint": g.random((T, runs, B, 2)).astype(np.float32),
-        "history": g.normal(size=(T, runs, B, WINDOW, n, d + 1)).astype(np.float16),  # the memory module's input
-        "msg_in": (g.random((T, runs, B, n, (n - 1) * 16)) < 0.5).astype(np.float32),  # DIAL's heard messages
-        "mu": g.uniform(0.2, 1.0, size=(T, runs, B, n)).astype(np.float32),  # and behaviour probabilities
-        "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
-        "next_obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
-        "action": g.integers(0, SPEC.max_actions, size=(T, runs, B, n)),
-        "reward": g.normal(size=(T, runs, B, n)).astype(np.float32),
-        "terminated": g.random((T, runs, B)) < 0.1,
-        "truncated": np.zeros((T, runs, B), bool),
-        "episode": g.integers(0, 10, size=(T, runs, B)),
-    }
+    return from_columns(
+        {
+            "fingerprint": g.random((T, runs, B, 2)).astype(np.float32),
+            "history": g.normal(size=(T, runs, B, WINDOW, n, d + 1)).astype(np.float16),  # the memory module's input
+            "msg_in": (g.random((T, runs, B, n, (n - 1) * 16)) < 0.5).astype(np.float32),  # DIAL's heard messages
+            "mu": g.uniform(0.2, 1.0, size=(T, runs, B, n)).astype(np.float32),  # and behaviour probabilities
+            "obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
+            "next_obs": g.normal(size=(T, runs, B, n, d)).astype(np.float32),
+            "action": g.integers(0, SPEC.max_actions, size=(T, runs, B, n)),
+            "reward": g.normal(size=(T, runs, B, n)).astype(np.float32),
+            "terminated": g.random((T, runs, B)) < 0.1,
+            "truncated": np.zeros((T, runs, B), bool),
+            "episode": g.integers(0, 10, size=(T, runs, B)),
+        }
+    )
 
 
 def feed(pop, singles, g: np.random.Generator, chunks: int = 4) -> None:
@@ -79,7 +83,7 @@ def feed(pop, singles, g: np.random.Generator, chunks: int = 4) -> None:
         c = chunk(g, len(singles))
         pop.observe(c)
         for k, single in enumerate(singles):
-            single.observe({f: v[:, k] for f, v in c.items()})
+            single.observe(run_of(c, k))
 
 
 def save_teacher(path: Path) -> Path:
@@ -118,8 +122,8 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     feed(pop, singles, g)
     first = pop.sample()
     for k, single in enumerate(singles):
-        for f, v in single.sample().items():
-            assert torch.equal(first[f][k], v[0]), f"{name}: run {k}'s first batch differs in {f}"
+        for f, v in single.sample().columns().items():
+            assert torch.equal(first.columns()[f][k], v[0]), f"{name}: run {k}'s first batch differs in {f}"
     # the same exploration: ε-greedy actions from each run's own stream
     obs = g.normal(size=(len(SEEDS), B, SPEC.n_agents, SPEC.obs_dim)).astype(np.float32)
     acted = pop.act(obs, np.array([0.0, 0.3, 1.0])).actions
@@ -156,10 +160,10 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
     single = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS[0])
     g = np.random.default_rng(0)
     c = chunk(g, len(SEEDS))
-    c["reward"][:, 1] *= 1e6  # run 1: enormous TD errors, clipped hard
-    c["reward"][:, 2] = np.nan  # run 2: not finite
+    c.reward[:, 1] *= 1e6  # run 1: enormous TD errors, clipped hard
+    c.reward[:, 2] = np.nan  # run 2: not finite
     pop.observe(c)
-    single.observe({f: v[:, 0] for f, v in c.items()})
+    single.observe(run_of(c, 0))
     before = run_state(pop.online, 2)
     rows = population_update(pop)
     single_row = single_update(single)
@@ -189,9 +193,9 @@ def test_a_run_gone_non_finite_keeps_its_weights_and_adam_state_while_the_others
             single.update()
     sample = pop.sample
 
-    def run_2_not_finite() -> dict[str, torch.Tensor]:
+    def run_2_not_finite() -> Transition[torch.Tensor]:
         batch = sample()
-        batch["reward"][2] = float("nan")
+        batch.reward[2] = float("nan")
         return batch
 
     def run_2() -> dict[str, torch.Tensor]:
@@ -387,7 +391,7 @@ def test_policy_ema_evaluates_the_average_of_the_online_weights(name: str, tmp_p
     for _ in range(4):
         c = chunk(g, len(SEEDS))
         pop.observe(c)
-        single.observe({f: v[:, 1] for f, v in c.items()})
+        single.observe(run_of(c, 1))
     want = {n: w.clone() for n, w in single.online.state_dict().items()}
     for agent in (pop, single):
         agent.progress = Progress(100, 1, 1000, training=True)

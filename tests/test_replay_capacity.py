@@ -22,6 +22,8 @@ from convoy.learner.inprocess import Trainer
 from convoy.learner.population import PopulationTrainer
 from convoy.learner.resume import restore
 from convoy.services.training import make_env
+from convoy.transition import Transition
+from tests.transitions import filled
 
 SMALL = {"n_agents": 2, "max_steps": 50}
 HP: dict[str, Any] = {"hidden": [16], "learning_starts": 32, "batch_size": 16, "replay_ratio": 2.0,
@@ -29,9 +31,9 @@ HP: dict[str, Any] = {"hidden": [16], "learning_starts": 32, "batch_size": 16, "
 TIMING = ("wall_s", "env_steps_per_s", "updates_per_s")
 
 
-def rows(g: np.random.Generator, m: int, runs: int = 1) -> dict[str, np.ndarray]:
+def rows(g: np.random.Generator, m: int, runs: int = 1) -> Transition[np.ndarray]:
     lead = (runs, m)
-    return {"x": g.normal(size=(*lead, 3)).astype(np.float32), "k": g.integers(0, 9, size=lead)}
+    return filled(lead, x=g.normal(size=(*lead, 3)).astype(np.float32), action=g.integers(0, 9, size=lead))
 
 
 @pytest.mark.parametrize("runs", [1, 3], ids=["single", "population"])
@@ -47,7 +49,7 @@ def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs:
         for buf in (full, short):
             buf.add(batch, valid)
         assert short.allocated <= 50 and full.allocated == 50
-        draws = [b.sample(8, s) for b, s in zip((full, short), streams, strict=True)]
+        draws = [b.sample(8, s).columns() for b, s in zip((full, short), streams, strict=True)]
         for k in draws[0]:
             assert torch.equal(draws[0][k], draws[1][k])
         a, b = full.state_dict(), short.state_dict()
@@ -61,9 +63,10 @@ def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs:
 def test_a_reserve_allocates_only_that_and_the_capacity_still_bounds_it() -> None:
     buf = JointReplay(100)
     buf.reserve(10)
-    buf.add({"x": np.zeros((1, 4, 2), np.float32)})
-    assert buf.allocated == 10 and buf.nbytes == 10 * 2 * 4
-    buf.add({"x": np.zeros((1, 8, 2), np.float32)})  # past the reserve: grown by half at least
+    four = filled((1, 4), x=np.zeros((1, 4, 2), np.float32))
+    buf.add(four)
+    assert buf.allocated == 10 and buf.nbytes == 10 * sum(v[0, 0].nbytes for v in four.columns().values())
+    buf.add(filled((1, 8), x=np.zeros((1, 8, 2), np.float32)))  # past the reserve: grown by half at least
     assert buf.allocated == 15 and len(buf) == 12
     buf.reserve(1_000)  # more than the capacity: the capacity
     assert buf.allocated == 100

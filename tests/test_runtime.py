@@ -33,6 +33,7 @@ from convoy.protocol.session import ZenohSettings, free_port, loopback, open_ses
 from convoy.services.jobrunner import AliveSet, JobRunner
 from convoy.services.procs import ProcessGroup, Slot
 from convoy.services.training import run_inprocess
+from convoy.transition import from_columns
 from tests.busy import busy_cores
 
 REFERENTIAL: dict[str, Any] = {
@@ -456,7 +457,7 @@ def hostile_chunks(job: JobConfig) -> list[tuple[str, dict]]:
         arrays = {k: np.zeros((1, 2, *shape), dtype=np.dtype(dtype)) for k, (dtype, shape) in schema.items()}
         for name, value in change.items():
             arrays[name][...] = value
-        return wire.chunk_body(arrays, "intruder", policy_version=0, env_steps=2, returns=[])
+        return wire.chunk_body(from_columns(arrays), "intruder", policy_version=0, env_steps=2, returns=[])
 
     nan, inf = float("nan"), float("inf")
     return [("action-range", chunk(action=99)), ("non-finite", chunk(reward=nan)), ("non-finite", chunk(obs=inf))]

@@ -22,6 +22,7 @@ from convoy.algos.registry import make_algorithm
 from convoy.config import MeSNConfig, resolve_algo
 from convoy.envs.batched import EnvSpec
 from convoy.envs.particle.referential import make_referential_batch
+from convoy.transition import from_columns
 
 ROOT = Path(__file__).resolve().parents[1]
 # the run docs/algorithms.md shows for MA-MeSN on the referential game ($REF), whose settings the file's defaults are
@@ -137,7 +138,7 @@ def test_losses_and_gradients_equal_the_products(
     same_noise(agent, 7, monkeypatch)  # the same Gumbel noise: both draw one uniform per bit from this state
     gen = torch.Generator().manual_seed(7)
 
-    theirs = agent.loss({k: v[None] for k, v in data.items()}).agents[0]  # the product's batch: one run's
+    theirs = agent.loss(from_columns({k: v[None] for k, v in data.items()})).agents[0]  # the product's: one run's
     ours = single.td_losses(online, target, data, args, gen)
     assert ours.shape == (agent.n_agents,) and bool((ours > 0).all())
     torch.testing.assert_close(ours, theirs.detach(), rtol=1e-5, atol=1e-5)
@@ -165,7 +166,7 @@ def test_weights_after_adam_steps_equal_the_products(
     updates = 0
     for step in range(3):
         data = batch(agent.spec, seed=10 + step)
-        monkeypatch.setattr(agent, "sample", lambda data=data: {k: v[None] for k, v in data.items()})  # this one
+        monkeypatch.setattr(agent, "sample", lambda data=data: from_columns({k: v[None] for k, v in data.items()}))
         (figures,) = agent.update().read()
         loss, updates = single.train_step(online, target, optimizer, data, args, gen, updates)
         assert isinstance(figures, dict) and updates == agent.updates

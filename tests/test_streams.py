@@ -21,7 +21,9 @@ from convoy.algos.replay import JointReplay
 from convoy.algos.streams import STREAMS, RunStreams, hash32, legacy_counter
 from convoy.config import resolve_algo
 from convoy.envs.batched import EnvSpec
+from convoy.transition import Transition, from_columns
 from tests.test_update_device import Dispatches
+from tests.transitions import filled
 
 SEEDS = [3, 7, 11, 0, 12345]
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(6, 6, 6), n_actions=(5, 3, 5), max_steps=10)
@@ -130,20 +132,22 @@ def config(name: str, **extra: Any) -> Any:
     return resolve_algo(name, "treadmill", hp)
 
 
-def chunk(g: np.random.Generator, runs: int | None, t: int = 4, b: int = 4) -> dict[str, np.ndarray]:
+def chunk(g: np.random.Generator, runs: int | None, t: int = 4, b: int = 4) -> Transition[np.ndarray]:
     n, d = SPEC.n_agents, SPEC.obs_dim
     lead = (t, b) if runs is None else (t, runs, b)
-    return {
-        "msg_in": (g.random((*lead, n, (n - 1) * 16)) < 0.5).astype(np.float32),
-        "mu": g.uniform(0.2, 1.0, size=(*lead, n)).astype(np.float32),
-        "obs": g.normal(size=(*lead, n, d)).astype(np.float32),
-        "next_obs": g.normal(size=(*lead, n, d)).astype(np.float32),
-        "action": g.integers(0, 3, size=(*lead, n)),
-        "reward": g.normal(size=(*lead, n)).astype(np.float32),
-        "terminated": g.random(lead) < 0.1,
-        "truncated": np.zeros(lead, bool),
-        "episode": g.integers(0, 10, size=lead),
-    }
+    return from_columns(
+        {
+            "msg_in": (g.random((*lead, n, (n - 1) * 16)) < 0.5).astype(np.float32),
+            "mu": g.uniform(0.2, 1.0, size=(*lead, n)).astype(np.float32),
+            "obs": g.normal(size=(*lead, n, d)).astype(np.float32),
+            "next_obs": g.normal(size=(*lead, n, d)).astype(np.float32),
+            "action": g.integers(0, 3, size=(*lead, n)),
+            "reward": g.normal(size=(*lead, n)).astype(np.float32),
+            "terminated": g.random(lead) < 0.1,
+            "truncated": np.zeros(lead, bool),
+            "episode": g.integers(0, 10, size=lead),
+        }
+    )
 
 
 @pytest.mark.parametrize("name", ["idqn", "dial"])
@@ -259,19 +263,17 @@ def test_a_checkpoint_of_the_old_generators_loads_and_resumes_alike_every_time(n
 def test_replay_samples_on_its_device_with_one_draw_for_every_run() -> None:
     buf, single = JointReplay(50, runs=3), JointReplay(50)
     g = np.random.default_rng(0)
-    rows: dict[str, np.ndarray] = {
-        "x": g.normal(size=(3, 30, 2)).astype(np.float32),
-        "k": g.integers(0, 9, size=(3, 30)),
-    }
+    rows = filled((3, 30), x=g.normal(size=(3, 30, 2)).astype(np.float32), action=g.integers(0, 9, size=(3, 30)))
     valid = g.random((3, 30)) < 0.6
     buf.add(rows, valid)
-    single.add({f: v[1:2, valid[1]] for f, v in rows.items()})
+    single.add(rows.map(lambda v: v[1:2, valid[1]]))
     streams = RunStreams([4, 5, 6], "replay")
     got = buf.sample(16, streams)
-    assert got["x"].device == buf.device and got["x"].shape == (3, 16, 2) and got["k"].dtype == torch.int64
+    x = got.extras["x"]
+    assert x.device == buf.device and x.shape == (3, 16, 2) and got.action.dtype == torch.int64
     assert streams.counters.tolist() == [1, 1, 1]
-    alone = single.sample(16, RunStreams([5], "replay"))
-    assert all(torch.equal(got[f][1], alone[f][0]) for f in alone)
+    alone = single.sample(16, RunStreams([5], "replay")).columns()
+    assert all(torch.equal(got.columns()[f][1], alone[f][0]) for f in alone)
     with pytest.raises(ValueError, match="one per run"):
         buf.sample(4, RunStreams([0], "replay"))
     saved = single.state_dict()
@@ -292,11 +294,11 @@ def test_cuda_draws_and_replay_equal_the_cpus() -> None:
     g = np.random.default_rng(0)
     buffers = [JointReplay(40, runs=3, device=d) for d in ("cpu", "cuda")]
     for _ in range(5):
-        rows = {"x": g.normal(size=(3, 11, 2)).astype(np.float32), "done": g.random((3, 11)) < 0.5}
+        rows = filled((3, 11), x=g.normal(size=(3, 11, 2)).astype(np.float32), terminated=g.random((3, 11)) < 0.5)
         valid = g.random((3, 11)) < 0.8
         for buf in buffers:
             buf.add(rows, valid)
-    drawn = [buf.sample(64, RunStreams([1, 2, 3], "replay", buf.device)) for buf in buffers]
+    drawn = [buf.sample(64, RunStreams([1, 2, 3], "replay", buf.device)).columns() for buf in buffers]
     assert drawn[1]["x"].is_cuda and all(torch.equal(drawn[0][k], drawn[1][k].cpu()) for k in drawn[0])
     states = [buf.state_dict() for buf in buffers]
     assert all(np.array_equal(states[0]["data"][k], states[1]["data"][k]) for k in states[0]["data"])

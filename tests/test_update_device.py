@@ -8,6 +8,7 @@ from the runs' counter streams (``algos/streams.py``).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -24,6 +25,7 @@ from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW, NetworkAgent, RunAdam
 from convoy.algos.nets import run_state
 from convoy.algos.registry import make_algorithm
 from tests.test_population import POPULATION_ALGOS, SEEDS, SPEC, chunk, config, save_teacher
+from tests.transitions import run_of
 
 SHAPES = [(2, 6, 5), (2, 5), (1, 5, 3)]
 CUDA = pytest.mark.skipif(
@@ -73,9 +75,9 @@ def filled(name: str, seeds: int | list[int], device: str = "cpu", **params: Any
     runs = len(seeds) if isinstance(seeds, list) else 1
     for _ in range(2):
         c = chunk(g, runs)
-        agent.observe(c if isinstance(seeds, list) else {k: v[:, 0] for k, v in c.items()})
+        agent.observe(c if isinstance(seeds, list) else run_of(c, 0))
     batch = agent.sample()
-    agent.sample = lambda: {k: v.clone() for k, v in batch.items()}  # type: ignore[method-assign]
+    agent.sample = lambda: batch.map(torch.clone)  # type: ignore[method-assign]
     return agent
 
 
@@ -169,8 +171,8 @@ def test_an_update_reads_nothing_back_to_the_host(monkeypatch: pytest.MonkeyPatc
     grid = filled("idqn", SEEDS)
     grid.set_run_configs([config("idqn", False, hidden=(16,), batch_size=8, target_update=c) for c in (1, 2, 3)])
     batch = pop.sample()
-    batch["reward"][1] = math.nan  # run 1 not finite
-    pop.sample = lambda: {k: v.clone() for k, v in batch.items()}  # type: ignore[method-assign]
+    batch.reward[1] = math.nan  # run 1 not finite
+    pop.sample = lambda: batch.map(torch.clone)  # type: ignore[method-assign]
     rows = {}
     for agent in (single, pop, grid):
         agent.update()  # the first update makes the optimizer (its zero state), outside the count
@@ -218,8 +220,8 @@ def test_an_update_dispatches_as_many_ops_for_20_runs_as_for_one(
 def test_read_figures_fails_a_run_that_stayed_non_finite_naming_its_seed() -> None:
     pop = filled("idqn", SEEDS)
     batch = pop.sample()
-    batch["reward"][2] = math.inf
-    pop.sample = lambda: {k: v.clone() for k, v in batch.items()}  # type: ignore[method-assign]
+    batch.reward[2] = math.inf
+    pop.sample = lambda: batch.map(torch.clone)  # type: ignore[method-assign]
     figures = [pop.update() for _ in range(MAX_NONFINITE_IN_A_ROW + 3)]  # nothing read, nothing fails
     read_figures(figures[: MAX_NONFINITE_IN_A_ROW - 1])
     with pytest.raises(FloatingPointError, match=rf"run of seed {SEEDS[2]}\): {MAX_NONFINITE_IN_A_ROW} updates"):
@@ -273,11 +275,11 @@ def test_a_compiled_update_is_the_eager_update(name: str, seeds: int | list[int]
             for w, g in zip(want, got, strict=True):
                 assert w.keys() == g.keys() and all(g[k] == pytest.approx(v, rel=1e-5, abs=1e-6) for k, v in w.items())
     for (n, a), b in zip(eager.online.state_dict().items(), compiled.online.state_dict().values(), strict=True):
-        torch.testing.assert_close(b, a, rtol=0, atol=1e-5, msg=lambda m, n=n: f"{n}: {m}")
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-5, msg=functools.partial("{}: {}".format, n))
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # compiled once, never again
     assert torch._dynamo.utils.counters["inductor"]["cudagraph_skips"] == 0  # on CUDA: replayed as a CUDA graph
     batch = compiled.sample()
-    batch["reward"][-1] = math.nan  # the last run (a single run: the whole batch)
+    batch.reward[-1] = math.nan  # the last run (a single run: the whole batch)
     compiled.sample = lambda: batch  # type: ignore[method-assign]
     before = run_state(compiled.online, compiled.runs - 1)
     before = {k: v.clone() for k, v in before.items()}

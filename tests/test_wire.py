@@ -22,6 +22,7 @@ from convoy.protocol import inbox as inbox_mod
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
 from convoy.protocol.wire import WireError
+from convoy.transition import from_columns, record
 
 FAST = settings(
     max_examples=60,
@@ -80,7 +81,9 @@ def make_chunk(t: int = 2, b: int = 3, obs_dim: int = 4, seed: int = 0, **extra:
         "episode": np.arange(t * b, dtype=np.int32).reshape(t, b),
         **extra,
     }
-    return wire.chunk_body(arrays, actor="actor-0", policy_version=7, env_steps=t * b, returns=[1.5, -2.0])
+    return wire.chunk_body(
+        from_columns(arrays), actor="actor-0", policy_version=7, env_steps=t * b, returns=[1.5, -2.0]
+    )
 
 
 def ext(arr_or_dtype: Any, shape: Any = None, raw: Any = None) -> msgpack.ExtType:
@@ -132,7 +135,7 @@ def chunk_bodies(draw: st.DrawFn) -> dict[str, Any]:
     arrs = {n: draw(arrays(lead=(t, b))) for n in names}
     actor, version, steps = draw(st.text(max_size=20)), draw(INTS), draw(INTS)
     if draw(st.booleans()):
-        return wire.chunk_body(arrs, actor, version, steps, draw(st.lists(FLOATS, max_size=5)))
+        return wire.chunk_body(from_columns(arrs), actor, version, steps, draw(st.lists(FLOATS, max_size=5)))
     returns = draw(st.lists(st.one_of(INTS, FLOATS), max_size=5))
     return {"arrays": arrs, "actor": actor, "policy_version": version, "env_steps": steps, "returns": returns}
 
@@ -243,14 +246,31 @@ def test_tuples_and_numpy_scalars_in_command_args() -> None:
     assert type(got["i"]) is int and type(got["b"]) is bool
 
 
+def test_a_typed_transition_round_trips_through_the_wire() -> None:
+    """The acting loop's ``Transition`` is a map of names only inside a chunk's body: it decodes to the same fields,
+    attribute by attribute, its extras kept by name."""
+    g = np.random.default_rng(0)
+    t, b, n, d = 3, 2, 2, 4
+    step = record(g.normal(size=(t, b, n, d)), g.integers(0, 5, (t, b, n)), g.normal(size=(t, b, n)),
+                  g.normal(size=(t, b, n, d)), g.random((t, b)) < 0.5, g.random((t, b)) < 0.5,
+                  g.integers(0, 9, (t, b)), {"mu": g.random((t, b, n)).astype(np.float32)})  # fmt: skip
+    sent = wire.encode("chunk", wire.chunk_body(step, "a0", 0, t * b, []), "a0")
+    got = wire.chunk_transitions(wire.decode(sent).body)
+    for name in ("obs", "action", "reward", "next_obs", "terminated", "truncated", "episode"):
+        mine, theirs = getattr(step, name), getattr(got, name)
+        assert theirs.dtype == mine.dtype and theirs.shape == mine.shape and np.array_equal(theirs, mine), name
+    assert set(got.extras) == {"mu"} and np.array_equal(got.extras["mu"], step.extras["mu"])
+
+
 def test_typed_constructors() -> None:
-    body = wire.chunk_body(make_chunk()["arrays"], "a", np.int64(3), np.int32(12), [np.float32(1.5), 2])
+    chunk = wire.chunk_transitions(make_chunk())
+    body = wire.chunk_body(chunk, "a", np.int64(3), np.int32(12), [np.float32(1.5), 2])
     assert body["policy_version"] == 3 and type(body["policy_version"]) is int
     assert type(body["env_steps"]) is int and body["returns"] == [1.5, 2.0]
     assert all(type(r) is float for r in body["returns"])
     wire.validate("chunk", body)
     assert "return_runs" not in body  # a single run's chunk
-    pop = wire.chunk_body(make_chunk()["arrays"], "a", 3, 12, [1.5, 2.0], [np.int64(1), 0])
+    pop = wire.chunk_body(chunk, "a", 3, 12, [1.5, 2.0], [np.int64(1), 0])
     assert pop["return_runs"] == [1, 0] and all(type(r) is int for r in pop["return_runs"])
     wire.validate("chunk", pop)
     w = wire.weights_body(np.int64(5), "dqn", {"w": np.ones(2, np.float32)})
