@@ -28,8 +28,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import NEG, ActOutput, Batch, Loss, NetworkAgent, decay_progress
+from convoy.algos.algorithm import ActOutput, NetworkAgent, decay_progress
 from convoy.algos.nets import GroupMLP, id_width, with_agent_id
+from convoy.algos.updater import NEG, Batch, Loss
 from convoy.config import CoDBCConfig
 from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError

@@ -27,19 +27,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import (
-    NEG,
-    ActOutput,
-    Batch,
-    Loss,
-    NetworkAgent,
-    epsilon_at,
-    td_loss,
-    td_target,
-    with_run_axis,
-)
+from convoy.algos.algorithm import ActOutput, NetworkAgent, epsilon_at, with_run_axis
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
+from convoy.algos.updater import NEG, Batch, Loss, td_loss, td_target
 from convoy.config import DIALConfig, resolved
 from convoy.envs.batched import EnvSpec
 from convoy.transition import Transition
@@ -174,7 +165,7 @@ class DIAL(NetworkAgent):
         self.episodes_done += ended.sum(axis=(0, -1))
         due = self.episodes_done - self.synced_at >= self.cfg.target_update_episodes  # per run [R]
         if due.any():
-            self.sync_runs(due)
+            self.updater.sync_runs(due)
             self.synced_at = np.where(due, self.episodes_done, self.synced_at)
         self.last_chunk_rows = ended.shape[0] * ended.shape[-1]
         if self.cfg.replay:

@@ -16,8 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from convoy.algos.algorithm import Batch, Loss, epsilon_at, td_loss
+from convoy.algos.algorithm import epsilon_at
 from convoy.algos.idqn import IndependentDQN
+from convoy.algos.updater import Batch, Loss, td_loss
 from convoy.config import SERConfig
 
 

@@ -85,10 +85,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from convoy.algos.algorithm import ActOutput, Figures, NetworkAgent, Progress, with_run_axis
+from convoy.algos.algorithm import ActOutput, NetworkAgent, Progress, with_run_axis
 from convoy.algos.idqn import IndependentDQN
 from convoy.algos.nets import pick_device
 from convoy.algos.registry import make_algorithm
+from convoy.algos.updater import Figures
 from convoy.config import AlgoConfig, IDQNConfig, JobConfig
 from convoy.envs.batched import EnvSpec
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig

@@ -10,9 +10,10 @@ from typing import Any
 
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.entity import obs_network
 from convoy.algos.nets import id_width, with_agent_id
+from convoy.algos.updater import Batch, Loss, bootstrap_target, taken, td_loss
 from convoy.config import IDQNConfig
 
 
@@ -41,7 +42,7 @@ class IndependentDQN(NetworkAgent):
         """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network."""
         q = taken(self.online["q"](self.features(batch.obs, batch)), batch.action)
         q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
-        return q, self.bootstrap(q_fn, batch)
+        return q, bootstrap_target(self, q_fn, batch)
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""

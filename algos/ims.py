@@ -31,8 +31,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.nets import GroupLinear, GroupMLP, gumbel_bits, id_width, signalling_loss, with_agent_id
+from convoy.algos.updater import Batch, Loss, bootstrap_target, taken, td_loss
 from convoy.config import IMSConfig
 
 
@@ -119,7 +120,7 @@ class IMS(NetworkAgent):
         # the centralised pass: every round's messages stay in the graph, so each agent's loss reaches every encoder
         q = taken(self.forward(self.online, batch.obs, train=True)[0], batch.action)
         # double-Q target from the target copy of the whole stack
-        y = self.bootstrap(self.q_values, batch)
+        y = bootstrap_target(self, self.q_values, batch)
         return Loss(td_loss(q, y, self.cfg).mean(dim=-2), *self.signalling(batch))
 
     def signalling(self, batch: Batch) -> tuple[Tensor | None, dict[str, float | Tensor]]:

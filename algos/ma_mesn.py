@@ -18,7 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from convoy.algos.algorithm import Batch, Loss, NetworkAgent, taken, td_loss
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.entity import obs_network
 from convoy.algos.listening import HearsMessages
 from convoy.algos.nets import (
@@ -29,6 +29,7 @@ from convoy.algos.nets import (
     signalling_loss,
     with_agent_id,
 )
+from convoy.algos.updater import Batch, Loss, bootstrap_target, taken, td_loss
 from convoy.config import MeSNConfig, resolved
 
 
@@ -88,7 +89,7 @@ class MAMeSN(HearsMessages, NetworkAgent):
         # Q_i = f″_i(o_i, m_−i) of the actions taken
         q = taken(self.listen(self.online, x, heard), batch.action)
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair
-        y = self.bootstrap(self.q_values, batch)
+        y = bootstrap_target(self, self.q_values, batch)
         # per-agent TD losses: their sum sends every other agent's gradient into each f′_j ("collect gradients")
         td = td_loss(q, y, self.cfg).mean(dim=-2)
         if not self.cfg.signalling_coef:

@@ -36,8 +36,8 @@ from torch import Tensor, nn
 from convoy.algos.nets import GroupLinear, id_width, with_agent_id
 
 if TYPE_CHECKING:
-    from convoy.algos.algorithm import Batch, Loss
     from convoy.algos.listening import HearsMessages
+    from convoy.algos.updater import Batch, Loss
     from convoy.config import BoNMMConfig, MeSNMMConfig
 
     class _Speaker(HearsMessages):

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from convoy.algos.algorithm import Agent, Figures, Progress, epsilon_at, read_figures
+from convoy.algos.algorithm import Agent, Progress, epsilon_at
 from convoy.algos.checkpoint import (
     BEST_CHECKPOINT,
     PREVIOUS_CHECKPOINT,
@@ -27,6 +27,7 @@ from convoy.algos.checkpoint import (
     save_checkpoint,
     save_replay,
 )
+from convoy.algos.updater import Figures, read_figures
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts

@@ -234,7 +234,7 @@ def test_mesn_listener_loss_reaches_the_other_agents_message_networks_through_he
     )
     heard_in = algo.online["policy"][0].heard.layers[0]
     for i in range(n):
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(rows)[0, i].backward()
         message = sum(
             p.grad[0].abs().flatten(1).sum(1) for p in algo.online["message"].parameters() if p.grad is not None

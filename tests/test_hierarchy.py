@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent, bootstrap_target
+from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import load_checkpoint
 from convoy.algos.hierarchy import (
     CRUISE,
@@ -28,6 +28,7 @@ from convoy.algos.hierarchy import (
     HierState,
     LockstepQueue,
 )
+from convoy.algos.updater import bootstrap_target
 from convoy.config import job_config
 from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
@@ -253,8 +254,7 @@ def test_meta_target_bootstraps_with_the_option_discount() -> None:
         obs=torch.zeros(3, 2, 1),
         action=torch.ones(3, 2, dtype=torch.long),  # the greedy goal: advantage learning's gap is 0
     )
-    meta = agent.meta
-    y = bootstrap_target(lambda nets, obs: q_next, meta.online, meta.target, rows, meta.cfg, meta.action_mask)
+    y = bootstrap_target(agent.meta, lambda nets, obs: q_next, rows)
     np.testing.assert_allclose(y.numpy(), [[3.0, 3.0], [2.0, 2.0], [1.0, 1.0]])
 
 

@@ -135,7 +135,7 @@ def test_ims_agent_loss_reaches_the_other_agents_message_weights() -> None:
     algo = build_ims(synthetic_spec(3), comm_iterations=1, share_params=False)
     comm = algo.online["comm"]
     for i in range(3):
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
         speak = grad(comm, "speak.weight")[0].abs().sum(dim=(1, 2))
         for j in range(3):
@@ -175,7 +175,7 @@ def test_ma_bon_received_overrides_the_broadcast() -> None:
 def test_ma_bon_every_agent_loss_trains_the_message_network_and_the_encoders(shared: bool) -> None:
     algo = build_bon(synthetic_spec(3), share_params=shared)
     for i in range(3):
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in algo.online["message"].parameters())
         enc = algo.online.get_parameter("encoder.layers.0.weight").grad
@@ -185,7 +185,7 @@ def test_ma_bon_every_agent_loss_trains_the_message_network_and_the_encoders(sha
 def test_ma_bon_per_agent_heads_only_see_their_own_agents_loss() -> None:
     algo = build_bon(synthetic_spec(3), share_params=False)
     for i in range(3):
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
         policy = algo.online["policy"]
         assert isinstance(policy, GroupMLP)

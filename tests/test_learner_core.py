@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from convoy.algos.algorithm import NetworkAgent, epsilon_at, td_target
+from convoy.algos.algorithm import NetworkAgent, epsilon_at
 from convoy.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from convoy.algos.dqn_ser import age_weights
 from convoy.algos.listening import Source
 from convoy.algos.registry import make_algorithm
 from convoy.algos.replay import JointReplay
 from convoy.algos.streams import RunStreams
+from convoy.algos.updater import td_target
 from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
@@ -59,7 +60,7 @@ def test_mesn_td_loss_of_agent_i_reaches_other_message_nets_and_only_its_own_pol
     algo = build("ma-mesn", share_params=False)
     batch = random_batch(SPEC)
     for i in range(SPEC.n_agents):
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(batch)[0, i].backward()
         policy_grad = algo.online["policy"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))  # per agent
         message_grad = algo.online["message"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))
@@ -81,7 +82,7 @@ def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_
     cut = build(name, share_params=False, channel_control="cut")
     _, sent, heard = cut.speak(cut.online, batch.obs, train=True)
     assert sent.abs().sum() > 0 and not heard.any()
-    cut.optimizer.zero_grad(set_to_none=True)
+    cut.updater.optimizer.zero_grad(set_to_none=True)
     cut.agent_losses(batch).sum().backward()
     message = [p.grad for n, p in cut.online.named_parameters() if n.startswith(("message", "encoder"))]
     assert message and all(g is None or not g.any() for g in message)
@@ -98,11 +99,11 @@ def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     grads = []
     for i in range(SPEC.n_agents):
         algo.streams["noise"].load(0, 1)  # same Gumbel noise in every pass (the agent's own stream)
-        algo.optimizer.zero_grad(set_to_none=True)
+        algo.updater.optimizer.zero_grad(set_to_none=True)
         algo.agent_losses(batch)[0, i].backward()
         grads.append(algo.online["message"].layers[0].weight.grad.clone())
     algo.streams["noise"].load(0, 1)
-    algo.optimizer.zero_grad(set_to_none=True)
+    algo.updater.optimizer.zero_grad(set_to_none=True)
     algo.agent_losses(batch).sum().backward()
     torch.testing.assert_close(algo.online["message"].layers[0].weight.grad, sum(grads), rtol=1e-4, atol=1e-6)
 
@@ -337,7 +338,7 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
     """The skip is decided on the device: the weights, Adam's moments and its step count stay as they were, the
     update counts (the host cannot know it was skipped) and the run fails when figures that counted
     ``MAX_NONFINITE_IN_A_ROW`` in a row are read, whenever that is."""
-    from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW
+    from convoy.algos.updater import MAX_NONFINITE_IN_A_ROW
 
     algo = build(name)
     b = random_batch(SPEC, 256)
@@ -345,10 +346,10 @@ def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
     algo.observe(b.map(lambda v: v.numpy()[:, None]))
     before = {k: v.clone() for k, v in algo.online.state_dict().items()}
     stats = single_update(algo)
-    assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.skipped_updates == 1
+    assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.updater.skipped_updates == 1
     assert algo.updates == 1
     assert all(torch.equal(before[k], v) for k, v in algo.online.state_dict().items())
-    state = algo.optimizer.state_dict()["state"]
+    state = algo.updater.optimizer.state_dict()["state"]
     assert all(not st["exp_avg"].any() and not st["exp_avg_sq"].any() and st["step"] == 0 for st in state.values())
     unread = [algo.update() for _ in range(MAX_NONFINITE_IN_A_ROW - 2)]  # nothing read: nothing fails yet
     last = algo.update()
@@ -428,8 +429,8 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     ``metrics.jsonl``; one that always is ends the run with the cause instead of training on."""
     import json
 
-    from convoy.algos.algorithm import Loss
     from convoy.algos.idqn import IndependentDQN
+    from convoy.algos.updater import Loss
     from convoy.config import job_config
     from convoy.services.training import run_inprocess
 
@@ -451,7 +452,7 @@ def test_skipped_updates_reach_the_metric_rows_and_persistent_ones_end_the_run(
     assert skipped > 0 and result.updates > 0, rows[-1]
     assert all(math.isfinite(r["loss"]) for r in rows if "loss" in r and r["updates"] > 0)
     calls["every"] = 1
-    monkeypatch.setattr("convoy.algos.algorithm.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
+    monkeypatch.setattr("convoy.algos.updater.MAX_NONFINITE_IN_A_ROW", 5)  # fewer attempts than this short run makes
     with pytest.raises(FloatingPointError, match="non-finite loss"):
         run_inprocess(job, out_dir=tmp_path / "always", progress=False)
 

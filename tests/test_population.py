@@ -148,8 +148,10 @@ def test_member_k_is_the_single_run_of_seed_k(name: str, share: bool, tmp_path: 
     assert member.updates == singles[1].updates == updates
     for n, w in member.online.state_dict().items():
         torch.testing.assert_close(w, singles[1].online.state_dict()[n], rtol=0, atol=1e-5)
-    moments = member.optimizer.state_dict()["state"][0]["exp_avg"]
-    torch.testing.assert_close(moments, singles[1].optimizer.state_dict()["state"][0]["exp_avg"], rtol=0, atol=1e-5)
+    moments = member.updater.optimizer.state_dict()["state"][0]["exp_avg"]
+    torch.testing.assert_close(
+        moments, singles[1].updater.optimizer.state_dict()["state"][0]["exp_avg"], rtol=0, atol=1e-5
+    )
 
 
 def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> None:
@@ -169,10 +171,10 @@ def test_each_run_clips_its_own_gradient_and_a_nonfinite_run_is_left_alone() -> 
     single_row = single_update(single)
     assert rows[0]["grad_norm"] == pytest.approx(single_row["grad_norm"], rel=1e-5)
     assert rows[1]["grad_norm"] > 1e3 * cfg.grad_clip
-    assert np.isnan(rows[2]["loss"]) and pop.skipped_updates == 1
+    assert np.isnan(rows[2]["loss"]) and pop.updater.skipped_updates == 1
     for n, w in run_state(pop.online, 2).items():
         assert torch.equal(w, before[n]), "the non-finite run's weights moved"
-    assert not pop.optimizer.state_dict()["state"][0]["exp_avg"][2].any(), "its Adam moments moved"
+    assert not pop.updater.optimizer.state_dict()["state"][0]["exp_avg"][2].any(), "its Adam moments moved"
     for n, w in run_state(pop.online, 0).items():
         torch.testing.assert_close(w, run_state(single.online, 0)[n], rtol=0, atol=1e-6)
 
@@ -201,7 +203,7 @@ def test_a_run_gone_non_finite_keeps_its_weights_and_adam_state_while_the_others
     def run_2() -> dict[str, torch.Tensor]:
         modules = {m: getattr(pop, m) for m in ("online", "target", "average")}
         nets = {f"{m}.{k}": v for m, module in modules.items() for k, v in run_state(module, 2).items()}
-        state = pop.optimizer.state_dict()["state"]
+        state = pop.updater.optimizer.state_dict()["state"]
         return {**nets, **{f"adam.{i}.{k}": v[2].clone() for i, st in state.items() for k, v in st.items()}}
 
     before = run_2()
@@ -215,16 +217,19 @@ def test_a_run_gone_non_finite_keeps_its_weights_and_adam_state_while_the_others
     after = run_2()
     assert all(torch.equal(after[k], v) for k, v in before.items()), "run 2 moved"
     assert np.isnan(rows[2]["loss"]) and np.isnan(rows[2]["grad_norm"]) and np.isfinite(rows[0]["loss"])
-    assert pop._nonfinite_in_a_row.tolist() == [0, 0, 4] and pop.skipped_updates == 4
+    assert pop.updater._nonfinite_in_a_row.tolist() == [0, 0, 4] and pop.updater.skipped_updates == 4
     pop.sample = sample  # type: ignore[method-assign]
     for _ in range(5):
         pop.update()
         for single in singles:
             single.update()
     assert max_weight_gap(pop, singles) < 1e-5
-    assert pop._nonfinite_in_a_row.tolist() == [0, 0, 0]
+    assert pop.updater._nonfinite_in_a_row.tolist() == [0, 0, 0]
     member = pop.member(2)
-    assert member.optimizer.state_dict()["state"][0]["step"] == singles[2].optimizer.state_dict()["state"][0]["step"]
+    assert (
+        member.updater.optimizer.state_dict()["state"][0]["step"]
+        == singles[2].updater.optimizer.state_dict()["state"][0]["step"]
+    )
 
 
 @pytest.mark.parametrize("share", [False, True], ids=["per-agent", "shared"])
@@ -350,7 +355,7 @@ def test_lr_end_anneals_each_runs_learning_rate_over_the_run() -> None:
     """``lr_end``: the learning rate falls linearly from ``lr`` to ``lr_end`` as env steps go from 0 to the run's
     total, per run of a population (a run without ``lr_end`` keeps its ``lr``), and member k still follows the
     single run of its config while the schedule moves."""
-    from convoy.algos.algorithm import RunAdam, lr_at
+    from convoy.algos.updater import RunAdam, lr_at
 
     torch.set_num_threads(1)
     cfgs = [
@@ -368,10 +373,10 @@ def test_lr_end_anneals_each_runs_learning_rate_over_the_run() -> None:
             agent.update()
     at = 5 * 199 / total
     want = [1e-3 * (1 - at), 1e-3, 2e-3 - at * 1e-3]
-    assert isinstance(pop.optimizer, RunAdam)
-    np.testing.assert_allclose(pop.optimizer.lrs.numpy(), want, rtol=1e-6)
+    assert isinstance(pop.updater.optimizer, RunAdam)
+    np.testing.assert_allclose(pop.updater.optimizer.lrs.numpy(), want, rtol=1e-6)
     for single, lr in zip(singles, want, strict=True):  # a single run's: one rate, on the device
-        assert float(single.optimizer.lrs) == pytest.approx(lr, rel=1e-6)
+        assert float(single.updater.optimizer.lrs) == pytest.approx(lr, rel=1e-6)
     assert max_weight_gap(pop, singles) < 1e-5
     assert lr_at(cfgs[0], 2 * total, total) == 0.0 and lr_at(cfgs[1], total, total) == 1e-3  # held past the end
 

@@ -143,7 +143,7 @@ def test_losses_and_gradients_equal_the_products(
     assert ours.shape == (agent.n_agents,) and bool((ours > 0).all())
     torch.testing.assert_close(ours, theirs.detach(), rtol=1e-5, atol=1e-5)
 
-    agent.optimizer.zero_grad(set_to_none=True)
+    agent.updater.optimizer.zero_grad(set_to_none=True)
     theirs.sum().backward()
     ours.sum().backward()
     grads = {name: p.grad for name, p in online.named_parameters()}

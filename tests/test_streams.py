@@ -251,13 +251,13 @@ def test_a_checkpoint_of_the_old_generators_loads_and_resumes_alike_every_time(n
     for _ in range(2):
         fresh = make_algorithm(name, SPEC, config(name), device="cpu", seed=SEEDS[1])
         fresh.load_state_dict(old)
-        assert fresh.stream_state(0) == {"seed": SEEDS[1], **dict.fromkeys(STREAMS, want)}
+        assert fresh.updater.stream_state(0) == {"seed": SEEDS[1], **dict.fromkeys(STREAMS, want)}
         loaded.append(fresh.rand_like(torch.zeros(5)))
     assert torch.equal(*loaded)
     pop = make_algorithm(name, SPEC, config(name), device="cpu", seed=SEEDS[:3])
     pop.load_member_state(1, old)
-    assert pop.stream_state(1) == {"seed": SEEDS[1], **dict.fromkeys(STREAMS, want)}
-    assert pop.stream_state(0) == {"seed": SEEDS[0], **dict.fromkeys(STREAMS, 0)}
+    assert pop.updater.stream_state(1) == {"seed": SEEDS[1], **dict.fromkeys(STREAMS, want)}
+    assert pop.updater.stream_state(0) == {"seed": SEEDS[0], **dict.fromkeys(STREAMS, 0)}
 
 
 def test_replay_samples_on_its_device_with_one_draw_for_every_run() -> None:

@@ -21,9 +21,10 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW, NetworkAgent, RunAdam, read_figures
+from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.nets import run_state
 from convoy.algos.registry import make_algorithm
+from convoy.algos.updater import MAX_NONFINITE_IN_A_ROW, RunAdam, read_figures
 from tests.test_population import POPULATION_ALGOS, SEEDS, SPEC, chunk, config, save_teacher
 from tests.transitions import run_of
 
@@ -183,7 +184,7 @@ def test_an_update_reads_nothing_back_to_the_host(monkeypatch: pytest.MonkeyPatc
             rows[agent] = read_figures(figures)
         assert host_reads(mode.ops) == {"host:numpy": 1}  # six updates' figures, one read
     assert np.isnan(rows[pop][-1][1]["loss"]) and np.isfinite(rows[pop][-1][0]["loss"])
-    assert pop.skipped_updates == 7 and grid.skipped_updates == 0
+    assert pop.updater.skipped_updates == 7 and grid.updater.skipped_updates == 0
 
 
 def sampling(name: str, runs: int, teacher: Path | None) -> NetworkAgent:
@@ -250,9 +251,9 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
 )
 def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any]) -> None:
     pop = filled(name, SEEDS, **params)
-    pop.optimizer  # noqa: B018  (made before tracing, as update does)
+    pop.updater.optimizer  # noqa: B018  (made before tracing, as update does)
     with torch._dynamo.config.patch(trace_autograd_ops=True):
-        explained = torch._dynamo.explain(pop._step)(pop.sample())
+        explained = torch._dynamo.explain(pop.updater._step)(pop.sample())
     assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
 
 
