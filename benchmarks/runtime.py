@@ -196,7 +196,7 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
             returns: list[float] = []
             for _ in range(steps):
                 returns.extend(stepper.step(1.0))
-            chunk = stepper.take_chunk()
+            chunk = stepper.take_chunk().map(lambda v: v.reshape(v.shape[0], -1, *v.shape[3:]))  # as actors send
             schema = {k: (a.dtype.str, tuple(a.shape[2:])) for k, a in chunk.columns().items()}
             body = wire.chunk_body(chunk, "actor-0", 0, steps * num_envs, returns)
             payloads.append(wire.encode("chunk", body, "actor-0", c + 1))
@@ -291,7 +291,7 @@ def _ingest_subscriber(
                 else:
                     chunk = wire.chunk_transitions(msg.body)
                     chunk = replace(chunk, episode=np.full_like(chunk.episode, episodes))  # the learner's clock
-                    replay.add(chunk.map(lambda v: v.reshape(-1, *v.shape[2:])))  # Algorithm.observe
+                    replay.add(chunk.map(lambda v: v.reshape(1, -1, *v.shape[2:])))  # Algorithm.observe: [R, T·B]
                     t_len, b = chunk.obs.shape[:2]
                     steps += t_len * b
                     episodes += len(msg.body["returns"])
@@ -373,7 +373,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
         if set(arrays) != set(schema) or any(a.dtype.str != schema[k][0] for k, a in arrays.items()):
             raise RuntimeError("chunk does not match its own schema")
         chunk = wire.chunk_transitions(msg.body)
-        replay.add(replace(chunk, episode=np.full_like(chunk.episode, i)).map(lambda v: v.reshape(-1, *v.shape[2:])))
+        replay.add(replace(chunk, episode=np.full_like(chunk.episode, i)).map(lambda v: v.reshape(1, -1, *v.shape[2:])))
     return time.perf_counter() - t0
 
 
