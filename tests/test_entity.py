@@ -59,8 +59,14 @@ def permuted(obs: np.ndarray, spec: EnvSpec, g: np.random.Generator) -> np.ndarr
 
 @pytest.mark.parametrize(
     "params",
-    [{}, SIGHTINGS, {**SIGHTINGS, "observe_k": 1, "n_agents": 2}, {**SIGHTINGS, "adversary_stealth": True}],
-    ids=["default", "sightings", "one-slot", "stealth"],
+    [
+        {},
+        SIGHTINGS,
+        {**SIGHTINGS, "observe_k": 1, "n_agents": 2},
+        {**SIGHTINGS, "adversary_stealth": True},
+        {**SIGHTINGS, "sighting_headings": True, "adversary_speed": 7, "adversary_steer_speed": 3},
+    ],
+    ids=["default", "sightings", "one-slot", "stealth", "sighting-headings"],
 )
 def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
     """The layout lives beside the engine (``envs/layout.py``): every token must match the engine's own state —
@@ -84,7 +90,7 @@ def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
 
     np.testing.assert_allclose(sensor[..., 1], np.where(seen, np.take_along_axis(rel_x, near, 2) / r, 0), atol=1e-6)
     np.testing.assert_allclose(sensor[..., 2], np.where(seen, np.take_along_axis(rel_y, near, 2) / r, 0), atol=1e-6)
-    np.testing.assert_allclose(sensor[..., 3] * cfg.max_speed, np.where(seen, of_seen(env.speed), 0), atol=1e-5)
+    np.testing.assert_allclose(sensor[..., 3] * cfg.top_speed, np.where(seen, of_seen(env.speed), 0), atol=1e-5)
     np.testing.assert_array_equal(sensor[..., 4 : 4 + h].argmax(-1)[seen], of_seen(env.heading)[seen])
     flags = sensor[..., 4 + h :]  # heading known, adversary, adversary known, source one-hot
     np.testing.assert_array_equal(flags[..., 0], seen)  # the sensor gives a heading
@@ -101,7 +107,11 @@ def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
     for col, rel in ((1, rel_x), (2, rel_y)):  # a teammate may be out of sensor range: clipped to ±1 like every feature
         want = np.where(known, np.clip(rel[:, me, others] / r, -1, 1), 0)
         np.testing.assert_allclose(told[..., col], want, atol=1e-6)
-    assert not told[..., 4 : 4 + h + 1].any(), "a sighting gives no heading"
+    if cfg.sighting_headings:  # the told car's own heading, as a sensor slot gives it
+        np.testing.assert_array_equal(told[..., 4 : 4 + h].argmax(-1)[known], env.heading[:, others][known])
+        np.testing.assert_array_equal(told[..., 4 + h], known)  # heading known
+    else:
+        assert not told[..., 4 : 4 + h + 1].any(), "a sighting gives no heading"
     np.testing.assert_array_equal(told[..., 5 + h], known & (others >= n))  # adversary
     np.testing.assert_array_equal(told[..., 6 + h], known)  # adversary known
     np.testing.assert_array_equal(told[..., 7 + h + ENTITY_SOURCES.index("told")], known)
