@@ -169,13 +169,9 @@ class Actor:
         s.chunk_runs.extend(s.stepper.ended_runs.tolist())
 
     def _publish_chunk(self, pub: Any, s: _Acting) -> None:
-        arrays = s.stepper.take_chunk()
-        runs = self.job.runs
-        if runs:  # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
-            arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in arrays.items()}
-        body = wire.chunk_body(
-            arrays, self.ident, s.version, s.t_len * s.b, s.chunk_returns, s.chunk_runs if runs else None
-        )
+        # [T, R, B, …] → [T, R·B, …]: the wire's chunks are [T, B, …]
+        arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in s.stepper.take_chunk().items()}
+        body = wire.chunk_body(arrays, self.ident, s.version, s.t_len * s.b, s.chunk_returns, s.chunk_runs)
         s.seq += 1
         pub.put(wire.encode("chunk", body, self.ident, s.seq))
         self.stats.env_steps += s.t_len * s.stepper.env.num_envs  # every run's: the actor's throughput

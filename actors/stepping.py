@@ -4,18 +4,16 @@ and the agent as a policy for the one evaluation loop, ``envs.rollout`` (greedy 
 :class:`EnvStepper` acts, steps every env, appends the joint transition to a chunk ``[T, B, …]`` and keeps each
 env's running return and the episode stamp that stabilised experience replay weighs samples by.
 
-For a population of R runs (``algo.runs``) the env holds R·B envs, run k's B envs seeded as the single run of
-``algo.seeds[k]`` seeds its own; the agent sees ``[R, B, …]``, chunks are ``[T, R, B, …]``, and episode stamps count
-each run's own episodes.
+The agent holds R runs (``algo.runs``; a single run is R = 1): the env holds R·B envs, run k's B envs seeded as the
+single run of ``algo.seeds[k]`` seeds its own; the agent sees ``[R, B, …]``, chunks are ``[T, R, B, …]``, and episode
+stamps count each run's own episodes.
 """
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 
-from convoy.algos.algorithm import ActOutput, Agent, Population
+from convoy.algos.algorithm import ActOutput, Agent
 from convoy.envs.batched import BatchedEnv, StepResult, env_seeds
 from convoy.transition import ENV_MAJOR, record
 
@@ -29,26 +27,24 @@ def transition(obs: np.ndarray, out: ActOutput, res: StepResult, episode: np.nda
 
 class EnvStepper:
     """``algo`` acting in ``env`` (reset with ``seed``); ``step`` records into the chunk ``take_chunk`` returns
-    (unless ``record`` is off) and keeps its act's output as ``last``."""
+    (unless ``record`` is off) and keeps its act's output as ``last``, env-major like the env (``[R·B, …]``)."""
 
     def __init__(self, env: BatchedEnv, algo: Agent, seed: int, record: bool = True) -> None:
         self.env, self.algo, self.record = env, algo, record
         self.last: ActOutput | None = None
         b, n = env.num_envs, env.spec.n_agents
-        self.runs: int | None = getattr(algo, "runs", None)
-        if self.runs is None:
-            self.obs = env.reset(seed=seed)
-        else:
-            if b % self.runs:
-                raise ValueError(f"num_envs: {b} envs do not split evenly among the population's {self.runs} runs")
-            seeds = cast(Population, algo).seeds  # it has runs: a population, one seed per run
-            per_run = [env_seeds(s, b // self.runs) for s in seeds]
-            self.obs = env.reset(seed=np.concatenate(per_run))
-        self.run_of_env = np.repeat(np.arange(self.runs or 1), b // (self.runs or 1))
-        self.state = algo.initial_state(b // (self.runs or 1))
+        self.runs = algo.runs
+        if b % self.runs:
+            raise ValueError(f"num_envs: {b} envs do not split evenly among the population's {self.runs} runs")
+        # a run of one seeds its envs with ``seed`` (an actor's own, a recording's); a population's runs each with
+        # their own seed, as the single run of that seed does
+        seeds = algo.seeds if self.runs > 1 else (seed,)
+        self.obs = env.reset(seed=np.concatenate([env_seeds(s, b // self.runs) for s in seeds]))
+        self.run_of_env = np.repeat(np.arange(self.runs), b // self.runs)
+        self.state = algo.initial_state(b // self.runs)
         self.ep_ret = np.zeros((b, n))
         self.episode_id = np.zeros(b, dtype=np.int64)  # episodes of its run finished when each env's episode began
-        self.episodes_by_run = np.zeros(self.runs or 1, dtype=np.int64)
+        self.episodes_by_run = np.zeros(self.runs, dtype=np.int64)
         self.ended_runs = np.zeros(0, dtype=np.int64)  # the run of each return the last step reported
         self._chunk: dict[str, list[np.ndarray]] = {}
 
@@ -57,14 +53,14 @@ class EnvStepper:
         return int(self.episodes_by_run.sum())
 
     def _split(self, x: np.ndarray) -> np.ndarray:
-        """``[R·B, …]`` → ``[R, B, …]`` for a population; unchanged for a single run."""
-        return x if self.runs is None else x.reshape(self.runs, -1, *x.shape[1:])
+        """``[R·B, …]`` → ``[R, B, …]``."""
+        return x.reshape(self.runs, -1, *x.shape[1:])
 
     def step(self, epsilon: float | np.ndarray) -> list[float]:
         """One ε-greedy step of every env; the returns (mean over agents) of the episodes that just ended."""
         out = self.algo.act(self._split(self.obs), epsilon, self.state)
         res = self.env.step(out.actions.reshape(self.env.num_envs, -1))
-        self.last = out
+        self.last = out.shaped((self.env.num_envs,))
         if self.record:
             for k, v in transition(self.obs, out, res, self.episode_id).items():
                 self._chunk.setdefault(k, []).append(self._split(v) if k in ENV_MAJOR else v)

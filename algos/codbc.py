@@ -43,7 +43,6 @@ class CoDBC(NetworkAgent):
     name = "codbc"
     cfg: CoDBCConfig
     syncs_by_updates = False  # no bootstrapping: no target to sync
-    population = True  # the runs share one frozen teacher
 
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
@@ -75,8 +74,10 @@ class CoDBC(NetworkAgent):
         return self.logits(obs), None, None
 
     def teacher_actions(self, obs: Tensor) -> Tensor:
-        q, _, _ = self.teacher.greedy_q(obs, None)
-        return q.masked_fill(~self.action_mask, NEG).argmax(dim=-1)
+        """The teacher's greedy actions ``[..., N]`` for observations ``[..., N, D]``: one teacher (a run of one)
+        for every run, its rows laid end to end."""
+        q, _, _ = self.teacher.greedy_q(obs.reshape(1, -1, *obs.shape[-2:]), None)
+        return q.masked_fill(~self.action_mask, NEG).argmax(dim=-1).reshape(obs.shape[:-1])
 
     def teacher_share(self) -> float:
         """DAgger's β: the share of envs the teacher drives — only while collecting training data."""
@@ -86,15 +87,12 @@ class CoDBC(NetworkAgent):
         return self.cfg.teacher_fraction * (1.0 - decay_progress(self.cfg, p.env_steps, p.total_steps))
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
+    def act_runs(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
         """The student's ε-greedy actions, with the teacher driving a decaying share of the envs (DAgger's β)."""
-        out = super().act(obs, epsilon, state)
+        out = super().act_runs(obs, epsilon, state)
         beta = self.teacher_share()
-        if beta > 0:  # each run draws its envs from its own stream, after its exploration draws
-            if self.runs is None:
-                drive = np.asarray(self.rng.random(obs.shape[0]) < beta)
-            else:
-                drive = np.stack([rng.random(obs.shape[1]) < beta for rng in self.rngs])
+        if beta > 0:  # each run draws its envs from its own exploration stream, after its exploration draw
+            drive = (self.streams["explore"].uniform(obs.shape[1]) < beta).cpu().numpy()  # [R, B]
             if drive.any():
                 rows = torch.as_tensor(obs[drive], dtype=torch.float32, device=self.device)
                 out.actions[drive] = self.teacher_actions(rows).cpu().numpy()
@@ -102,7 +100,7 @@ class CoDBC(NetworkAgent):
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's cross-entropy to the teacher's greedy action in every visited state (DAgger's labels)."""
-        logits = self.logits(batch["obs"])  # [M, N, A] (a population's [R, M, N, A])
+        logits = self.logits(batch["obs"])  # [R, M, N, A]
         with torch.no_grad():
             labels = self.teacher_actions(batch["obs"])  # [M, N]
             agreement = (logits.argmax(dim=-1) == labels).float().mean(dim=(-2, -1))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,6 +35,7 @@ from convoy.algos.algorithm import (
     epsilon_at,
     td_loss,
     td_target,
+    with_run_axis,
 )
 from convoy.algos.nets import GroupMLP, gather_others, id_width, others_index, with_agent_id
 from convoy.algos.replay import JointReplay
@@ -66,7 +67,6 @@ class DIAL(NetworkAgent):
     cfg: DIALConfig
     uses_messages = True
     syncs_by_updates = False  # targets follow finished episodes (``observe``), each run's own in a population
-    population = True
 
     def __init__(
         self, spec: EnvSpec, cfg: DIALConfig, device: str | torch.device = "auto", seed: int | Sequence[int] = 0
@@ -74,19 +74,19 @@ class DIAL(NetworkAgent):
         super().__init__(spec, cfg, device=device, seed=seed)
         self.chunk_len = int(cfg.unroll)
         self.seq_len = int(cfg.unroll)
-        self.noise = self.torch_rngs[0]  # the DRU's noise: the run's own generator
         self.n_actions_t = torch.as_tensor(spec.n_actions, dtype=torch.float32, device=self.device)  # [N]
         # Replay (when on) holds whole sequences: one row = ``unroll`` steps of one env.
-        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs)
+        self.replay = JointReplay(max(1, cfg.replay_capacity // self.seq_len), runs=self.runs, device=self.device)
         self.pending: deque[dict[str, np.ndarray]] = deque(maxlen=MAX_PENDING)
         self.last_chunk_rows = 0
-        self.t_dim = 0 if self.runs is None else 1  # batches are time-major [T, B, …], a population's [R, T, B, …]
+        self.t_dim = 1  # batches are per run, time-major: [R, T, B, …]
         # finished episodes seen in observed chunks (drives target syncs) and their count at the last sync, per run
-        self.episodes_done: int | np.ndarray = 0 if self.runs is None else np.zeros(self.runs, dtype=np.int64)
-        self.synced_at: int | np.ndarray = 0 if self.runs is None else np.zeros(self.runs, dtype=np.int64)
+        self.episodes_done = np.zeros(self.runs, dtype=np.int64)
+        self.synced_at = np.zeros(self.runs, dtype=np.int64)
 
     def randn(self, x: Tensor) -> Tensor:
-        return self.rand_like(x, torch.randn)
+        """The DRU's noise: normals from each run's own noise stream."""
+        return self.rand_like(x, normal=True)
 
     # --- networks ----------------------------------------------------------------------------------------------
     def build(self) -> dict[str, nn.Module]:
@@ -126,13 +126,12 @@ class DIAL(NetworkAgent):
     # --- acting ------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Tensor:
         """No message has been sent before an episode's first step."""
-        runs = () if self.runs is None else (self.runs,)
-        return torch.zeros(*runs, num_envs, self.n_agents, self.bits, device=self.device)
+        return torch.zeros(self.runs, num_envs, self.n_agents, self.bits, device=self.device)
 
-    def reset_state(self, state: Any, done: np.ndarray) -> Any:
+    def reset_runs(self, state: Any, done: np.ndarray) -> Any:
         if state is None:
             return None
-        keep = torch.as_tensor(~np.asarray(done, dtype=bool), device=self.device).to(state.dtype)
+        keep = torch.as_tensor(~done, device=self.device).to(state.dtype)
         return state * keep[..., None, None]
 
     def execute(self, obs: Tensor, state: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
@@ -148,9 +147,10 @@ class DIAL(NetworkAgent):
         return q, sent, sent
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
+    def act_runs(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> ActOutput:
         """ε-greedy actions, plus the extras a sequence needs to restart mid-episode: ``msg_in`` (messages heard,
-        ``[B, N, (N−1)·bits]``) and ``mu`` (behaviour probability of each taken action, ``[B, N]``, for replay)."""
+        ``[R, B, N, (N−1)·bits]``) and ``mu`` (behaviour probability of each taken action, ``[R, B, N]``, for
+        replay)."""
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         q, sent, heard = self.execute(obs_t, state)
         actions, greedy, eps = self.explore(q, epsilon)
@@ -167,19 +167,16 @@ class DIAL(NetworkAgent):
         missing = [k for k in keys if k not in chunk]
         if missing:
             raise KeyError(f"DIAL chunk lacks {missing}: collect it with DIAL.act and stack out.extras into it")
-        data = {k: np.asarray(chunk[k]) for k in keys}
-        ended = data["terminated"] | data["truncated"]  # [T, B] or a population's [T, R, B]
-        self.episodes_done += ended.sum(axis=(0, -1)) if self.runs else int(ended.sum())
-        due = self.episodes_done - self.synced_at >= self.cfg.target_update_episodes
-        if self.runs is None and due:
-            self.sync_target()
-            self.synced_at = self.episodes_done
-        elif self.runs is not None and isinstance(due, np.ndarray) and due.any():  # a population's: per run [R]
+        data = with_run_axis({k: chunk[k] for k in keys}, self.runs)  # [T, R, B, …]
+        ended = data["terminated"] | data["truncated"]
+        self.episodes_done += ended.sum(axis=(0, -1))
+        due = self.episodes_done - self.synced_at >= self.cfg.target_update_episodes  # per run [R]
+        if due.any():
             self.sync_runs(due)
             self.synced_at = np.where(due, self.episodes_done, self.synced_at)
         self.last_chunk_rows = ended.shape[0] * ended.shape[-1]
         if self.cfg.replay:
-            self.replay.add(self.to_sequences(data) if self.runs is None else self.run_sequences(data))
+            self.replay.add(self.run_sequences(data))
         else:
             self.pending.append(data)
 
@@ -202,7 +199,7 @@ class DIAL(NetworkAgent):
         return rows
 
     def run_sequences(self, data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """A population's chunk ``[T, R, B, …]`` → each run's sequences ``[R, S, L, …]``, in a single run's order."""
+        """A chunk ``[T, R, B, …]`` → each run's sequences ``[R, S, L, …]``, in a single run's order."""
         t, r, b = data["terminated"].shape
         rows = self.to_sequences({k: v.reshape(t, r * b, *v.shape[3:]) for k, v in data.items()})
         return {
@@ -228,13 +225,10 @@ class DIAL(NetworkAgent):
     def sample(self) -> Batch:
         """The next sequence batch ``[T, B, …]``: the oldest queued chunk (on-policy) or ``batch_size`` sequences
         drawn uniformly from the ring."""
-        if self.cfg.replay:
-            rows = self.replay.sample(self.cfg.batch_size, self.rng if self.runs is None else self.rngs)
-            data = {k: v.swapaxes(self.t_dim, self.t_dim + 1) for k, v in rows.items()}  # [(R,) L, n, …]
-        else:
-            data = self.pending.popleft()
-            if self.runs is not None:
-                data = {k: v.swapaxes(0, 1) for k, v in data.items()}  # [T, R, B, …] → [R, T, B, …]
+        if self.cfg.replay:  # drawn and gathered on the device
+            rows = self.replay.sample(self.cfg.batch_size, self.streams["replay"])
+            return {k: v.transpose(self.t_dim, self.t_dim + 1).contiguous() for k, v in rows.items()}  # [(R,) L, n, …]
+        data = {k: v.swapaxes(0, 1) for k, v in self.pending.popleft().items()}  # [T, R, B, …] → [R, T, B, …]
         return {k: torch.as_tensor(np.ascontiguousarray(v), device=self.device) for k, v in data.items()}
 
     # --- learning ----------------------------------------------------------------------------------------------
@@ -286,25 +280,9 @@ class DIAL(NetworkAgent):
         return Loss((err * w.unsqueeze(-1)).sum(dim=(-3, -2)) / steps)
 
     # --- persistence -------------------------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
-        state = super().state_dict()
-        state.update(self.member_state(0))
-        return state
-
     def member_state(self, k: int) -> dict[str, Any]:
-        done, synced = np.asarray(self.episodes_done).reshape(-1), np.asarray(self.synced_at).reshape(-1)
-        counts = {"episodes_done": int(done[k]), "synced_at": int(synced[k])}
-        return {**counts, "dru_rng": self.torch_rngs[k].get_state()}
+        return {"episodes_done": int(self.episodes_done[k]), "synced_at": int(self.synced_at[k])}  # noise: a stream
 
     def load_member_extra(self, k: int, state: dict[str, Any]) -> None:
-        done, synced = cast(np.ndarray, self.episodes_done), cast(np.ndarray, self.synced_at)  # a population's: [R]
-        done[k] = int(state["episodes_done"])
-        synced[k] = int(state["synced_at"])
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        super().load_state_dict(state)
-        self.episodes_done = int(state["episodes_done"])
-        self.synced_at = int(state["synced_at"])
-        rng_state = state["dru_rng"]
-        if rng_state.numel() == self.noise.get_state().numel():  # a CPU ↔ CUDA checkpoint keeps this stream
-            self.noise.set_state(rng_state)
+        self.episodes_done[k] = int(state["episodes_done"])
+        self.synced_at[k] = int(state["synced_at"])

@@ -31,7 +31,6 @@ class DQNSER(IndependentDQN):
     """Independent DQN whose sampled losses are weighted by sample age (and optionally fingerprinted)."""
 
     name = "dqn-ser"
-    population = True
     cfg: SERConfig
     FP_DIM = 2
 
@@ -70,9 +69,6 @@ class DQNSER(IndependentDQN):
         counts the episodes collected since (in a population, each run's own episodes).
         """
         err = td_loss(*self.q_and_y(batch), self.cfg)
-        if self.runs is None:
-            now: int | Tensor = int(self.progress.episodes)
-        else:
-            now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
+        now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
         w = age_weights(batch["episode"], now, self.cfg.ser_horizon)
         return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))

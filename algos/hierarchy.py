@@ -84,7 +84,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from convoy.algos.algorithm import ActOutput, NetworkAgent, Progress
+from convoy.algos.algorithm import ActOutput, Figures, NetworkAgent, Progress, with_run_axis
 from convoy.algos.idqn import IndependentDQN
 from convoy.algos.nets import pick_device
 from convoy.algos.registry import make_algorithm
@@ -221,6 +221,28 @@ class LockstepQueue:
         return out
 
 
+@dataclass(frozen=True)
+class LevelFigures(Figures):
+    """Both levels' figures of one update: ``controller_loss`` and ``meta_loss`` (NaN for a level that did not
+    learn) and ``loss``, their sum; read as each level's are, in the same host read."""
+
+    n_runs: int
+    levels: dict[str, Figures]  # the levels that learned in this update
+
+    def tensors(self) -> list[Tensor]:
+        return [t for figures in self.levels.values() for t in figures.tensors()]
+
+    def rows(self, host: list[np.ndarray]) -> list[dict[str, float]]:
+        rows = [{"loss": 0.0, "controller_loss": math.nan, "meta_loss": math.nan} for _ in range(self.n_runs)]
+        for level, figures in self.levels.items():
+            n = len(figures.tensors())
+            own, host = host[:n], host[n:]
+            for row, values in zip(rows, figures.rows(own), strict=True):
+                row[f"{level}_loss"] = values["loss"]
+                row["loss"] += values["loss"]
+        return rows
+
+
 class HierarchicalAgent:
     """Meta-controller (the job's algorithm over goals) + goal-conditioned double-DQN controller, driven through the
     calls of the ``Agent`` protocol (act / observe / can_update / updates_for / update / state_dict)."""
@@ -260,12 +282,9 @@ class HierarchicalAgent:
             max_steps=math.ceil(spec.max_steps / self.goal_steps),
             layout=spec.layout,  # the meta level reads the env's observations
         )
-        self.runs: int | None = job.runs
         self.seeds: tuple[int, ...] = tuple(job.run_seeds())
-        population = list(self.seeds) if self.runs else None
-        self.meta: NetworkAgent = make_algorithm(
-            job.algo, meta_spec, self.cfg, device=self.device, seed=population or job.seed
-        )
+        self.runs = len(self.seeds)  # a single run is a population of one
+        self.meta: NetworkAgent = make_algorithm(job.algo, meta_spec, self.cfg, device=self.device, seed=self.seeds)
         ctrl_spec = EnvSpec(
             name=f"{spec.name}-controller",
             agent_ids=("controller",),
@@ -277,7 +296,7 @@ class HierarchicalAgent:
             ctrl_spec,
             self._controller_config(self.cfg),
             device=self.device,
-            seed=[s + 1 for s in self.seeds] if self.runs else job.seed + 1,
+            seed=[s + 1 for s in self.seeds],
         )
         self.env_reward_scale = float(1.0 - self.cfg.gamma if env_reward_scale is None else env_reward_scale)
         self.name = f"h-{self.meta.name}"
@@ -293,7 +312,7 @@ class HierarchicalAgent:
         # meta algorithm gets variable-length options and an SMDP target
         self.fixed_options = self.meta.chunk_len > 1
         self._queue = LockstepQueue(self.meta.chunk_len, 2 * self.meta.chunk_len) if self.fixed_options else None
-        if self.fixed_options and self.runs:
+        if self.fixed_options and self.runs > 1:
             raise ValueError("hierarchy: a DIAL meta-controller trains one seed per process (drop seeds)")
 
     def _controller_config(self, cfg: AlgoConfig) -> IDQNConfig:
@@ -341,8 +360,8 @@ class HierarchicalAgent:
 
     # --- acting ------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> HierState:
-        """Every env starts a new option at its first step (a population's: ``num_envs`` per run, ``[R, B, …]``)."""
-        lead = (num_envs,) if self.runs is None else (self.runs, num_envs)
+        """Every env starts a new option at its first step (``num_envs`` per run, ``[R, B, …]``)."""
+        lead = (self.runs, num_envs)
         return HierState(
             goal=np.zeros((*lead, self.n_agents), dtype=np.int64),
             anchor=np.zeros((*lead, self.n_agents, self.obs_dim), dtype=np.float32),
@@ -355,11 +374,11 @@ class HierarchicalAgent:
         """An episode's end ends its option: the env starts a new one (and a fresh meta state) at its next act."""
         if state is None:
             return None
-        done = np.asarray(done, dtype=bool)
+        done = np.asarray(done, dtype=bool).reshape(self.runs, -1)
         return replace(state, fresh=state.fresh | done, meta=self.meta.reset_state(state.meta, done))
 
     def controller_input(self, obs: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """``obs ⊕ one_hot(goal)`` as controller rows ``[B·N, 1, D + n_goals]`` (a population's ``[R, B·N, …]``)."""
+        """``obs ⊕ one_hot(goal)`` as controller rows ``[R, B·N, 1, D + n_goals]``."""
         x = np.concatenate([obs.astype(np.float32, copy=False), self.goal_eye[goal]], axis=-1)
         return x.reshape(*obs.shape[:-3], -1, 1, x.shape[-1])
 
@@ -369,23 +388,24 @@ class HierarchicalAgent:
         over = steps >= self.goal_steps
         return over if self.fixed_options else over | hit.any(axis=-1)
 
-    def _env_epsilon(self, epsilon: float | np.ndarray, lead: tuple[int, ...]) -> np.ndarray:
-        """ε per env ``lead`` from a scalar, one per env, or (a population) one per run ``[R]`` or per run and env."""
+    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: HierState | None = None) -> ActOutput:
+        """``NetworkAgent.act``: ``obs [R, B, N, D]``, or a single run's ``[B, N, D]`` (what comes back then has no
+        run axis either)."""
         eps = np.asarray(epsilon, dtype=np.float64)
-        if self.runs is not None and eps.ndim == 1:
-            eps = eps[:, None]
-        return np.broadcast_to(eps, lead)
+        runs = np.reshape(obs, (self.runs, -1, *np.shape(obs)[-2:]))
+        return self.act_runs(runs, eps.reshape(self.runs, -1) if eps.ndim else eps, state).shaped(obs.shape[:-2])
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: HierState | None = None) -> ActOutput:
-        """New goals for envs whose option is over (meta, ε-greedy), then primitive actions (controller, ε-greedy).
+    def act_runs(self, obs: np.ndarray, epsilon: float | np.ndarray, state: HierState | None) -> ActOutput:
+        """New goals for envs whose option is over (meta, ε-greedy), then primitive actions (controller, ε-greedy),
+        ``obs [R, B, N, D]``, ε a scalar or ``[R, 1 or B]``.
 
         Option boundaries are judged here from the observations alone, so acting without ``observe`` (evaluation)
         is the same as in training.
         """
         lead, n = obs.shape[:-2], self.n_agents
         st = self.initial_state(lead[-1]) if state is None else state
-        eps = self._env_epsilon(epsilon, lead)
+        eps = np.broadcast_to(epsilon, lead)
         hit = self.critic.reached(st.goal, st.anchor, obs) & ~st.fresh[..., None]
         new = st.fresh | self.option_over(st.steps, hit)
         steps = np.where(new, 0, st.steps) + 1
@@ -410,7 +430,9 @@ class HierarchicalAgent:
 
     # --- learning ----------------------------------------------------------------------------------------------
     def observe(self, chunk: dict[str, np.ndarray]) -> None:
-        """Controller rows for every step of a ``[T, B]`` chunk, meta-transitions for the options that ended."""
+        """Controller rows for every step of a ``[T, R, B]`` chunk (a single run's may be ``[T, B]``),
+        meta-transitions for the options that ended."""
+        chunk = with_run_axis(chunk, self.runs)
         for t in range(chunk["obs"].shape[0]):
             self._observe_step({k: np.asarray(v[t]) for k, v in chunk.items()})
             self._envs = chunk["obs"].shape[-3]
@@ -443,7 +465,7 @@ class HierarchicalAgent:
         return p
 
     def _observe_step(self, s: dict[str, np.ndarray]) -> None:
-        """One step ``[B, …]``: every agent's controller transition, then the meta-transitions of ended options."""
+        """One step ``[R, B, …]``: every agent's controller transition, then the meta-transitions of ended options."""
         p = self._open_options(s)
         obs, nxt = s["obs"], s["next_obs"]
         term, trunc = s["terminated"].astype(bool), s["truncated"].astype(bool)
@@ -470,29 +492,27 @@ class HierarchicalAgent:
         ended = p["open"] & (self.option_over(s["h_steps"], hit) | term | trunc)
         if not ended.any():
             return
-        e: Any = np.flatnonzero(ended) if self.runs is None else np.s_[...]  # a population: every row, ``valid`` below
-        meta_rows = {
-            "obs": p["first"][e],
-            "action": goal[e],
-            "reward": p["ret"][e],
-            "next_obs": nxt[e],
-            "terminated": term[e],
-            "truncated": trunc[e],
-            "episode": episode[e],
-            **({} if self.fixed_options else {"discount": p["disc"][e]}),
-            **{k[len(META_PREFIX) :]: v[e] for k, v in p["extras"].items()},
+        meta_rows = {  # [R, B, …]: every env's, ``ended`` the ones that are meta-transitions
+            "obs": p["first"],
+            "action": goal,
+            "reward": p["ret"],
+            "next_obs": nxt,
+            "terminated": term,
+            "truncated": trunc,
+            "episode": episode,
+            **({} if self.fixed_options else {"discount": p["disc"]}),
+            **{k[len(META_PREFIX) :]: v for k, v in p["extras"].items()},
         }
         p["open"][ended] = False
-        if self.runs is not None:
+        if self._queue is None:
             self.meta.observe({k: v[None] for k, v in meta_rows.items()}, valid=ended[None])
             return
-        self._feed_meta(lead[0], e, meta_rows)
+        envs = np.flatnonzero(ended[0])  # DIAL's lockstep sequences: fixed options, one run
+        self._feed_meta(lead[-1], envs, {k: v[0, envs] for k, v in meta_rows.items()})
 
     def _feed_meta(self, num_envs: int, envs: np.ndarray, rows: dict[str, np.ndarray]) -> None:
-        """Hand meta-transitions to the meta-controller: ``[1, M]`` now, or ``[T, B]`` lockstep chunks for DIAL."""
-        if self._queue is None:
-            self.meta.observe({k: v[None] for k, v in rows.items()})
-            return
+        """Hand DIAL's meta-transitions to the meta-controller as ``[T, B]`` lockstep chunks."""
+        assert self._queue is not None
         self._queue.push(num_envs, envs, rows)
         while (chunk := self._queue.pop()) is not None:
             self.meta.observe(chunk)
@@ -513,24 +533,20 @@ class HierarchicalAgent:
         """Updates owed for ``n_transitions`` joint env steps: the controller's replay ratio over its N rows each."""
         return self.controller.updates_for(n_transitions * self.n_agents)
 
-    def update(self) -> dict[str, float] | list[dict[str, float]]:
-        """One controller step and one meta step, each when its level can learn (a population's figures per run).
+    def update(self) -> LevelFigures:
+        """One controller step and one meta step, each when its level can learn (a population's figures per run,
+        left on the device as each level's are).
 
         An option spans ≥ 1 steps, so the meta level receives at most as many meta-transitions as there are joint
         env steps; one meta step per call gives it at least the controller's replay ratio on its own (scarcer) data.
         """
-        rows = [{"loss": 0.0, "controller_loss": float("nan"), "meta_loss": float("nan")} for _ in self.seeds]
-        for level, algo, ready in (
-            ("controller", self.controller, self.controller.can_update()),
-            ("meta", self.meta, self.meta_can_update()),
-        ):
-            if ready:
-                out = algo.update()
-                for row, figures in zip(rows, [out] if isinstance(out, dict) else out, strict=True):
-                    row[f"{level}_loss"] = figures["loss"]
-                    row["loss"] += figures["loss"]
+        learns = {"controller": self.controller.can_update(), "meta": self.meta_can_update()}  # asked before either
+        levels: dict[str, Figures] = {}
+        for level, algo in (("controller", self.controller), ("meta", self.meta)):
+            if learns[level]:
+                levels[level] = algo.update()
         self.updates += 1
-        return rows[0] if self.runs is None else rows
+        return LevelFigures(len(self.seeds), levels)
 
     # --- persistence -------------------------------------------------------------------------------------------
     def policy_state(self) -> dict[str, Tensor]:
@@ -569,8 +585,8 @@ class HierarchicalAgent:
     # --- a population's runs as single runs ----------------------------------------------------------------------
     def member(self, k: int) -> HierarchicalAgent:
         """Run k of a population as a single-run hierarchical agent of its seed, both levels holding the run's
-        current state (``NetworkAgent.member``): what its evaluation and checkpoints use."""
-        if self.runs is None:
+        current state (``NetworkAgent.member``): what its evaluation and checkpoints use. A run of one is its own."""
+        if self.runs == 1:
             return self
         agent = self._members.get(k)
         if agent is None:

@@ -20,7 +20,6 @@ class IndependentDQN(NetworkAgent):
     """N independent (double) DQNs, evaluated in one batched pass; shared weights when ``share_params``."""
 
     name = "idqn"
-    population = True
     cfg: IDQNConfig
 
     def input_width(self) -> int:

@@ -75,7 +75,6 @@ class IMS(NetworkAgent):
     """CommNet with P rounds of averaged messages; every round is one batched pass over all agents."""
 
     name = "ims"
-    population = True
     cfg: IMSConfig
     uses_messages = True
 

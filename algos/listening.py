@@ -146,11 +146,12 @@ class HearsMessages(_OnAgent):
     cfg: MeSNConfig | BoNConfig  # a config with ``channel_control``
     bits: int
 
-    def reset_state(self, state: Any, done: np.ndarray) -> Any:
-        """Also forget the channel's in-flight messages of envs whose episode ended (latency)."""
+    def reset_runs(self, state: Any, done: np.ndarray) -> Any:
+        """Also forget the channel's in-flight messages of envs whose episode ended (latency; evaluation's single
+        run, ``done [1, B]``)."""
         if self.listening is not None:
-            self.listening.reset(done)
-        return super().reset_state(state, done)
+            self.listening.reset(done.reshape(-1))
+        return super().reset_runs(state, done)
 
     def control(self, heard: Tensor) -> Tensor:
         """What listeners hear under ``channel_control`` (in training and at execution): the messages, zeros
@@ -169,7 +170,7 @@ class HearsMessages(_OnAgent):
     def hear(self, heard: Tensor, predicted: Tensor | None = None) -> Tensor:
         if self.listening is None:
             return heard
-        shape = heard.shape
-        split = (*shape[:-1], self.senders, self.bits)
+        shape = heard.shape  # [R, B, N, senders·bits]: a listening serves one run (evaluation), as envs [R·B]
+        split = (-1, shape[-2], self.senders, self.bits)
         pred = None if predicted is None else predicted.reshape(split)
         return self.listening.hear(heard.reshape(split), pred).reshape(shape)

@@ -42,7 +42,6 @@ class MABoN(HearsMessages, NetworkAgent):
     """Broadcast network: encoders → f′ (one message per env) → g′ for every agent in one batched call."""
 
     name = "ma-bon"
-    population = True
     cfg: BoNConfig
     uses_messages = True
 

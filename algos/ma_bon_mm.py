@@ -15,5 +15,4 @@ class MABoNMM(MemoryModule, MABoN):
     """MA-BoN whose agents also learn to predict the broadcast message."""
 
     name = "ma-bon-mm"
-    population = True
     cfg: BoNMMConfig

@@ -36,7 +36,6 @@ class MAMeSN(HearsMessages, NetworkAgent):
     """Message-sharing network; all agents' messages and Q-values come from one batched pass each."""
 
     name = "ma-mesn"
-    population = True
     cfg: MeSNConfig
     uses_messages = True
 

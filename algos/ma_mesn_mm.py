@@ -17,5 +17,4 @@ class MAMeSNMM(MemoryModule, MAMeSN):
     """MA-MeSN whose agents also learn to predict their peers' messages."""
 
     name = "ma-mesn-mm"
-    population = True
     cfg: MeSNMMConfig

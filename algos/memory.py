@@ -86,14 +86,17 @@ class GroupLSTM(nn.Module):
         self.head = GroupLinear(groups, hidden, out_features)
 
     def forward(self, seq: Tensor) -> Tensor:
-        if getattr(self.head, "runs", None) is not None:
-            return self._forward_runs(seq)
-        m, steps, n, width = seq.shape
-        if self.groups == 1:
-            flat = seq.permute(0, 2, 1, 3).reshape(m * n, steps, width)  # every agent's window is a sequence
-            _, (h, _) = self.lstm(flat)
-            last: Tensor = self.head(h[-1].reshape(m, n, self.hidden))  # torch leaves a module call untyped
+        runs = self.head.runs  # stacked runs (``stack_runs``), 0 for one run's module
+        if runs == 1 and self.groups == 1:  # a stack of one run: torch's fused LSTM on its weights, its numbers
+            weights = {k: v[0] for k, v in self.lstm.named_parameters()}
+            last: Tensor = self.head(self._fused(seq[0], weights).unsqueeze(0))  # torch leaves a module call untyped
             return last
+        if runs:
+            return self._forward_runs(seq)
+        if self.groups == 1:
+            out: Tensor = self.head(self._fused(seq))
+            return out
+        m, steps, n, _ = seq.shape
         gates_in = self.inp(seq)  # every step's input projection in one call
         h = seq.new_zeros(m, n, self.hidden)
         c = torch.zeros_like(h)
@@ -101,8 +104,17 @@ class GroupLSTM(nn.Module):
             i, f, g, o = (gates_in[:, t] + self.rec(h)).chunk(4, dim=-1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
             h = torch.sigmoid(o) * torch.tanh(c)
-        out: Tensor = self.head(h)
+        out = self.head(h)
         return out
+
+    def _fused(self, seq: Tensor, weights: dict[str, Tensor] | None = None) -> Tensor:
+        """The shared weights' last hidden state ``[M, N, hidden]`` of one run's windows ``[M, L, N, in]``: torch's
+        fused ``nn.LSTM`` (with ``weights`` in place of its own, a stacked run's)."""
+        m, steps, n, width = seq.shape
+        flat = seq.permute(0, 2, 1, 3).reshape(m * n, steps, width)  # every agent's window is a sequence
+        _, (h, _) = self.lstm(flat) if weights is None else torch.func.functional_call(self.lstm, weights, (flat,))
+        last: Tensor = h[-1]
+        return last.reshape(m, n, self.hidden)
 
     def _forward_runs(self, seq: Tensor) -> Tensor:
         """A population's windows ``[R, M, L, N, in]`` → ``[R, M, N, out]``: the grouped cell stepped by hand; with
@@ -153,11 +165,10 @@ class MemoryModule(_Speaker):
 
     # --- acting: the window is the recurrent state -------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Tensor:
-        runs = () if self.runs is None else (self.runs,)
-        return torch.zeros(*runs, num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
+        return torch.zeros(self.runs, num_envs, self.window, self.n_agents, self.obs_dim + 1, device=self.device)
 
-    def reset_state(self, state: Tensor, done: np.ndarray) -> Tensor:
-        state = super().reset_state(state, done)  # the channel's in-flight messages
+    def reset_runs(self, state: Tensor, done: np.ndarray) -> Tensor:
+        state = super().reset_runs(state, done)  # the channel's in-flight messages
         if not done.any():
             return state
         state = state.clone()
@@ -206,7 +217,7 @@ class MemoryModule(_Speaker):
         with torch.no_grad():
             _, _, heard = self.speak(self.online, batch["obs"], False)
             target = heard.reshape(logits.shape)
-        per_run = tuple(range(1 if self.runs else 0, logits.dim()))  # a population's figures are per run
+        per_run = tuple(range(1, logits.dim()))  # figures per run
         bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none").mean(dim=per_run)
         with torch.no_grad():
             right = (logits > 0) == (target > 0.5)
@@ -214,6 +225,6 @@ class MemoryModule(_Speaker):
         stats = {
             "memory_loss": bce.detach(),
             "memory_bit_acc": right.float().mean(dim=per_run),
-            "memory_msg_acc": msg_right.float().mean(dim=tuple(range(1 if self.runs else 0, msg_right.dim()))),
+            "memory_msg_acc": msg_right.float().mean(dim=tuple(range(1, msg_right.dim()))),
         }
         return self.cfg.memory_coef * bce, stats

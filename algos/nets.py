@@ -34,29 +34,38 @@ def pick_device(name: str = "auto") -> torch.device:
 class GroupLinear(nn.Module):
     """A linear layer per agent group: input ``[..., N, in]`` → ``[..., N, out]``.
 
-    With ``runs`` = R (a population of R independent runs, see :func:`stack_runs`) every weight carries a leading run
-    axis, ``[R, G, in, out]``, inputs are ``[R, ..., N, in]`` and each run's rows meet only its own weights: one
-    ``baddbmm`` over runs (and agent groups) instead of a Python loop.
+    A layer as ``build`` makes it is one run's. Stacked (:func:`stack_runs`, what an agent trains: R ≥ 1 runs)
+    every weight carries a leading run axis, ``[R, G, in, out]``, inputs are ``[R, ..., N, in]`` and each run's rows
+    meet only its own weights: one ``baddbmm`` over runs (and agent groups) instead of a Python loop. A stack of one
+    run computes with the one-run kernels, so a single run's numbers are the unstacked layer's bit for bit.
     """
 
     def __init__(self, groups: int, in_features: int, out_features: int) -> None:
         super().__init__()
         self.groups, self.in_features, self.out_features = groups, in_features, out_features
-        self.runs: int | None = None
+        self.runs = 0  # stacked runs (``stack_runs``); 0: one run's layer, no run axis
         bound = 1.0 / math.sqrt(max(in_features, 1))
         self.weight = nn.Parameter(torch.empty(groups, in_features, out_features).uniform_(-bound, bound))
         self.bias = nn.Parameter(torch.empty(groups, out_features).uniform_(-bound, bound))
 
     def forward(self, x: Tensor) -> Tensor:
-        if self.runs is not None:
+        if self.runs > 1:
             return self._forward_runs(x)
+        if self.runs == 1:  # a stack of one run: the one-run kernels on its weights
+            if x.shape[0] != 1:
+                raise ValueError(f"GroupLinear of one run expected a run axis of 1 on dim 0, got {tuple(x.shape)}")
+            return self._forward_one(x[0], self.weight[0], self.bias[0]).unsqueeze(0)
+        return self._forward_one(x, self.weight, self.bias)
+
+    def _forward_one(self, x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+        """One run's ``[..., N, in]`` → ``[..., N, out]`` with its weights ``[G, in, out]``."""
         if self.groups == 1:  # one 2-D matmul over every row of every agent (3-D matmuls backprop slowly)
             flat = x.reshape(-1, self.in_features)
-            return torch.addmm(self.bias[0], flat, self.weight[0]).reshape(*x.shape[:-1], self.out_features)
+            return torch.addmm(bias[0], flat, weight[0]).reshape(*x.shape[:-1], self.out_features)
         n = self._agents(x)
         lead = x.shape[:-2]
         flat = x.reshape(-1, n, self.in_features).transpose(0, 1)  # [N, M, in]
-        out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight)  # [N, M, out]
+        out = torch.baddbmm(bias.unsqueeze(1), flat, weight)  # [N, M, out]
         return out.transpose(0, 1).reshape(*lead, n, self.out_features)
 
     def _forward_runs(self, x: Tensor) -> Tensor:
@@ -192,7 +201,7 @@ def bit_logits(logits: Tensor, bits: int, bound: float | None = None) -> Tensor:
     return diff if bound is None else bound * torch.tanh(diff / bound)
 
 
-def channel_information(diff: Tensor, runs: int | None = None) -> Tensor:
+def channel_information(diff: Tensor, runs: int = 1) -> Tensor:
     """A batch estimate of I(observation; message) in nats per sender: H(message) − H(message | observation).
 
     ``diff [..., S, bits]`` are the senders' bit logits over a batch of M observations (all leading dims). H(message |
@@ -202,24 +211,22 @@ def channel_information(diff: Tensor, runs: int | None = None) -> Tensor:
     alone lets it collapse onto one codeword. Estimated bit by bit instead, it counts a bit copied 16 times as 16
     bits, and long runs ended with 16 copies of one split (message entropy ≈ ln 2).
 
-    With ``runs`` = R the first dim is the run axis and each run gets its own estimate ``[R]``.
+    The first dim is the run axis, ``runs`` = R, and each run gets its own estimate ``[R]``.
     """
-    lead = runs or 1
-    d = diff.reshape(lead, -1, *diff.shape[-2:]).transpose(1, 2)  # [R, S, M, bits]
+    d = diff.reshape(runs, -1, *diff.shape[-2:]).transpose(1, 2)  # [R, S, M, bits]
     log_p, log_q = F.logsigmoid(d), F.logsigmoid(-d)  # log P(bit = 1), log P(bit = 0)
     cond = (-(log_p.exp() * log_p + log_q.exp() * log_q)).sum(dim=-1).mean(dim=-1)  # [R, S]
     code = (d > 0).to(d.dtype)  # each observation's most likely codeword
     log_lik = code @ log_p.transpose(-1, -2) + (1 - code) @ log_q.transpose(-1, -2)  # [R, S, n, m]: log P(c_n | o_m)
     marginal = -(torch.logsumexp(log_lik, dim=-1) - math.log(d.shape[2])).mean(dim=-1)  # [R, S]
-    info = (marginal - cond).mean(dim=-1)
-    return info if runs else info[0]
+    return (marginal - cond).mean(dim=-1)
 
 
 def signalling_loss(
-    logits: Tensor, bits: int, cfg: GumbelConfig, runs: int | None = None
+    logits: Tensor, bits: int, cfg: GumbelConfig, runs: int = 1
 ) -> tuple[Tensor | None, dict[str, float | Tensor]]:
-    """−signalling_coef × I(observation; message) from a batch's message logits (None when the term is off); per
-    run ``[R]`` with ``runs``."""
+    """−signalling_coef × I(observation; message) from a batch's message logits ``[R, …]`` (None when the term is
+    off), per run ``[R]``."""
     if not cfg.signalling_coef:
         return None, {}
     info = channel_information(bit_logits(logits, bits, cfg.message_logit_bound), runs)

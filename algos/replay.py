@@ -1,63 +1,85 @@
-"""The joint replay buffer: a preallocated numpy ring of whole joint transitions.
+"""The joint replay buffer: a preallocated ring of whole joint transitions, held on the training device.
 
 Centralized algorithms need every agent's view of the same step, so one row holds all agents' observations at t
 and t+1, their actions and rewards, the termination flag and the episode id (what stabilised experience replay
 weighs by), plus whatever else an algorithm asked to keep (a fingerprint, received messages). Rows are written
-and read as whole slices, never one element at a time; arrays are allocated on the first insert, from its
+and read as whole slices, never one element at a time; tensors are allocated on the first insert, from its
 shapes and dtypes, and never grow past ``capacity``. Given the declared transition (``convoy.transition.schema``),
 every insert is held to it: a declared field missing, or of another dtype or shape, is refused with its name.
 
-``capacity`` is where the ring wraps; the arrays hold only the rows a run can store, ``reserve(rows)``: a run of
+``capacity`` is where the ring wraps; the tensors hold only the rows a run can store, ``reserve(rows)``: a run of
 S env steps never stores more than about S rows, so a 20 k-step run with the treadmill's 1 M capacity allocates
-20 k rows, not 1 M (1.2 GB). Should more come (a resumed run past its budget), the arrays grow, up to ``capacity``.
+20 k rows, not 1 M (1.2 GB). Should more come (a resumed run past its budget), the tensors grow, up to ``capacity``.
 Until a ring wraps its rows sit at 0 … size − 1 whatever its allocation, and samples draw ``[0, size)``: a run
 that fits reads and samples exactly what it did with every row allocated up front.
 
-A population of R runs keeps R rings in one array ``[R, rows, …]``, each with its own write pointer and size:
-usually every run inserts the same rows at the same times, but a hierarchical meta-controller gets a transition only
-where an option ended, so ``add(rows, valid)`` inserts each run's valid rows only. A sample draws each run's indices
-from that run's own stream, over that run's own rows, exactly as its single run's buffer would.
+R runs (a single run is R = 1) keep R rings in one tensor ``[R, rows, …]``, each with its own write pointer and
+size: usually every run inserts the same rows at the same times, but a hierarchical meta-controller gets a
+transition only where an option ended, so ``add(rows, valid)`` inserts each run's valid rows only.
+
+Why on the device. An update samples a batch: drawn on the host, that was one generator call per run and a copy of
+every field to the device, every update. Here the rows live where the networks train (``device``), inserts copy the
+host's numpy chunks over once (on CUDA through pinned memory, without blocking), and ``sample`` draws every run's
+indices in one batched draw of the runs' own streams (``algos.streams``), over each run's own rows, and gathers
+device tensors: run k's batch is exactly what the single run of its seed samples. The write pointers and sizes stay
+on the host, where the inserts come from; the sizes are mirrored on the device, so a sample reads no host value.
+``state_dict`` writes numpy arrays, the layout the replay files (``replay.npz``) have always had.
 """
 
 from __future__ import annotations
 
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
+import torch
+from torch import Tensor
+
+from convoy.algos.streams import RunStreams
+
+
+def torch_dtype(dtype: np.dtype[Any]) -> torch.dtype:
+    """The torch dtype of a numpy one."""
+    return torch.from_numpy(np.empty(0, dtype)).dtype
 
 
 class JointReplay:
-    """Fixed-capacity ring of transitions; ``add`` takes any number of rows, ``sample`` returns a dict of arrays."""
+    """Fixed-capacity ring of transitions; ``add`` takes numpy rows, ``sample`` returns a dict of device tensors."""
 
     def __init__(
-        self, capacity: int, runs: int | None = None, declared: dict[str, tuple[str, tuple[int, ...]]] | None = None
+        self,
+        capacity: int,
+        runs: int = 1,
+        declared: dict[str, tuple[str, tuple[int, ...]]] | None = None,
+        device: str | torch.device = "cpu",
     ) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity: must be ≥ 1 (got {capacity})")
+        if not 1 <= capacity < 2**31:  # sample's multiply-shift needs size · 2^32 < 2^63
+            raise ValueError(f"capacity: must be ≥ 1 and < 2^31 (got {capacity})")
         self.capacity = capacity
         self.runs = runs
         self.declared = declared or {}  # field → (dtype, per-row shape) every insert must hold
-        self._data: dict[str, np.ndarray] = {}
+        self.device = torch.device(device)
+        self._data: dict[str, Tensor] = {}  # field → [R, rows, …]
         self._reserve = capacity  # rows allocated at the first insert (``reserve``)
-        self._next = np.zeros(runs or (), dtype=np.int64)  # a population's per run [R]
-        self._size = np.zeros(runs or (), dtype=np.int64)
+        self._next = np.zeros(runs, dtype=np.int64)  # per run [R]
+        self._size = np.zeros(runs, dtype=np.int64)
+        self._high = torch.zeros(runs, 1, dtype=torch.int64, device=self.device)  # the sizes, on the device
+        self._run = torch.arange(runs, device=self.device)[:, None]  # [R, 1]: where each run's rows start
 
     def __len__(self) -> int:
-        """Rows held (a population's: the fewest any run holds)."""
+        """Rows held (the fewest any run holds)."""
         return int(self._size.min())
 
     @property
     def nbytes(self) -> int:
-        """Bytes allocated (a population's: all runs')."""
-        return sum(a.nbytes for a in self._data.values())
+        """Bytes allocated (all runs')."""
+        return sum(v.numel() * v.element_size() for v in self._data.values())
 
     @property
     def allocated(self) -> int:
         """Rows allocated per run: ``capacity`` once the ring has wrapped, up to then as few as ``reserve`` asked."""
         if not self._data:
             return 0
-        first = next(iter(self._data.values()))
-        return int(first.shape[0 if self.runs is None else 1])
+        return int(next(iter(self._data.values())).shape[1])
 
     def reserve(self, rows: int) -> None:
         """Allocate ``rows`` per run (at most ``capacity``) instead of ``capacity``: the most this run will store.
@@ -81,117 +103,137 @@ class JointReplay:
         short of ``capacity`` grows, and such a ring has not wrapped: its rows are 0 … size − 1, where they stay."""
         held = self.allocated
         for k, v in self._data.items():
-            new = np.zeros((rows, *v.shape[1:]) if self.runs is None else (v.shape[0], rows, *v.shape[2:]), v.dtype)
-            new[np.s_[:held] if self.runs is None else np.s_[:, :held]] = v
+            new = torch.zeros((v.shape[0], rows, *v.shape[2:]), dtype=v.dtype, device=v.device)
+            new[:, :held] = v
             self._data[k] = new
 
     def add(self, rows: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
-        """Append rows (every array shares the leading dim M; a population's ``[R, M, …]``); the oldest rows are
-        overwritten when full. ``valid [R, M]`` (a population): only those rows, each run's in order, to its ring."""
-        self._check_declared(rows)
-        if self.runs is not None and (valid is not None or (self._next != self._next[0]).any()):
-            self._add_valid(rows, np.ones(np.shape(next(iter(rows.values())))[:2], bool) if valid is None else valid)
+        """Append rows ``[R, M, …]`` (every array shares the leading dims); the oldest rows are overwritten when full.
+        ``valid [R, M]``: only those rows, each run's in order, to its ring."""
+        runs = {k: np.asarray(v) for k, v in rows.items()}
+        if any(v.ndim < 2 or v.shape[0] != self.runs for v in runs.values()):
+            shapes = {k: v.shape for k, v in runs.items()}
+            raise ValueError(f"rows: every field needs the leading shape [R = {self.runs}, M], got {shapes}")
+        self._check_declared(runs)
+        if valid is not None or (self._next != self._next[0]).any():
+            ones = np.ones(np.shape(next(iter(runs.values())))[:2], bool)
+            self._add_valid(runs, ones if valid is None else np.asarray(valid, bool).reshape(len(self._next), -1))
             return
-        if self.runs is not None:
-            rows = {k: np.moveaxis(np.asarray(v), 0, 1) for k, v in rows.items()}  # [M, R, …] for the ring logic
-        sizes = {k: len(v) for k, v in rows.items()}
+        sizes = {k: v.shape[1] for k, v in runs.items()}
         m = next(iter(sizes.values()))
         if any(s != m for s in sizes.values()):
             raise ValueError(f"rows: every field needs the same leading size, got {sizes}")
-        if not self._data:
-            self._data = {k: self._allocate(np.asarray(v)) for k, v in rows.items()}
-        elif set(rows) != set(self._data):
-            raise ValueError(f"rows: fields {sorted(rows)} differ from the buffer's {sorted(self._data)}")
+        self._fields(runs)
         if m > self.capacity:  # only the newest rows can survive
-            rows = {k: v[-self.capacity :] for k, v in rows.items()}
+            runs = {k: v[:, -self.capacity :] for k, v in runs.items()}
             m = self.capacity
-        at = int(self._next.flat[0])  # one pointer for all runs here
+        at = int(self._next[0])  # one pointer for all runs here
         self._room(min(at + m, self.capacity))
         first = min(m, self.capacity - at)  # up to the end of the ring, then the wrapped rest: 2 slices
-        for k, v in rows.items():
-            buf = self._data[k] if self.runs is None else np.moveaxis(self._data[k], 0, 1)  # a view [cap, R, …]
-            buf[at : at + first] = v[:first]
-            buf[: m - first] = v[first:]
+        for k, v in runs.items():
+            staged = self._stage(v)
+            self._data[k][:, at : at + first] = staged[:, :first]
+            self._data[k][:, : m - first] = staged[:, first:]
         self._next = (self._next + m) % self.capacity
         self._size = np.minimum(self._size + m, self.capacity)
+        self._sync_sizes()
 
     def _check_declared(self, rows: dict[str, np.ndarray]) -> None:
-        lead = 1 if self.runs is None else 2
         for name, (dtype, shape) in self.declared.items():
             if name not in rows:
                 raise ValueError(f"rows: no {name!r}, a field of the declared transition (convoy.transition)")
             v = rows[name]
-            if v.dtype.str != dtype or v.shape[lead:] != shape:
-                raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[lead:]} per row; the declared "
+            if v.dtype.str != dtype or v.shape[2:] != shape:
+                raise ValueError(f"rows: {name!r} is {v.dtype.str} {v.shape[2:]} per row; the declared "
                                  f"transition holds {dtype} {shape}")  # fmt: skip
 
-    def _add_valid(self, rows: dict[str, np.ndarray], valid: np.ndarray) -> None:
-        """A population's rows ``[R, M, …]`` where ``valid [R, M]``: run k's valid rows go to its ring in order, as
-        ``add`` of just those rows writes a single run's (the newest ``capacity`` of them when there are more)."""
-        valid = np.asarray(valid, dtype=bool)
-        rows = {k: np.asarray(v) for k, v in rows.items()}
-        if any(v.shape[:2] != valid.shape for v in rows.values()) or valid.shape[0] != self.runs:
-            shapes = {k: v.shape[:2] for k, v in rows.items()}
-            raise ValueError(f"rows: every field needs the leading shape of valid {valid.shape}, got {shapes}")
+    def _fields(self, runs: dict[str, np.ndarray]) -> None:
+        """Allocate the fields from the first rows ``[R, M, …]``; later rows must bring the same fields."""
         if not self._data:
-            self._data = {k: self._allocate(np.moveaxis(v, 0, 1)) for k, v in rows.items()}
-        elif set(rows) != set(self._data):
-            raise ValueError(f"rows: fields {sorted(rows)} differ from the buffer's {sorted(self._data)}")
+            self._data = {k: self._allocate(v) for k, v in runs.items()}
+        elif set(runs) != set(self._data):
+            raise ValueError(f"rows: fields {sorted(runs)} differ from the buffer's {sorted(self._data)}")
+
+    def _add_valid(self, runs: dict[str, np.ndarray], valid: np.ndarray) -> None:
+        """Rows ``[R, M, …]`` where ``valid [R, M]``: run k's valid rows go to its ring in order, as ``add`` of
+        just those rows writes a single run's (the newest ``capacity`` of them when there are more)."""
+        if any(v.shape[:2] != valid.shape for v in runs.values()) or valid.shape[0] != len(self._next):
+            shapes = {k: v.shape[:2] for k, v in runs.items()}
+            raise ValueError(f"rows: every field needs the leading shape of valid {valid.shape}, got {shapes}")
+        self._fields(runs)
         count = valid.sum(axis=1)
         self._room(int(np.minimum(self._next + count, self.capacity).max(initial=0)))
         skip = np.maximum(count - self.capacity, 0)  # only the newest rows can survive
         rank = np.cumsum(valid, axis=1) - 1 - skip[:, None]
         run, col = np.nonzero(valid & (rank >= 0))
         dest = (self._next[run] + rank[run, col]) % self.capacity
-        for k, v in rows.items():
-            self._data[k][run, dest] = v[run, col]
+        at = (self._stage(run), self._stage(dest))
+        for k, v in runs.items():
+            self._data[k][at] = self._stage(v[run, col])  # only the kept rows cross to the device
         self._next = (self._next + count - skip) % self.capacity
         self._size = np.minimum(self._size + count, self.capacity)
+        self._sync_sizes()
 
-    def _allocate(self, v: np.ndarray, rows: int = 0) -> np.ndarray:
-        """A zeroed field for rows like ``v``'s: ``reserve`` rows per run, or ``rows`` when more (≤ capacity)."""
+    def _stage(self, v: np.ndarray) -> Tensor:
+        """Host rows on the device. On CUDA through pinned memory and a non-blocking copy: the caching host allocator
+        keeps the pinned block until its copy has run, so the next insert never overwrites rows in flight."""
+        if self.device.type != "cuda":
+            return torch.from_numpy(np.require(v, requirements=["C", "W"]))  # written into the ring, never kept
+        pinned = torch.empty(v.shape, dtype=torch_dtype(v.dtype), pin_memory=True)
+        pinned.numpy()[...] = v
+        return pinned.to(self.device, non_blocking=True)
+
+    def _sync_sizes(self) -> None:
+        """The sizes onto the device after an insert, so that ``sample`` never reads them from the host."""
+        self._high.copy_(torch.from_numpy(self._size).view(-1, 1))
+
+    def _allocate(self, v: np.ndarray, rows: int = 0) -> Tensor:
+        """A zeroed field for rows like ``v``'s ``[R, M, …]``: ``reserve`` rows per run, or ``rows`` when more (≤
+        capacity)."""
         n = min(max(self._reserve, rows), self.capacity)
-        if self.runs is None:
-            return np.zeros((n, *v.shape[1:]), dtype=v.dtype)
-        return np.zeros((v.shape[1], n, *v.shape[2:]), dtype=v.dtype)
+        return torch.zeros((v.shape[0], n, *v.shape[2:]), dtype=torch_dtype(v.dtype), device=self.device)
 
-    def sample(self, n: int, rng: np.random.Generator | list[np.random.Generator]) -> dict[str, np.ndarray]:
-        """``n`` rows drawn uniformly with replacement; a population's ``[R, n, …]``, run k's rows drawn by
-        ``rng[k]`` exactly as a single run's buffer would draw them."""
+    def sample(self, n: int, streams: RunStreams) -> dict[str, Tensor]:
+        """``n`` rows per run drawn uniformly with replacement, on the device, ``[R, n, …]``: run k's rows drawn by its
+        stream in ``streams`` (one batched draw for all runs) exactly as its single run's buffer would draw them."""
         if len(self) == 0:
             raise ValueError("sample() from an empty replay buffer")
-        if self.runs is None:  # a single run is given its one stream, a population one per run
-            idx = cast(np.random.Generator, rng).integers(0, int(self._size), size=n)
-            return {k: v[idx] for k, v in self._data.items()}
-        gens = cast(list[np.random.Generator], rng)
-        idx = np.stack([g.integers(0, size, size=n) for g, size in zip(gens, self._size.tolist(), strict=True)])
-        run = np.arange(self.runs)[:, None]
-        return {k: v[run, idx] for k, v in self._data.items()}
+        if streams.runs != len(self._next):
+            raise ValueError(f"streams: one per run ({len(self._next)}), got {streams.runs}")
+        idx = streams.integers(self._high, n)  # [R, n], run k's in [0, size_k)
+        flat = idx.add(self._run, alpha=self.allocated).flatten()  # rows of the runs laid end to end
+        return {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
 
     def state_dict(self) -> dict[str, Any]:
-        """Contents for a full checkpoint (only the filled part; a population's up to its fullest run's size)."""
+        """Contents for a full checkpoint, as numpy arrays ``[R, rows, …]`` (only the filled part: up to the fullest
+        run's size)."""
         top = int(self._size.max(initial=0))
-        filled = np.s_[:top] if self.runs is None else np.s_[:, :top]
-        return {"data": {k: v[filled].copy() for k, v in self._data.items()}, "next": self._next.copy(),
-                "size": self._size.copy()}  # fmt: skip
+        data = {k: _host(v[:, :top]) for k, v in self._data.items()}
+        return {"data": data, "next": self._next.copy(), "size": self._size.copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length)."""
+        """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length). A single run's
+        file written before the run axis (rows ``[rows, …]``, 0-dim ``next`` and ``size``) loads as run 0's."""
         self._data = {}
-        self._next = np.zeros(self.runs or (), dtype=np.int64)
-        self._size = np.zeros(self.runs or (), dtype=np.int64)
-        if not state["data"]:
-            return
-        data = {k: np.asarray(v) for k, v in state["data"].items()}
-        first = next(iter(data.values()))
-        rows = first.shape[0] if self.runs is None else first.shape[1]
-        if rows > self.capacity:
-            raise ValueError(f"replay: {rows} rows saved, more than the capacity {self.capacity}")
-        self._data = {
-            k: self._allocate(v if self.runs is None else np.moveaxis(v, 0, 1), rows) for k, v in data.items()
-        }
-        for k, v in data.items():
-            self._data[k][np.s_[:rows] if self.runs is None else np.s_[:, :rows]] = v
-        shape = self._size.shape
-        self._size = np.broadcast_to(np.asarray(state.get("size", rows), dtype=np.int64), shape).copy()
-        self._next = np.broadcast_to(np.asarray(state["next"], dtype=np.int64), shape) % self.capacity
+        self._next = np.zeros(len(self._next), dtype=np.int64)
+        self._size = np.zeros(len(self._next), dtype=np.int64)
+        if state["data"]:
+            data = {k: np.asarray(v) for k, v in state["data"].items()}
+            if np.ndim(state["next"]) == 0:  # a single run's file from before the run axis
+                data = {k: v[None] for k, v in data.items()}
+            rows = next(iter(data.values())).shape[1]
+            if rows > self.capacity:
+                raise ValueError(f"replay: {rows} rows saved, more than the capacity {self.capacity}")
+            self._data = {k: self._allocate(v, rows) for k, v in data.items()}
+            for k, v in data.items():
+                self._data[k][:, :rows] = self._stage(v)
+            shape = self._size.shape
+            self._size = np.broadcast_to(np.asarray(state.get("size", rows), dtype=np.int64), shape).copy()
+            self._next = np.broadcast_to(np.asarray(state["next"], dtype=np.int64), shape) % self.capacity
+        self._sync_sizes()
+
+
+def _host(t: Tensor) -> np.ndarray:
+    """A numpy copy of ``t`` (one copy from a device, a copy of the rows on the CPU)."""
+    host = t.detach().cpu()
+    return host.numpy().copy() if host.data_ptr() == t.data_ptr() else host.numpy()

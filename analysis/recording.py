@@ -167,10 +167,10 @@ def message_input_norm(algo: Agent) -> MetricFigure:
     width = listener.senders * listener.bits
     if isinstance(policy, torch.nn.Sequential) and isinstance(policy[0], EntityEncoder):
         # encoder=entity: each message enters through ψ's first layer, each car through φ's
-        msg_w = policy.get_parameter("0.heard.layers.0.weight").detach()
-        obs_w = policy.get_parameter("0.car.layers.0.weight").detach()
+        msg_w = policy.get_parameter("0.heard.layers.0.weight").detach()[0]  # the run's (a run of one)
+        obs_w = policy.get_parameter("0.car.layers.0.weight").detach()[0]
     else:
-        first = policy.get_parameter("layers.0.weight").detach()  # [G, inputs, out]: messages last
+        first = policy.get_parameter("layers.0.weight").detach()[0]  # the run's [G, inputs, out]: messages last
         msg_w, obs_w = first[:, -width:], first[:, :-width]
     msg_norm = float(msg_w.flatten(1).norm(dim=1).mean())
     obs_norm = float(obs_w.flatten(1).norm(dim=1).mean())

@@ -424,6 +424,24 @@ def population_table(bench: dict[str, Any]) -> str:
     return markdown_table(header, rows, [False, True, True, True, True, True, True, True])
 
 
+def gpu_table(gpu: dict[str, Any]) -> str:
+    """docs/benchmarks.md: ms per update eager and captured per algorithm and P (``benchmarks/gpu.py --json``), the
+    goals' cells in bold, and what the run did not measure."""
+    rows = []
+    for algo, sizes in gpu["updates"].items():
+        for size, f in sizes.items():
+            rate = f"{f['captured_run_updates_per_s']:,.0f}"
+            captured = f"{f['captured_ms']:.2f}"
+            goal_ms = (algo, size) == ("idqn", "1")
+            rows.append([algo, size, f"{f['eager_ms']:.2f}", f"**{captured}**" if goal_ms else captured,
+                         f"{f['speedup']:.1f}×", f"**{rate}**" if (algo, size) == ("idqn", "128") else rate,
+                         f"{f['captured_warm_s']:.0f}", f"{f['cudagraph_skips']:.0f}"])  # fmt: skip
+    header = ["algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "CUDA-graph skips"]
+    table = markdown_table(header, rows, [False, *[True] * 7])
+    missing = "; ".join(f"{what}: {why}" for what, why in gpu.get("not_measured", {}).items())
+    return f"{gpu['device']}, torch {gpu['torch']}.\n\n{table}" + (f"\n\nNot measured: {missing}." if missing else "")
+
+
 def soak_table(soak: dict[str, Any]) -> str:
     """docs/benchmarks.md: what the soak (``benchmarks/soak.py --json``) submitted, kept and used."""
 
@@ -473,7 +491,7 @@ HEADLINE = (
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
 VARIANTS = "treadmill_variants.json"
-POPULATION, POPULATION_ALL, SOAK = "population.json", "population_all.json", "soak.json"
+POPULATION, POPULATION_ALL, SOAK, GPU = "population.json", "population_all.json", "soak.json", "gpu.json"
 REPRODUCED_FIGURES = "reproduction/*.json"  # every figure in REPRODUCTION, by id
 RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-references": ((SEARCH,), references),
@@ -490,6 +508,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "population": ((POPULATION,), population_table),
     "population-all": ((POPULATION_ALL,), population_table),
     "soak": ((SOAK,), soak_table),
+    "gpu": ((GPU,), gpu_table),
     "engineering-results": ((POPULATION, POPULATION_ALL, SOAK), engineering_results),
 }
 

@@ -75,7 +75,7 @@ def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
 
     obs, state = env.reset(seed=seed), algo.initial_state(env.num_envs)
     with torch.no_grad():
-        q, _, _ = algo.greedy_q(torch.as_tensor(obs, dtype=torch.float32, device=algo.device), state)
+        q, _, _ = algo.greedy_q(torch.as_tensor(obs, dtype=torch.float32, device=algo.device)[None], state)  # R = 1
     believed = float(q.max(dim=-1).values.mean())
     gamma = float(algo.cfg.gamma)
     collected, weight = np.zeros(env.num_envs), np.ones(env.num_envs)

@@ -39,7 +39,7 @@ from rich.table import Table  # noqa: E402
 from benchmarks.report import cpu_model, write_json  # noqa: E402
 from benchmarks.updates import DIAL_UNROLL, ms_per_call  # noqa: E402
 from convoy.actors.stepping import EnvStepper  # noqa: E402
-from convoy.algos.registry import algorithm_class, make_algorithm  # noqa: E402
+from convoy.algos.registry import make_algorithm  # noqa: E402
 from convoy.config import resolve_algo  # noqa: E402
 from convoy.envs import make_batched  # noqa: E402
 
@@ -181,9 +181,6 @@ def main(argv: list[str] | None = None) -> int:
         table.add_column(col, justify="right")
     with tempfile.TemporaryDirectory() as tmp:
         for algo in args.algos:
-            if not algorithm_class(algo).population:
-                table.add_row(algo, "–", "one seed per process", "", "", "", "", "")
-                continue
             rows: dict[str | int, dict[str, Any]] = {"arithmetic": update_arithmetic(algo, peak)}
             figures["algos"][algo] = rows
             for size in args.sizes:

@@ -195,7 +195,7 @@ def make_chunks(num_envs: int, steps: int, count: int, seed: int) -> tuple[list[
             returns: list[float] = []
             for _ in range(steps):
                 returns.extend(stepper.step(1.0))
-            arrays = stepper.take_chunk()
+            arrays = {k: v.reshape(v.shape[0], -1, *v.shape[3:]) for k, v in stepper.take_chunk().items()}  # as sent
             schema = {k: (a.dtype.str, tuple(a.shape[2:])) for k, a in arrays.items()}
             body = wire.chunk_body(arrays, "actor-0", 0, steps * num_envs, returns)
             payloads.append(wire.encode("chunk", body, "actor-0", c + 1))
@@ -289,7 +289,7 @@ def _ingest_subscriber(
                 else:
                     arrays = dict(arrays)
                     arrays["episode"] = np.full_like(arrays["episode"], episodes)  # the learner's episode clock
-                    replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in arrays.items()})  # Algorithm.observe
+                    replay.add({k: v.reshape(1, -1, *v.shape[2:]) for k, v in arrays.items()})  # observe: [R, T·B]
                     t_len, b = arrays["obs"].shape[:2]
                     steps += t_len * b
                     episodes += len(msg.body["returns"])
@@ -371,7 +371,7 @@ def ingest_work_only(payloads: list[bytes], n: int, schema: dict[str, Any]) -> f
             raise RuntimeError("chunk does not match its own schema")
         arrays = dict(arrays)
         arrays["episode"] = np.full_like(arrays["episode"], i)
-        replay.add({k: v.reshape(-1, *v.shape[2:]) for k, v in arrays.items()})
+        replay.add({k: v.reshape(1, -1, *v.shape[2:]) for k, v in arrays.items()})
     return time.perf_counter() - t0
 
 

@@ -122,8 +122,8 @@ def play(what: str, episodes: int, seed: int, sets: dict[str, object]) -> Ends:
 
         def max_q(obs: np.ndarray) -> np.ndarray:  # what the greedy pass believes, before the act that uses it
             with torch.no_grad():
-                q, _, _ = algo.greedy_q(torch.as_tensor(obs, dtype=torch.float32), agent.state)
-            return q.max(dim=-1).values.cpu().numpy()
+                q, _, _ = algo.greedy_q(torch.as_tensor(obs, dtype=torch.float32)[None], agent.state)  # R = 1
+            return q[0].max(dim=-1).values.cpu().numpy()
 
         beliefs = max_q if isinstance(algo, NetworkAgent) else None  # a hierarchy's values are per option
         return episode_ends(engine, agent, seed, agent.after_step, beliefs)

@@ -83,7 +83,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_dir = claim(out, overwrite=args.overwrite, resume=bool(args.resume))
     try:
         (out / LAUNCH).write_text(json.dumps({"inprocess": bool(args.inprocess)}) + "\n")
-        return _train_population(args, job, out) if job.runs else _train(args, job, out)
+        return _train(args, job, out)
     except (ConfigError, JobRefused):  # refused once under way: before a checkpoint, nothing stays that reads as a run
         run_dir.release()
         if not args.resume:
@@ -149,35 +149,51 @@ def with_runtime_flags(values: dict[str, Any], args: argparse.Namespace) -> dict
     return values
 
 
-def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
+def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
+    """The job's runs (one, or a population's: each in ``out/seed-N``), in this process or with actors; then one
+    run's table of figures, or a population's table of its runs."""
     from convoy.services.procs import JobFailed
     from convoy.services.training import run_distributed, run_population
-    from convoy.stats import ci95_half
 
-    seeds = job.run_seeds()
-    where = "one population in this process" if args.inprocess else (
-        f"{job.runtime.actors} actor processes stepping every run's envs + one learner (Zenoh)")  # fmt: skip
-    console.print(
-        f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
-        f"{len(seeds)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, {job.num_envs} envs each"
-        f"{'' if args.inprocess else ' per actor'}, hidden {job.algo_config().hidden}, {where} → {out}/seed-N/",
-        highlight=False,
-        soft_wrap=True,
-    )
-    dirs = job.member_dirs(out)
-    out.mkdir(parents=True, exist_ok=True)  # the population's own config (each run writes its own): for --resume
+    seeds, dirs = job.run_seeds(), job.member_dirs(out)
+    env = f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}"
+    per_actor = "" if args.inprocess else " per actor"
+    if len(seeds) == 1:
+        where = "in this process" if args.inprocess else f"{job.runtime.actors} actor processes + a learner (Zenoh)"
+        head = (f"{env}: {job.steps:,} env steps, {job.num_envs} envs{per_actor}, hidden {job.algo_config().hidden}, "
+                f"seed {job.seed}, {where} → {out}/")  # fmt: skip
+    else:
+        where = "one population in this process" if args.inprocess else (
+            f"{job.runtime.actors} actor processes stepping every run's envs + one learner (Zenoh)")  # fmt: skip
+        head = (f"{env}: {len(seeds)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, "
+                f"{job.num_envs} envs each{per_actor}, hidden {job.algo_config().hidden}, {where} → "
+                f"{out}/seed-N/")  # fmt: skip
+    console.print(head, highlight=False, soft_wrap=True)
+    out.mkdir(parents=True, exist_ok=True)  # the job's own config (each run writes its own): for --resume
     job.write(out / "job.json")
     if args.inprocess:
-        pop = run_population(job.members(), dirs, not args.no_progress, root=out, resume=bool(args.resume))
-        results = [r.as_dict() for r in pop]
+        trained = run_population(job.members(), dirs, not args.no_progress, root=out, resume=bool(args.resume))
+        results = [r.as_dict() for r in trained]
     else:
         results = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
         if not results:
-            raise JobFailed(f"the learner stopped before the job finished; {out}/seed-N/checkpoint.pt hold progress")
-    table = Table(title=f"{job.algo} on {job.env}: {len(seeds)} runs")
+            saved = f"{out}/checkpoint.pt holds" if len(dirs) == 1 else f"{out}/seed-N/checkpoint.pt hold"
+            raise JobFailed(f"the learner stopped before the job finished; {saved} its progress")
+    if len(results) == 1:
+        _show_run(job, results[0], out)
+    else:
+        _show_runs(job, results, dirs)
+    return 0
+
+
+def _show_runs(job: JobConfig, results: list[dict[str, Any]], dirs: list[Path]) -> None:
+    """A population's runs, one row each, and their mean."""
+    from convoy.stats import ci95_half
+
+    table = Table(title=f"{job.algo} on {job.env}: {len(results)} runs")
     for col in ("seed", "greedy return (95 % CI)", "best greedy point (step)", "ε-greedy return (last 10 %)"):
         table.add_column(col, justify="right")
-    for s, r in zip(seeds, results, strict=True):
+    for s, r in zip(job.run_seeds(), results, strict=True):
         best = f"{r['best_eval_return']:.3f} ({r['best_eval_step']:,})" if r["best_eval_step"] >= 0 else "–"
         table.add_row(str(s), f"{r['eval_return']:.3f} ± {r['eval_ci95']:.3f}", best, f"{r['final_return']:.3f}")
     finals = [r["eval_return"] for r in results]
@@ -189,29 +205,10 @@ def _train_population(args: argparse.Namespace, job: JobConfig, out: Path) -> in
     steps = sum(r["env_steps"] for r in results)
     console.print(f"{steps:,} env steps in {wall:.1f} s: {steps / max(wall, 1e-9):,.0f} env steps/s over all runs")
     console.print(f"wrote {', '.join(str(d) for d in dirs)} (metrics, curve.png, checkpoint.pt, summary.json each)")
-    return 0
 
 
-def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
-    from convoy.services.procs import JobFailed
-    from convoy.services.training import run_distributed, run_inprocess
-
-    cfg = job.algo_config()
-    where = "in this process" if args.inprocess else f"{job.runtime.actors} actor processes + a learner (Zenoh)"
-    console.print(
-        f"[bold]{job.algo}[/] on [bold]{job.env}[/]{' ' + str(job.env_params) if job.env_params else ''}: "
-        f"{job.steps:,} env steps, {job.num_envs} envs{'' if args.inprocess else ' per actor'}, hidden {cfg.hidden}, "
-        f"seed {job.seed}, {where} → {out}/",
-        highlight=False,
-        soft_wrap=True,
-    )
-    if args.inprocess:
-        s = run_inprocess(job, out, progress=not args.no_progress, resume=bool(args.resume)).as_dict()
-    else:
-        runs = run_distributed(job, out, progress=not args.no_progress, job_id=args.job_id, stop_on_sigterm=True)
-        if not runs:
-            raise JobFailed(f"the learner stopped before the job finished; {out}/checkpoint.pt holds its progress")
-        s = runs[0]
+def _show_run(job: JobConfig, s: dict[str, Any], out: Path) -> None:
+    """One run's figures, and a warning when its messages carry nothing."""
     table = Table(title=f"{job.algo} on {job.env}")
     table.add_column("figure")
     table.add_column("value", justify="right")
@@ -234,7 +231,6 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
     best = ", best.pt" if s.get("best_eval_step", -1) >= 0 else ""
     console.print(f"wrote {out}/metrics.jsonl, metrics.csv, curve.png, checkpoint.pt{best}, summary.json")
     warn_constant_messages(out / "checkpoint.pt")
-    return 0
 
 
 def warn_constant_messages(checkpoint: Path, steps: int = 100, envs: int = 16) -> float | None:

@@ -122,6 +122,12 @@ class AlgoConfig(BaseModel):
     double_q: bool = Field(True, description="Double Q-learning: online argmax, target value (paper: on).")
     huber: bool = Field(True, description="Huber TD loss (clipped error) instead of the squared TD error.")
     grad_clip: float = Field(10.0, gt=0, description="Global gradient-norm clip.")
+    compile: bool = Field(
+        False,
+        description="Capture each update from its sampled batch on (loss, gradients, clip, non-finite guard, Adam, "
+        "Polyak target and policy average) as one graph, torch.compile(fullgraph=True): fewer, fused kernels; the "
+        "first update compiles (tens of seconds on a CPU) and a graph break is an error. False = eager updates.",
+    )
     eps_start: Fraction = Field(1.0, description="Exploration ε at step 0.")
     eps_end: Fraction = Field(0.05, description="Exploration ε after the decay (paper: 0.05).")
     eps_decay_fraction: float = Field(0.2, gt=0, le=1, description="ε decays over this fraction of the run ...")

@@ -23,7 +23,8 @@ from convoy.validation import ConfigError
 def treadmill_layout(cfg: TreadmillConfig) -> ObsLayout:
     """Own features; ``observe_k`` sensor slots (seen, dx, dy, heading one-hot, speed); then, when on, each
     teammate's raw observation and every other car's road-scaled position (not read as cars) and the told
-    sightings (known, dx, dy, speed, adversary), in ``engine._observe``'s order."""
+    sightings (known, dx, dy, speed, adversary, with ``sighting_headings`` a heading one-hot), in
+    ``engine._observe``'s order."""
     k, others = cfg.observe_k, cfg.n_cars - 1
     sensor = EntitySlots("sensor", OWN_FEATURES, k, NEIGHBOUR_FEATURES, present=0, dx=1, dy=2, heading=3,
                          speed=3 + N_HEADINGS)  # fmt: skip
@@ -36,8 +37,10 @@ def treadmill_layout(cfg: TreadmillConfig) -> ObsLayout:
         unread.append("full_information")
         col += others * FULL_FEATURES
     if cfg.team_sightings:
-        cars.append(EntitySlots("told", col, others, SIGHTING_FEATURES, present=0, dx=1, dy=2, speed=3, adversary=4))
-        col += others * SIGHTING_FEATURES
+        heading = SIGHTING_FEATURES if cfg.sighting_headings else None
+        cars.append(EntitySlots("told", col, others, cfg.sighting_features, present=0, dx=1, dy=2, speed=3,
+                                adversary=4, heading=heading))  # fmt: skip
+        col += others * cfg.sighting_features
     if col != cfg.obs_dim:
         raise RuntimeError(f"treadmill layout spans {col} columns, the observation {cfg.obs_dim}: update it")
     return ObsLayout(own=OWN_FEATURES, headings=N_HEADINGS, cars=tuple(cars), unread=tuple(unread))

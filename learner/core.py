@@ -1,9 +1,10 @@
-"""The one trainer core: what a training run does with experience, whoever steps the envs.
+"""What a training run does with experience, whoever steps the envs: one run's bookkeeping (``TrainingCore``).
 
-The in-process trainer (``learner/inprocess.py``) feeds it the chunks of its own envs; the learner process
-(``learner/service.py``) feeds it the chunks actors send over Zenoh. Both then share one rule for the updates a
-chunk is owed (``updates_for``: samples per insert exactly), one metric row, one greedy curve with its best
-policy (``best.pt``), one checkpoint cadence and one summary.
+The one trainer core (``learner/population.py``'s ``PopulationCore``, for R ≥ 1 runs) keeps one of these per run.
+The in-process trainer feeds it the chunks of its own envs; the learner process (``learner/service.py``) the
+chunks actors send over Zenoh. Both then share one rule for the updates a chunk is owed (``updates_for``: samples
+per insert exactly), one metric row, one greedy curve with its best policy (``best.pt``), one checkpoint cadence
+and one summary.
 """
 
 from __future__ import annotations
@@ -11,12 +12,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from convoy.algos.algorithm import Agent, Progress, epsilon_at
+from convoy.algos.algorithm import Agent, Figures, Progress, epsilon_at, read_figures
 from convoy.algos.checkpoint import (
     BEST_CHECKPOINT,
     PREVIOUS_CHECKPOINT,
@@ -30,13 +32,52 @@ from convoy.envs.batched import BatchedEnv
 from convoy.learner.runlog import Evaluator, RunLog, write_artefacts
 from convoy.learner.trackers import Trackers
 
+# Updates whose figures wait on the device before the trainer reads them, all at once: one host sync per READ_EVERY
+# updates instead of one per update (on a GPU each sync stalls the queue of launched kernels), and a run whose loss
+# stays non-finite fails at most READ_EVERY updates after its MAX_NONFINITE_IN_A_ROW-th (algos/algorithm.py). A
+# metric row, and the end of the run, read whatever waits, so rows hold every update before them.
+READ_EVERY = 64
+
+
+@dataclass
+class TrainResult:
+    """What a finished run reports; also written to ``summary.json``."""
+
+    env_steps: int
+    updates: int
+    episodes: int
+    wall_s: float
+    env_steps_per_s: float
+    updates_per_s: float
+    final_return: float  # mean ε-greedy training return of the last 10 % of episodes
+    eval_return: float  # greedy, on the fixed evaluation seeds
+    eval_ci95: float
+    random_return: float
+    references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
+    best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
+    best_eval_step: int = -1
+    algo: str = ""
+    env: str = ""
+    seed: int = 0
+    env_params: dict[str, Any] = field(default_factory=dict)
+    hyper_parameters: dict[str, Any] = field(default_factory=dict)  # the algorithm's resolved config
+    out_dir: str | None = None
+    rows: list[dict[str, float]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d.pop("rows")
+        return d
+
 
 class UpdateClock:
     """The updates a run owes the data it observed: ``updates_for`` per chunk (samples per insert exactly), the
-    fraction carried over — one rule for a single run and a population."""
+    fraction carried over — one rule for a single run and a population. It also holds the updates' figures until
+    they are read (``READ_EVERY``)."""
 
     def __init__(self, algo: Agent) -> None:
         self.algo, self.owed = algo, 0.0
+        self.pending: list[Figures] = []
 
     def observe(self, chunk: dict[str, np.ndarray], steps: int) -> None:
         """A chunk of ``steps`` env steps (per run) goes into the algorithm and is owed ``updates_for(steps)``."""
@@ -44,11 +85,20 @@ class UpdateClock:
         if self.algo.can_update():
             self.owed += self.algo.updates_for(steps)
 
-    def updates(self) -> Iterator[Any]:
-        """Run the owed updates, yielding each one's figures (a population's: one dict per run)."""
+    def updates(self) -> Iterator[list[dict[str, float]]]:
+        """Run the owed updates; yield the figures read meanwhile (every ``READ_EVERY`` updates), each update's one
+        dict per run (a single run's: one)."""
         while self.owed >= 1.0 and self.algo.can_update():
-            yield self.algo.update()
+            self.pending.append(self.algo.update())
             self.owed -= 1.0
+            if len(self.pending) >= READ_EVERY:
+                yield from self.read()
+
+    def read(self) -> list[list[dict[str, float]]]:
+        """The figures of every update not read yet, in one host read (``read_figures``: a run that stayed
+        non-finite fails here)."""
+        pending, self.pending = self.pending, []
+        return read_figures(pending)
 
 
 class TrainingCore:
@@ -140,15 +190,21 @@ class TrainingCore:
         self.clock.observe(chunk, steps)
 
     def update(self) -> None:
-        """Run the updates observed data is owed."""
+        """Run the updates observed data is owed (their figures reach the log as they are read)."""
         for figures in self.clock.updates():
-            self.log.update(figures)
+            self.log.update(figures[0])
+
+    def read_figures(self) -> None:
+        """Every update's figures into the log, before a row or the summary counts them."""
+        for figures in self.clock.read():
+            self.log.update(figures[0])
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> dict[str, Any] | None:
         """The metric row due at this step (with a greedy-curve point when one is due, and ``extra(env_steps)``),
         or None."""
         figures: dict[str, float] = {}
         if self.log.row_due(self.env_steps):
+            self.read_figures()
             if self.evaluator.due(self.env_steps, self.job.steps):
                 figures.update(self.evaluator.point(self.algo, self.env_steps))
             if extra is not None:
@@ -207,6 +263,7 @@ class TrainingCore:
         ``curve.png``; the summary. ``final_return`` is the mean ε-greedy return of the last 10 % of this
         process's episodes. ``end``: when training ended (``perf_counter``), if not now (a population's runs end
         together, then evaluate one after another)."""
+        self.read_figures()
         self.close()
         if self.out_dir is not None:
             keep = self.job.runtime.keep_replay

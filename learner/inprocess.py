@@ -9,52 +9,22 @@ the algorithm sees the same calls either way; it reaches the env only through th
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from convoy.actors.stepping import EnvStepper
 from convoy.algos.algorithm import Agent
+from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
-from convoy.learner.core import TrainingCore
+from convoy.learner.core import TrainResult
+from convoy.learner.population import PopulationTrainer
 
-
-@dataclass
-class TrainResult:
-    """What a finished run reports; also written to ``summary.json``."""
-
-    env_steps: int
-    updates: int
-    episodes: int
-    wall_s: float
-    env_steps_per_s: float
-    updates_per_s: float
-    final_return: float  # mean ε-greedy training return of the last 10 % of episodes
-    eval_return: float  # greedy, on the fixed evaluation seeds
-    eval_ci95: float
-    random_return: float
-    references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
-    best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
-    best_eval_step: int = -1
-    algo: str = ""
-    env: str = ""
-    seed: int = 0
-    env_params: dict[str, Any] = field(default_factory=dict)
-    hyper_parameters: dict[str, Any] = field(default_factory=dict)  # the algorithm's resolved config
-    out_dir: str | None = None
-    rows: list[dict[str, float]] = field(default_factory=list)
-
-    def as_dict(self) -> dict[str, Any]:
-        d = dict(self.__dict__)
-        d.pop("rows")
-        return d
+__all__ = ["TrainResult", "Trainer"]
 
 
 class Trainer:
-    """Steps ``env`` with ``algo`` for ``job.steps`` env steps, logging, checkpointing and evaluating."""
+    """Steps ``env`` with ``algo`` for ``job.steps`` env steps, logging, checkpointing and evaluating: the one
+    training loop (``PopulationTrainer``) with a run of one, its folder ``out_dir`` and its replay beside it."""
 
     def __init__(
         self,
@@ -77,23 +47,8 @@ class Trainer:
         self.show_progress = progress
 
     def run(self) -> TrainResult:
-        job, env, algo = self.job, self.env, self.algo
-        torch.manual_seed(job.seed)
-        core = TrainingCore(job, algo, self.out_dir, self.make_eval_env, progress=self.show_progress,
-                            counters=self.counters, replay_bytes=job.runtime.replay_checkpoint_mb << 20)  # fmt: skip
-        stepper = EnvStepper(env, algo, job.seed)
-        try:
-            while not core.done:
-                core.set_progress()
-                returns = stepper.step(core.epsilon)
-                core.stepped(env.num_envs, returns)
-                if stepper.chunk_steps >= algo.chunk_len:
-                    steps = stepper.chunk_steps * env.num_envs
-                    core.observe(stepper.take_chunk(), steps)
-                    core.update()
-                core.row(self.on_row)
-                core.maybe_checkpoint()
-        finally:
-            core.close()  # the metric files, whichever way the loop ends
-        summary = core.finish(f"{job.algo} on {job.env}")
-        return TrainResult(**summary, out_dir=str(self.out_dir) if self.out_dir else None, rows=core.log.rows)
+        replay = self.out_dir / REPLAY_FILE if self.out_dir is not None else None
+        (result,) = PopulationTrainer([self.job], self.env, self.algo, self.make_eval_env,
+                                      [self.out_dir], self.show_progress, replay, [self.counters],
+                                      self.on_row).run()  # fmt: skip
+        return result

@@ -1,4 +1,4 @@
-"""Population training: R runs of one algorithm, one per seed, stepped and updated together.
+"""Training R runs of one algorithm, one per seed, stepped and updated together (a single run: R = 1).
 
 The agent holds every run's weights, optimizer state, replay and random streams on a leading run axis
 (``NetworkAgent(seed=[s_0, …])``); the env holds R·B envs, run k's seeded as the single run of ``s_k`` seeds its
@@ -8,8 +8,9 @@ metric rows, greedy curve, ``best.pt``, ``checkpoint.pt``, ``summary.json`` — 
 run as a single-run agent, refreshed from the population before a row or checkpoint needs it. So each run's folder
 is what a single run of its seed writes, and ``convoy eval``/``analyze`` read it unchanged.
 
-:class:`PopulationCore` is that bookkeeping, shared by the in-process :class:`PopulationTrainer` and the learner
-process (``learner/service.py``), which takes the same chunks ``[T, R, B, …]`` from actors over Zenoh.
+:class:`PopulationCore` is that bookkeeping, shared by the in-process :class:`PopulationTrainer` (the one training
+loop: ``learner/inprocess.py``'s ``Trainer`` is it for one run) and the learner process (``learner/service.py``),
+which takes the same chunks ``[T, R, B, …]`` from actors over Zenoh.
 
 Why: a run's cost is its learner update and the Python around acting (the env steps millions of agent-steps per
 second); one process pays the acting, the env loop, start-up and evaluation set-up once for R runs, and on a GPU one
@@ -20,19 +21,19 @@ batched update of R runs costs about what one run's does. On a CPU the batched u
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from convoy.actors.stepping import EnvStepper
-from convoy.algos.algorithm import Population, Progress
+from convoy.algos.algorithm import Agent, Progress
 from convoy.algos.checkpoint import drop_replay, save_replay
 from convoy.config import JobConfig
 from convoy.envs.batched import BatchedEnv
-from convoy.learner.core import TrainingCore, UpdateClock, print_line
-from convoy.learner.inprocess import TrainResult
+from convoy.learner.core import TrainingCore, TrainResult, UpdateClock, print_line
 
 
 class PopulationCore:
@@ -43,7 +44,7 @@ class PopulationCore:
     def __init__(
         self,
         jobs: list[JobConfig],
-        algo: Population,
+        algo: Agent,
         out_dirs: list[Path] | list[Path | None] | None,
         make_eval_env: Callable[[int], BatchedEnv] | None,
         *,
@@ -62,6 +63,7 @@ class PopulationCore:
         self.jobs, self.algo = jobs, algo
         dirs = out_dirs or [None] * len(jobs)
         say = say if say is not None else (print_line if progress else None)
+        several = len(jobs) > 1  # runs whose checkpoints are written one after another, whose lines need a head
         self.cores = [
             TrainingCore(
                 job,
@@ -70,8 +72,8 @@ class PopulationCore:
                 make_eval_env,
                 progress=progress and k == 0,
                 counters=c,
-                keep_previous=True,
-                say=_headed(say, f"seed {job.seed}: ") if say else None,
+                keep_previous=several,
+                say=_headed(say, f"seed {job.seed}: ") if say and several else say,
             )
             for k, (job, out, c) in enumerate(zip(jobs, dirs, counters or [None] * len(jobs), strict=True))
         ]
@@ -112,12 +114,17 @@ class PopulationCore:
         self.clock.observe(chunk, steps)
 
     def update(self) -> None:
-        for figures in self.clock.updates():  # one batched update: each run's figures to its own log
+        self._log(self.clock.updates())
+
+    def _log(self, read: Iterable[list[dict[str, float]]]) -> None:
+        for figures in read:  # one batched update: each run's figures to its own log
             for core, run_figures in zip(self.cores, figures, strict=True):
                 core.log.update(run_figures)
 
     def row(self, extra: Callable[[int], dict[str, float]] | None = None) -> list[dict[str, Any]]:
         """The metric rows due at this step, one per run (all runs' fall due together), or none."""
+        if any(core.log.row_due(core.env_steps) for core in self.cores):
+            self._log(self.clock.read())  # the updates' figures not read yet, before a row counts them
         rows = []
         for k, core in enumerate(self.cores):
             if core.log.row_due(core.env_steps) or core.checkpoint_due:
@@ -153,6 +160,7 @@ class PopulationCore:
         """Each run's summary (``TrainingCore.finish`` over its member), in run order; training time ends now for
         all runs, though they are evaluated one after another."""
         end = time.perf_counter()
+        self._log(self.clock.read())
         if self.replay is not None and self.jobs[0].runtime.keep_replay:
             self._save_replay()  # beside the runs' last checkpoints, when asked
         elif self.replay is not None:
@@ -176,29 +184,34 @@ def mean_row(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 
 class PopulationTrainer:
-    """Steps ``env`` (R × ``job.num_envs`` envs) with the population ``algo`` until every run has ``job.steps``."""
+    """Steps ``env`` (R × ``job.num_envs`` envs) with the population ``algo`` until every run has ``job.steps``: the
+    one in-process training loop, for R ≥ 1 runs."""
 
     def __init__(
         self,
         jobs: list[JobConfig],
         env: BatchedEnv,
-        algo: Population,
+        algo: Agent,
         make_eval_env: Callable[[int], BatchedEnv] | None = None,
         out_dirs: list[Path] | list[Path | None] | None = None,
         progress: bool = True,
         replay: Path | None = None,
         counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
+        on_row: Callable[[int], dict[str, float]] | None = None,
     ) -> None:
         """``replay``: where the population's replay goes with each checkpoint; ``counters``: the runs'
-        checkpoints' when ``algo`` resumes from them (``learner/resume.py``)."""
+        checkpoints' when ``algo`` resumes from them (``learner/resume.py``); ``on_row(env_steps)``: figures
+        measured at every metric row and added to it (periodic evaluation)."""
         self.jobs, self.env, self.algo = jobs, env, algo
         self.make_eval_env = make_eval_env
         self.out_dirs = out_dirs
         self.show_progress = progress
         self.replay, self.counters = replay, counters
+        self.on_row = on_row
 
     def run(self) -> list[TrainResult]:
         algo, env = self.algo, self.env
+        torch.manual_seed(self.jobs[0].seed)
         per_run_envs = env.num_envs // len(self.jobs)
         replay = (self.replay, self.jobs[0].runtime.replay_checkpoint_mb << 20) if self.replay else None
         core = PopulationCore(self.jobs, algo, self.out_dirs, self.make_eval_env, progress=self.show_progress,
@@ -213,11 +226,12 @@ class PopulationTrainer:
                     steps = stepper.chunk_steps * per_run_envs
                     core.observe(stepper.take_chunk(), steps)
                     core.update()
-                core.row()
+                core.row(self.on_row)
                 core.maybe_checkpoint()
         finally:
             core.close()
-        summaries = core.finish(lambda job: f"{job.algo} on {job.env}, seed {job.seed}")
+        seed = len(self.jobs) > 1  # a population's runs say their seed in their titles
+        summaries = core.finish(lambda job: f"{job.algo} on {job.env}" + (f", seed {job.seed}" if seed else ""))
         dirs = self.out_dirs or [None] * len(self.jobs)
         return [
             TrainResult(**s, out_dir=str(out) if out else None, rows=c.log.rows)

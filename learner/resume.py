@@ -5,8 +5,8 @@ its own, and an unusable file must not keep a job from running: it is set aside 
 job starts afresh (``strict=False``). ``convoy train --resume DIR`` is a user asking for that run: an unusable file
 is an error naming it (``strict=True``). A checkpoint of another algorithm or env is an error either way.
 
-A population resumes from its runs' checkpoints (``DIR/seed-N/checkpoint.pt``, all of one step) and the
-population's replay (``DIR/replay.npz``).
+A run resumes from its checkpoint (``DIR/checkpoint.pt``; a population's runs from theirs, ``DIR/seed-N/``, all of
+one step) and the replay (``DIR/replay.npz``): one path, a single run is a population of one.
 """
 
 from __future__ import annotations
@@ -55,24 +55,12 @@ def _payload(out_dir: Path, job: JobConfig, strict: bool, name: str = "checkpoin
     return payload
 
 
-def restore(algo: Agent, job: JobConfig, out_dir: str | Path, strict: bool = False) -> Any:
-    """Load the run's last checkpoint (and replay) into ``algo``: its counters (a population's: one dict per run,
-    each with ``replay_rows``), or None when there is nothing to resume — then a population's ``algo`` may hold
-    a partial load and must be built again."""
+def restore(algo: Agent, job: JobConfig, out_dir: str | Path, strict: bool = False) -> list[dict[str, Any]] | None:
+    """Load the runs' last checkpoints (and the replay) into ``algo``: one dict of counters per run, each with
+    ``replay_rows``, or None when there is nothing to resume — then ``algo`` may hold a partial load and must be
+    built again."""
     out = Path(out_dir)
-    if job.runs:
-        return restore_population(algo, job.members(), job.member_dirs(out), out / REPLAY_FILE, strict)
-    payload = _payload(out, job, strict)
-    if payload is None:
-        return None
-    try:
-        algo.load_state_dict(payload["state"])
-    except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
-        _unusable(out / "checkpoint.pt", f"does not match the job's networks ({exc})", strict)
-        return None
-    counters = dict(payload.get("counters", {}))
-    counters["replay_rows"] = load_replay(out / REPLAY_FILE, algo, int(counters.get("env_steps", 0)))
-    return counters
+    return restore_population(algo, job.members(), job.member_dirs(out), out / REPLAY_FILE, strict)
 
 
 def restore_population(
@@ -82,11 +70,12 @@ def restore_population(
     ``replay``; the runs' counters, or None unless every run has a checkpoint of one step (its last, or the one
     before it when a crash came between two runs' writes)."""
     # each run's last checkpoint and the one before: a crash between two runs' writes leaves them a step apart
-    options = [[p for name in ("checkpoint.pt", PREVIOUS_CHECKPOINT) if (p := _payload(d, job, strict, name))]
+    names = ("checkpoint.pt", PREVIOUS_CHECKPOINT)
+    options = [[(p, d / name) for name in names if (p := _payload(d, job, strict, name))]
                for d, job in zip(dirs, jobs, strict=True)]  # fmt: skip
     if all(not o for o in options):
         return None
-    by_step = [{int(p["counters"].get("env_steps", -1)): p for p in o} for o in options]
+    by_step = [{int(p["counters"].get("env_steps", -1)): (p, path) for p, path in o} for o in options]
     common = set.intersection(*(set(b) for b in by_step))
     if not common:
         why = "the population's runs have no checkpoints of one step"
@@ -95,15 +84,12 @@ def restore_population(
         log.warning("%s; starting afresh", why)
         return None
     step = max(common)
-    payloads = [b[step] for b in by_step]
-    try:
-        for k, payload in enumerate(payloads):
-            algo.load_member_state(k, payload["state"])  # type: ignore[attr-defined]
-    except Exception as exc:  # the networks differ (other sizes)
-        why = f"the runs' checkpoints do not match the job's networks ({exc})"
-        if strict:
-            raise CheckpointError(f"{replay.parent}: {why}") from None
-        log.warning("%s; starting afresh", why)
-        return None
+    payloads = [b[step][0] for b in by_step]
+    for k, payload in enumerate(payloads):
+        try:
+            algo.load_member_state(k, payload["state"])
+        except Exception as exc:  # the networks differ (other sizes): as unusable as a corrupt file
+            _unusable(by_step[k][step][1], f"does not match the job's networks ({exc})", strict)
+            return None
     rows = load_replay(replay, algo, step)
     return [{**p["counters"], "replay_rows": rows} for p in payloads]

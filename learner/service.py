@@ -24,18 +24,17 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import torch
 
 from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
-from convoy.algos.algorithm import Agent, Population
+from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
-from convoy.learner.core import TrainingCore
 from convoy.learner.population import PopulationCore, mean_row
 from convoy.learner.resume import restore
 from convoy.learner.runtime import configure_learner
@@ -56,16 +55,15 @@ BUDGET_EVERY_S = 0.02
 def transition_schema(job: JobConfig, algo: Agent) -> dict[str, tuple[str, tuple[int, ...]]]:
     """Field → (dtype, per-step shape after [T, B]) of the chunks this job's actors send: the declared transition
     (``convoy.transition``) for this env, and the algorithm's extras from one probe step (one env per run; a
-    population's chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
-    env = make_batched(job.env, job.runs or 1, **job.env_params)
+    chunk ``[T, R, B, …]`` goes on the wire as ``[T, R·B, …]``)."""
+    env = make_batched(job.env, len(job.run_seeds()), **job.env_params)
     try:
         stepper = EnvStepper(env, algo, seed=0)
         stepper.step(1.0)
         chunk = stepper.take_chunk()
     finally:
         env.close()
-    skip = 3 if job.runs else 2
-    extras = {k: (v.dtype.str, v.shape[skip:]) for k, v in chunk.items() if k not in TRANSITION}
+    extras = {k: (v.dtype.str, v.shape[3:]) for k, v in chunk.items() if k not in TRANSITION}
     return {**declared_schema(algo.spec.n_agents, algo.spec.obs_dim), **extras}
 
 
@@ -138,7 +136,7 @@ class Learner:
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
-        if counters is None and job.runs:
+        if counters is None:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
         watch = ParentWatch()
         try:
@@ -157,7 +155,7 @@ class Learner:
         self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
         self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
         if counters:  # say so: the supervisor reports it, tests check how far back the restart went
-            first = counters[0] if isinstance(counters, list) else counters
+            first = counters[0]
             values = {
                 "resumed_updates": algo.updates,
                 "resumed_env_steps": first.get("env_steps", 0),
@@ -184,8 +182,8 @@ class Learner:
         body = {"allowed_steps": int(allowed), "ingested_steps": int(ingested), "version": int(version)}
         self.pub_budget.put(wire.encode("budget", body, "learner"))
 
-    def _core(self, algo: Agent, counters: Any) -> TrainingCore | PopulationCore:
-        """The trainer core of this job: one run's, or a population's (each run in ``DIR/seed-N``)."""
+    def _core(self, algo: Agent, counters: Any) -> PopulationCore:
+        """The trainer core of this job's runs (one run in ``DIR``, a population's each in ``DIR/seed-N``)."""
         job = self.job
 
         def make_eval_env(n: int) -> Any:
@@ -193,31 +191,23 @@ class Learner:
 
         replay_bytes = job.runtime.replay_checkpoint_mb << 20
         say = log.info  # the final evaluation's lines (the treadmill's references) in the host's log
-        if job.runs:
-            dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
-            population = cast(Population, algo)  # a job with seeds builds one
-            return PopulationCore(job.members(), population, dirs, make_eval_env, counters=counters or None,
-                                  replay=replay, say=say)  # fmt: skip
-        return TrainingCore(job, algo, self.out_dir, make_eval_env, counters=counters, replay_bytes=replay_bytes,
-                            say=say)  # fmt: skip
+        dirs, replay = job.member_dirs(self.out_dir), (self.out_dir / REPLAY_FILE, replay_bytes)
+        return PopulationCore(job.members(), algo, dirs, make_eval_env, counters=counters or None,
+                              replay=replay, say=say)  # fmt: skip
 
-    def _take(self, core: TrainingCore | PopulationCore, msg: wire.Message) -> str | None:
+    def _take(self, core: PopulationCore, msg: wire.Message) -> str | None:
         """Chunk ``msg`` into the core (its transitions, steps and finished episodes), or why not (a drop reason)."""
-        arrays, returns, runs = dict(msg.body["arrays"]), list(msg.body["returns"]), self.job.runs
+        arrays, returns, runs = dict(msg.body["arrays"]), list(msg.body["returns"]), len(core.jobs)
         t_len, b = arrays["obs"].shape[:2]
-        if isinstance(core, TrainingCore):
-            arrays["episode"] = np.full_like(arrays["episode"], core.episodes)  # the learner's episode clock
-            core.set_progress()
-            core.observe(arrays, t_len * b)
-            core.stepped(t_len * b, returns)
-            return None
-        return_runs = np.asarray(msg.body.get("return_runs", []), dtype=np.int64)
+        # each return's run; a chunk that names none is a single run's (R = 1)
+        named = msg.body.get("return_runs", [] if runs > 1 else [0] * len(returns))
+        return_runs = np.asarray(named, dtype=np.int64)
         if b % runs or len(return_runs) != len(returns):
             return "schema"  # not a chunk of this population's runs
         if return_runs.size and (return_runs.min() < 0 or return_runs.max() >= runs):
             return "out-of-range"
         arrays = {k: v.reshape(t_len, runs, b // runs, *v.shape[2:]) for k, v in arrays.items()}
-        arrays["episode"] = np.broadcast_to(core.episodes[:, None], arrays["episode"].shape).copy()
+        arrays["episode"] = np.broadcast_to(core.episodes[:, None], arrays["episode"].shape).copy()  # the learner's
         core.set_progress()
         core.observe(arrays, t_len * (b // runs))
         core.stepped(t_len * (b // runs), returns, return_runs)
@@ -262,7 +252,7 @@ class Learner:
             self._publish_budget(s.allowance(), s.core.env_steps, algo.updates)
             s.t_budget = now
 
-    def _give_up(self, core: TrainingCore | PopulationCore) -> int:
+    def _give_up(self, core: PopulationCore) -> int:
         """No chunk for ``data_timeout_s``: keep what was learnt and say why (the job service reads the error)."""
         rt, job = self.job.runtime, self.job
         core.checkpoint()
@@ -289,24 +279,22 @@ class Learner:
     def _train(self, s: _Ingest) -> None:
         """The updates the new data owes, a metrics row when one is due, a checkpoint when one is due."""
         s.core.update()
-        row = s.core.row(lambda _: s.transport(self.dropped_by_reason(s.inbox)))  # computed only for a row
-        if isinstance(row, list):  # a population's: its runs' mean (each run's rows are in its folder)
-            row = mean_row(row) if row else None
-        if row is not None:
+        rows = s.core.row(lambda _: s.transport(self.dropped_by_reason(s.inbox)))  # computed only for a row
+        if rows:  # the runs' mean (each run's rows are in its folder)
+            row = rows[0] if len(rows) == 1 else mean_row(rows)
             self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
             s.lags = []
         s.core.maybe_checkpoint()
 
     def _finish(self, algo: Agent, s: _Ingest) -> int:
         """The final greedy evaluation and summary (each run's, for a population), then the last metrics row."""
-        job, core = self.job, s.core
+        core = s.core
         dropped = self.dropped_by_reason(s.inbox)
         counts: dict[str, Any] = {"dropped": sum(dropped.values()), "dropped_by_reason": dropped}
-        if isinstance(core, PopulationCore):
-            runs = core.finish(lambda j: f"{j.algo} on {j.env}, seed {j.seed} (distributed population)", **counts)
-            eval_return = float(np.mean([r["eval_return"] for r in runs]))
-        else:
-            eval_return = core.finish(f"{job.algo} on {job.env} (distributed)", **counts)["eval_return"]
+        several = len(core.jobs) > 1  # a population's runs say their seed in their titles
+        runs = core.finish(lambda j: f"{j.algo} on {j.env}" + (f", seed {j.seed} (distributed population)"
+                                                               if several else " (distributed)"), **counts)  # fmt: skip
+        eval_return = float(np.mean([r["eval_return"] for r in runs]))
         done = {"done": 1.0, "eval_return": eval_return, "env_steps": core.env_steps, "updates": algo.updates}
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
         return 0
@@ -315,7 +303,7 @@ class Learner:
 class _Ingest:
     """What the learner's loop keeps between chunks: its core, clocks, the actors' credit and transport figures."""
 
-    def __init__(self, core: TrainingCore | PopulationCore, chunk_steps: int, slack: int, inbox: Inbox) -> None:
+    def __init__(self, core: PopulationCore, chunk_steps: int, slack: int, inbox: Inbox) -> None:
         self.core, self.chunk_steps, self.slack, self.inbox = core, chunk_steps, slack, inbox
         self.t_weights = self.t_budget = self.t_chunk = 0.0
         self.t_start = time.perf_counter()

@@ -230,7 +230,7 @@ def chunk_body(
         "env_steps": int(env_steps),
         "returns": [float(r) for r in returns],
     }
-    if return_runs is not None:  # a population's chunk
+    if return_runs is not None:  # each return's run (R ≥ 1 runs' envs, run by run)
         body["return_runs"] = [int(r) for r in return_runs]
     return body
 

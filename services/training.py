@@ -6,14 +6,13 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any
 
-from convoy.config import JobConfig
+from convoy.config import JobConfig, job_config
 from convoy.envs import make_batched
 from convoy.envs.batched import BatchedEnv
 
 if TYPE_CHECKING:  # torch and the trainer load only for in-process runs: a distributed parent never needs them
-    from convoy.algos.algorithm import Population
     from convoy.learner.inprocess import TrainResult
 
 
@@ -49,30 +48,23 @@ def run_inprocess(
 ) -> TrainResult:
     """Train ``job`` in this process; writes metrics, curve, checkpoint and summary under ``out_dir``. ``resume``:
     go on from ``out_dir``'s checkpoint (weights, optimizer, counters, schedules, replay; the envs start new
-    episodes) to ``job.steps``."""
-    from convoy.algos.agent import make_agent
-    from convoy.learner.inprocess import Trainer
-    from convoy.learner.resume import restore
-    from convoy.learner.runtime import configure_learner
-
-    configure_learner(job.torch_threads)
-    env = make_env(job)  # the agent's initial weights follow job.seed, and Trainer.run seeds the training stream
-    try:
-        agent = make_agent(job, env.spec)
-        counters = restore(agent, job, out_dir, strict=True) if resume and out_dir is not None else None
-        trainer = Trainer(job, env, agent, make_eval_env=lambda n: make_env(job, n), out_dir=out_dir,
-                          progress=progress, counters=counters)  # fmt: skip
-        return trainer.run()
-    finally:
-        env.close()
+    episodes) to ``job.steps``. One path: ``run_population`` of its one run."""
+    out = Path(out_dir) if out_dir is not None else None
+    (result,) = run_population([job], [out], progress, root=out, resume=resume)
+    return result
 
 
 def run_population(
-    jobs: list[JobConfig], out_dirs: list[Path], progress: bool = True, root: Path | None = None, resume: bool = False
+    jobs: list[JobConfig],
+    out_dirs: list[Path] | list[Path | None],
+    progress: bool = True,
+    root: Path | None = None,
+    resume: bool = False,
 ) -> list[TrainResult]:
     """Train the jobs (one algorithm, one per seed; they may differ in the hyper-parameters a population lets runs
-    differ in) as one population in this process; run k writes ``out_dirs[k]`` as a single run of its seed would,
-    the population's replay goes to ``root/replay.npz`` with each checkpoint; ``resume`` goes on from there."""
+    differ in) as one population in this process (a single run: one job); run k writes ``out_dirs[k]`` as a single
+    run of its seed would, the replay goes to ``root/replay.npz`` with each checkpoint; ``resume`` goes on from
+    there."""
     from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import REPLAY_FILE
     from convoy.learner.population import PopulationTrainer
@@ -80,17 +72,18 @@ def run_population(
     from convoy.learner.runtime import configure_learner
 
     job = jobs[0]
-    if len(jobs) == 1:  # a population of one is the single run of its seed, bit for bit
-        return [run_inprocess(job, out_dirs[0], progress=progress, resume=resume)]
     configure_learner(job.torch_threads)
-    env = make_env(job, job.num_envs * len(jobs))
-    replay = (root or out_dirs[0].parent) / REPLAY_FILE
+    env = make_env(job, job.num_envs * len(jobs))  # the agent's initial weights follow the seeds
+    replay = root / REPLAY_FILE if root is not None else None
     try:
         configs = [j.algo_config() for j in jobs]  # the runs may differ in lr, γ, target period, ε schedule
-        population = job.model_copy(update={"seeds": [j.seed for j in jobs]})
+        population = job_config(**{**job.model_dump(), "seeds": [j.seed for j in jobs]})  # one seed: a single run
         agent = make_agent(population, env.spec, run_configs=configs)
-        counters = restore_population(agent, jobs, out_dirs, replay, strict=True) if resume else None
-        trainer = PopulationTrainer(jobs, env, cast("Population", agent), lambda n: make_env(job, n), out_dirs,
+        counters = None
+        if resume and replay is not None:
+            dirs = [d for d in out_dirs if d is not None]
+            counters = restore_population(agent, jobs, dirs, replay, strict=True)
+        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs,
                                     progress=progress, replay=replay, counters=counters)  # fmt: skip
         return trainer.run()
     finally:

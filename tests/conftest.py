@@ -87,14 +87,11 @@ def grad(module: nn.Module, name: str) -> Tensor:
 
 
 def single_update(algo: Agent) -> dict[str, float]:
-    """``algo.update()`` of a single run: its one dict of figures (a population's update returns one per run)."""
-    figures = algo.update()
-    assert isinstance(figures, dict), "a population's update: one dict per run"
+    """``algo.update()`` of a single run (a population of one), read: its one dict of figures."""
+    (figures,) = algo.update().read()
     return figures
 
 
 def population_update(algo: Agent) -> list[dict[str, float]]:
-    """``algo.update()`` of a population: one dict of figures per run."""
-    figures = algo.update()
-    assert isinstance(figures, list), "a single run's update: one dict"
-    return figures
+    """``algo.update()`` of a population, read: one dict of figures per run."""
+    return algo.update().read()

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -112,8 +114,8 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
         layers = [m for m in mlp.modules() if isinstance(m, GroupLinear)]  # the MLP's layers, in order
         with torch.no_grad():
             for linear, layer in zip(linears, layers, strict=True):
-                linear.weight.copy_(layer.weight[0].T)
-                linear.bias.copy_(layer.bias[0])
+                linear.weight.copy_(layer.weight[0, 0].T)  # run 0's, group 0's
+                linear.bias.copy_(layer.bias[0, 0])
 
     for _ in range(3):  # the online network moves away from the target: the double-Q argmax matters
         algo.update()
@@ -121,6 +123,23 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     copy(ref.target, algo.target["q"])
     batch = algo.sample()
     with torch.no_grad():
-        expected = float(ref.loss(batch))
+        expected = float(ref.loss({k: v[0] for k, v in batch.items()}))  # the run's (a run of one)
     algo.sample = lambda: batch
-    assert abs(algo.update()["loss"] - expected) <= 1e-5 * max(1.0, abs(expected))
+    assert abs(algo.update().read()[0]["loss"] - expected) <= 1e-5 * max(1.0, abs(expected))
+
+
+@pytest.mark.slow  # compiles two graphs (Inductor, C++): ~1 min on 2 cores
+def test_gpu_benchmark_quick_run_times_eager_and_captured_updates_and_training(tmp_path) -> None:
+    """``benchmarks/gpu.py`` on the CPU (what runs it wherever a GPU is lent is the same code on ``--device cuda``)."""
+    out = tmp_path / "gpu.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "gpu.py"), "--device", "cpu", "--quick", "--json", str(out)],
+        capture_output=True, text=True, timeout=900, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "captured IDQN update at P = 1" in proc.stdout and "one CPU core" in proc.stdout
+    data = json.loads(out.read_text())
+    for size in ("1", "2"):
+        f = data["updates"]["idqn"][size]
+        assert f["eager_ms"] > 0 and f["captured_ms"] > 0 and f["cudagraph_skips"] == 0
+    assert data["training"]["2"]["steps_per_s"] > 0 and data["training"]["cpu_core_steps_per_s"] > 0

@@ -116,7 +116,7 @@ def test_training_messages_are_differentiable() -> None:
 def test_act_sends_bits_and_stores_what_was_heard() -> None:
     algo, env = make_dial(num_envs=6)
     obs, state = env.reset(seed=0), algo.initial_state(6)
-    assert state.shape == (6, 2, 4) and not state.any()
+    assert state.shape == (1, 6, 2, 4) and not state.any()  # the recurrent state keeps the run axis
     out = algo.act(obs, 0.0, state)
     assert out.messages is not None and out.messages.shape == (6, 2, 4)
     assert set(np.unique(out.messages)) <= {0.0, 1.0}
@@ -131,7 +131,7 @@ def test_act_sends_bits_and_stores_what_was_heard() -> None:
     np.testing.assert_allclose(out2.extras["mu"], np.broadcast_to([1.0, 0.25], (6, 2)))  # ε = 1: uniform
     done = np.array([True, False, True, False, False, False])
     cleared = algo.reset_state(out2.state, done)
-    assert not cleared[done].any() and torch.equal(cleared[~done], out2.state[~done])
+    assert not cleared[0, done].any() and torch.equal(cleared[0, ~done], out2.state[0, ~done])
 
 
 # --------------------------------------------------------------------------- gradients through the unroll
@@ -141,13 +141,14 @@ def test_act_sends_bits_and_stores_what_was_heard() -> None:
 def test_q_at_t_depends_on_the_others_obs_at_t_minus_1_only(share: bool) -> None:
     algo, _ = make_dial(share_params=share)
     t_len, b, n, d = 5, 3, 2, algo.obs_dim
-    obs = torch.randn(t_len, b, n, d, requires_grad=True)
-    heard0 = torch.zeros(b, n, (n - 1) * algo.bits)
-    done = torch.zeros(t_len, b, dtype=torch.bool)
+    obs = torch.randn(1, t_len, b, n, d, requires_grad=True)  # one run's sequences [R = 1, T, B, …]
+    heard0 = torch.zeros(1, b, n, (n - 1) * algo.bits)
+    done = torch.zeros(1, t_len, b, dtype=torch.bool)
     q, sent = algo.unroll(algo.online, obs, heard0, done, train=True)
-    assert q.shape == (t_len, b, n, algo.n_act) and sent.shape == (t_len, b, n, algo.bits)
+    assert q.shape == (1, t_len, b, n, algo.n_act) and sent.shape == (1, t_len, b, n, algo.bits)
     t, i, j = 3, 0, 1  # agent j's (the listener's) Q at step 3 vs agent i's (the speaker's) observations
-    (grad,) = torch.autograd.grad(q[t, :, j].sum(), obs)
+    (grad,) = torch.autograd.grad(q[0, t, :, j].sum(), obs)
+    grad = grad[0]
     assert grad[t, :, i].abs().sum() == 0  # i's current observation is not heard yet
     assert grad[t - 1, :, i].abs().sum() > 0  # heard through the message i sent at t−1
     # Messages take one step per hop: i(t−3) → j(t−2) → i(t−1) → j(t) reaches j; i(t−2) would arrive at t+1.
@@ -158,10 +159,11 @@ def test_q_at_t_depends_on_the_others_obs_at_t_minus_1_only(share: bool) -> None
 
 def test_messages_do_not_cross_an_episode_boundary() -> None:
     algo, _ = make_dial()
-    obs = torch.randn(3, 2, 2, algo.obs_dim, requires_grad=True)
-    done = torch.tensor([[False, False], [True, False], [False, False]])  # env 0's episode ends at step 1
-    q, _ = algo.unroll(algo.online, obs, torch.zeros(2, 2, algo.bits), done, train=True)
-    (grad,) = torch.autograd.grad(q[2, :, 1].sum(), obs)
+    obs = torch.randn(1, 3, 2, 2, algo.obs_dim, requires_grad=True)  # one run's sequences [R = 1, T, B, …]
+    done = torch.tensor([[[False, False], [True, False], [False, False]]])  # env 0's episode ends at step 1
+    q, _ = algo.unroll(algo.online, obs, torch.zeros(1, 2, 2, algo.bits), done, train=True)
+    (grad,) = torch.autograd.grad(q[0, 2, :, 1].sum(), obs)
+    grad = grad[0]
     assert grad[1, 0, 0].abs().sum() == 0 and grad[0, 0].abs().sum() == 0  # env 0: new episode hears zeros
     assert grad[1, 1, 0].abs().sum() > 0  # env 1 still hears the speaker
 
@@ -170,17 +172,17 @@ def test_every_agent_loss_reaches_the_speaker_through_its_messages() -> None:
     """The speaker's only action is a no-op, so its C-Net's message head learns only from the listener's loss."""
     algo, env = make_dial(num_envs=16)
     batch = Loop(algo, env).chunk(eps=1.0)
-    data = {k: torch.as_tensor(v) for k, v in batch.items() if k != "episode"}
+    data = {k: torch.as_tensor(v)[None] for k, v in batch.items() if k != "episode"}  # [R = 1, T, B, …]
     losses = algo.agent_losses(data)
-    assert losses.shape == (2,)
+    assert losses.shape == (1, 2)
     speaker_w = algo.online.get_parameter("cnet.layers.0.weight")
-    (g,) = torch.autograd.grad(losses[1], speaker_w)
-    assert g[0].abs().sum() > 0  # listener's TD loss → speaker's weights (group 0)
+    (g,) = torch.autograd.grad(losses[0, 1], speaker_w)
+    assert g[0, 0].abs().sum() > 0  # listener's TD loss → speaker's weights (group 0)
 
 
 def test_truncated_steps_bootstrap_and_terminated_steps_do_not() -> None:
     algo, env = make_dial(num_envs=4, gamma=0.9)
-    data = {k: torch.as_tensor(v) for k, v in Loop(algo, env).chunk(eps=1.0).items() if k != "episode"}
+    data = {k: torch.as_tensor(v)[None] for k, v in Loop(algo, env).chunk(eps=1.0).items() if k != "episode"}
     data["reward"] = torch.zeros_like(data["reward"])
     data["terminated"][:] = True
     _, _, y = algo.sequence_q(data)
@@ -261,7 +263,7 @@ def test_replay_variant_stores_sequences_and_updates() -> None:
     assert all(np.isfinite(s["loss"]) for s in stats)
     assert len(algo.replay) == algo.replay.capacity  # bounded ring, full
     batch = algo.sample()
-    assert batch["obs"].shape == (3, 8, 2, algo.obs_dim) and batch["valid"].all()
+    assert batch["obs"].shape == (1, 3, 8, 2, algo.obs_dim) and batch["valid"].all()  # [R = 1, T, B, …]
     # A chunk of another length is split and zero-padded; the padding is marked invalid.
     rows = algo.to_sequences({k: v[:2] for k, v in loop.chunk(eps=1.0).items() if k in batch})
     assert rows["obs"].shape == (8, 3, 2, algo.obs_dim) and rows["valid"][:, :2].all() and not rows["valid"][:, 2].any()

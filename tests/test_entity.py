@@ -57,8 +57,14 @@ def permuted(obs: np.ndarray, spec: EnvSpec, g: np.random.Generator) -> np.ndarr
 
 @pytest.mark.parametrize(
     "params",
-    [{}, SIGHTINGS, {**SIGHTINGS, "observe_k": 1, "n_agents": 2}, {**SIGHTINGS, "adversary_stealth": True}],
-    ids=["default", "sightings", "one-slot", "stealth"],
+    [
+        {},
+        SIGHTINGS,
+        {**SIGHTINGS, "observe_k": 1, "n_agents": 2},
+        {**SIGHTINGS, "adversary_stealth": True},
+        {**SIGHTINGS, "sighting_headings": True, "adversary_speed": 7, "adversary_steer_speed": 3},
+    ],
+    ids=["default", "sightings", "one-slot", "stealth", "sighting-headings"],
 )
 def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
     """The layout lives beside the engine (``envs/layout.py``): every token must match the engine's own state —
@@ -82,7 +88,7 @@ def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
 
     np.testing.assert_allclose(sensor[..., 1], np.where(seen, np.take_along_axis(rel_x, near, 2) / r, 0), atol=1e-6)
     np.testing.assert_allclose(sensor[..., 2], np.where(seen, np.take_along_axis(rel_y, near, 2) / r, 0), atol=1e-6)
-    np.testing.assert_allclose(sensor[..., 3] * cfg.max_speed, np.where(seen, of_seen(env.speed), 0), atol=1e-5)
+    np.testing.assert_allclose(sensor[..., 3] * cfg.top_speed, np.where(seen, of_seen(env.speed), 0), atol=1e-5)
     np.testing.assert_array_equal(sensor[..., 4 : 4 + h].argmax(-1)[seen], of_seen(env.heading)[seen])
     flags = sensor[..., 4 + h :]  # heading known, adversary, adversary known, source one-hot
     np.testing.assert_array_equal(flags[..., 0], seen)  # the sensor gives a heading
@@ -99,7 +105,11 @@ def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
     for col, rel in ((1, rel_x), (2, rel_y)):  # a teammate may be out of sensor range: clipped to ±1 like every feature
         want = np.where(known, np.clip(rel[:, me, others] / r, -1, 1), 0)
         np.testing.assert_allclose(told[..., col], want, atol=1e-6)
-    assert not told[..., 4 : 4 + h + 1].any(), "a sighting gives no heading"
+    if cfg.sighting_headings:  # the told car's own heading, as a sensor slot gives it
+        np.testing.assert_array_equal(told[..., 4 : 4 + h].argmax(-1)[known], env.heading[:, others][known])
+        np.testing.assert_array_equal(told[..., 4 + h], known)  # heading known
+    else:
+        assert not told[..., 4 : 4 + h + 1].any(), "a sighting gives no heading"
     np.testing.assert_array_equal(told[..., 5 + h], known & (others >= n))  # adversary
     np.testing.assert_array_equal(told[..., 6 + h], known)  # adversary known
     np.testing.assert_array_equal(told[..., 7 + h + ENTITY_SOURCES.index("told")], known)
@@ -128,8 +138,8 @@ def test_q_values_ignore_the_order_of_slots(name: str, share: bool) -> None:
     """Permuting each agent's sensor slots and its told sightings leaves every Q-value unchanged."""
     env, obs = env_obs(SIGHTINGS)
     algo = build(name, env.spec, share)
-    x = torch.as_tensor(np.concatenate(obs))
-    y = torch.as_tensor(permuted(np.concatenate(obs), env.spec, np.random.default_rng(1)))
+    x = torch.as_tensor(np.concatenate(obs))[None]  # one run's [R = 1, M, N, D]
+    y = torch.as_tensor(permuted(np.concatenate(obs), env.spec, np.random.default_rng(1)))[None]
     assert not torch.equal(x, y)
     flat = build(name, env.spec, share, encoder="mlp")
     with torch.no_grad():
@@ -143,7 +153,7 @@ def test_an_empty_slot_contributes_nothing() -> None:
     slots equal those with the zeros the env writes there, exactly."""
     env, obs = env_obs(SIGHTINGS)
     algo = build("idqn", env.spec)
-    x = torch.as_tensor(np.concatenate(obs))
+    x = torch.as_tensor(np.concatenate(obs))[None]  # one run's [R = 1, M, N, D]
     assert env.spec.layout is not None
     garbage = x.clone()
     g = torch.Generator().manual_seed(0)
@@ -162,18 +172,18 @@ def test_an_empty_slot_contributes_nothing() -> None:
 
 @pytest.mark.parametrize("share", [True, False], ids=["shared", "per-agent"])
 def test_shapes_with_and_without_the_run_axis_and_a_member_is_the_single_run(share: bool) -> None:
-    """R = 1 and R = 3 populations give ``[R, B, N, A]``, a single run ``[B, N, A]``, and run k's Q-values are the
+    """R = 1 and R = 3 populations give ``[R, B, N, A]`` (a single run is R = 1), and run k's Q-values are the
     single run of seed k's (the same initial weights, the encoder stacked like any GroupLinear)."""
     env, obs = env_obs(SIGHTINGS, envs=4, steps=2)
     x = torch.as_tensor(obs[-1])
     single = build("idqn", env.spec, share, seed=SEEDS[1])
-    assert single.greedy_q(x, None)[0].shape == (4, 3, 9)
+    assert single.greedy_q(x[None], None)[0].shape == (1, 4, 3, 9)
     for seeds in ([SEEDS[1]], SEEDS):
         pop = build("idqn", env.spec, share, seed=seeds)
         q = pop.greedy_q(x.expand(len(seeds), *x.shape), None)[0]
         assert q.shape == (len(seeds), 4, 3, 9)
         k = seeds.index(SEEDS[1])
-        torch.testing.assert_close(q[k], single.greedy_q(x, None)[0], rtol=0, atol=1e-6)
+        torch.testing.assert_close(q[k], single.greedy_q(x[None], None)[0][0], rtol=0, atol=1e-6)
 
 
 def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> dict[str, np.ndarray]:
@@ -211,7 +221,7 @@ def test_a_population_member_trains_as_the_single_run_of_its_seed(name: str, sha
         pop.update()
         for single in singles:
             single.update()
-    gap = max(float((a.online.state_dict()[p] - w).abs().max())
+    gap = max(float((run_state(a.online, 0)[p] - w).abs().max())
               for k, a in enumerate(singles) for p, w in run_state(pop.online, k).items())  # fmt: skip
     assert gap < 1e-5
 
@@ -223,21 +233,23 @@ def test_mesn_listener_loss_reaches_the_other_agents_message_networks_through_he
     algo = build("ma-mesn", env.spec, share=False)
     g = np.random.default_rng(0)
     m, n = 16, env.spec.n_agents
-    batch = {
-        "obs": torch.as_tensor(obs[0]),
-        "next_obs": torch.as_tensor(obs[1]),
-        "action": torch.as_tensor(g.integers(0, 9, size=(m, n))),
-        "reward": torch.as_tensor(g.normal(size=(m, n)), dtype=torch.float32),
-        "terminated": torch.zeros(m, dtype=torch.bool),
-        "truncated": torch.zeros(m, dtype=torch.bool),
+    batch = {  # one run's: [R = 1, M, …]
+        "obs": torch.as_tensor(obs[0])[None],
+        "next_obs": torch.as_tensor(obs[1])[None],
+        "action": torch.as_tensor(g.integers(0, 9, size=(1, m, n))),
+        "reward": torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
+        "terminated": torch.zeros(1, m, dtype=torch.bool),
+        "truncated": torch.zeros(1, m, dtype=torch.bool),
     }
     heard_in = algo.online["policy"][0].heard.layers[0]
     for i in range(n):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[i].backward()
-        message = sum(p.grad.abs().flatten(1).sum(1) for p in algo.online["message"].parameters() if p.grad is not None)
-        policy = algo.online["policy"][1].layers[0].weight.grad.abs().sum(dim=(1, 2))
-        assert heard_in.weight.grad is not None and heard_in.weight.grad[i].abs().sum() > 0, "ψ_i reads m_−i"
+        algo.agent_losses(batch)[0, i].backward()
+        message = sum(
+            p.grad[0].abs().flatten(1).sum(1) for p in algo.online["message"].parameters() if p.grad is not None
+        )
+        policy = algo.online["policy"][1].layers[0].weight.grad[0].abs().sum(dim=(1, 2))
+        assert heard_in.weight.grad is not None and heard_in.weight.grad[0, i].abs().sum() > 0, "ψ_i reads m_−i"
         for j in range(n):
             assert (policy[j] > 0) == (j == i), f"agent {i}'s loss and agent {j}'s policy network"
             assert (message[j] > 0) == (j != i), f"agent {i}'s loss and agent {j}'s message network"
@@ -259,6 +271,6 @@ def test_a_checkpoint_rebuilds_the_entity_networks(tmp_path: Path) -> None:
     loaded, _, _ = load_checkpoint(tmp_path / "c.pt", device="cpu")
     assert isinstance(loaded, MAMeSN)
     assert loaded.spec.layout == env.spec.layout is not None and loaded.cfg.encoder == "entity"
-    x = torch.as_tensor(obs[-1])
+    x = torch.as_tensor(obs[-1])[None]  # one run's
     with torch.no_grad():
         torch.testing.assert_close(loaded.greedy_q(x, None)[0], agent.greedy_q(x, None)[0], rtol=0, atol=0)

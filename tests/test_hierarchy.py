@@ -33,7 +33,7 @@ from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
 from convoy.services.training import make_env, run_inprocess
-from tests.conftest import single_update
+from tests.conftest import population_update, single_update
 
 # forward spawns on a belt of constant speed: the goals' "cruise" is the belt's speed (the critic reads it from the
 # config), and the spawn pose is then a cruise
@@ -158,7 +158,7 @@ def test_dial_options_have_a_fixed_length_and_goals_are_pursued_again() -> None:
     reached[0, 0] = own(*REACH[g])
     out = agent.act(reached, 0.0, out.state)
     assert not out.extras["h_start"][0] and out.extras["h_steps"][0] == 2  # reaching does not end the option
-    assert np.allclose(out.state.anchor[0, 0], reached[0, 0])  # agent 0 is judged from where it got to
+    assert np.allclose(out.state.anchor[0, 0, 0], reached[0, 0])  # agent 0 is judged from where it got to (run 0)
     out = agent.act(reached, 0.0, out.state)
     assert out.extras["h_steps"][0] == 3
     assert out.messages is not None and out.messages.shape[:2] == (1, 2)
@@ -182,7 +182,11 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
     meta_chunks: list[dict[str, np.ndarray]] = []
     ctrl_chunks: list[dict[str, np.ndarray]] = []
     monkeypatch.setattr(agent.meta, "act", fixed_goals)
-    monkeypatch.setattr(agent.meta, "observe", meta_chunks.append)
+
+    def meta_observe(chunk: dict[str, np.ndarray], valid: np.ndarray) -> None:  # [T = 1, R = 1, B]: the ended
+        meta_chunks.append({k: v[valid][None] for k, v in chunk.items()})
+
+    monkeypatch.setattr(agent.meta, "observe", meta_observe)
     monkeypatch.setattr(agent.controller, "observe", ctrl_chunks.append)
 
     b = 3  # env 0 times out, env 1's agent 0 reaches its goal on the 2nd step, env 2 crashes on the 1st
@@ -213,7 +217,7 @@ def test_meta_transitions_sum_the_option_rewards_and_controller_rows_get_intrins
         state = agent.reset_state(out.state, term)
         obs = np.where(term[:, None, None], first, nxt)  # the crashed env restarts
 
-        rows = ctrl_chunks[-1]  # one row per (env, agent), goal one-hot appended
+        rows = {k: v[:, 0] for k, v in ctrl_chunks[-1].items()}  # one row per (env, agent), goal one-hot appended
         assert rows["obs"].shape == (1, b * 2, 1, CFG.obs_dim + N_GOALS)
         assert (rows["obs"][0, :, 0, CFG.obs_dim :].argmax(-1) == np.tile(goals, b)).all()
         intrinsic = np.zeros((b, 2), dtype=np.float32)
@@ -372,8 +376,8 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
         pop.observe(chunk)
         for k, (st, single) in enumerate(zip(steppers, singles, strict=True)):
             own_chunk = st.take_chunk()
-            np.testing.assert_array_equal(chunk["h_goal"][:, k], own_chunk["h_goal"])
-            np.testing.assert_array_equal(chunk["action"][:, k], own_chunk["action"])
+            np.testing.assert_array_equal(chunk["h_goal"][:, k], own_chunk["h_goal"][:, 0])  # [T, R = 1, B, …]
+            np.testing.assert_array_equal(chunk["action"][:, k], own_chunk["action"][:, 0])
             single.observe(own_chunk)
     for level in ("controller", "meta"):
         sizes = [len(getattr(s, level).replay) for s in singles]
@@ -383,17 +387,17 @@ def test_member_k_of_a_hierarchical_population_is_the_single_run_of_seed_k(algo:
             ours, theirs = getattr(pop, level).replay, getattr(single, level).replay
             assert ours._size[k] == sizes[k]
             for f, v in theirs.state_dict()["data"].items():
-                np.testing.assert_array_equal(ours._data[f][k, : sizes[k]], v, err_msg=f"{level} {f} run {k}")
+                np.testing.assert_array_equal(ours._data[f][k, : sizes[k]], v[0], err_msg=f"{level} {f} run {k}")
     assert pop.can_update() and pop.meta_can_update() and all(s.meta_can_update() for s in singles)
     for _ in range(150):
-        rows = pop.update()
+        rows = population_update(pop)
         single_rows = [single_update(s) for s in singles]
     assert isinstance(rows, list)  # a population's: one dict per run
     for k, single in enumerate(singles):
         assert rows[k]["meta_loss"] == pytest.approx(single_rows[k]["meta_loss"], rel=1e-4)
         for level in ("controller", "meta"):
             for n, w in run_state(getattr(pop, level).online, k).items():
-                torch.testing.assert_close(w, getattr(single, level).online.state_dict()[n], rtol=0, atol=1e-5)
+                torch.testing.assert_close(w, run_state(getattr(single, level).online, 0)[n], rtol=0, atol=1e-5)
     member = pop.member(1)
     assert member.updates == singles[1].updates and member.meta_steps == singles[1].meta_steps
     obs = np.asarray(env.reset(11))[4:8]  # run 1's envs

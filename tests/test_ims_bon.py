@@ -46,11 +46,11 @@ def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Te
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
     return {
-        "obs": torch.randn(m, n, d, generator=g),
-        "action": torch.randint(0, a, (m, n), generator=g),
-        "reward": torch.randn(m, n, generator=g),
-        "next_obs": torch.randn(m, n, d, generator=g),
-        "terminated": torch.rand(m, generator=g) < 0.3,
+        "obs": torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
+        "action": torch.randint(0, a, (1, m, n), generator=g),
+        "reward": torch.randn(1, m, n, generator=g),
+        "next_obs": torch.randn(1, m, n, d, generator=g),
+        "terminated": torch.rand(1, m, generator=g) < 0.3,
     }
 
 
@@ -87,8 +87,8 @@ def test_ims_applies_the_communication_step_p_times_per_forward(p: int) -> None:
     assert out.actions.shape == (4, 3) and out.messages is not None and out.messages.shape == (4, 3, algo.bits)
     assert set(np.unique(out.messages)) <= {0.0, 1.0}  # discrete bits at execution
     counter.calls = 0
-    q, _ = algo.forward(algo.online, torch.as_tensor(obs), train=True)
-    assert counter.calls == p and q.shape == (4, 3, algo.n_act)
+    q, _ = algo.forward(algo.online, torch.as_tensor(obs)[None], train=True)  # one run's
+    assert counter.calls == p and q.shape == (1, 4, 3, algo.n_act)
 
 
 def test_ims_parameter_count_does_not_depend_on_p() -> None:
@@ -107,7 +107,7 @@ def test_mean_of_others_is_the_mean_over_the_other_agents_and_zero_alone() -> No
 
 def test_ims_received_overrides_what_agents_hear() -> None:
     algo = build_ims(synthetic_spec(3), comm_iterations=1)
-    obs = torch.randn(6, 3, 5)
+    obs = torch.randn(1, 6, 3, 5)  # one run's
     q, sent = algo.forward(algo.online, obs, train=False)
     q_same, _ = algo.forward(algo.online, obs, train=False, received=mean_of_others(sent))
     torch.testing.assert_close(q_same, q)  # with P = 1, hearing the true mean is the unperturbed pass
@@ -125,7 +125,7 @@ def test_ims_continuous_messages_are_real_valued_and_trainable() -> None:
     algo = build_ims(synthetic_spec(2), comm_iterations=2, discrete=False)
     msgs = algo.act(np.random.default_rng(1).normal(size=(8, 2, 5)).astype(np.float32), 0.0).messages
     assert msgs is not None and not set(np.unique(msgs)) <= {0.0, 1.0}
-    algo.agent_losses(random_batch(algo))[0].backward()
+    algo.agent_losses(random_batch(algo))[0, 0].backward()
     assert grad(algo.online, "comm.speak.weight").abs().sum() > 0
 
 
@@ -135,11 +135,11 @@ def test_ims_agent_loss_reaches_the_other_agents_message_weights() -> None:
     comm = algo.online["comm"]
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(random_batch(algo, seed=i))[i].backward()
-        speak = grad(comm, "speak.weight").abs().sum(dim=(1, 2))
+        algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
+        speak = grad(comm, "speak.weight")[0].abs().sum(dim=(1, 2))
         for j in range(3):
             assert (speak[j] > 0) == (j != i), (i, j, speak)  # i's own message is only heard by others
-        assert grad(comm, "listen.weight")[i].abs().sum() > 0 and grad(comm, "recur.weight")[i].abs().sum() > 0
+        assert grad(comm, "listen.weight")[0, i].abs().sum() > 0 and grad(comm, "recur.weight")[0, i].abs().sum() > 0
 
 
 # --------------------------------------------------------------------------- MA-BoN
@@ -152,19 +152,19 @@ def test_ma_bon_evaluates_all_agents_with_one_call_and_one_broadcast(shared: boo
     obs = np.random.default_rng(0).normal(size=(6, 4, 5)).astype(np.float32)
     out = algo.act(obs, 0.0)
     assert g_calls.calls == 1 and f_calls.calls == 1
-    q, _, _ = algo.greedy_q(torch.as_tensor(obs), None)
-    assert q.shape == (6, 4, algo.n_act) and torch.isfinite(q).all()
+    q, _, _ = algo.greedy_q(torch.as_tensor(obs)[None], None)  # one run's
+    assert q.shape == (1, 6, 4, algo.n_act) and torch.isfinite(q).all()
     msgs = out.messages
     assert msgs is not None and msgs.shape == (6, 4, algo.bits)
     assert (msgs == msgs[:, :1]).all()  # one broadcast per env, heard identically by every agent
     assert set(np.unique(msgs)) <= {0.0, 1.0}
-    _, sent = algo.forward(algo.online, torch.as_tensor(obs), train=True)
-    assert torch.equal(sent, sent[:, :1].expand_as(sent))
+    _, sent = algo.forward(algo.online, torch.as_tensor(obs)[None], train=True)
+    assert torch.equal(sent, sent[:, :, :1].expand_as(sent))
 
 
 def test_ma_bon_received_overrides_the_broadcast() -> None:
     algo = build_bon(synthetic_spec(3))
-    obs = torch.randn(6, 3, 5)
+    obs = torch.randn(1, 6, 3, 5)  # one run's
     q, sent = algo.forward(algo.online, obs, train=False)
     torch.testing.assert_close(algo.forward(algo.online, obs, train=False, received=sent)[0], q)
     assert not torch.allclose(algo.forward(algo.online, obs, train=False, received=1.0 - sent)[0], q)
@@ -175,22 +175,22 @@ def test_ma_bon_every_agent_loss_trains_the_message_network_and_the_encoders(sha
     algo = build_bon(synthetic_spec(3), share_params=shared)
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(random_batch(algo, seed=i))[i].backward()
+        algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
         assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in algo.online["message"].parameters())
         enc = algo.online.get_parameter("encoder.layers.0.weight").grad
-        assert enc is not None and (enc.abs().sum(dim=(1, 2)) > 0).all()  # every agent's encoder feeds bm
+        assert enc is not None and (enc[0].abs().sum(dim=(1, 2)) > 0).all()  # every agent's encoder feeds bm
 
 
 def test_ma_bon_per_agent_heads_only_see_their_own_agents_loss() -> None:
     algo = build_bon(synthetic_spec(3), share_params=False)
     for i in range(3):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(random_batch(algo, seed=i))[i].backward()
+        algo.agent_losses(random_batch(algo, seed=i))[0, i].backward()
         policy = algo.online["policy"]
         assert isinstance(policy, GroupMLP)
         for layer in policy.layers:
             assert isinstance(layer, GroupLinear)
-            reached = grad(layer, "weight").abs().sum(dim=(1, 2)) > 0
+            reached = grad(layer, "weight")[0].abs().sum(dim=(1, 2)) > 0
             assert reached.tolist() == [j == i for j in range(3)], (i, reached)
 
 

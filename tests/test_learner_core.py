@@ -16,10 +16,12 @@ from convoy.algos.dqn_ser import age_weights
 from convoy.algos.listening import Source
 from convoy.algos.registry import make_algorithm
 from convoy.algos.replay import JointReplay
+from convoy.algos.streams import RunStreams
 from convoy.config import ALGORITHMS, IMSConfig, MeSNConfig, job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import EnvSpec
 from convoy.validation import ConfigError
+from tests.conftest import single_update
 
 SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_actions=(4, 4, 4), max_steps=10)
 
@@ -27,20 +29,20 @@ SPEC = EnvSpec(name="toy", agent_ids=("a", "b", "c"), obs_dims=(5, 5, 5), n_acti
 def random_batch(spec: EnvSpec, m: int = 32, seed: int = 0) -> dict[str, torch.Tensor]:
     g = np.random.default_rng(seed)
     n, d = spec.n_agents, spec.obs_dim
-    return {
-        "obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
-        "next_obs": torch.as_tensor(g.normal(size=(m, n, d)), dtype=torch.float32),
-        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(m, n))),
-        "reward": torch.as_tensor(g.normal(size=(m, n)), dtype=torch.float32),
-        "terminated": torch.as_tensor(g.random(m) < 0.2),
-        "truncated": torch.zeros(m, dtype=torch.bool),
-        "episode": torch.zeros(m, dtype=torch.long),
+    return {  # one run's: [R = 1, M, …]
+        "obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        "next_obs": torch.as_tensor(g.normal(size=(1, m, n, d)), dtype=torch.float32),
+        "action": torch.as_tensor(g.integers(0, spec.max_actions, size=(1, m, n))),
+        "reward": torch.as_tensor(g.normal(size=(1, m, n)), dtype=torch.float32),
+        "terminated": torch.as_tensor(g.random((1, m)) < 0.2),
+        "truncated": torch.zeros(1, m, dtype=torch.bool),
+        "episode": torch.zeros(1, m, dtype=torch.long),
     }
 
 
 def fill(algo, spec: EnvSpec, rows: int = 256) -> None:
     b = random_batch(spec, rows)
-    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})  # a chunk [T = 1, R = 1, B, …]
 
 
 def build(name: str, spec: EnvSpec = SPEC, **params):
@@ -54,9 +56,9 @@ def test_mesn_td_loss_of_agent_i_reaches_other_message_nets_and_only_its_own_pol
     batch = random_batch(SPEC)
     for i in range(SPEC.n_agents):
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[i].backward()
-        policy_grad = algo.online["policy"].layers[0].weight.grad.abs().sum(dim=(1, 2))  # per agent
-        message_grad = algo.online["message"].layers[0].weight.grad.abs().sum(dim=(1, 2))
+        algo.agent_losses(batch)[0, i].backward()
+        policy_grad = algo.online["policy"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))  # per agent
+        message_grad = algo.online["message"].layers[0].weight.grad[0].abs().sum(dim=(1, 2))
         for j in range(SPEC.n_agents):
             if j == i:
                 assert policy_grad[j] > 0, "agent i's loss must train its own policy network f″_i"
@@ -76,7 +78,7 @@ def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_
     _, sent, heard = cut.speak(cut.online, batch["obs"], train=True)
     assert sent.abs().sum() > 0 and not heard.any()
     cut.optimizer.zero_grad(set_to_none=True)
-    sum(cut.agent_losses(batch)).backward()
+    cut.agent_losses(batch).sum().backward()
     message = [p.grad for n, p in cut.online.named_parameters() if n.startswith(("message", "encoder"))]
     assert message and all(g is None or not g.any() for g in message)
     noisy = build(name, share_params=False, channel_control="noise")
@@ -91,11 +93,11 @@ def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     batch = random_batch(SPEC)
     grads = []
     for i in range(SPEC.n_agents):
-        algo.torch_rngs[0].manual_seed(1)  # same Gumbel noise in every pass (the agent's own generator)
+        algo.streams["noise"].load(0, 1)  # same Gumbel noise in every pass (the agent's own stream)
         algo.optimizer.zero_grad(set_to_none=True)
-        algo.agent_losses(batch)[i].backward()
+        algo.agent_losses(batch)[0, i].backward()
         grads.append(algo.online["message"].layers[0].weight.grad.clone())
-    algo.torch_rngs[0].manual_seed(1)
+    algo.streams["noise"].load(0, 1)
     algo.optimizer.zero_grad(set_to_none=True)
     algo.agent_losses(batch).sum().backward()
     torch.testing.assert_close(algo.online["message"].layers[0].weight.grad, sum(grads), rtol=1e-4, atol=1e-6)
@@ -166,13 +168,15 @@ def test_heterogeneous_agents_only_take_their_own_actions() -> None:
 def test_replay_is_a_bounded_ring() -> None:
     buf = JointReplay(10)
     for start in range(0, 25, 5):
-        buf.add({"x": np.arange(start, start + 5)[:, None], "y": np.zeros((5, 2, 3))})
+        buf.add({"x": np.arange(start, start + 5)[None, :, None], "y": np.zeros((1, 5, 2, 3))})
     assert len(buf) == 10 and buf.nbytes == 10 * 8 + 10 * 6 * 8
-    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(15, 25))
-    buf.add({"x": np.arange(100, 130)[:, None], "y": np.zeros((30, 2, 3))})  # more rows than capacity
-    assert set(buf.sample(200, np.random.default_rng(0))["x"][:, 0]) == set(range(120, 130))
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(15, 25))
+    buf.add({"x": np.arange(100, 130)[None, :, None], "y": np.zeros((1, 30, 2, 3))})  # more rows than capacity
+    assert set(buf.sample(200, RunStreams([0], "replay"))["x"][0, :, 0].tolist()) == set(range(120, 130))
     with pytest.raises(ValueError, match="fields"):
-        buf.add({"x": np.zeros((1, 1))})
+        buf.add({"x": np.zeros((1, 1, 1))})
+    with pytest.raises(ValueError, match="leading shape"):
+        buf.add({"x": np.zeros((5, 1)), "y": np.zeros((5, 2, 3))})
 
 
 def test_checkpoint_reload_gives_identical_actions(tmp_path) -> None:
@@ -325,20 +329,27 @@ def test_channel_information_counts_codewords_not_bits() -> None:
 
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
 def test_a_non_finite_loss_never_reaches_the_weights(name: str) -> None:
+    """The skip is decided on the device: the weights, Adam's moments and its step count stay as they were, the
+    update counts (the host cannot know it was skipped) and the run fails when figures that counted
+    ``MAX_NONFINITE_IN_A_ROW`` in a row are read, whenever that is."""
     from convoy.algos.algorithm import MAX_NONFINITE_IN_A_ROW
 
     algo = build(name)
     b = random_batch(SPEC, 256)
     b["reward"][:] = float("nan")
-    algo.observe({k: v.numpy()[None] for k, v in b.items()})
+    algo.observe({k: v.numpy()[:, None] for k, v in b.items()})
     before = {k: v.clone() for k, v in algo.online.state_dict().items()}
-    stats = algo.update()
-    assert np.isnan(stats["loss"]) and algo.skipped_updates == 1 and algo.updates == 0
+    stats = single_update(algo)
+    assert np.isnan(stats["loss"]) and np.isnan(stats["grad_norm"]) and algo.skipped_updates == 1
+    assert algo.updates == 1
     assert all(torch.equal(before[k], v) for k, v in algo.online.state_dict().items())
-    for _ in range(MAX_NONFINITE_IN_A_ROW - 2):
-        algo.update()
-    with pytest.raises(FloatingPointError, match="non-finite loss"):
-        algo.update()
+    state = algo.optimizer.state_dict()["state"]
+    assert all(not st["exp_avg"].any() and not st["exp_avg_sq"].any() and st["step"] == 0 for st in state.values())
+    unread = [algo.update() for _ in range(MAX_NONFINITE_IN_A_ROW - 2)]  # nothing read: nothing fails yet
+    last = algo.update()
+    assert math.isnan(unread[-1].read()[0]["loss"])  # read one short of the limit: skipped, not failed
+    with pytest.raises(FloatingPointError, match=f"{MAX_NONFINITE_IN_A_ROW} updates in a row had a non-finite loss"):
+        last.read()
 
 
 def test_chunks_with_impossible_values_are_refused_with_their_reason() -> None:
@@ -383,8 +394,8 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
     assert save_replay(path, algo, env_steps=300, max_bytes=1 << 30) > 0
     fresh = build("idqn")
     assert load_replay(path, fresh, env_steps=300) == 300
-    a, b = algo.replay.sample(64, np.random.default_rng(1)), fresh.replay.sample(64, np.random.default_rng(1))
-    assert all(np.array_equal(a[k], b[k]) for k in a)
+    a, b = algo.replay.sample(64, RunStreams([1], "replay")), fresh.replay.sample(64, RunStreams([1], "replay"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
     assert load_replay(path, build("idqn"), env_steps=200) == 0  # saved at another step than the checkpoint's
     assert save_replay(path, algo, env_steps=300, max_bytes=1_000) == 0 and not path.exists()  # over the bound
     path.write_bytes(b"not a zip")

@@ -68,14 +68,14 @@ def random_batch(algo: NetworkAgent, m: int = 32, seed: int = 0) -> dict[str, Te
     g = torch.Generator().manual_seed(seed)
     n, d, a = algo.n_agents, algo.obs_dim, algo.n_act
     batch = {
-        "obs": torch.randn(m, n, d, generator=g),
-        "action": torch.randint(0, a, (m, n), generator=g),
-        "reward": torch.randn(m, n, generator=g),
-        "next_obs": torch.randn(m, n, d, generator=g),
-        "terminated": torch.rand(m, generator=g) < 0.3,
+        "obs": torch.randn(1, m, n, d, generator=g),  # one run's: [R = 1, M, …]
+        "action": torch.randint(0, a, (1, m, n), generator=g),
+        "reward": torch.randn(1, m, n, generator=g),
+        "next_obs": torch.randn(1, m, n, d, generator=g),
+        "terminated": torch.rand(1, m, generator=g) < 0.3,
     }
     if isinstance(algo, MemoryModule):
-        window = torch.randn(m, algo.window, n, d + 1, generator=g)
+        window = torch.randn(1, m, algo.window, n, d + 1, generator=g)
         window[..., -1] = 1.0
         batch[HISTORY] = window.to(torch.float16)
     return batch
@@ -103,10 +103,10 @@ class CallCounter:
 def test_memory_loss_reaches_only_the_memory_module(name: str) -> None:
     algo = build_mm(name)
     loss, stats = algo.memory_loss(random_batch(algo))
-    assert loss is not None and loss.ndim == 0
+    assert loss is not None and loss.shape == (1,)  # one run's
     assert {"memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
     assert 0.0 <= stats["memory_bit_acc"] <= 1.0 and 0.0 <= stats["memory_msg_acc"] <= stats["memory_bit_acc"]
-    loss.backward()
+    loss.sum().backward()
     memory = [p for p, _ in algo.online.named_parameters() if p.startswith("memory.")]
     assert len(memory) == 6  # input, recurrent and head projections, weights and biases
     for pname, p in algo.online.named_parameters():
@@ -132,7 +132,7 @@ def test_update_trains_memory_and_reports_its_figures(name: str, monkeypatch: py
     batch = random_batch(algo)
     monkeypatch.setattr(algo, "sample", lambda: batch)  # replay draws replaced by one fixed batch
     before = {k: v.clone() for k, v in algo.online["memory"].state_dict().items()}
-    stats = algo.update()
+    stats = single_update(algo)
     assert {"loss", "memory_loss", "memory_bit_acc", "memory_msg_acc"} <= set(stats)
     after = algo.online["memory"].state_dict()
     assert all(not torch.equal(before[k], after[k]) for k in before)
@@ -154,25 +154,26 @@ def test_push_shifts_in_the_newest_observation_marked_real() -> None:
     assert isinstance(algo, MemoryModule)
     b, n, d, window = 4, algo.n_agents, algo.obs_dim, algo.window
     g = torch.Generator().manual_seed(1)
-    state = torch.randn(b, window, n, d + 1, generator=g)
-    obs = torch.randn(b, n, d, generator=g)
+    state = torch.randn(1, b, window, n, d + 1, generator=g)  # one run's
+    obs = torch.randn(1, b, n, d, generator=g)
     new = algo.push(state, obs)
-    assert new.shape == (b, window, n, d + 1)
+    assert new.shape == (1, b, window, n, d + 1)
+    fresh = algo.push(None, obs)[0]  # no state yet: zero padding before the first step
+    new, state, obs = new[0], state[0], obs[0]
     assert torch.equal(new[:, :-1], state[:, 1:])  # the oldest step is gone, the rest moved up
     assert torch.equal(new[:, -1, :, :d], obs)
     assert bool((new[:, -1, :, d] == 1.0).all())
-    fresh = algo.push(None, obs)  # no state yet: zero padding before the first step
     assert bool((fresh[:, :-1] == 0).all()) and torch.equal(fresh[:, -1], new[:, -1])
 
 
 def test_reset_state_zeroes_only_the_finished_envs() -> None:
     algo = build_mm("ma-bon-mm")
-    state = torch.randn(4, algo.window, algo.n_agents, algo.obs_dim + 1)
+    state = torch.randn(1, 4, algo.window, algo.n_agents, algo.obs_dim + 1)  # one run's
     original = state.clone()
     done = np.array([True, False, True, False])
     out = algo.reset_state(state, done)
-    assert bool((out[torch.as_tensor(done)] == 0).all())
-    assert torch.equal(out[torch.as_tensor(~done)], original[torch.as_tensor(~done)])
+    assert bool((out[0, torch.as_tensor(done)] == 0).all())
+    assert torch.equal(out[0, torch.as_tensor(~done)], original[0, torch.as_tensor(~done)])
     assert torch.equal(state, original)  # the caller's tensor is not modified in place
     assert algo.reset_state(state, np.zeros(4, dtype=bool)) is state
 
@@ -188,7 +189,7 @@ def test_act_stores_the_window_it_acted_on(name: str) -> None:
         out = algo.act(obs, 0.0, state)
         hist = out.extras[HISTORY]
         assert hist.dtype == np.float16 and hist.shape == (b, algo.window, n, d + 1)
-        np.testing.assert_array_equal(hist, out.state.to(torch.float16).numpy())
+        np.testing.assert_array_equal(hist, out.state[0].to(torch.float16).numpy())  # the state keeps its run axis
         np.testing.assert_array_equal(hist[:, -1, :, :d], obs.astype(np.float16))
         state = out.state
 
@@ -200,7 +201,7 @@ def test_env_stepper_records_history_and_clears_it_between_episodes() -> None:
     for _ in range(3):  # two rounds = one whole episode, then the first step of the next
         stepper.step(0.5)
     chunk = stepper.take_chunk()
-    hist, obs = chunk[HISTORY], chunk["obs"]
+    hist, obs = chunk[HISTORY][:, 0], chunk["obs"][:, 0]  # [T, R = 1, B, …]: the run's
     d = env.spec.obs_dim
     assert hist.dtype == np.float16 and hist.shape == (3, 8, algo.window, 2, d + 1)
     np.testing.assert_array_equal(hist[:, :, -1, :, :d], obs.astype(np.float16))  # the window ends with obs
@@ -220,8 +221,8 @@ def test_predictions_replace_messages_only_when_asked(name: str) -> None:
     assert isinstance(algo, MemoryModule)
     g = torch.Generator().manual_seed(2)
     b = 64
-    obs = torch.randn(b, algo.n_agents, algo.obs_dim, generator=g)
-    state = algo.push(algo.initial_state(b), torch.randn(b, algo.n_agents, algo.obs_dim, generator=g))
+    obs = torch.randn(1, b, algo.n_agents, algo.obs_dim, generator=g)  # one run's
+    state = algo.push(algo.initial_state(b), torch.randn(1, b, algo.n_agents, algo.obs_dim, generator=g))
     with torch.no_grad():
         window = algo.push(state, obs)
         x, _, heard = algo.speak(algo.online, obs, False)
@@ -331,7 +332,7 @@ def test_latency_channel_forgets_messages_of_finished_episodes(name: str) -> Non
     obs1 = rng.normal(size=(b, n, d)).astype(np.float32)
     with torch.no_grad():
         layout = (b, n, algo.senders, algo.bits)  # what Listening sees: [B, receivers, senders, bits]
-        true1 = algo.speak(algo.online, torch.as_tensor(obs1), False)[2].reshape(layout)
+        true1 = algo.speak(algo.online, torch.as_tensor(obs1)[None], False)[2].reshape(layout)
     assert true1.any()  # something is in flight after the first step
     out = algo.act(obs1, 0.0, algo.initial_state(b))
     assert not how.heard[0].any()  # the first step hears nothing yet
@@ -581,7 +582,7 @@ def test_a_loaded_codbc_checkpoint_acts_as_its_student(tmp_path: Path) -> None:
     loaded, _, _ = load_checkpoint(ckpt, device="cpu")
     assert isinstance(loaded, CoDBC)
     obs = env.reset(seed=1)
-    greedy = loaded.logits(torch.as_tensor(obs)).argmax(dim=-1).numpy()
+    greedy = loaded.logits(torch.as_tensor(obs)[None]).argmax(dim=-1)[0].numpy()
     np.testing.assert_array_equal(loaded.act(obs, 0.0).actions, greedy)
 
 

@@ -73,7 +73,7 @@ def test_an_agent_learns_from_n_step_rows_and_keeps_them_apart_from_one_step() -
             obs = res.obs
         algo.observe({k: np.stack([s[k] for s in steps]) for k in steps[0]})
         assert np.isfinite(single_update(algo)["loss"])
-        rows[n] = algo.replay.sample(8, algo.rng)
+        rows[n] = algo.replay.sample(8, algo.streams["replay"])
     assert "discount" not in rows[1] and "discount" in rows[3]
 
 
@@ -97,5 +97,5 @@ def test_the_trainer_collects_chunks_long_enough_for_n_steps(tmp_path) -> None:
         Trainer(job, env, algo, make_eval_env=lambda n: make_env(job, n), out_dir=tmp_path, progress=False).run()
     finally:
         env.close()
-    discount = algo.replay.sample(256, algo.rng)["discount"]
+    discount = algo.replay.sample(256, algo.streams["replay"])["discount"].cpu().numpy()
     assert np.mean(np.isclose(discount, 0.125)) > 0.5  # most rows span all three steps: γ³

@@ -16,6 +16,7 @@ from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent, max_env_steps
 from convoy.algos.checkpoint import replay_buffers
 from convoy.algos.replay import JointReplay
+from convoy.algos.streams import RunStreams
 from convoy.config import JobConfig, job_config
 from convoy.learner.inprocess import Trainer
 from convoy.learner.population import PopulationTrainer
@@ -28,27 +29,27 @@ HP: dict[str, Any] = {"hidden": [16], "learning_starts": 32, "batch_size": 16, "
 TIMING = ("wall_s", "env_steps_per_s", "updates_per_s")
 
 
-def rows(g: np.random.Generator, m: int, runs: int | None = None) -> dict[str, np.ndarray]:
-    lead = (m,) if runs is None else (runs, m)
+def rows(g: np.random.Generator, m: int, runs: int = 1) -> dict[str, np.ndarray]:
+    lead = (runs, m)
     return {"x": g.normal(size=(*lead, 3)).astype(np.float32), "k": g.integers(0, 9, size=lead)}
 
 
-@pytest.mark.parametrize("runs", [None, 3], ids=["single", "population"])
-def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs: int | None) -> None:
+@pytest.mark.parametrize("runs", [1, 3], ids=["single", "population"])
+def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs: int) -> None:
     """Through growth (a reserve of 5) and past the capacity (50 rows, 137 inserted): equal contents and draws."""
     full, short = JointReplay(50, runs=runs), JointReplay(50, runs=runs)
     short.reserve(5)
     g = np.random.default_rng(0)
-    streams = [[np.random.default_rng(s) for s in range(runs or 1)] for _ in range(2)]
+    streams = [RunStreams(range(runs), "replay") for _ in range(2)]
     for m in (3, 1, 7, 2, 11, 4, 30, 9, 25, 45):
         batch = rows(g, m, runs)
-        valid = None if runs is None else g.random((runs, m)) < 0.7  # the runs' own rows (a meta level's)
+        valid = None if runs == 1 else g.random((runs, m)) < 0.7  # the runs' own rows (a meta level's)
         for buf in (full, short):
             buf.add(batch, valid)
         assert short.allocated <= 50 and full.allocated == 50
-        draws = [b.sample(8, s[0] if runs is None else s) for b, s in zip((full, short), streams, strict=True)]
+        draws = [b.sample(8, s) for b, s in zip((full, short), streams, strict=True)]
         for k in draws[0]:
-            np.testing.assert_array_equal(draws[0][k], draws[1][k])
+            assert torch.equal(draws[0][k], draws[1][k])
         a, b = full.state_dict(), short.state_dict()
         np.testing.assert_array_equal(a["size"], b["size"])
         np.testing.assert_array_equal(a["next"], b["next"])
@@ -60,9 +61,9 @@ def test_a_reserved_ring_holds_and_samples_what_a_fully_allocated_one_does(runs:
 def test_a_reserve_allocates_only_that_and_the_capacity_still_bounds_it() -> None:
     buf = JointReplay(100)
     buf.reserve(10)
-    buf.add({"x": np.zeros((4, 2), np.float32)})
+    buf.add({"x": np.zeros((1, 4, 2), np.float32)})
     assert buf.allocated == 10 and buf.nbytes == 10 * 2 * 4
-    buf.add({"x": np.zeros((8, 2), np.float32)})  # past the reserve: grown by half at least
+    buf.add({"x": np.zeros((1, 8, 2), np.float32)})  # past the reserve: grown by half at least
     assert buf.allocated == 15 and len(buf) == 12
     buf.reserve(1_000)  # more than the capacity: the capacity
     assert buf.allocated == 100
@@ -87,7 +88,7 @@ def train(job: JobConfig, reserve: int | None) -> tuple[Any, list[dict[str, Any]
         if reserve is not None:
             agent.reserve_replay(reserve)
         if job.runs:
-            results = PopulationTrainer(job.members(), env, agent, progress=False).run()  # type: ignore[arg-type]
+            results = PopulationTrainer(job.members(), env, agent, progress=False).run()
         else:
             results = [Trainer(job, env, agent, progress=False).run()]
     finally:
@@ -192,10 +193,20 @@ def test_a_run_resumed_past_its_budget_gets_replay_for_its_new_one(tmp_path: Pat
     try:
         resumed = make_agent(longer, env.spec)
         replay = replay_buffers(resumed)["replay"]
-        counters = restore(resumed, longer, tmp_path, strict=True)
+        restored = restore(resumed, longer, tmp_path, strict=True)
+        assert restored is not None
+        (counters,) = restored  # one dict per run
         assert counters["replay_rows"] == first.steps == len(replay)
         assert replay.allocated == max_env_steps(longer, resumed.chunk_len) > old
         Trainer(longer, env, resumed, out_dir=tmp_path, progress=False, counters=counters).run()
     finally:
         env.close()
     assert len(replay) == longer.steps <= replay.allocated
+
+
+def test_a_single_runs_replay_file_from_before_the_run_axis_loads_as_run_0() -> None:
+    """Replay files written before a single run was a run of one hold rows ``[rows, …]`` and 0-dim pointers."""
+    buf = JointReplay(10)
+    buf.load_state_dict({"data": {"x": np.arange(6, dtype=np.float32)[:, None]}, "next": np.array(6), "size": 6})
+    assert len(buf) == 6 and buf.state_dict()["next"].tolist() == [6]
+    np.testing.assert_array_equal(buf.state_dict()["data"]["x"][0, :, 0], np.arange(6))

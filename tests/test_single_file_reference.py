@@ -78,14 +78,16 @@ def args_for(single: ModuleType, agent: NetworkAgent) -> Any:
 
 
 def as_single(nets: nn.ModuleDict, grad: bool = False) -> dict[str, Tensor]:
-    """The product's stacked weights (``GroupLinear`` ``[N, in, out]``), or their gradients, in the single file's
-    per-agent ``nn.Linear`` layout (``[out, in]``; the ReLUs sit at the odd indices of each ``nn.Sequential``)."""
+    """The product's stacked weights (``GroupLinear`` ``[R = 1, N, in, out]``), or their gradients, in the single
+    file's per-agent ``nn.Linear`` layout (``[out, in]``; the ReLUs sit at the odd indices of each
+    ``nn.Sequential``)."""
     out = {}
     for part in ("message", "policy"):
         layers = [m for m in nets[part].modules() if isinstance(m, GroupLinear)]  # in layer order
         for k, layer in enumerate(layers):
             weight, bias = (layer.weight.grad, layer.bias.grad) if grad else (layer.weight, layer.bias)
             assert weight is not None and bias is not None
+            weight, bias = weight[0], bias[0]  # the run's
             for i in range(layer.groups):
                 out[f"{part}.{i}.{2 * k}.weight"] = weight[i].T
                 out[f"{part}.{i}.{2 * k}.bias"] = bias[i]
@@ -118,15 +120,24 @@ def batch(spec: EnvSpec, m: int = 64, seed: int = 0) -> dict[str, Tensor]:
     }
 
 
+def same_noise(agent: NetworkAgent, seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The agent's message noise from a torch generator of ``seed``, as the single file draws it (the agent's own
+    streams are another generator: ``algos.streams``)."""
+    gen = torch.Generator().manual_seed(seed)
+    monkeypatch.setattr(agent, "rand_like", lambda x, normal=False: torch.rand(x.shape, generator=gen, dtype=x.dtype))
+
+
 @pytest.mark.parametrize("params", [REF, PLAIN], ids=["ref", "plain"])
-def test_losses_and_gradients_equal_the_products(single: ModuleType, params: dict, one_thread: None) -> None:
+def test_losses_and_gradients_equal_the_products(
+    single: ModuleType, params: dict, one_thread: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
     agent = product(params)
     args, online, target = twins(single, agent)
     data = batch(agent.spec)
-    agent.torch_rngs[0].manual_seed(7)  # the same Gumbel noise: both draw one uniform per bit from this state
+    same_noise(agent, 7, monkeypatch)  # the same Gumbel noise: both draw one uniform per bit from this state
     gen = torch.Generator().manual_seed(7)
 
-    theirs = agent.loss(data).agents
+    theirs = agent.loss({k: v[None] for k, v in data.items()}).agents[0]  # the product's batch: one run's
     ours = single.td_losses(online, target, data, args, gen)
     assert ours.shape == (agent.n_agents,) and bool((ours > 0).all())
     torch.testing.assert_close(ours, theirs.detach(), rtol=1e-5, atol=1e-5)
@@ -149,13 +160,13 @@ def test_weights_after_adam_steps_equal_the_products(
     args, online, target = twins(single, agent)
     start = {k: v.clone() for k, v in online.state_dict().items()}
     optimizer = torch.optim.Adam(online.parameters(), lr=args.lr)
-    agent.torch_rngs[0].manual_seed(3)
+    same_noise(agent, 3, monkeypatch)
     gen = torch.Generator().manual_seed(3)
     updates = 0
     for step in range(3):
         data = batch(agent.spec, seed=10 + step)
-        monkeypatch.setattr(agent, "sample", lambda data=data: data)  # the update's batch: this one
-        figures = agent.update()
+        monkeypatch.setattr(agent, "sample", lambda data=data: {k: v[None] for k, v in data.items()})  # this one
+        (figures,) = agent.update().read()
         loss, updates = single.train_step(online, target, optimizer, data, args, gen, updates)
         assert isinstance(figures, dict) and updates == agent.updates
         assert loss == pytest.approx(figures["loss"], rel=1e-5, abs=1e-5)

@@ -32,8 +32,8 @@ def test_every_algorithm_records_the_declared_transition(name: str, hierarchical
         stepper.step(1.0)
     chunk = stepper.take_chunk()
     declared = schema(env.spec.n_agents, env.spec.obs_dim)
-    assert {k: (v.dtype.str, v.shape[2:]) for k, v in chunk.items() if k in TRANSITION} == declared
-    assert all(v.shape[:2] == (2, 3) for v in chunk.values())
+    assert {k: (v.dtype.str, v.shape[3:]) for k, v in chunk.items() if k in TRANSITION} == declared  # [T, R, B]
+    assert all(v.shape[:3] == (2, 1, 3) for v in chunk.values())
     assert {k: v for k, v in transition_schema(job, algo).items() if k in TRANSITION} == declared
 
 
@@ -51,6 +51,7 @@ def test_the_replay_holds_rows_to_the_declared_transition() -> None:
     b, n, d = 4, 2, 3
     rows = record(np.zeros((b, n, d)), np.zeros((b, n)), np.zeros((b, n)), np.zeros((b, n, d)), np.zeros(b, bool),
                   np.zeros(b, bool), np.zeros(b), {"fingerprint": np.zeros((b, 2), np.float32)})  # fmt: skip
+    rows = {k: v[None] for k, v in rows.items()}  # one run's
     replay = JointReplay(16, declared=schema(n, d))
     replay.add(rows)  # the declared fields and an extra
     assert len(replay) == b
@@ -59,5 +60,5 @@ def test_the_replay_holds_rows_to_the_declared_transition() -> None:
     with pytest.raises(ValueError, match=r"'obs' is <f8 \(2, 3\) per row; the declared transition holds <f4"):
         replay.add({**rows, "obs": rows["obs"].astype(np.float64)})
     with pytest.raises(ValueError, match="'next_obs' is <f4 \\(2, 4\\)"):
-        replay.add({**rows, "next_obs": np.zeros((b, n, 4), np.float32)})
+        replay.add({**rows, "next_obs": np.zeros((1, b, n, 4), np.float32)})
     assert len(replay) == b  # nothing refused was written

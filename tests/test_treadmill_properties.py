@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from convoy.envs.batched import env_seeds
 from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, distance
-from convoy.envs.treadmill.config import FULL_FEATURES, OWN_FEATURES, SIGHTING_FEATURES
+from convoy.envs.treadmill.config import FULL_FEATURES, N_HEADINGS, OWN_FEATURES, SIGHTING_FEATURES
 from convoy.envs.treadmill.engine import DX, DY
 
 KEEP = 4  # steer 0, accelerate 0
@@ -296,6 +296,15 @@ def test_team_sightings_tell_what_a_teammate_observes_in_the_agents_own_frame() 
     assert told[0].tolist() == pytest.approx([1, -20 / 20, 0, 1 / 3, 0])  # a teammate: it can say where it is
     assert told[1].tolist() == pytest.approx([1, -10 / 20, 2 / 20, 1 / 3, 1])  # seen by agent 1: an adversary
     assert (told[2] == 0).all()  # nobody observes it
+    with_headings = cfg.model_copy(update={"sighting_headings": True})
+    obs, _ = observe_placed(with_headings, [50, 30, 40, 90], [50, 50, 52, 90], [0, 0, 3, 0], [1, 1, 1, 1])
+    width = with_headings.sighting_features
+    told = obs[0, 0, -3 * width :].reshape(3, width)
+    assert obs.shape[-1] == with_headings.obs_dim and width == SIGHTING_FEATURES + N_HEADINGS
+    assert told[1, SIGHTING_FEATURES:].argmax() == 3 and told[0, SIGHTING_FEATURES:].argmax() == 0  # each car's own
+    assert (told[2] == 0).all()
+    with pytest.raises(ValueError, match="team_sightings=true"):
+        TreadmillConfig(sighting_headings=True)
 
 
 def test_aggressive_adversary_closes_in() -> None:

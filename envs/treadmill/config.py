@@ -83,6 +83,12 @@ class TreadmillConfig(BaseModel):
         description="Reference only: append, in the agent's own frame, every teammate and every car some agent "
         "observes, with an adversary flag (what perfectly decoded messages could tell).",
     )
+    sighting_headings: bool = Field(
+        False,
+        description="With team_sightings: each told car's heading too (a one-hot, as the agent's own sensor slots "
+        "give it). A charger too fast to steer is dangerous along its heading, and both told planners know it; off "
+        "gives the sightings of the results measured before it existed.",
+    )
     reward_distance_cap: Distance = Field(10.0, description="d_max: the per-step reward is min(d, d_max) / d_max.")
     crash_penalty: float = Field(10.0, ge=0.0, le=1e6, description="Reward −crash_penalty to a car that crashes.")
     max_steps: int = Field(200, ge=1, le=1_000_000, description="Truncation horizon of an episode, in steps.")
@@ -150,11 +156,16 @@ class TreadmillConfig(BaseModel):
         return along * across
 
     @property
+    def sighting_features(self) -> int:
+        """Columns per told car: known, dx, dy, speed, adversary, then its heading one-hot if ``sighting_headings``."""
+        return SIGHTING_FEATURES + (N_HEADINGS if self.sighting_headings else 0)
+
+    @property
     def obs_dim(self) -> int:
         private = OWN_FEATURES + self.observe_k * NEIGHBOUR_FEATURES
         team = (self.n_agents - 1) * private if self.team_observations else 0
         full = (self.n_cars - 1) * FULL_FEATURES if self.full_information else 0
-        sightings = (self.n_cars - 1) * SIGHTING_FEATURES if self.team_sightings else 0
+        sightings = (self.n_cars - 1) * self.sighting_features if self.team_sightings else 0
         return private + team + full + sightings
 
     @model_validator(mode="before")
@@ -195,6 +206,8 @@ class TreadmillConfig(BaseModel):
                 f"{self.length} × {self.width} road with spawn_gap {self.spawn_gap}: allowed range 1 ≤ n_agents ≤ "
                 f"{self.spawn_slots}; use fewer agents, a bigger road or a smaller spawn_gap",
             )
+        if self.sighting_headings and not self.team_sightings:
+            raise ConfigError("sighting_headings", "adds headings to the told sightings: set team_sightings=true too")
         for name in ("treadmill_speed", "initial_speed"):
             if getattr(self, name) > self.max_speed:
                 raise ConfigError(name, f"must be ≤ max_speed ({self.max_speed}); allowed range 0 ≤ {name} ≤ max_speed")

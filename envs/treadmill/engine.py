@@ -350,16 +350,17 @@ class TreadmillEngine:
             full = np.stack([rel_x[:, me, o] / l1, rel_y[:, me, o] / w1, speed, adversary], axis=3, dtype=np.float32)
             parts.append(full.reshape(len(envs), n, -1))
         if cfg.team_sightings:
-            parts.append(self._team_sightings(self.team_observed(near, near_dist), rel_x, rel_y, v))
+            parts.append(self._team_sightings(self.team_observed(near, near_dist), rel_x, rel_y, v, h))
         obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)
         return obs, closest
 
-    def _team_sightings(self, observed, rel_x, rel_y, speed) -> np.ndarray:
-        """``[E, N, (C−1)·5]``: each other car that a teammate is (its position it can say) or that some agent
-        observes, in the agent's own frame — known flag, offset / sensor range, speed, adversary flag; zeros if
-        unknown. The offsets share the scale of the agent's own neighbour slots: a car 10 cells behind reads the same
-        whether the agent sees it or a teammate tells it (over the road's size it read 0.1, six times smaller)."""
+    def _team_sightings(self, observed, rel_x, rel_y, speed, heading) -> np.ndarray:
+        """``[E, N, (C−1)·F]``: each other car that a teammate is (its position it can say) or that some agent
+        observes, in the agent's own frame — known flag, offset / sensor range, speed, adversary flag, then with
+        ``sighting_headings`` its heading one-hot; zeros if unknown. The offsets share the scale of the agent's own
+        neighbour slots: a car 10 cells behind reads the same whether the agent sees it or a teammate tells it (over
+        the road's size it read 0.1, six times smaller)."""
         cfg = self.cfg
         n, o = cfg.n_agents, self._others
         known = observed[:, o] | (o < n)  # [E, N, C−1]
@@ -367,7 +368,10 @@ class TreadmillEngine:
         r = np.float32(cfg.sensor_range)
         adversary = np.broadcast_to(o >= n, known.shape)
         feats = [known, rel_x[:, me, o] / r, rel_y[:, me, o] / r, speed[:, o] / cfg.top_speed, adversary]
-        out = np.stack(feats, axis=3, dtype=np.float32) * known[..., None]
+        out = np.stack(feats, axis=3, dtype=np.float32)
+        if cfg.sighting_headings:
+            out = np.concatenate([out, np.broadcast_to(_ONE_HOT[heading[:, o]], (*known.shape, N_HEADINGS))], axis=3)
+        out = out * known[..., None]
         return out.reshape(len(observed), n, -1)
 
 

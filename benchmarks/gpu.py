@@ -1,0 +1,190 @@
+"""The update on an accelerator: ms per update, eager against captured, at P = 1, 20 and 128 runs, and a
+population's aggregate training env-steps/s against one run on one CPU core, measured in the same run.
+
+Per algorithm (independent DQN, MA-MeSN with its Gumbel messages, DIAL with its DRU noise; treadmill defaults, 3
+agents + 1 adversary) and population size P: ms per ``update()`` — the replay's sample on the device, loss,
+gradients, per-run clip and non-finite guard, Adam, targets — eager, and with ``--hp compile=true`` (one
+``torch.compile(fullgraph=True)`` graph; on CUDA also replayed as a CUDA graph), timed over many updates with one
+synchronisation at the end, as training runs them (figures are read in batches), after the compile. Run-updates/s =
+P × 1000 ÷ ms. Then training: ``convoy train --inprocess`` of P = 20 (and 128) independent-DQN runs on the device,
+captured, against one run on one pinned CPU core (1 torch thread), aggregate env-steps/s = P × steps ÷ wall time
+(start-up included: users pay it too).
+
+The goals it prints (issue "One code path, on the device"): P = 20 training ≥ 20 × one CPU core's run; a captured
+IDQN update ≤ 1 ms at P = 1; P = 128 ≥ 50 k run-updates/s. Compiling dominates the script's time (a graph per
+algorithm and P).
+
+Run from the repository root on a machine with a GPU: ``python benchmarks/gpu.py --json docs/figures/gpu.json``.
+On an H200 the updates of idqn took a minute and those of MA-MeSN and DIAL at P = 1 and 20 three, mostly compiling;
+``--algos`` (none: training only) and ``--train-sizes`` (none: updates only) split it across calls, and every figure
+is saved as soon as it is measured. ``--device cpu --quick`` is a smoke run of the same code (a minute on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import torch  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from benchmarks.population import CONVOY, pinned, run_all  # noqa: E402
+from benchmarks.report import cpu_model, write_json  # noqa: E402
+from benchmarks.updates import DIAL_UNROLL  # noqa: E402
+from convoy.actors.stepping import EnvStepper  # noqa: E402
+from convoy.algos.registry import make_algorithm  # noqa: E402
+from convoy.config import resolve_algo  # noqa: E402
+from convoy.envs import make_batched  # noqa: E402
+
+ALGOS = ("idqn", "ma-mesn", "dial")
+SIZES = (1, 20, 128)
+ENVS_PER_RUN = 16
+PLAY_STEPS = 32  # random env steps of every run's envs: the replay the updates sample from
+
+
+def filled(algo: str, runs: int, device: str, compile: bool) -> Any:
+    """A population of ``runs`` runs of ``algo`` on ``device`` with a replay of random play."""
+    env = make_batched("treadmill", ENVS_PER_RUN * runs, n_agents=3, n_adversaries=1)
+    params: dict[str, Any] = {"learning_starts": 0, "replay_capacity": 4096, "compile": compile}
+    if algo == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
+        params.update(replay=True, unroll=DIAL_UNROLL)
+    agent = make_algorithm(algo, env.spec, resolve_algo(algo, "treadmill", params), device=device,
+                           seed=list(range(runs)))  # fmt: skip
+    stepper = EnvStepper(env, agent, 0)
+    for _ in range(PLAY_STEPS):
+        stepper.step(1.0)
+    agent.observe(stepper.take_chunk())
+    env.close()
+    return agent
+
+
+def synchronize(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def ms_per_update(agent: Any, device: str, seconds: float) -> tuple[float, float]:
+    """(ms per update over ``seconds`` of back-to-back updates, seconds the first updates took: the compile)."""
+    t0 = time.perf_counter()
+    for _ in range(3):  # the first compiles (captured) or warms the allocator (eager); CUDA graphs record on the 2nd
+        agent.update()
+    synchronize(device)
+    warm_s = time.perf_counter() - t0
+    n, t0 = 0, time.perf_counter()
+    while True:
+        for _ in range(10):
+            agent.update()
+        n += 10
+        synchronize(device)
+        if time.perf_counter() - t0 >= seconds:
+            return (time.perf_counter() - t0) / n * 1e3, warm_s
+
+
+def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[str, float]:
+    """ms per update eager and captured, P runs; the captured step's CUDA-graph skips (0: it replays as one)."""
+    out: dict[str, float] = {}
+    for mode, compile in (("eager", False), ("captured", True)):
+        torch._dynamo.reset()
+        torch._dynamo.utils.counters.clear()
+        ms, warm_s = ms_per_update(filled(algo, runs, device, compile), device, seconds)
+        out[f"{mode}_ms"], out[f"{mode}_warm_s"] = ms, warm_s
+        out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
+    out["cudagraph_skips"] = float(torch._dynamo.utils.counters["inductor"]["cudagraph_skips"])
+    out["speedup"] = out["eager_ms"] / out["captured_ms"]
+    return out
+
+
+def train_args(steps: int, out: Path) -> list[str]:
+    """Independent DQN at the treadmill defaults; a small final evaluation and no curve: the measure is training."""
+    return [*CONVOY, "train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--steps", str(steps),
+            "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
+
+
+def training_figures(sizes: list[int], steps: int, device: str, work: Path, save: Callable[[], None],
+                     out: dict[str | int, Any], console: Console) -> None:  # fmt: skip
+    """Aggregate env-steps/s of P captured runs on ``device`` and of one run on one pinned CPU core, into ``out``,
+    each figure printed and saved as soon as it is measured (a call cut short keeps what it measured)."""
+    core = sorted(os.sched_getaffinity(0))[0]
+    one = [*train_args(steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
+    t_core = run_all([one], [pinned(core)])
+    out.update(cpu_core_steps_per_s=steps / t_core, steps=steps)
+    console.print(f"training: one run on one CPU core {steps / t_core:,.0f} env-steps/s ({t_core:.0f} s)")
+    save()
+    for p in sizes:
+        cmd = [*train_args(steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
+               "--hp", "compile=true"]  # fmt: skip
+        t = run_all([cmd], [[]])
+        out[p] = {"steps_per_s": p * steps / t, "wall_s": t, "ratio": p * t_core / t}
+        console.print(f"training: P = {p} on {device} {p * steps / t:,.0f} env-steps/s ({t:.0f} s), "
+                      f"{p * t_core / t:.1f}× one CPU core's run")  # fmt: skip
+        save()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    p.add_argument("--device", default=device, help="updates' and populations' device (default: cuda if present)")
+    p.add_argument("--algos", nargs="*", default=list(ALGOS), choices=ALGOS,
+                   help="algorithms whose update is timed (default: all three; none for training only)")  # fmt: skip
+    p.add_argument("--sizes", nargs="+", type=int, default=list(SIZES), help="population sizes P (default 1 20 128)")
+    p.add_argument("--seconds", type=float, default=2.0, help="timed updates per figure (default %(default)s s)")
+    p.add_argument("--train-sizes", nargs="*", type=int, default=[20, 128],
+                   help="P trained against one CPU core's run (default 20 128; none to skip)")  # fmt: skip
+    p.add_argument("--steps", type=int, default=4000, help="env steps per trained run (default %(default)s)")
+    p.add_argument("--quick", action="store_true", help="smoke run: idqn, P = 1 and 2, 0.2 s, 300 steps, P = 2")
+    p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.algos, args.sizes, args.seconds, args.train_sizes, args.steps = ["idqn"], [1, 2], 0.2, [2], 300
+    console = Console(width=120)
+    name = torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else cpu_model()
+    console.print(f"{name}; torch {torch.__version__}; treadmill defaults, {ENVS_PER_RUN} envs per run")
+    figures: dict[str, Any] = {"device": name, "torch": torch.__version__, "updates": {}, "training": {}}
+    table = Table(title=f"ms per update on {args.device}: eager vs captured")
+    for col in ("algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "graph skips"):
+        table.add_column(col, justify="right")
+
+    def save() -> None:  # as it goes: a call cut short keeps what it measured
+        if args.json:
+            write_json(args.json, figures)
+
+    for algo in args.algos:
+        figures["updates"][algo] = {}
+        for size in args.sizes:
+            f = update_figures(algo, size, args.device, args.seconds)
+            figures["updates"][algo][size] = f
+            console.print(f"{algo} P = {size}: eager {f['eager_ms']:.2f} ms, captured {f['captured_ms']:.2f} ms")
+            table.add_row(algo, str(size), f"{f['eager_ms']:.2f}", f"{f['captured_ms']:.2f}", f"{f['speedup']:.2f}",
+                          f"{f['captured_run_updates_per_s']:,.0f}", f"{f['captured_warm_s']:.0f}",
+                          f"{f['cudagraph_skips']:.0f}")  # fmt: skip
+            save()
+    console.print(table)
+    if args.train_sizes:
+        with tempfile.TemporaryDirectory() as tmp:
+            training_figures(args.train_sizes, args.steps, args.device, Path(tmp), save, figures["training"], console)
+    goals = []
+    idqn = figures["updates"].get("idqn", {})
+    if 1 in idqn:
+        goals.append(f"captured IDQN update at P = 1: {idqn[1]['captured_ms']:.2f} ms (goal ≤ 1 ms on a GPU)")
+    if 128 in idqn:
+        goals.append(f"P = 128: {idqn[128]['captured_run_updates_per_s']:,.0f} run-updates/s (goal ≥ 50,000)")
+    if 20 in figures["training"]:
+        goals.append(f"P = 20 training: {figures['training'][20]['ratio']:.1f}× one CPU core (goal ≥ 20×)")
+    for line in goals:
+        console.print(line)
+    save()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
