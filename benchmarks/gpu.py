@@ -40,32 +40,12 @@ from rich.table import Table  # noqa: E402
 
 from benchmarks.population import CONVOY, pinned, run_all  # noqa: E402
 from benchmarks.report import cpu_model, write_json  # noqa: E402
-from benchmarks.updates import DIAL_UNROLL  # noqa: E402
-from convoy.actors.stepping import EnvStepper  # noqa: E402
-from convoy.algos.registry import make_algorithm  # noqa: E402
-from convoy.config import resolve_algo  # noqa: E402
-from convoy.envs import make_batched  # noqa: E402
+from benchmarks.updates import filled  # noqa: E402
 
 ALGOS = ("idqn", "ma-mesn", "dial")
 SIZES = (1, 20, 128)
 ENVS_PER_RUN = 16
 PLAY_STEPS = 32  # random env steps of every run's envs: the replay the updates sample from
-
-
-def filled(algo: str, runs: int, device: str, compile: bool) -> Any:
-    """A population of ``runs`` runs of ``algo`` on ``device`` with a replay of random play."""
-    env = make_batched("treadmill", ENVS_PER_RUN * runs, n_agents=3, n_adversaries=1)
-    params: dict[str, Any] = {"learning_starts": 0, "replay_capacity": 4096, "compile": compile}
-    if algo == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
-        params.update(replay=True, unroll=DIAL_UNROLL)
-    agent = make_algorithm(algo, env.spec, resolve_algo(algo, "treadmill", params), device=device,
-                           seed=list(range(runs)))  # fmt: skip
-    stepper = EnvStepper(env, agent, 0)
-    for _ in range(PLAY_STEPS):
-        stepper.step(1.0)
-    agent.observe(stepper.take_chunk())
-    env.close()
-    return agent
 
 
 def synchronize(device: str) -> None:
@@ -96,7 +76,9 @@ def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[st
     for mode, compile in (("eager", False), ("captured", True)):
         torch._dynamo.reset()
         torch._dynamo.utils.counters.clear()
-        ms, warm_s = ms_per_update(filled(algo, runs, device, compile), device, seconds)
+        ms, warm_s = ms_per_update(
+            filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile), device, seconds
+        )
         out[f"{mode}_ms"], out[f"{mode}_warm_s"] = ms, warm_s
         out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
     out["cudagraph_skips"] = float(torch._dynamo.utils.counters["inductor"]["cudagraph_skips"])
