@@ -38,7 +38,7 @@ import torch  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from benchmarks.population import CONVOY, pinned, run_all  # noqa: E402
+from benchmarks.population import pinned, run_all, train_args  # noqa: E402
 from benchmarks.report import cpu_model, write_json  # noqa: E402
 from benchmarks.updates import filled  # noqa: E402
 
@@ -86,24 +86,18 @@ def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[st
     return out
 
 
-def train_args(steps: int, out: Path) -> list[str]:
-    """Independent DQN at the treadmill defaults; a small final evaluation and no curve: the measure is training."""
-    return [*CONVOY, "train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--steps", str(steps),
-            "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
-
-
 def training_figures(sizes: list[int], steps: int, device: str, work: Path, save: Callable[[], None],
                      out: dict[str | int, Any], console: Console) -> None:  # fmt: skip
     """Aggregate env-steps/s of P captured runs on ``device`` and of one run on one pinned CPU core, into ``out``,
     each figure printed and saved as soon as it is measured (a call cut short keeps what it measured)."""
     core = sorted(os.sched_getaffinity(0))[0]
-    one = [*train_args(steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
+    one = [*train_args("idqn", steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
     t_core = run_all([one], [pinned(core)])
     out.update(cpu_core_steps_per_s=steps / t_core, steps=steps)
     console.print(f"training: one run on one CPU core {steps / t_core:,.0f} env-steps/s ({t_core:.0f} s)")
     save()
     for p in sizes:
-        cmd = [*train_args(steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
+        cmd = [*train_args("idqn", steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
                "--hp", "compile=true"]  # fmt: skip
         t = run_all([cmd], [[]])
         out[p] = {"steps_per_s": p * steps / t, "wall_s": t, "ratio": p * t_core / t}
