@@ -38,34 +38,14 @@ import torch  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from benchmarks.population import CONVOY, pinned, run_all  # noqa: E402
+from benchmarks.population import pinned, run_all, train_args  # noqa: E402
 from benchmarks.report import cpu_model, write_json  # noqa: E402
-from benchmarks.updates import DIAL_UNROLL  # noqa: E402
-from convoy.actors.stepping import EnvStepper  # noqa: E402
-from convoy.algos.registry import make_algorithm  # noqa: E402
-from convoy.config import resolve_algo  # noqa: E402
-from convoy.envs import make_batched  # noqa: E402
+from benchmarks.updates import filled  # noqa: E402
 
 ALGOS = ("idqn", "ma-mesn", "dial")
 SIZES = (1, 20, 128)
 ENVS_PER_RUN = 16
 PLAY_STEPS = 32  # random env steps of every run's envs: the replay the updates sample from
-
-
-def filled(algo: str, runs: int, device: str, compile: bool) -> Any:
-    """A population of ``runs`` runs of ``algo`` on ``device`` with a replay of random play."""
-    env = make_batched("treadmill", ENVS_PER_RUN * runs, n_agents=3, n_adversaries=1)
-    params: dict[str, Any] = {"learning_starts": 0, "replay_capacity": 4096, "compile": compile}
-    if algo == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
-        params.update(replay=True, unroll=DIAL_UNROLL)
-    agent = make_algorithm(algo, env.spec, resolve_algo(algo, "treadmill", params), device=device,
-                           seed=list(range(runs)))  # fmt: skip
-    stepper = EnvStepper(env, agent, 0)
-    for _ in range(PLAY_STEPS):
-        stepper.step(1.0)
-    agent.observe(stepper.take_chunk())
-    env.close()
-    return agent
 
 
 def synchronize(device: str) -> None:
@@ -96,7 +76,9 @@ def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[st
     for mode, compile in (("eager", False), ("captured", True)):
         torch._dynamo.reset()
         torch._dynamo.utils.counters.clear()
-        ms, warm_s = ms_per_update(filled(algo, runs, device, compile), device, seconds)
+        ms, warm_s = ms_per_update(
+            filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile), device, seconds
+        )
         out[f"{mode}_ms"], out[f"{mode}_warm_s"] = ms, warm_s
         out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
     out["cudagraph_skips"] = float(torch._dynamo.utils.counters["inductor"]["cudagraph_skips"])
@@ -104,24 +86,18 @@ def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[st
     return out
 
 
-def train_args(steps: int, out: Path) -> list[str]:
-    """Independent DQN at the treadmill defaults; a small final evaluation and no curve: the measure is training."""
-    return [*CONVOY, "train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--steps", str(steps),
-            "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
-
-
 def training_figures(sizes: list[int], steps: int, device: str, work: Path, save: Callable[[], None],
                      out: dict[str | int, Any], console: Console) -> None:  # fmt: skip
     """Aggregate env-steps/s of P captured runs on ``device`` and of one run on one pinned CPU core, into ``out``,
     each figure printed and saved as soon as it is measured (a call cut short keeps what it measured)."""
     core = sorted(os.sched_getaffinity(0))[0]
-    one = [*train_args(steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
+    one = [*train_args("idqn", steps, work / "core"), "--seed", "0", "--device", "cpu", "--threads", "1"]
     t_core = run_all([one], [pinned(core)])
     out.update(cpu_core_steps_per_s=steps / t_core, steps=steps)
     console.print(f"training: one run on one CPU core {steps / t_core:,.0f} env-steps/s ({t_core:.0f} s)")
     save()
     for p in sizes:
-        cmd = [*train_args(steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
+        cmd = [*train_args("idqn", steps, work / f"p{p}"), "--seeds", *map(str, range(p)), "--device", device,
                "--hp", "compile=true"]  # fmt: skip
         t = run_all([cmd], [[]])
         out[p] = {"steps_per_s": p * steps / t, "wall_s": t, "ratio": p * t_core / t}

@@ -36,12 +36,9 @@ import torch  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
+from benchmarks import updates  # noqa: E402
 from benchmarks.report import cpu_model, write_json  # noqa: E402
-from benchmarks.updates import DIAL_UNROLL, ms_per_call  # noqa: E402
-from convoy.actors.stepping import EnvStepper  # noqa: E402
-from convoy.algos.registry import make_algorithm  # noqa: E402
-from convoy.config import resolve_algo  # noqa: E402
-from convoy.envs import make_batched  # noqa: E402
+from benchmarks.updates import ms_per_call  # noqa: E402
 
 ALGOS = ("idqn", "ma-mesn", "ma-bon", "dial", "ims")
 CONVOY = [sys.executable, "-m", "convoy.cli"]
@@ -100,19 +97,9 @@ def training_throughput(algo: str, p: int, steps: int, cores: list[int], work: P
     }
 
 
-def filled(algo: str, seeds: int | list[int], device: str = "cpu"):
+def filled(algo: str, seeds: int | list[int], device: str = "cpu") -> Any:
     """``algo`` at the treadmill defaults (3 agents + 1 adversary) with 2,048 rows of random play per run."""
-    env = make_batched("treadmill", 16 * (len(seeds) if isinstance(seeds, list) else 1), n_agents=3, n_adversaries=1)
-    params = {"learning_starts": 0, "replay_capacity": 4096}
-    if algo == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
-        params.update(replay=True, unroll=DIAL_UNROLL)
-    cfg = resolve_algo(algo, "treadmill", params)
-    agent = make_algorithm(algo, env.spec, cfg, device=device, seed=seeds)
-    stepper = EnvStepper(env, agent, 0)
-    for _ in range(128):
-        stepper.step(1.0)
-    agent.observe(stepper.take_chunk())
-    return agent
+    return updates.filled(algo, seeds, device, play_steps=128)
 
 
 def update_cost(algo: str, p: int, threads: int) -> dict[str, float]:

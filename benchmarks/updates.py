@@ -52,15 +52,19 @@ PLAY_STEPS = 64  # random env steps × 16 envs: the replay the updates sample fr
 DIAL_UNROLL = 8
 
 
-def filled(name: str, hidden: tuple[int, ...], batch: int) -> Any:
-    """Algorithm ``name`` on the treadmill (3 agents + 1 adversary) with a replay of random play."""
-    env = make_batched("treadmill", 16, n_agents=3, n_adversaries=1)
-    params: dict[str, Any] = {"hidden": hidden, "batch_size": batch, "learning_starts": 0, "replay_capacity": 4096}
-    if name == "dial":
+def filled(
+    name: str, seeds: int | list[int] = 0, device: str = "cpu", play_steps: int = PLAY_STEPS, **params: Any
+) -> Any:
+    """``name`` on the treadmill (3 agents + 1 adversary, 16 envs a run; a population when ``seeds`` is a list) on
+    ``device``, its replay filled with ``play_steps`` steps of random play, ``params`` over the treadmill's."""
+    runs = len(seeds) if isinstance(seeds, list) else 1
+    env = make_batched("treadmill", 16 * runs, n_agents=3, n_adversaries=1)
+    params = {"learning_starts": 0, "replay_capacity": 4096, **params}
+    if name == "dial":  # its replayed sequences: on-policy DIAL has one batch per episode, nothing to time over
         params.update(replay=True, unroll=DIAL_UNROLL)
-    algo = make_algorithm(name, env.spec, resolve_algo(name, "treadmill", params), device="cpu", seed=0)
+    algo = make_algorithm(name, env.spec, resolve_algo(name, "treadmill", params), device=device, seed=seeds)
     stepper = EnvStepper(env, algo, 0)
-    for _ in range(PLAY_STEPS):
+    for _ in range(play_steps):
         stepper.step(1.0)
     algo.observe(stepper.take_chunk())
     env.close()
@@ -180,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     for size_name, (hidden, batch) in sizes.items():
         rows, out = [], {}
         for name in args.algos:
-            algo = filled(name, hidden, batch)
+            algo = filled(name, hidden=hidden, batch_size=batch)
             ref = reference_for(algo, hidden)
             convoy_ms, ref_ms = interleaved(algo.update, ref.update, args.seconds, args.repeats)
             out[name] = {

@@ -104,7 +104,7 @@ def test_the_reference_update_minimises_the_loss_convoys_independent_dqn_does() 
     updates = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(updates)
     hidden = (32, 16)
-    algo = updates.filled("idqn", hidden, 16)
+    algo = updates.filled("idqn", hidden=hidden, batch_size=16)
     ref = updates.reference_for(algo, hidden)
 
     def copy(seq: torch.nn.Sequential, mlp: torch.nn.Module) -> None:

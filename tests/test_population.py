@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 import torch
 
-from convoy.algos.algorithm import Progress
+from convoy.algos.algorithm import NetworkAgent, Progress
 from convoy.algos.checkpoint import save_checkpoint
 from convoy.algos.nets import GroupLinear, run_state, stack_runs
 from convoy.algos.registry import algorithm_class, make_algorithm
-from convoy.config import ALGORITHMS, job_config, resolve_algo
+from convoy.config import ALGORITHMS, AlgoConfig, job_config, resolve_algo
 from convoy.envs.batched import EnvSpec
 from convoy.transition import Transition, from_columns
 from tests.conftest import population_update, single_update
@@ -84,6 +84,19 @@ def feed(pop, singles, g: np.random.Generator, chunks: int = 4) -> None:
         pop.observe(c)
         for k, single in enumerate(singles):
             single.observe(run_of(c, k))
+
+
+def trained_side_by_side(cfg: AlgoConfig, rng_seed: int, updates: int) -> tuple[NetworkAgent, list[NetworkAgent]]:
+    """An independent-DQN population of ``cfg`` and its single runs, fed the same chunks and updated ``updates``
+    times each."""
+    pop = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS)
+    singles = [make_algorithm("idqn", SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
+    feed(pop, singles, np.random.default_rng(rng_seed))
+    for _ in range(updates):
+        pop.update()
+        for single in singles:
+            single.update()
+    return pop, singles
 
 
 def save_teacher(path: Path) -> Path:
@@ -186,13 +199,7 @@ def test_a_run_gone_non_finite_keeps_its_weights_and_adam_state_while_the_others
     steps on from where it stopped, as its single run that took those updates off."""
     torch.set_num_threads(1)
     cfg = config("idqn", False, policy_ema=0.5, target_tau=0.5)  # Polyak target and average: masked too
-    pop = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS)
-    singles = [make_algorithm("idqn", SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
-    feed(pop, singles, np.random.default_rng(2))
-    for _ in range(5):
-        pop.update()
-        for single in singles:
-            single.update()
+    pop, singles = trained_side_by_side(cfg, 2, 5)
     sample = pop.sample
 
     def run_2_not_finite() -> Transition[torch.Tensor]:
@@ -237,14 +244,7 @@ def test_a_layer_normalised_population_stays_its_single_runs(share: bool) -> Non
     """LayerNorm normalises each row over its own units, so stacking runs must not mix one run's rows into
     another's statistics."""
     torch.set_num_threads(1)
-    cfg = config("idqn", share, layer_norm=True, target_tau=0.01)
-    pop = make_algorithm("idqn", SPEC, cfg, device="cpu", seed=SEEDS)
-    singles = [make_algorithm("idqn", SPEC, cfg, device="cpu", seed=s) for s in SEEDS]
-    feed(pop, singles, np.random.default_rng(1))
-    for _ in range(100):
-        pop.update()
-        for s in singles:
-            s.update()
+    pop, singles = trained_side_by_side(config("idqn", share, layer_norm=True, target_tau=0.01), 1, 100)
     assert max_weight_gap(pop, singles) < 1e-5
 
 

@@ -370,7 +370,7 @@ class TreadmillEngine:
         feats = [known, rel_x[:, me, o] / r, rel_y[:, me, o] / r, speed[:, o] / cfg.top_speed, adversary]
         out = np.stack(feats, axis=3, dtype=np.float32)
         if cfg.sighting_headings:
-            out = np.concatenate([out, np.broadcast_to(_ONE_HOT[heading[:, o]], (*known.shape, N_HEADINGS))], axis=3)
+            out = np.concatenate([out, _ONE_HOT[heading[:, o]]], axis=3)  # [E, N, C−1, headings]
         out = out * known[..., None]
         return out.reshape(len(observed), n, -1)
 
