@@ -10,7 +10,7 @@ from typing import Any, Literal, get_args, get_origin
 
 from pydantic import BaseModel
 
-from convoy.config import ResourceLimits
+from convoy.config import JOB_FIELDS, ResourceLimits
 from convoy.validation import ConfigError, flag_name
 
 EXAMPLES = {"--set": "--set aggression=0.9", "--hp": "--hp lr=0.001"}
@@ -75,6 +75,31 @@ def add_model_flags(
         kind: Callable[[str], Any] = info.annotation if info.annotation in (int, float) else str  # type: ignore[assignment]
         metavar = None if choices else "N" if kind in (int, float) else name.upper()
         p.add_argument(flag, dest=name, type=kind, choices=choices, metavar=metavar, help=f"{text} (default {default})")
+
+
+def in_flag_words(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
+    """``exc`` naming the flag the user typed (``--steps``, ``--hp lr``) instead of the config field (``steps``)."""
+    return ConfigError(flag_words(exc.field, args), exc.message)
+
+
+def flag_words(field: str, args: argparse.Namespace) -> str:
+    """The flag that gave a config ``field`` its value, as the user typed it (``--steps``, ``--agents``,
+    ``--hp lr``, ``--set length``, ``--runtime chunk``); the field's own name when no flag gave it (a file's)."""
+    if field.startswith("-"):  # already a flag
+        return field
+    aliases = {"n_agents": "agents", "n_adversaries": "adversaries", "runtime.actors": "actors"}
+    flag = aliases.get(field, field)
+    if (
+        flag in (*JOB_FIELDS, "seeds", "device", "torch_threads", *aliases.values())
+        and getattr(args, flag, None) is not None
+    ):
+        return flag_name(flag)
+    head, _, sub = field.partition(".")
+    for name, dest, key in (("--hp", "hp", field), ("--set", "set", field), ("--runtime", "runtime", sub)):
+        pairs = getattr(args, dest, None)
+        if key and (name != "--runtime" or head == "runtime") and key in parse_pairs(pairs, name):
+            return f"{name} {key}"
+    return field
 
 
 def given(args: argparse.Namespace, names: tuple[str, ...]) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from convoy.algos.errors import CheckpointError
-from convoy.cli.args import add_command, env_params
+from convoy.cli.args import add_command, env_params, in_flag_words
 from convoy.envs import ENVS, make_batched
 from convoy.envs.registry import env_entry
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
@@ -289,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ConfigError, ValidationError, CheckpointError) as exc:
+        if isinstance(exc, ConfigError):  # in the words the user typed: --steps, --hp lr, not the field's name
+            exc = in_flag_words(exc, args)
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         return 2
     except JobFailed as exc:

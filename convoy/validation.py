@@ -20,7 +20,7 @@ class ConfigError(ValueError):
 
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field}: {message}")
-        self.field = field
+        self.field, self.message = field, message
 
 
 def flag_name(field: str) -> str:

@@ -59,17 +59,24 @@ def test_config_file_with_flag_overrides(tmp_path, capsys) -> None:
 @pytest.mark.parametrize(
     ("argv", "needle"),
     [
-        (["--algo", "ppo"], "algo: unknown algorithm 'ppo'; choose one of: idqn, dqn-ser, dial, ims, ma-mesn, ma-bon"),
-        (["--algo", "ims", "--hp", "comm_iterations=0"], "comm_iterations: Input should be greater than or equal"),
-        (["--hp", "batch_size=128", "--hp", "replay_capacity=64"], "batch_size: 128 is larger than replay_capacity"),
+        (["--algo", "ppo"], "--algo: unknown algorithm 'ppo'; choose one of: idqn, dqn-ser, dial, ims, ma-mesn"),
+        (["--algo", "ims", "--hp", "comm_iterations=0"], "--hp comm_iterations: Input should be greater than or equal"),
+        (
+            ["--hp", "batch_size=128", "--hp", "replay_capacity=64"],
+            "--hp batch_size: 128 is larger than replay_capacity",
+        ),
         (["--hp", "lr"], "--hp: expected KEY=VALUE"),
-        (["--hp", "gama=0.9"], "gama: unknown parameter for MeSNConfig"),
-        (["--env", "referential", "--hierarchical"], "hierarchical: goals are defined for the treadmill only"),
-        (["--steps", "0"], "steps: Input should be greater than or equal to 1"),
+        (["--hp", "gama=0.9"], "--hp gama: unknown parameter for MeSNConfig"),
+        (["--env", "referential", "--hierarchical"], "--hierarchical: goals are defined for the treadmill only"),
+        (["--steps", "0"], "--steps: Input should be greater than or equal to 1"),
         (["--config", "/nonexistent.json"], "--config: no such file"),
         (["--hp", "hidden=1000000000"], "raise the limit with convoy train --max-layer-width N"),
         (["--max-hidden-weights", "100", "--hp", "hidden=64,64"], "limit max_hidden_weights = 100"),
         (["--max-agent-envs", "0"], "--max-agent-envs: must be ≥ 1"),
+        (["--actors", "0"], "--actors: Input should be greater than or equal to 1"),
+        (["--agents", "0"], "--agents: Input should be greater than or equal to 1"),
+        (["--set", "length=-3"], "--set length: Input should be greater than"),
+        (["--runtime", "chunk=-1"], "--runtime chunk: Extra inputs are not permitted"),
     ],
 )
 def test_bad_train_input_is_one_line(argv: list[str], needle: str, capsys) -> None:
