@@ -146,9 +146,12 @@ def replay_buffers(algo: Any) -> dict[str, JointReplay]:
     return {"replay": replay} if isinstance(replay, JointReplay) else {}
 
 
-def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> int:
+def save_replay(
+    path: str | Path, algo: Any, env_steps: int, max_bytes: int, say: Callable[[str], None] | None = None
+) -> int:
     """Write ``algo``'s replay (filled rows only) atomically to ``path`` when it holds at most ``max_bytes``; the
-    bytes written, or 0 when it is larger (the file is then removed: a stale one must not be loaded later).
+    bytes written, or 0 when it is larger (the file is then removed: a stale one must not be loaded later, and
+    ``say`` hears why: a resume from that checkpoint starts with an empty buffer).
 
     Why: a restarted learner with an empty buffer trains its high replay ratio on a few thousand fresh rows and its
     return collapses (~40 → ~5) until the buffer refills; with the buffer back it carries on."""
@@ -157,6 +160,10 @@ def save_replay(path: str | Path, algo: Any, env_steps: int, max_bytes: int) -> 
     size = sum(len(b) * (b.nbytes // max(b.allocated, 1)) for b in buffers.values())  # filled rows × row bytes
     if not buffers or size > max_bytes:
         path.unlink(missing_ok=True)
+        if buffers and say is not None:
+            say(f"replay not saved with this checkpoint: its {size / 2**20:,.0f} MB are over "
+                f"runtime.replay_checkpoint_mb = {max_bytes >> 20:,}, so a resume from it starts with an empty "
+                "buffer; raise it with --runtime replay_checkpoint_mb=N")  # fmt: skip
         return 0
     arrays: dict[str, np.ndarray] = {"env_steps": np.asarray(env_steps)}
     for name, buf in buffers.items():

@@ -16,12 +16,17 @@ without a CUDA graph.
 
 Run from the repository root: ``python benchmarks/population.py`` (idqn and ma-mesn at P = 1, 2, 5: ~10 min on 2
 cores); ``--algos``, ``--sizes``, ``--steps`` to choose; ``--json`` to save the figures.
+
+``--baseline TREE`` instead compares this checkout with another (``git worktree add /tmp/before REV``): the same
+P-run population trained by each tree's code, alternating (this, before, before, this, …) ``--repeats`` times each so
+that a machine's load falls on both alike, and the median aggregate env-steps/s of each with their ratio.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -51,10 +56,11 @@ def train_args(algo: str, steps: int, out: Path) -> list[str]:
             "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
 
 
-def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
+def run_all(commands: list[list[str]], slots: list[list[str]], code: Path | None = None) -> float:
     """Run ``commands``, as many at a time as there are ``slots`` (a command prefix each: a ``taskset`` pinning
-    or nothing); wall seconds for all of them."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    or nothing), with the ``convoy`` package found in ``code`` if given (``linked_package``); wall seconds for all
+    of them."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", **({"PYTHONPATH": str(code)} if code else {})}
     pending, free = list(commands), list(slots)
     running: list[tuple[subprocess.Popen[bytes], list[str]]] = []
     t0 = time.perf_counter()
@@ -62,8 +68,8 @@ def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
         while pending and free:
             slot = free.pop(0)
             proc = subprocess.Popen(
-                [*slot, *pending.pop(0)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-            )
+                [*slot, *pending.pop(0)], env=env, cwd=code, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+            )  # in ``code``: python -m puts the working folder first on the path
             running.append((proc, slot))
         time.sleep(0.05)
         for proc, slot in list(running):
@@ -74,6 +80,59 @@ def run_all(commands: list[list[str]], slots: list[list[str]]) -> float:
                 running.remove((proc, slot))
                 free.append(slot)
     return time.perf_counter() - t0
+
+
+def linked_package(tree: Path, into: Path) -> Path:
+    """A folder whose ``convoy/`` is ``tree``'s code, its folders linked as pyproject's package-dir maps them (as
+    ``.ci/typecheck`` does): run from it, ``python -m convoy.cli`` runs that checkout, not the installed one (an
+    editable install's finder comes after the path)."""
+    import tomllib
+
+    dirs = tomllib.loads((tree / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+    package = into / "convoy"
+    package.mkdir(parents=True)
+    for module in (tree / "convoy").glob("*.py"):
+        (package / module.name).symlink_to(module.resolve())
+    for name, folder in dirs.items():
+        if name.count(".") == 1:  # convoy.X is folder X; its subpackages come with it
+            (package / name.split(".")[1]).symlink_to((tree / folder).resolve())
+    return into
+
+
+def paired_population(algo: str, p: int, steps: int, threads: int, before: Path, repeats: int, work: Path) -> dict:
+    """The same P-run population trained by this checkout's code and by ``before``'s, alternating."""
+    seeds = [str(s) for s in range(p)]
+    walls: dict[str, list[float]] = {"now": [], "before": []}
+    for r in range(repeats):
+        for which in ("now", "before") if r % 2 == 0 else ("before", "now"):
+            out = work / f"{algo}-{which}-{p}-{r}"
+            cmd = [*train_args(algo, steps, out), "--seeds", *seeds, "--threads", str(threads)]
+            walls[which].append(run_all([cmd], [[]], code=before if which == "before" else None))
+    now, then = statistics.median(walls["now"]), statistics.median(walls["before"])
+    return {"now_steps_per_s": p * steps / now, "before_steps_per_s": p * steps / then, "ratio": then / now,
+            "now_wall_s": walls["now"], "before_wall_s": walls["before"]}  # fmt: skip
+
+
+def compare_trees(args: argparse.Namespace, cores: list[int], console: Console) -> dict[str, Any]:
+    """``--baseline``: every algorithm and size, this checkout against the other; a table, the figures."""
+    figures: dict[str, Any] = {"cores": len(cores), "cpu": cpu_model(), "steps": args.steps, "repeats": args.repeats,
+                               "baseline": str(args.baseline), "algos": {}}  # fmt: skip
+    table = Table(title=f"P runs in one population: this checkout vs {args.baseline} (aggregate env-steps/s, median)")
+    for col in ("algo", "P", "now", "before", "now ÷ before"):
+        table.add_column(col, justify="right")
+    with tempfile.TemporaryDirectory() as tmp:
+        before = linked_package(Path(args.baseline), Path(tmp) / "before-code")
+        for algo in args.algos:
+            for size in args.sizes:
+                row = paired_population(algo, size, args.steps, len(cores), before, args.repeats, Path(tmp))
+                figures["algos"].setdefault(algo, {})[size] = row
+                console.print(f"{algo} P = {size}: {row['ratio']:.2f}× {args.baseline}")
+                table.add_row(algo, str(size), f"{row['now_steps_per_s']:,.0f}", f"{row['before_steps_per_s']:,.0f}",
+                              f"{row['ratio']:.2f}×")  # fmt: skip
+                if args.json:
+                    write_json(args.json, figures)
+    console.print(table)
+    return figures
 
 
 def pinned(core: int) -> list[str]:
@@ -156,9 +215,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", nargs="+", type=int, default=[1, 2, 5], help="population sizes P (default 1 2 5)")
     p.add_argument("--steps", type=int, default=6000, help="env steps per run (default %(default)s)")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
+    p.add_argument(
+        "--baseline", metavar="TREE", type=Path, help="another checkout (git worktree add TREE REV): its populations"
+    )
+    p.add_argument("--repeats", type=int, default=3, help="--baseline: trainings per tree (default %(default)s)")
     args = p.parse_args(argv)
     cores = sorted(os.sched_getaffinity(0))
     console = Console()
+    if args.baseline:
+        figures = compare_trees(args, cores, console)
+        if args.json:
+            write_json(args.json, figures)
+        return 0
     console.print(f"{cpu_model()}, {len(cores)} cores; {args.steps:,} env steps per run, treadmill defaults")
     peak = core_peak_gflops()
     figures: dict[str, Any] = {"cores": len(cores), "cpu": cpu_model(), "steps": args.steps, "algos": {},

@@ -238,7 +238,7 @@ class TrainingCore:
         if self.evaluator.best > -math.inf:
             counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
         if name == "checkpoint.pt" and self.replay_bytes and replay:  # replay first: a crash leaves no mismatch
-            save_replay(self.out_dir / REPLAY_FILE, self.algo, self.env_steps, self.replay_bytes)
+            save_replay(self.out_dir / REPLAY_FILE, self.algo, self.env_steps, self.replay_bytes, self.say)
         path = self.out_dir / name
         if name == "checkpoint.pt" and self.keep_previous and path.is_file() and self.saved_at != self.env_steps:
             # a crash between two runs' checkpoints leaves them a step apart: the one before lets them resume together

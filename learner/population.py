@@ -63,7 +63,7 @@ class PopulationCore:
             raise ValueError("jobs: one job per run of the population, with the run's seed")
         self.jobs, self.algo = jobs, algo
         dirs = out_dirs or [None] * len(jobs)
-        say = say if say is not None else (print_line if progress else None)
+        say = self.say = say if say is not None else (print_line if progress else None)
         several = len(jobs) > 1  # runs whose checkpoints are written one after another, whose lines need a head
         self.cores = [
             TrainingCore(
@@ -144,7 +144,7 @@ class PopulationCore:
     def _save_replay(self) -> None:
         """The population's replay, before its runs' checkpoints (a crash between leaves no mismatched pair)."""
         if self.replay is not None:
-            save_replay(self.replay[0], self.algo, self.env_steps, self.replay[1])
+            save_replay(self.replay[0], self.algo, self.env_steps, self.replay[1], self.say)
 
     def checkpoint(self) -> None:
         self._save_replay()

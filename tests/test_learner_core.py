@@ -402,7 +402,9 @@ def test_replay_is_saved_beside_the_checkpoint_and_restored_exactly(tmp_path) ->
     a, b = algo.replay.sample(64, RunStreams([1], "replay")), fresh.replay.sample(64, RunStreams([1], "replay"))
     assert all(torch.equal(v, b.columns()[k]) for k, v in a.columns().items())
     assert load_replay(path, build("idqn"), env_steps=200) == 0  # saved at another step than the checkpoint's
-    assert save_replay(path, algo, env_steps=300, max_bytes=1_000) == 0 and not path.exists()  # over the bound
+    said: list[str] = []
+    assert save_replay(path, algo, env_steps=300, max_bytes=1_000, say=said.append) == 0 and not path.exists()
+    assert len(said) == 1 and "raise it with --runtime replay_checkpoint_mb=N" in said[0]  # over the bound: says so
     path.write_bytes(b"not a zip")
     assert load_replay(path, build("idqn"), env_steps=300) == 0  # unreadable: refilled from actors instead
 
