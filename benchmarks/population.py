@@ -49,11 +49,12 @@ ALGOS = ("idqn", "ma-mesn", "ma-bon", "dial", "ims")
 CONVOY = [sys.executable, "-m", "convoy.cli"]
 
 
-def train_args(algo: str, steps: int, out: Path) -> list[str]:
+def train_args(algo: str, steps: int, out: Path, eval_episodes: int = 10) -> list[str]:
     """What every run of the comparison trains: the algorithm at the treadmill defaults, the final greedy
-    evaluation small (10 episodes) and no curve, so that the measurement is the training."""
+    evaluation small (10 episodes; 0 = none, nor its reference policies) and no curve, so that the measurement is
+    the training."""
     return [*CONVOY, "train", "--inprocess", "--algo", algo, "--env", "treadmill", "--steps", str(steps),
-            "--eval-every", "0", "--eval-episodes", "10", "--no-progress", "--out", str(out)]  # fmt: skip
+            "--eval-every", "0", "--eval-episodes", str(eval_episodes), "--no-progress", "--out", str(out)]  # fmt: skip
 
 
 def run_all(commands: list[list[str]], slots: list[list[str]], code: Path | None = None) -> float:
@@ -106,7 +107,8 @@ def paired_population(algo: str, p: int, steps: int, threads: int, before: Path,
     for r in range(repeats):
         for which in ("now", "before") if r % 2 == 0 else ("before", "now"):
             out = work / f"{algo}-{which}-{p}-{r}"
-            cmd = [*train_args(algo, steps, out), "--seeds", *seeds, "--threads", str(threads)]
+            # no final evaluation: the treadmill's references grew planners since older trees, tens of seconds a run
+            cmd = [*train_args(algo, steps, out, eval_episodes=0), "--seeds", *seeds, "--threads", str(threads)]
             walls[which].append(run_all([cmd], [[]], code=before if which == "before" else None))
     now, then = statistics.median(walls["now"]), statistics.median(walls["before"])
     return {"now_steps_per_s": p * steps / now, "before_steps_per_s": p * steps / then, "ratio": then / now,
