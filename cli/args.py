@@ -72,7 +72,7 @@ def add_model_flags(
             continue
         default = f"{info.default:,}" if isinstance(info.default, int) else info.default
         choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else None
-        kind: Callable[[str], Any] = info.annotation if info.annotation in (int, float) else str  # type: ignore[assignment]
+        kind: Callable[[str], Any] = int if info.annotation is int else float if info.annotation is float else str
         metavar = None if choices else "N" if kind in (int, float) else name.upper()
         p.add_argument(flag, dest=name, type=kind, choices=choices, metavar=metavar, help=f"{text} (default {default})")
 

@@ -195,7 +195,8 @@ class Evaluator:
         if table is not None:  # the env's own references, its uniform random policy among them
             refs = table(self.env_params, self.episodes, self.seed, report=_reporter(say) if say else None)
         else:
-            rand = evaluate_random(self._env, self.episodes, self.seed)  # type: ignore[arg-type]
+            assert self._env is not None  # made by returns() above
+            rand = evaluate_random(self._env, self.episodes, self.seed)
             refs = {"random": (float(rand.mean()), ci95_half(rand, single=0.0))}
         out: dict[str, Any] = {
             "eval_return": float(greedy.mean()),
