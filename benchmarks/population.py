@@ -225,9 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     cores = sorted(os.sched_getaffinity(0))
     console = Console()
     if args.baseline:
-        figures = compare_trees(args, cores, console)
+        paired = compare_trees(args, cores, console)
         if args.json:
-            write_json(args.json, figures)
+            write_json(args.json, paired)
         return 0
     console.print(f"{cpu_model()}, {len(cores)} cores; {args.steps:,} env steps per run, treadmill defaults")
     peak = core_peak_gflops()
