@@ -33,7 +33,7 @@ from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_ab
 from convoy.api.models import SweepSubmit
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
-from convoy.cli.sweep_file import read_file, sweep_body
+from convoy.cli.sweep_file import read_file, skipped, sweep_body
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.stats import mean_ci as seeds_summary
 from convoy.validation import ConfigError, build_config
@@ -199,7 +199,7 @@ class Context:
             groups: list[dict[str, Any]] = []
             chosen = self.tuned(fig)
             for path, data in self.files[fig]:
-                if data["figure"].get("kind", "sweep") != "sweep":
+                if data["figure"].get("kind", "sweep") != "sweep" or skipped(data, self.scale):
                     continue
                 body = with_settings(resolve_links(sweep_body(data, self.scale, where=str(path)), self), chosen)
                 summary = run_sweep(self.api, body, f"{fig} [{self.scale}] {path.name}")
@@ -290,7 +290,8 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
     from convoy.analysis.curves import plot_final_by, plot_groups
 
     groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
-    episodes = int(meta.get("held_out_episodes", 100))
+    scale = (ctx.files[fig][0][1].get("scales") or {}).get(ctx.scale) or {}
+    episodes = int(scale.get("held_out_episodes", meta.get("held_out_episodes", 100)))
     for g in groups if episodes > 0 else []:
         plain(out, f"{fig} [{ctx.scale}]: {g['group']}: last and best policies on {episodes} held-out episodes")
         g["held_out"] = held_out(ctx, g, episodes)
@@ -390,7 +391,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
         "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
-        **judged(meta, groups, result["extra"]),
+        **judged(meta, groups, result["extra"], ctx.scale),
         "png": result["png"],
     }
     if fig in ctx.tuning:
@@ -407,10 +408,12 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     return record
 
 
-def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, Any]) -> dict[str, Any]:
-    """A record's ``verdicts`` and ``verdict``: the figure's claims (Holm-corrected together) on its groups and
-    ``extra`` figures (references, exponents, analysis)."""
-    verdicts = judge_figure(meta.get("claims", []), {g["group"]: g for g in groups}, extra)
+def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, Any], scale: str) -> dict[str, Any]:
+    """A record's ``verdicts`` and ``verdict``: the figure's claims at ``scale`` (a claim's ``scales``, when it
+    names them: a control run at some scales only) Holm-corrected together, on its groups and ``extra`` figures
+    (references, exponents, analysis)."""
+    claims = [c for c in meta.get("claims", []) if scale in c.get("scales", SCALES)]
+    verdicts = judge_figure(claims, {g["group"]: g for g in groups}, extra)
     return {"verdicts": [v.__dict__ for v in verdicts], "verdict": figure_verdict(verdicts)}
 
 
@@ -422,7 +425,7 @@ def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     record = json.loads(path.read_text())
     extra = {"references": record.get("references") or {}, "exponents": record.get("exponents") or {},
              "analysis": record.get("analysis") or {}}  # fmt: skip
-    record.update(judged(files[fig][0][1]["figure"], record["groups"], extra))
+    record.update(judged(files[fig][0][1]["figure"], record["groups"], extra, record["scale"]))
     path.write_text(json.dumps(record, indent=2) + "\n")
     return record
 
@@ -462,7 +465,9 @@ INTRO = (
     "on another reward scale is *not comparable*. A figure is *reproduced* when every claim is, *partly* when some "
     "are and others are not, *not shown* when none is significant, and *not reproduced* when its headline claim "
     "(its first) or every claim goes the other way. The `quick` and `mid` scales are below the paper's budgets "
-    "(each section says how far): a verdict there says what that budget shows, not that the paper is wrong. Each "
+    "(each section says how far): a verdict there says what that budget shows, not that the paper is wrong; Fig. "
+    "3's and Table 1's `mid` scale is the budget their question needs (400 k steps, 10 seeds, days on 2 cores), "
+    "and the command, stopped or killed, goes on from its checkpoints when run again. Each "
     "group's final return is also tested against the random policy's on the same env (*above random?*, one-sided "
     "t-test). A figure measured on an earlier rule set of the treadmill than the current one (rules {rules}) says "
     "so: its numbers do not describe today's treadmill until it is run again. `convoy reproduce --rejudge` judges "
@@ -610,8 +615,8 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "reproduce", cmd_reproduce)
     p.add_argument("figures", nargs="*", metavar="FIGURE", help=f"figures to run: {', '.join(FIGURES)} (default all)")
     p.add_argument("--scale", choices=SCALES, default="quick", help="quick (minutes on 2 CPU cores), mid (≥ 10× "
-                   "quick's steps; each file's note gives its wall time) or paper (the paper's budgets); "
-                   "default: quick")  # fmt: skip
+                   "quick's steps; for fig3 and table1 the budget their question needs, days on 2 cores; each "
+                   "file's note gives its wall time) or paper (the paper's budgets); default: quick")  # fmt: skip
     p.add_argument("--service", metavar="URL", help="a running `convoy serve` (default: start a local one)")
     p.add_argument("--token", help="its bearer token (default: $CONVOY_API_TOKEN)")
     p.add_argument(

@@ -2,7 +2,8 @@
 
 A file holds the sweep's fields at its top (``name``, ``actors``, ``threshold``, ``[base]``, ``[grid]``); a
 ``[scales.NAME]`` table overrides them for ``--scale NAME`` (its ``base`` merged key by key, its ``grid`` axes
-replacing those of the same name; its ``note`` says how the scale departs from the paper). ``[figure]``
+replacing those of the same name; its ``note`` says how the scale departs from the paper; ``skip = "why"`` leaves the
+file out at that scale; ``held_out_episodes`` is ``convoy reproduce``'s, not the sweep's). ``[figure]``
 describes the paper's figure the file reproduces (``convoy reproduce``) and is not part of the sweep.
 ``extends = "OTHER.toml"`` (a path relative to the file) starts from that file's tables but its ``[figure]``, so a
 figure's control groups share its base and scales instead of copying them.
@@ -20,6 +21,7 @@ from convoy.api.sweeps import expand
 from convoy.validation import ConfigError, build_config
 
 NOT_SWEEP = ("scales", "figure")
+SCALE_ONLY = ("grid", "note", "skip", "held_out_episodes")  # a scale's keys that are not the sweep's fields
 
 
 def merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -68,7 +70,9 @@ def sweep_body(data: dict[str, Any], scale: str | None = None, where: str = "swe
             have = ", ".join(scales) or "none"
             raise ConfigError("--scale", f"{where} has no scale {scale!r} (its scales: {have})")
         over = scales[scale]
-        body = merged(body, {k: v for k, v in over.items() if k not in ("grid", "note")})
+        if over.get("skip"):
+            raise ConfigError("--scale", f"{where} does not run at scale {scale!r}: {over['skip']}")
+        body = merged(body, {k: v for k, v in over.items() if k not in SCALE_ONLY})
         body["grid"] = {**body.get("grid", {}), **over.get("grid", {})}
     try:
         expand(build_config(SweepSubmit, **body))  # every job of the grid, as the service will check it
@@ -76,6 +80,11 @@ def sweep_body(data: dict[str, Any], scale: str | None = None, where: str = "swe
         prefix = f"scales.{scale}." if scale is not None and _in_scale(exc.field, scales[scale]) else ""
         raise ConfigError(f"{prefix}{exc.field}", str(exc).split(": ", 1)[-1]) from None
     return body
+
+
+def skipped(data: dict[str, Any], scale: str) -> str:
+    """Why a file does not run at ``scale`` (its ``[scales.SCALE] skip``), or ``""`` when it does."""
+    return str(((data.get("scales") or {}).get(scale) or {}).get("skip") or "")
 
 
 def _in_scale(field: str, scale: dict[str, Any]) -> bool:

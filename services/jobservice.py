@@ -404,6 +404,8 @@ class JobService:
             kind, values = tracked.reports.take(msg, live), msg.body["values"]
             if kind == "resumed":
                 self.store.cut_metrics(job_id, int(values["resumed_env_steps"]))
+                say(f"job {job_id}: its learner resumed from its checkpoint at {int(values['resumed_env_steps']):,} "
+                    f"env steps ({int(values.get('resumed_replay_rows', 0)):,} replay rows)")  # fmt: skip
             elif kind == "row":
                 row = {**values, "env_steps": int(values["env_steps"]), "actors_alive": tracked.alive.count("actor")}
                 rows.append(row)
