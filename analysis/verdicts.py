@@ -12,9 +12,14 @@ A claim is one table of a figure file's ``[[figure.claims]]``; its keys say what
 * ``exponent = ALGO``, ``between = [lo, hi]``: the exponent k of inference time ∝ N^k is in [lo, hi]: *reproduced*
   when k's whole 95 % CI lies inside, *not reproduced* when it lies wholly outside, *not shown* otherwise — so a
   fit of k = 1.51 ± 0.3 does not pass for "quadratic".
+* ``recovers = G``, ``own = H``, ``told = T``: the fraction of the told learner's gain over its own twin that G
+  recovers, (G − H) / (T − H) of the groups' mean final returns, with a percentile-bootstrap 95 % CI (each group's
+  seeds resampled alone). A number stated, not a test of the paper (*not comparable*); ``goal = x`` says whether
+  the CI lies above x.
 * ``metric = KEY`` (an analysis figure, Table 1) with ``above = "shuffled"`` (the figure beats its shuffled-pairs
-  baseline), ``above = 0``, or ``below = OTHER_KEY`` (e.g. the return with noise below the return with messages):
-  one-sided t-tests over the analysed checkpoints.
+  baseline), ``above = 0``, ``below = OTHER_KEY`` (e.g. the return with noise below the return with messages) or
+  ``above_group = H`` (above the same figure of analysed group H, e.g. a channel-cut twin; Welch): one-sided
+  t-tests over the analysed checkpoints, of the figure's first analysed group or of ``group = G``.
 
 A figure tests several claims at once, so ``judge_figure`` holds its family-wise error at 5 %: a tested claim is
 *reproduced* only when its p-value stays below 0.05 after Holm's step-down correction over the figure's tested
@@ -158,11 +163,68 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
             return Verdict(text, paper, ours, verdict, f"|ours − paper| = {gap:.3g}, CI {ci:.2g}")
         if "exponent" in claim:
             return _judge_exponent(claim, text, paper, extra.get("exponents", {}).get(claim["exponent"]))
+        if "recovers" in claim:
+            own, told = _finals(groups, claim["own"]), _finals(groups, claim["told"])
+            return _judge_recovered(claim, text, paper, _finals(groups, claim["recovers"]), own, told)
         if "metric" in claim:
-            return _judge_metric(claim, text, paper, extra.get("analysis", {}))
+            by_group = extra.get("analysis_groups") or {}
+            figures = by_group[claim["group"]] if "group" in claim else extra.get("analysis", {})
+            if "above_group" in claim:
+                return _judge_across(claim, text, paper, figures, by_group.get(claim["above_group"], {}))
+            return _judge_metric(claim, text, paper, figures)
     except KeyError as exc:  # a group the stored figure does not have (e.g. a control added since): not measured
         return Verdict(text, paper, "not measured", NOT_SHOWN, f"{exc.args[0]}: run the figure again")
     raise ValueError(f"claim {text!r}: no kind recognised (better/than, above_reference, paper, exponent, metric)")
+
+
+def recovered(
+    gain: list[float], own: list[float], told: list[float], resamples: int = 2000
+) -> tuple[float, float, float]:
+    """(G − H) / (T − H) of the mean final returns of G = ``gain``, H = ``own``, T = ``told`` and its
+    percentile-bootstrap 95 % CI, each group's seeds resampled alone (fixed seed: a page regenerated reads the
+    same); NaN where the told learner's resampled mean is not above its twin's (there is no gain to recover)."""
+    rng = np.random.default_rng(0)
+    g, h, t = (np.asarray(v, dtype=np.float64) for v in (gain, own, told))
+
+    def ratio(gm: np.ndarray, hm: np.ndarray, tm: np.ndarray) -> np.ndarray:
+        span = tm - hm
+        return np.where(span > 0, (gm - hm) / np.where(span > 0, span, 1.0), np.nan)
+
+    point = float(ratio(g.mean(), h.mean(), t.mean()))
+    means = [rng.choice(x, size=(resamples, len(x))).mean(axis=1) for x in (g, h, t)]
+    boot = ratio(*means)
+    if np.isnan(boot).mean() > 0.025:  # the gain itself is not sure: no interval
+        return point, math.nan, math.nan
+    lo, hi = np.nanpercentile(boot, [2.5, 97.5])
+    return point, float(lo), float(hi)
+
+
+def _judge_recovered(
+    claim: dict[str, Any], text: str, paper: str, gain: list[float], own: list[float], told: list[float]
+) -> Verdict:
+    if not (gain and own and told):
+        return Verdict(text, paper, "no final returns yet", NOT_SHOWN, "a group has no completed job")
+    point, lo, hi = recovered(gain, own, told)
+    if math.isnan(point):
+        return Verdict(text, paper, "no gain to recover", NOT_COMPARABLE, "the told learner is not above its twin")
+    ours = f"{point:.0%} [{lo:.0%}, {hi:.0%}]" if math.isfinite(lo) else f"{point:.0%} (no CI: the told gain is unsure)"
+    goal = claim.get("goal")
+    why = "a fraction stated, not a claim of the paper"
+    if goal is not None:
+        met = "met" if math.isfinite(lo) and lo > float(goal) else "not met"
+        why += f"; goal ≥ {float(goal):.0%}: {met}"
+    return Verdict(text, paper, ours, NOT_COMPARABLE, why)
+
+
+def _judge_across(
+    claim: dict[str, Any], text: str, paper: str, figures: dict[str, Any], other: dict[str, Any]
+) -> Verdict:
+    key = claim["metric"]
+    a, b = (f.get(key, {}).get("value") or [] for f in (figures, other))
+    a, b = [v for v in a if v is not None], [v for v in b if v is not None]
+    if not a or not b:
+        return Verdict(text, paper, "not measured", NOT_SHOWN, f"{key!r} of a group is missing: run the figure again")
+    return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *p_above(a, b))
 
 
 def _judge_exponent(claim: dict[str, Any], text: str, paper: str, fit: Any) -> Verdict:

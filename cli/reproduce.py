@@ -322,19 +322,37 @@ def benchmark_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, 
 
 
 def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
-    """Table 1: analyse every checkpoint of another figure's group (``source``, ``group``) and collect each metric
-    over seeds."""
-    from convoy.algos.checkpoint import load_checkpoint
+    """Table 1: analyse every checkpoint of another figure's group (``source``, ``group``; and at a scale whose
+    table names them, its ``also`` groups, e.g. the channel-cut twins) and collect each metric over seeds."""
     from convoy.analysis.comm_metrics import plot_figures
+
+    opts = meta["scales"][ctx.scale]
+    summaries = {g["group"]: g for g in ctx.sweep_summaries(meta["source"])}
+    names: dict[str, str] = {}
+    by_group: dict[str, dict[str, dict[str, list[Any]]]] = {}
+    last = None
+    for name in [meta["group"], *opts.get("also", [])]:
+        if name not in summaries:
+            raise CliError("figure.group", f"{meta['source']} has no group {name!r}", "fix the table1 file")
+        by_group[name], analysed = analyse_group(ctx, fig, summaries[name], opts, names)
+        last = last or analysed
+    png = ctx.docs / f"{fig}.png"
+    if last is not None:
+        plot_figures(last.figures, png, title=f"{last.title} (last seed analysed)")
+    first = by_group[meta["group"]]
+    return {"groups": [summaries[g] for g in by_group], "references": {}, "png": png.name if last else None,
+            "extra": {"analysis": first, "analysis_groups": by_group}, "analysis_names": names}  # fmt: skip
+
+
+def analyse_group(
+    ctx: Context, fig: str, group: dict[str, Any], opts: dict[str, Any], names: dict[str, str]
+) -> tuple[dict[str, dict[str, list[Any]]], Any]:
+    """Each metric's values (and shuffled baselines) over the group's last checkpoints, and the last analysis."""
+    from convoy.algos.checkpoint import load_checkpoint
     from convoy.analysis.recording import analyze
     from convoy.services.training import make_env
 
-    opts = meta["scales"][ctx.scale]
-    group = next((g for g in ctx.sweep_summaries(meta["source"]) if g["group"] == meta["group"]), None)
-    if group is None:
-        raise CliError("figure.group", f"{meta['source']} has no group {meta['group']!r}", "fix the table1 file")
     figures: dict[str, dict[str, list[Any]]] = {}
-    names: dict[str, str] = {}
     last = None
     for job_id in group["jobs"]:
         path = ctx.checkpoint(job_id, "checkpoint.pt")
@@ -344,7 +362,9 @@ def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, A
         env = make_env(job, int(opts.get("num_envs", 256)))
         try:
             steps = -(-int(opts["samples"]) // env.num_envs)
-            plain(out, f"{fig} [{ctx.scale}]: analysing {job_id} ({steps * env.num_envs:,} samples)")
+            plain(
+                out, f"{fig} [{ctx.scale}]: analysing {job_id} of {group['group']} ({steps * env.num_envs:,} samples)"
+            )
             last = analyze(algo, env, job.env, steps, int(opts["episodes"]), int(opts.get("seed", 12345)))
         finally:
             env.close()
@@ -353,11 +373,7 @@ def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, A
             entry = figures.setdefault(f.key, {"value": [], "shuffled": []})
             entry["value"].append(f.value)
             entry["shuffled"].append(f.shuffled)
-    png = ctx.docs / f"{fig}.png"
-    if last is not None:
-        plot_figures(last.figures, png, title=f"{last.title} (last seed analysed)")
-    return {"groups": [group], "references": {}, "png": png.name if last else None,
-            "extra": {"analysis": figures}, "analysis_names": names}  # fmt: skip
+    return figures, last
 
 
 def stale(record: dict[str, Any]) -> str:
@@ -400,6 +416,8 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         record["analysis"] = {
             k: {"name": result["analysis_names"][k], **v} for k, v in result["extra"]["analysis"].items()
         }
+        if len(result["extra"]["analysis_groups"]) > 1:  # the figures of every analysed group, first included
+            record["analysis_groups"] = result["extra"]["analysis_groups"]
     if "benchmark" in result:
         record["exponents"] = result["extra"]["exponents"]
     ctx.docs.mkdir(parents=True, exist_ok=True)
@@ -423,8 +441,8 @@ def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError("--rejudge", f"no stored record {path}: run `convoy reproduce {fig}` first")
     record = json.loads(path.read_text())
-    extra = {"references": record.get("references") or {}, "exponents": record.get("exponents") or {},
-             "analysis": record.get("analysis") or {}}  # fmt: skip
+    keys = ("references", "exponents", "analysis", "analysis_groups")
+    extra = {key: record.get(key) or {} for key in keys}
     record.update(judged(files[fig][0][1]["figure"], record["groups"], extra, record["scale"]))
     path.write_text(json.dumps(record, indent=2) + "\n")
     return record
@@ -541,7 +559,18 @@ def render(docs: Path, page: Path) -> None:
         if r.get("references") and one_env:
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
             lines += [f"References on the same evaluation episodes: {refs}.", ""]
-        if r.get("analysis"):
+        if r.get("analysis_groups"):  # one column per analysed group, each figure's shuffled baseline beneath it
+            names = list(r["analysis_groups"])
+            lines += ["| figure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+            for key, a in r["analysis"].items():
+                cells = []
+                for name in names:
+                    f = r["analysis_groups"][name].get(key) or {"value": [], "shuffled": []}
+                    base = [v for v in f["shuffled"] if v is not None]
+                    cells.append(mean_ci(f["value"]) + (f" (shuffled {mean_ci(base)})" if base else ""))
+                lines.append(f"| {a['name']} | " + " | ".join(cells) + " |")
+            lines.append("")
+        elif r.get("analysis"):
             lines += ["| figure | ours, over seeds | shuffled baseline |", "|---|---|---|"]
             for a in r["analysis"].values():
                 base = [v for v in a["shuffled"] if v is not None]

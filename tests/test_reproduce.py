@@ -162,11 +162,13 @@ def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) ->
         meta = files[0][1]["figure"]
         known = groups[meta["source"]] if meta.get("kind") == "analysis" else groups[fig]
         if meta.get("kind") == "analysis":
-            assert meta["group"] in known, (fig, meta["group"], known)
+            analysed = [meta["group"], *meta["scales"][scale].get("also", [])]
+            assert set(analysed) <= known, (fig, analysed, known)
         for claim in (c for c in meta.get("claims", []) if scale in c.get("scales", [scale])):
-            for key in ("better", "than", "group"):
-                if key in claim and "metric" not in claim:
-                    assert claim[key] in known, (fig, claim["text"], claim[key], sorted(known))
+            for key in ("better", "than", "group", "recovers", "own", "told", "above_group"):
+                if key in claim:
+                    names = analysed if "metric" in claim else known
+                    assert claim[key] in names, (fig, claim["text"], claim[key], sorted(names))
 
 
 def test_claims_get_strict_verdicts_from_one_sided_tests() -> None:
@@ -342,3 +344,64 @@ def test_tuning_chooses_each_algorithms_best_setting_and_the_figure_runs_with_it
     tuned = with_settings(body, {a: c["chosen"] for a, c in chosen.items()})
     assert tuned["algos"] == {"ma-mesn": {"gumbel_noise": 1.0, "lr": 1e-4}, "idqn": {"lr": 1e-3}}
     assert with_settings(body, {}) is body
+
+
+def test_the_fraction_of_the_told_gain_a_learner_recovers_is_stated_with_its_bootstrap_ci() -> None:
+    groups = {"own": {"final": {"values": [100.0, 102.0, 98.0, 101.0, 99.0]}},
+              "told": {"final": {"values": [130.0, 128.0, 133.0, 131.0, 129.0]}},
+              "heard": {"final": {"values": [125.0, 122.0, 127.0, 124.0, 126.0]}},
+              "flat": {"final": {"values": [101.0, 99.0, 100.0, 102.0, 98.0]}}}  # fmt: skip
+    claim = {"text": "", "recovers": "heard", "own": "own", "told": "told", "goal": 0.5}
+    v = judge(claim, groups, {})  # (124.8 − 100) / (130.2 − 100) = 82 %
+    assert v.verdict == NOT_COMPARABLE and v.ours.startswith("82% [") and "goal ≥ 50%: met" in v.why
+    v = judge({**claim, "recovers": "flat"}, groups, {})
+    assert v.ours.startswith("0% [") and "not met" in v.why
+    v = judge({**claim, "told": "flat"}, groups, {})  # the told learner is no better: nothing to recover
+    assert v.ours == "no gain to recover"
+    assert judge({**claim, "told": "nope"}, groups, {}).verdict == NOT_SHOWN  # not measured
+
+
+def test_a_metric_claim_reads_the_group_it_names_and_compares_across_groups() -> None:
+    figures = {"ci": {"value": [0.30, 0.32, 0.29], "shuffled": [0.0, 0.0, 0.0]}}
+    cut = {"ci": {"value": [0.01, 0.02, 0.0], "shuffled": [0.0, 0.0, 0.0]}}
+    extra = {"analysis": figures, "analysis_groups": {"a": figures, "a cut": cut}}
+    claim = {"text": "", "metric": "ci", "above_group": "a cut"}
+    assert judge(claim, {}, extra).verdict == REPRODUCED
+    assert judge({**claim, "group": "a cut", "above_group": "a"}, {}, extra).verdict == NOT
+    assert judge({**claim, "group": "a cut", "above": 0.05}, {}, extra).verdict == NOT
+
+
+def test_a_file_or_claim_may_leave_out_a_scale(tmp_path: Path) -> None:
+    from convoy.cli.reproduce import judged
+    from convoy.validation import ConfigError
+
+    data = {"name": "x", "grid": {"seed": [0]}, "scales": {"quick": {"skip": "too small"}, "mid": {}}}
+    with pytest.raises(ConfigError, match="does not run at scale 'quick': too small"):
+        sweep_body(data, "quick")
+    assert skipped(data, "quick") == "too small" and skipped(data, "mid") == "" and sweep_body(data, "mid")
+    groups = [{"group": "a", "final": {"values": [3.0, 3.1, 3.2]}}, {"group": "b", "final": {"values": [1.0, 1.1]}}]
+    meta = {"claims": [{"text": "always", "better": "a", "than": "b"},
+                       {"text": "mid only", "better": "a", "than": "c", "scales": ["mid"]}]}  # fmt: skip
+    assert [v["claim"] for v in judged(meta, groups, {}, "quick")["verdicts"]] == ["always"]
+    assert [v["claim"] for v in judged(meta, groups, {}, "mid")["verdicts"]] == ["always", "mid only"]
+
+
+def test_table1_of_several_groups_shows_a_column_for_each(tmp_path: Path) -> None:
+    from convoy.cli.reproduce import render
+
+    docs = tmp_path / "r"
+    docs.mkdir()
+    figure = {"value": [0.3, 0.4], "shuffled": [0.1, 0.1]}
+    record = {"id": "table1", "title": "Table 1: x", "paper": "", "scale": "mid", "note": "", "files": [],
+              "command": "convoy reproduce table1 --scale mid", "minutes": 1.0, "groups": [], "references": {},
+              "verdicts": [], "verdict": "not shown", "png": None,
+              "analysis": {"ci": {"name": "Causal influence", **figure}},
+              "analysis_groups": {"algo=ma-mesn": {"ci": figure}, "algo=ma-mesn algo_params.channel_control=cut":
+                                  {"ci": {"value": [0.0, 0.0], "shuffled": [0.0, 0.0]}}}}  # fmt: skip
+    (docs / "table1.json").write_text(json.dumps(record))
+    render(docs, tmp_path / "r.md")
+    text = (tmp_path / "r.md").read_text()
+    assert "| figure | algo=ma-mesn | algo=ma-mesn algo_params.channel_control=cut |" in text
+    assert (
+        "| Causal influence | 0.35 ± 0.64 (n=2) (shuffled 0.1 ± 0 (n=2)) | 0 ± 0 (n=2) (shuffled 0 ± 0 (n=2)) |" in text
+    )
