@@ -4,7 +4,8 @@ An MLP over the flat observation gives every slot its own weights: the same car 
 in slot 3 or among the sightings teammates tell, and which slot a car lands in is one more thing to learn. Here one
 per-car encoder φ reads every car alike — seen by the agent's own sensor or told by a teammate — and, for the
 MA-MeSN / MA-BoN listeners, every heard message is one more entity (a message is a thing known about the world, like
-a seen car) through its own embedding ψ. A masked sum and a masked max pool them:
+a seen car) through its own embedding ψ; so is every word of a fixed code the env appends (``team_words``), through
+ψ_w. A masked sum and a masked max pool them:
 
     Q_i = head([ρ(own_i, id_i), Σ_e m_e·φ(t_e), max_e m_e·φ(t_e)])      m_e = 1 for a car present, 0 for an empty slot
 
@@ -101,6 +102,10 @@ class EntityEncoder(nn.Module):
         self.own = GroupMLP(groups, layout.own + extra, (), width)  # ρ
         self.car = GroupMLP(groups, features, (width,), width, norm=norm)  # φ
         self.heard = GroupMLP(groups, bits, (width,), width, norm=norm) if senders else None  # ψ
+        # an env's fixed-code words (team_words): entities through their own ψ_w, as heard messages through ψ
+        self.words = layout.words
+        w = self.words
+        self.word = GroupMLP(groups, w.bits, (width,), width, norm=norm) if w else None  # ψ_w
         self.out_features = 3 * width
 
     def tokens(self, x: Tensor) -> Tensor:
@@ -115,6 +120,10 @@ class EntityEncoder(nn.Module):
         if self.heard is not None:
             heard = x[..., end:].unflatten(-1, (self.senders, self.bits)).transpose(-3, -2)  # [..., S, N, bits]
             entities = torch.cat([entities, F.relu(self.heard(heard))], dim=-3)
+        if self.word is not None and self.words is not None:
+            w = self.words
+            said = x[..., w.start : w.start + w.count * w.bits].unflatten(-1, (w.count, w.bits)).transpose(-3, -2)
+            entities = torch.cat([entities, F.relu(self.word(said))], dim=-3)
         own = torch.cat([x[..., : self.own_width], x[..., self.obs_dim : end]], dim=-1)
         return torch.cat([F.relu(self.own(own)), entities.sum(dim=-3), entities.amax(dim=-3)], dim=-1)
 

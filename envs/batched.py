@@ -58,6 +58,16 @@ class EntitySlots:
 
 
 @dataclass(frozen=True)
+class WordSlots:
+    """``count`` words of ``bits`` columns (0/1) from column ``start``: what teammates say in a fixed code, each
+    read as one entity, as a heard message is."""
+
+    start: int
+    count: int
+    bits: int
+
+
+@dataclass(frozen=True)
 class ObsLayout:
     """Where the parts of an agent's observation lie, for networks that read the other cars as a set
     (``encoder=entity``); an env whose observations are not made of cars has none."""
@@ -66,11 +76,14 @@ class ObsLayout:
     headings: int  # width of a heading one-hot
     cars: tuple[EntitySlots, ...]
     unread: tuple[str, ...] = ()  # blocks not laid out as cars, by the env parameter that adds them
+    words: WordSlots | None = None
 
     @property
     def width(self) -> int:
-        """Columns the own features and the car slots span (the observation's width when nothing is unread)."""
-        return max([self.own, *(b.start + b.count * b.width for b in self.cars)])
+        """Columns the own features, the car slots and the words span (the observation's width when nothing is
+        unread)."""
+        words = [self.words.start + self.words.count * self.words.bits] if self.words else []
+        return max([self.own, *(b.start + b.count * b.width for b in self.cars), *words])
 
 
 @dataclass(frozen=True)

@@ -8,13 +8,14 @@ fails there.
 
 from __future__ import annotations
 
-from convoy.envs.batched import EntitySlots, EnvSpec, ObsLayout
+from convoy.envs.batched import EntitySlots, EnvSpec, ObsLayout, WordSlots
 from convoy.envs.treadmill.config import (
     FULL_FEATURES,
     N_HEADINGS,
     NEIGHBOUR_FEATURES,
     OWN_FEATURES,
     SIGHTING_FEATURES,
+    WORD_BITS,
     TreadmillConfig,
 )
 from convoy.validation import ConfigError
@@ -23,8 +24,8 @@ from convoy.validation import ConfigError
 def treadmill_layout(cfg: TreadmillConfig) -> ObsLayout:
     """Own features; ``observe_k`` sensor slots (seen, dx, dy, heading one-hot, speed); then, when on, each
     teammate's raw observation and every other car's road-scaled position (not read as cars) and the told
-    sightings (known, dx, dy, speed, adversary, with ``sighting_headings`` a heading one-hot), in
-    ``engine._observe``'s order."""
+    sightings (known, dx, dy, speed, adversary, with ``sighting_headings`` a heading one-hot) and the teammates'
+    16-bit words (``team_words``), in ``engine._observe``'s order."""
     k, others = cfg.observe_k, cfg.n_cars - 1
     sensor = EntitySlots("sensor", OWN_FEATURES, k, NEIGHBOUR_FEATURES, present=0, dx=1, dy=2, heading=3,
                          speed=3 + N_HEADINGS)  # fmt: skip
@@ -41,9 +42,13 @@ def treadmill_layout(cfg: TreadmillConfig) -> ObsLayout:
         cars.append(EntitySlots("told", col, others, cfg.sighting_features, present=0, dx=1, dy=2, speed=3,
                                 adversary=4, heading=heading))  # fmt: skip
         col += others * cfg.sighting_features
+    words = None
+    if cfg.team_words:
+        words = WordSlots(col, cfg.n_agents - 1, WORD_BITS)
+        col += (cfg.n_agents - 1) * WORD_BITS
     if col != cfg.obs_dim:
         raise RuntimeError(f"treadmill layout spans {col} columns, the observation {cfg.obs_dim}: update it")
-    return ObsLayout(own=OWN_FEATURES, headings=N_HEADINGS, cars=tuple(cars), unread=tuple(unread))
+    return ObsLayout(own=OWN_FEATURES, headings=N_HEADINGS, cars=tuple(cars), unread=tuple(unread), words=words)
 
 
 def entity_layout(spec: EnvSpec) -> ObsLayout:

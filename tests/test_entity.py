@@ -20,7 +20,8 @@ from convoy.config import job_config, resolve_algo
 from convoy.envs import make_batched
 from convoy.envs.batched import ENTITY_SOURCES, EnvSpec
 from convoy.envs.layout import entity_layout
-from convoy.envs.treadmill.config import N_HEADINGS
+from convoy.envs.treadmill.config import N_HEADINGS, NEIGHBOUR_FEATURES, OWN_FEATURES
+from convoy.envs.treadmill.drivers import encode16
 from convoy.transition import Transition, from_columns
 from convoy.validation import ConfigError
 from tests.transitions import batch, run_of
@@ -115,6 +116,37 @@ def test_tokens_say_what_the_engine_saw(params: dict[str, Any]) -> None:
     np.testing.assert_array_equal(told[..., 5 + h], known & (others >= n))  # adversary
     np.testing.assert_array_equal(told[..., 6 + h], known)  # adversary known
     np.testing.assert_array_equal(told[..., 7 + h + ENTITY_SOURCES.index("told")], known)
+
+
+@pytest.mark.parametrize("params", [{}, SIGHTINGS], ids=["words", "words-and-sightings"])
+def test_the_words_teammates_say_are_their_16_bit_codes_read_as_entities(params: dict[str, Any]) -> None:
+    """``team_words``: each agent hears every teammate's ``encode16`` word (the team16 references' code) as 16 bits,
+    teammates in index order, at the columns the layout names; the entity encoder reads each word as an entity, so
+    the order of the words changes no Q-value, and a word changes what the network computes."""
+    env, obs = env_obs({**params, "team_words": True, "adversary_speed": 7}, steps=20)
+    layout = entity_layout(env.spec)
+    cfg, n = env.cfg, env.cfg.n_agents
+    assert layout.words is not None and (layout.words.count, layout.words.bits) == (n - 1, 16)
+    words = layout.words
+    x = np.concatenate(obs)  # [M, N, D]
+    private = x[..., : OWN_FEATURES + cfg.observe_k * NEIGHBOUR_FEATURES]
+    said = encode16(private, cfg).astype(np.int64)  # [M, N]: what each agent says
+    heard = x[..., words.start : words.start + words.count * words.bits].reshape(*x.shape[:-1], n - 1, 16)
+    value = (heard.astype(np.int64) << np.arange(16)).sum(-1)  # [M, N, N−1]
+    others = np.array([[j for j in range(n) if j != i] for i in range(n)])
+    np.testing.assert_array_equal(value, said[:, others])
+    assert (said >> 15).any(), "some agent should see a car"
+    algo = build("idqn", env.spec)
+    swapped = heard[..., ::-1, :].reshape(*x.shape[:-1], -1)
+    y = x.copy()
+    y[..., words.start : words.start + words.count * words.bits] = swapped
+    assert not np.array_equal(x, y)
+    silent = x.copy()
+    silent[..., words.start :] = 0
+    with torch.no_grad():
+        q = algo.greedy_q(torch.as_tensor(x)[None], None)[0]
+        torch.testing.assert_close(algo.greedy_q(torch.as_tensor(y)[None], None)[0], q, rtol=0, atol=1e-5)
+        assert (algo.greedy_q(torch.as_tensor(silent)[None], None)[0] - q).abs().max() > 1e-4
 
 
 def test_an_env_without_a_layout_or_with_blocks_it_cannot_read_is_a_config_error() -> None:

@@ -89,6 +89,13 @@ class TreadmillConfig(BaseModel):
         "give it). A charger too fast to steer is dangerous along its heading, and both told planners know it; off "
         "gives the sightings of the results measured before it existed.",
     )
+    team_words: bool = Field(
+        False,
+        description="Reference only: append each teammate's 16-bit word as 16 bits, teammates in index order — the "
+        "hand-written code of the team16 driver and planner (envs/treadmill/drivers.py encode16: a seen flag and the "
+        "window cell of the car the teammate sees closing in fastest). A learner told these hears the 2-byte "
+        "channel a designed protocol fills, instead of learning one.",
+    )
     reward_distance_cap: Distance = Field(10.0, description="d_max: the per-step reward is min(d, d_max) / d_max.")
     crash_penalty: float = Field(10.0, ge=0.0, le=1e6, description="Reward −crash_penalty to a car that crashes.")
     max_steps: int = Field(200, ge=1, le=1_000_000, description="Truncation horizon of an episode, in steps.")
@@ -166,7 +173,8 @@ class TreadmillConfig(BaseModel):
         team = (self.n_agents - 1) * private if self.team_observations else 0
         full = (self.n_cars - 1) * FULL_FEATURES if self.full_information else 0
         sightings = (self.n_cars - 1) * self.sighting_features if self.team_sightings else 0
-        return private + team + full + sightings
+        words = (self.n_agents - 1) * WORD_BITS if self.team_words else 0
+        return private + team + full + sightings + words
 
     @model_validator(mode="before")
     @classmethod
@@ -253,3 +261,4 @@ LONGITUDINAL = OWN_FEATURES - 1
 NEIGHBOUR_FEATURES = 1 + 2 + N_HEADINGS + 1  # seen flag, relative position / sensor_range, heading one-hot, speed
 FULL_FEATURES = 4  # per other car: relative position / road size, speed, adversary flag
 SIGHTING_FEATURES = 5  # per other car: known flag, then FULL_FEATURES' features (zeros where unknown)
+WORD_BITS = 16  # per teammate with team_words: its encode16 word, bit 0 first
