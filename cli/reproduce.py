@@ -286,10 +286,25 @@ def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, An
     return {"episodes": episodes, "seed": HELD_OUT_SEED, **{k: seeds_summary(v) for k, v in scores.items()}}
 
 
+def wall_seconds(api: Api, group: dict[str, Any]) -> float | None:
+    """The seconds of training the group took here: each population's learner wall clock (carried across resumes) at
+    its last row, summed over the group's populations (a seed trained alone is a population of one)."""
+    walls: dict[str, float] = {}
+    for job_id in group["jobs"]:
+        job = api.call("GET", f"/jobs/{job_id}")
+        since = max(-1, int(job["steps"] * 0.99))
+        rows = api.call("GET", f"/jobs/{job_id}/metrics", params={"names": "wall_s", "since": since})["rows"]
+        if rows and rows[-1].get("wall_s") is not None:
+            key = job.get("population") or job_id
+            walls[key] = max(walls.get(key, 0.0), float(rows[-1]["wall_s"]))
+    return round(sum(walls.values()), 1) if walls else None
+
+
 def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
     from convoy.analysis.curves import plot_final_by, plot_groups
 
-    groups = [{**g, "references": references(ctx.api, [g])} for g in ctx.sweep_summaries(fig)]
+    groups = [{**g, "references": references(ctx.api, [g]), "wall_s": wall_seconds(ctx.api, g)}
+              for g in ctx.sweep_summaries(fig)]  # fmt: skip
     scale = (ctx.files[fig][0][1].get("scales") or {}).get(ctx.scale) or {}
     episodes = int(scale.get("held_out_episodes", meta.get("held_out_episodes", 100)))
     for g in groups if episodes > 0 else []:
@@ -382,7 +397,7 @@ def stale(record: dict[str, Any]) -> str:
     return f" (treadmill rules {rules})" if rules is not None and rules != TREADMILL_RULES else ""
 
 
-RECORDED = ("group", "jobs", "states", "final", "iqm", "auc", "held_out", "sweep", "references")  # per group
+RECORDED = ("group", "jobs", "states", "final", "iqm", "auc", "held_out", "sweep", "references", "wall_s")  # per group
 
 
 def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
@@ -449,6 +464,13 @@ def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
 
 
 # --- the page ----------------------------------------------------------------------------------------------------
+
+
+def duration(seconds: float) -> str:
+    """``12 s``, ``7.5 min`` or ``3.2 h``."""
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.1f} min" if seconds < 3600 else f"{seconds / 3600:.1f} h"
 
 
 def heading_anchor(title: str) -> str:
@@ -550,6 +572,10 @@ def render(docs: Path, page: Path) -> None:
                     row += f" {'yes' if significant(diff, p) else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)
             lines.append("")
+        walls = [f"{g['group']} {duration(g['wall_s'])}" for g in r["groups"] if g.get("wall_s") is not None]
+        if walls and "analysis" not in r:
+            lines += [f"Training wall time per group here (its populations' learners, resumes included): "
+                      f"{', '.join(walls)}.", ""]  # fmt: skip
         if r.get("tuning"):
             chosen = "; ".join(f"{algo} " + ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
                                                       for k, v in t["chosen"].items())
