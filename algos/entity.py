@@ -104,8 +104,7 @@ class EntityEncoder(nn.Module):
         self.heard = GroupMLP(groups, bits, (width,), width, norm=norm) if senders else None  # ψ
         # an env's fixed-code words (team_words): entities through their own ψ_w, as heard messages through ψ
         self.words = layout.words
-        w = self.words
-        self.word = GroupMLP(groups, w.bits, (width,), width, norm=norm) if w else None  # ψ_w
+        self.word = GroupMLP(groups, self.words.bits, (width,), width, norm=norm) if self.words else None  # ψ_w
         self.out_features = 3 * width
 
     def tokens(self, x: Tensor) -> Tensor:
@@ -118,14 +117,19 @@ class EntityEncoder(nn.Module):
         entities = F.relu(self.car(tokens)) * tokens[..., :1]  # m·φ: an empty slot is 0 in the sum and the max
         end = self.obs_dim + self.extra
         if self.heard is not None:
-            heard = x[..., end:].unflatten(-1, (self.senders, self.bits)).transpose(-3, -2)  # [..., S, N, bits]
-            entities = torch.cat([entities, F.relu(self.heard(heard))], dim=-3)
+            entities = torch.cat([entities, said(x, end, self.senders, self.bits, self.heard)], dim=-3)
         if self.word is not None and self.words is not None:
             w = self.words
-            said = x[..., w.start : w.start + w.count * w.bits].unflatten(-1, (w.count, w.bits)).transpose(-3, -2)
-            entities = torch.cat([entities, F.relu(self.word(said))], dim=-3)
+            entities = torch.cat([entities, said(x, w.start, w.count, w.bits, self.word)], dim=-3)
         own = torch.cat([x[..., : self.own_width], x[..., self.obs_dim : end]], dim=-1)
         return torch.cat([F.relu(self.own(own)), entities.sum(dim=-3), entities.amax(dim=-3)], dim=-1)
+
+
+def said(x: Tensor, start: int, count: int, bits: int, embed: nn.Module) -> Tensor:
+    """``count`` words of ``bits`` columns from column ``start`` of ``x [..., N, D]``, each one entity through
+    ``embed``: ``[..., count, N, width]``."""
+    words = x[..., start : start + count * bits].unflatten(-1, (count, bits)).transpose(-3, -2)  # [..., S, N, bits]
+    return F.relu(embed(words))
 
 
 def obs_network(

@@ -33,7 +33,7 @@ from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_ab
 from convoy.api.models import SweepSubmit
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
-from convoy.cli.sweep_file import read_file, skipped, sweep_body
+from convoy.cli.sweep_file import read_file, scale_table, skipped, sweep_body
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.stats import mean_ci as seeds_summary
 from convoy.validation import ConfigError, build_config
@@ -305,7 +305,7 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
 
     groups = [{**g, "references": references(ctx.api, [g]), "wall_s": wall_seconds(ctx.api, g)}
               for g in ctx.sweep_summaries(fig)]  # fmt: skip
-    scale = (ctx.files[fig][0][1].get("scales") or {}).get(ctx.scale) or {}
+    scale = scale_table(ctx.files[fig][0][1], ctx.scale)
     episodes = int(scale.get("held_out_episodes", meta.get("held_out_episodes", 100)))
     for g in groups if episodes > 0 else []:
         plain(out, f"{fig} [{ctx.scale}]: {g['group']}: last and best policies on {episodes} held-out episodes")

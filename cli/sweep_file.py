@@ -82,9 +82,14 @@ def sweep_body(data: dict[str, Any], scale: str | None = None, where: str = "swe
     return body
 
 
+def scale_table(data: dict[str, Any], scale: str) -> dict[str, Any]:
+    """A file's ``[scales.SCALE]`` table, ``{}`` when it has none."""
+    return (data.get("scales") or {}).get(scale) or {}
+
+
 def skipped(data: dict[str, Any], scale: str) -> str:
     """Why a file does not run at ``scale`` (its ``[scales.SCALE] skip``), or ``""`` when it does."""
-    return str(((data.get("scales") or {}).get(scale) or {}).get("skip") or "")
+    return str(scale_table(data, scale).get("skip") or "")
 
 
 def _in_scale(field: str, scale: dict[str, Any]) -> bool:

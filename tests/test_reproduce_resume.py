@@ -16,6 +16,7 @@ import pytest
 
 from convoy.cli.main import main
 from convoy.services.store import JobStore
+from tests.proctree import descendants
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -41,21 +42,6 @@ title = "Fig. 8: a tiny stand-in"
 held_out_episodes = 0
 claims = [{ text = "a number", group = "algo=idqn", paper = 0.5, comparable = false }]
 """
-
-
-def descendants(pid: int) -> list[int]:
-    """Every live process below ``pid`` (the service and the job hosts it started in their own sessions)."""
-    children: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        with contextlib.suppress(OSError, ValueError, IndexError):
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    out, todo = [], [pid]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            out.append(child)
-            todo.append(child)
-    return out
 
 
 def trained_past_a_checkpoint(data: Path) -> bool:

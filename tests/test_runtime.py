@@ -35,6 +35,7 @@ from convoy.services.procs import ProcessGroup, Slot
 from convoy.services.training import run_inprocess
 from convoy.transition import from_columns
 from tests.busy import busy_cores
+from tests.proctree import descendants
 
 REFERENTIAL: dict[str, Any] = {
     "env": "referential",
@@ -547,22 +548,6 @@ def test_a_process_that_refuses_the_jobs_configuration_fails_the_job_with_the_re
     assert runner.group is not None and not runner.group.pids()  # every process stopped
 
 
-def _descendants(root: int) -> set[int]:
-    """PIDs below ``root`` in the process tree (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError):
-                stat = (entry / "stat").read_text()
-                children.setdefault(int(stat[stat.rindex(")") + 2 :].split()[1]), []).append(int(entry.name))
-    found, todo = set(), [root]
-    while todo:
-        for kid in children.get(todo.pop(), []):
-            found.add(kid)
-            todo.append(kid)
-    return found
-
-
 def _alive(pid: int) -> bool:
     """Running, not a zombie (``services.jobservice.pid_alive``'s signal 0 would count an unreaped exit as alive)."""
     with contextlib.suppress(OSError):
@@ -593,7 +578,7 @@ def test_roles_exit_when_the_runner_is_killed(tmp_path: Path) -> None:
         proc = subprocess.Popen([*cmd, "--no-progress"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wait_for(lambda: (tmp_path / "run" / "metrics.jsonl").is_file(), 60, "the job's first metric row", every=0.2)
-        roles = _descendants(proc.pid)
+        roles = descendants(proc.pid)
         assert len(roles) >= 4, roles  # forkserver, learner, 2 actors (+ resource tracker)
         proc.kill()
         proc.wait(5)

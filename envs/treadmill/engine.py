@@ -351,21 +351,21 @@ class TreadmillEngine:
             parts.append(full.reshape(len(envs), n, -1))
         if cfg.team_sightings:
             parts.append(self._team_sightings(self.team_observed(near, near_dist), rel_x, rel_y, v, h))
-        if cfg.team_words:
-            parts.append(self._team_words(np.concatenate([*own, neighbour.reshape(len(envs), n, -1)], axis=2)))
         obs = np.concatenate(parts, axis=2)
         np.clip(obs, -1.0, 1.0, out=obs)
+        if cfg.team_words:  # bits, nothing to clip
+            obs = np.concatenate([obs, self._team_words(obs)], axis=2)
         return obs, closest
 
-    def _team_words(self, private: np.ndarray) -> np.ndarray:
-        """``[E, N, (N−1)·16]``: each teammate's 16-bit word (``drivers.encode16`` of its private observation, as
-        the team16 references compute it), as bits, teammates in index order."""
+    def _team_words(self, obs: np.ndarray) -> np.ndarray:
+        """``[E, N, (N−1)·16]``: each teammate's 16-bit word (``drivers.encode16`` of its observation, as the
+        team16 references compute it), as bits, teammates in index order."""
         from convoy.envs.treadmill.drivers import encode16  # drivers reads this module's geometry
 
         n = self.cfg.n_agents
-        words = encode16(np.clip(private, -1.0, 1.0), self.cfg).astype(np.int64)  # [E, N]
+        words = encode16(obs, self.cfg).astype(np.int64)  # [E, N]
         bits = ((words[..., None] >> np.arange(WORD_BITS)) & 1).astype(np.float32)  # [E, N, 16]
-        return bits[:, self._others[:, : n - 1]].reshape(len(private), n, -1)
+        return bits[:, self._others[:, : n - 1]].reshape(len(obs), n, -1)
 
     def _team_sightings(self, observed, rel_x, rel_y, speed, heading) -> np.ndarray:
         """``[E, N, (C−1)·F]``: each other car that a teammate is (its position it can say) or that some agent
