@@ -7,8 +7,7 @@ from hypothesis import strategies as st
 
 from convoy.envs.batched import env_seeds
 from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, distance
-from convoy.envs.treadmill.config import FULL_FEATURES, N_HEADINGS, OWN_FEATURES, SIGHTING_FEATURES
-from convoy.envs.treadmill.engine import DX, DY
+from convoy.envs.treadmill.config import DX, DY, FULL_FEATURES, N_HEADINGS, OWN_FEATURES, SIGHTING_FEATURES
 
 KEEP = 4  # steer 0, accelerate 0
 FAST = settings(max_examples=60, deadline=None)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from convoy.validation import ConfigError
@@ -254,6 +255,9 @@ V2_RULES: dict = {
 
 RULES = 3  # the rule set the defaults are: results measured on another one are flagged (docs/reproduction.md)
 N_HEADINGS = 8
+# Unit move per heading, counter-clockwise from "forward along the road".
+DX = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
+DY = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 N_ACTIONS = 9  # (steer −45°, 0, +45°) × (decelerate, keep, accelerate)
 # lateral position, heading one-hot, speed, distance to both side edges, longitudinal position on the treadmill
 OWN_FEATURES = 1 + N_HEADINGS + 1 + 2 + 1

@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from convoy.envs.treadmill.config import N_HEADINGS, NEIGHBOUR_FEATURES, OWN_FEATURES, TreadmillConfig
-from convoy.envs.treadmill.engine import DX, DY
+from convoy.envs.treadmill.config import DX, DY, N_HEADINGS, NEIGHBOUR_FEATURES, OWN_FEATURES, TreadmillConfig
 from convoy.envs.treadmill.scripted import DriverParams, family_actions, own_state
 
 

@@ -48,11 +48,9 @@ import numpy as np
 from convoy.envs import rng
 from convoy.envs.batched import EnvSpec, StepResult, check_actions
 from convoy.envs.layout import treadmill_layout
-from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, WORD_BITS, TreadmillConfig
+from convoy.envs.treadmill.config import DX, DY, N_ACTIONS, N_HEADINGS, WORD_BITS, TreadmillConfig
+from convoy.envs.treadmill.drivers import encode16
 
-# Unit move per heading, counter-clockwise from "forward along the road".
-DX = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
-DY = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 ACTION_STEER = np.arange(N_ACTIONS, dtype=np.int64) // 3 - 1  # −1 right, 0 straight, +1 left
 ACTION_ACCEL = np.arange(N_ACTIONS, dtype=np.int64) % 3 - 1  # −1 brake, 0 keep, +1 accelerate
 _ONE_HOT = np.eye(N_HEADINGS, dtype=np.float32)
@@ -360,8 +358,6 @@ class TreadmillEngine:
     def _team_words(self, obs: np.ndarray) -> np.ndarray:
         """``[E, N, (N−1)·16]``: each teammate's 16-bit word (``drivers.encode16`` of its observation, as the
         team16 references compute it), as bits, teammates in index order."""
-        from convoy.envs.treadmill.drivers import encode16  # drivers reads this module's geometry
-
         n = self.cfg.n_agents
         words = encode16(obs, self.cfg).astype(np.int64)  # [E, N]
         bits = ((words[..., None] >> np.arange(WORD_BITS)) & 1).astype(np.float32)  # [E, N, 16]

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from convoy.envs.treadmill.config import N_ACTIONS, N_HEADINGS, TreadmillConfig
+from convoy.envs.treadmill.config import DX, DY, N_ACTIONS, N_HEADINGS, TreadmillConfig
 from convoy.envs.treadmill.drivers import peer_index, sensor_slots, slot_speeds
-from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, DX, DY, TreadmillEngine
+from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, TreadmillEngine
 from convoy.envs.treadmill.scripted import own_state
 
 LEVELS = ("private", "team", "team16", "full")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from convoy.envs.treadmill.engine import DX, DY
+from convoy.envs.treadmill.config import DX, DY
 
 ROAD = np.array([70, 70, 78], np.uint8)
 LANE = np.array([200, 200, 120], np.uint8)

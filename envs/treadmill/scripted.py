@@ -18,8 +18,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from convoy.envs.treadmill.config import LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
-from convoy.envs.treadmill.engine import DY
+from convoy.envs.treadmill.config import DY, LONGITUDINAL, N_HEADINGS, OWN_FEATURES, TreadmillConfig
 
 DANGER = 12.0  # cells: flee a threat closer than this
 
