@@ -88,8 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         "--planner-iterations",
         type=int,
         default=6,
-        help="cross-entropy iterations per level; 0 scores the planners tuned on the default rules (planner.TUNED) "
-        "as they are, e.g. on other rules (default %(default)s)",
+        help="cross-entropy iterations per level; 0 scores the planners as tuned (planner.tuned_for: on these rules "
+        "where a search ran on them, else on the default rules), e.g. on other rules (default %(default)s)",
     )
     p.add_argument("--planner-population", type=int, default=12, help="candidates per iteration (default %(default)s)")
     p.add_argument(
@@ -253,8 +253,8 @@ def _tune_level(cfg: TreadmillConfig, level: str, budget: dict, episodes: int):
     """One level's tuning and scoring (a worker process: levels tune in parallel with ``--workers``)."""
     start = time.perf_counter()
     log = lambda line: print(f"  {line} ({time.perf_counter() - start:.0f} s)", flush=True)  # noqa: E731
-    if budget["iterations"] == 0:  # score the planners tuned on the default rules, as they are
-        params, value = planner.TUNED[level], float("nan")
+    if budget["iterations"] == 0:  # score the planners as tuned, on these rules or the defaults
+        params, value = planner.tuned_for(cfg)[level], float("nan")
     else:
         params, value = planner.tune_planner(cfg, level, start=planner.START, log=log, **budget)
     return params, value, planner.planner_returns(cfg, level, params, episodes, SCORING_SEED)

@@ -252,7 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
         "reactive driver on its own sensor, told its teammates' observations, told a 16-bit code per teammate); "
         "private-planner, team16-planner, team-planner, full-planner (the tuned model-predictive driver on its own "
         "sensor, told a 16-bit word per teammate, told its teammates' observations, told every car: the strongest "
-        "references); all but random are treadmill-only (default: %(default)s)",
+        "references); drivers and planners play the parameters tuned on the charger rules (--set adversary_speed=7 "
+        "--set adversary_steer_speed=3 --set adversary_stealth=true) there, else those tuned on the defaults; all "
+        "but random are treadmill-only (default: %(default)s)",
     )
     ro.add_argument(
         "--seed", type=int, default=0, help="seed of the envs and of the random policy (default: %(default)s)"

@@ -201,10 +201,40 @@ def test_the_tuned_planners_are_the_ones_the_search_json_records() -> None:
     import json
     from pathlib import Path
 
-    from convoy.envs.treadmill.planner import LEVELS, TUNED
+    from convoy.envs.treadmill import references
+    from convoy.envs.treadmill.planner import CHARGER_TUNED, LEVELS, TUNED
 
-    search = json.loads((Path(__file__).resolve().parents[1] / "docs/figures/treadmill_search.json").read_text())
-    assert {level: TUNED[level].label() for level in LEVELS} == search["planners"]
+    figures = Path(__file__).resolve().parents[1] / "docs/figures"
+    for name, planners, drivers in [
+        ("treadmill_search.json", TUNED, references.TUNED),
+        ("treadmill_charger.json", CHARGER_TUNED, references.TUNED_CHARGER),
+    ]:
+        search = json.loads((figures / name).read_text())
+        assert {level: planners[level].label() for level in LEVELS} == search["planners"], name
+        assert {kind: p.label() for kind, p in drivers.items()} == search["params"], name
+
+
+def test_a_reference_plays_with_the_parameters_tuned_on_its_rules() -> None:
+    """On the charger rules the planners and drivers are the ones tuned there (the search file's own episodes come
+    out again), whatever the agents are told; on rules no search ran on, the default rules' parameters."""
+    import json
+    from pathlib import Path
+
+    from convoy.envs.rollout import rollout
+    from convoy.envs.treadmill import references
+    from convoy.envs.treadmill.config import CHARGER_RULES
+    from convoy.envs.treadmill.planner import CHARGER_TUNED, TUNED, tuned_for
+
+    charger = TreadmillConfig(**CHARGER_RULES)
+    assert tuned_for(charger) is CHARGER_TUNED and references.drivers_for(charger) is references.TUNED_CHARGER
+    assert tuned_for(TreadmillConfig(**CHARGER_RULES, team_sightings=True, team_words=True)) is CHARGER_TUNED
+    assert tuned_for(TreadmillConfig(**{**CHARGER_RULES, "adversary_speed": 5})) is TUNED
+    assert tuned_for(TreadmillConfig()) is TUNED and references.drivers_for(TreadmillConfig()) is references.TUNED
+    search = json.loads((Path(__file__).resolve().parents[1] / "docs/figures/treadmill_charger.json").read_text())
+    for name, key in [("team-planner", "team planner"), ("private-driver", "private driver")]:
+        engine = TreadmillEngine(charger, 4, autoreset=False)
+        played = rollout(engine, references.reference_policy(name, engine, 0), seed=0).mean_return
+        np.testing.assert_allclose(played, search["episode_returns"][key][:4], atol=0.01)
 
 
 def test_how_episodes_end_refuses_a_hostile_checkpoint_with_an_error_line(tmp_path) -> None:

@@ -131,6 +131,12 @@ class TreadmillConfig(BaseModel):
         """The second rule set (``V2_RULES``): what every result measured before the current defaults used."""
         return cls(**(V2_RULES | overrides))
 
+    def moves_as(self, rules: dict) -> bool:
+        """Whether these rules are the defaults with ``rules`` set, up to what the agents are told
+        (``INFORMATION_FIELDS``): a reference tuned on those rules is tuned on these."""
+        told = {name: TreadmillConfig.model_fields[name].default for name in INFORMATION_FIELDS}
+        return self.model_copy(update=told) == TreadmillConfig(**rules)
+
     @property
     def adversary_top(self) -> int:
         """The adversaries' top speed."""
@@ -252,6 +258,18 @@ V2_RULES: dict = {
     "treadmill_switch_prob": 0.0,
     "aggression": 0.7,
 }
+
+# The charger rules (docs/treadmill.md, "A hidden chaser too fast to steer"): a stealthy chaser at speed 7 that
+# cannot steer above speed 3. The rules the learner study and Fig. 3's real budget train on.
+CHARGER_RULES: dict = {"adversary_speed": 7, "adversary_steer_speed": 3, "adversary_stealth": True}
+# What the agents are told, not how the road moves: rules that differ only here are the same rules to a reference.
+INFORMATION_FIELDS: tuple[str, ...] = (
+    "full_information",
+    "team_observations",
+    "team_sightings",
+    "sighting_headings",
+    "team_words",
+)
 
 RULES = 3  # the rule set the defaults are: results measured on another one are flagged (docs/reproduction.md)
 N_HEADINGS = 8

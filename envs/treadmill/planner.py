@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from convoy.envs.treadmill.config import DX, DY, N_ACTIONS, N_HEADINGS, TreadmillConfig
+from convoy.envs.treadmill.config import CHARGER_RULES, DX, DY, N_ACTIONS, N_HEADINGS, TreadmillConfig
 from convoy.envs.treadmill.drivers import peer_index, sensor_slots, slot_speeds
 from convoy.envs.treadmill.engine import ACTION_ACCEL, ACTION_STEER, TreadmillEngine
 from convoy.envs.treadmill.scripted import own_state
@@ -407,3 +407,25 @@ TUNED: dict[str, PlannerParams] = {
         "horizon=6,discount=0.9103,danger=18.01,w_danger=7.677,w_crash=5.774,chase=3.462,p_adversary=0.4923,edge=12.49,w_edge=6.146,home=0.4222,w_home=0.07518,w_reward=1.9,w_blind=0.05371,w_phantom=5.554,phantom=16.15"
     ),
 }
+
+# Each level tuned on the charger rules (``CHARGER_RULES``; docs/figures/treadmill_charger.json's "planners").
+CHARGER_TUNED: dict[str, PlannerParams] = {
+    "private": PlannerParams.from_label(
+        "horizon=5,discount=0.8373,danger=24.02,w_danger=5.255,w_crash=29.44,chase=3.709,p_adversary=0.5475,edge=14.64,w_edge=5.352,home=0.3175,w_home=0.05556,w_reward=1.03,w_blind=0.0,w_phantom=7.704,phantom=7.025"
+    ),
+    "team": PlannerParams.from_label(
+        "horizon=6,discount=0.8578,danger=23.7,w_danger=4.247,w_crash=28.52,chase=3.105,p_adversary=0.6403,edge=14.67,w_edge=4.12,home=0.4646,w_home=0.03177,w_reward=1.261,w_blind=0.1459,w_phantom=7.968,phantom=17.19"
+    ),
+    "team16": PlannerParams.from_label(
+        "horizon=6,discount=0.9565,danger=23.88,w_danger=3.306,w_crash=18.31,chase=3.222,p_adversary=0.4041,edge=15.37,w_edge=3.27,home=0.5086,w_home=0.0,w_reward=0.4791,w_blind=0.0,w_phantom=9.476,phantom=11.32"
+    ),
+    "full": PlannerParams.from_label(
+        "horizon=5,discount=0.8803,danger=22.0,w_danger=5.876,w_crash=36.43,chase=3.413,p_adversary=0.752,edge=10.33,w_edge=4.694,home=0.4634,w_home=0.06505,w_reward=0.9244,w_blind=0.0,w_phantom=7.571,phantom=13.28"
+    ),
+}
+
+
+def tuned_for(cfg: TreadmillConfig) -> dict[str, PlannerParams]:
+    """Each level's parameters for ``cfg``: those tuned on its rules where a search ran on them (the charger rules),
+    else those tuned on the default rules — a reference should be the strongest policy known on the rules it plays."""
+    return CHARGER_TUNED if cfg.moves_as(CHARGER_RULES) else TUNED

@@ -8,10 +8,11 @@
 * ``full-information`` — the same driver told every car's position and which cars are adversaries;
 * ``private-planner``, ``team-planner``, ``team16-planner``, ``full-planner`` — the model-predictive driver of
   ``envs.treadmill.planner`` told its own sensor, its teammates' observations, one 16-bit word per teammate, or every
-  car, each level's parameters tuned on the default rules (``planner.TUNED``): the strongest policy Convoy has for each
-  information level, and the references every learner is judged against;
+  car, each level's parameters tuned on the rules it plays where a search ran on them (the charger rules), else on the
+  default rules (``planner.tuned_for``): the strongest policy Convoy has for each information level, and the references
+  every learner is judged against;
 * ``private-driver``, ``team-driver``, ``team16-driver`` — the reactive family of ``envs.treadmill.drivers`` with the
-  parameters tuned on the default rules (``TUNED``): on its own sensor, told every teammate's observation, told a
+  parameters tuned the same way (``drivers_for``): on its own sensor, told every teammate's observation, told a
   16-bit code per teammate. ``benchmarks/treadmill_search.py`` tunes them afresh on any rules and searches the
   open-loop policies (constants, cycles up to period 32, cross-entropy over whole sequences) beside them.
 
@@ -26,7 +27,7 @@ from collections.abc import Callable
 import numpy as np
 
 from convoy.envs.rollout import RolloutResult, random_policy, rollout
-from convoy.envs.treadmill.config import N_ACTIONS, TreadmillConfig
+from convoy.envs.treadmill.config import CHARGER_RULES, N_ACTIONS, TreadmillConfig
 from convoy.envs.treadmill.engine import TreadmillEngine
 from convoy.envs.treadmill.scripted import DANGER, full_information_actions, scripted_actions
 
@@ -56,12 +57,14 @@ def reference_policy(name: str, engine: TreadmillEngine, seed: int | None = None
     if name == "team-information":
         return lambda obs: full_information_actions(engine, team_only=True)
     if name in DRIVERS:
-        return _driver_policy(name.split("-")[0], engine, TUNED[name.split("-")[0]])
+        kind = name.split("-")[0]
+        return _driver_policy(kind, engine, drivers_for(engine.cfg)[kind])
     if name in PLANNERS:
         from convoy.envs.treadmill import planner
 
         level = name.split("-")[0]
-        return lambda obs: planner.level_actions(level, engine, obs, planner.TUNED[level])
+        params = planner.tuned_for(engine.cfg)[level]
+        return lambda obs: planner.level_actions(level, engine, obs, params)
     if name in CONSTANTS:
         action = int(name.rsplit("-", 1)[1])
         return lambda obs: np.full(obs.shape[:2], action, np.int64)
@@ -110,7 +113,8 @@ def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[s
     episodes: random; the best constant action (named; on the default rules also the best open-loop policy the
     search of ``benchmarks/treadmill_search.py`` finds); the tuned reactive driver on its own sensor (the reference
     of earlier results); and the planners told their own sensor, a 16-bit word per teammate, their teammates'
-    observations and every car (tuned on the default rules): the strongest policy known at each information level."""
+    observations and every car (tuned on these rules or the defaults, ``planner.tuned_for``): the strongest policy
+    known at each information level."""
     names = ("random", *CONSTANTS, "private-driver", *PLANNERS)
     results = evaluate_references(cfg, episodes, seed, names=names)
     best = best_constant(results)
@@ -155,6 +159,22 @@ def _tuned() -> dict:
         "team": DriverParams(danger=24.0, danger_adversary=24.0, hold="straight", flee_pace=3, brake=True, home=0.5),
         "team16": DriverParams(danger=16.0, danger_adversary=20.0, hold="weave", flee_pace=3, brake=False, home=0.3),
     }
+
+
+# The same family tuned on the charger rules (docs/figures/treadmill_charger.json's "params").
+def _tuned_charger() -> dict:
+    from convoy.envs.treadmill.drivers import DriverParams
+
+    return {
+        "private": DriverParams(danger=24.0, danger_adversary=24.0, hold="circle", flee_pace=3, brake=False, home=0.3),
+        "team": DriverParams(danger=16.0, danger_adversary=20.0, hold="straight", flee_pace=3, brake=False, home=0.5),
+        "team16": DriverParams(danger=32.0, danger_adversary=32.0, hold="straight", flee_pace=3, brake=False, home=0.3),
+    }
+
+
+def drivers_for(cfg: TreadmillConfig) -> dict:
+    """The family's parameters for ``cfg``: tuned on its rules where a search ran on them, else on the defaults."""
+    return TUNED_CHARGER if cfg.moves_as(CHARGER_RULES) else TUNED
 
 
 TUNING_SEED = 1  # episode seeds the searches and grids choose on (env_seeds(1, ·) shares no env with seed 0)
@@ -379,3 +399,4 @@ def random_returns(cfg: TreadmillConfig, episodes: int, seed: int) -> np.ndarray
 
 
 TUNED = _tuned()
+TUNED_CHARGER = _tuned_charger()
