@@ -286,6 +286,26 @@ def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, An
     return {"episodes": episodes, "seed": HELD_OUT_SEED, **{k: seeds_summary(v) for k, v in scores.items()}}
 
 
+def held_out_references(ctx: Context, groups: list[dict[str, Any]], episodes: int) -> dict[str, float]:
+    """The env's reference policies (planners, the best constant, the tuned driver, random) on the held-out episodes
+    the groups' policies are re-scored on, for the first group's env; {} where the env has none, or where more
+    episodes than one round of ``held_out`` are asked (its rounds would be other episodes)."""
+    from convoy.analysis.evaluation import HELD_OUT_SEED
+    from convoy.envs.registry import env_entry
+    from convoy.services.training import SCORING_ENVS
+
+    job_id = next((j for g in groups for j in g["jobs"]), None)
+    if job_id is None or episodes > SCORING_ENVS:
+        return {}
+    config = ctx.api.call("GET", f"/jobs/{job_id}")["config"]
+    table = env_entry(config["env"]).references
+    if table is None:
+        return {}
+    plain(out, f"{ctx.current} [{ctx.scale}]: the reference policies on the same {episodes} held-out episodes")
+    refs = table(config.get("env_params") or {}, episodes, HELD_OUT_SEED)
+    return {name: float(mean) for name, (mean, _) in refs.items()}
+
+
 def wall_seconds(api: Api, group: dict[str, Any]) -> float | None:
     """The seconds of training the group took here: each population's learner wall clock (carried across resumes) at
     its last row, summed over the group's populations (a seed trained alone is a population of one)."""
@@ -310,6 +330,7 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
     for g in groups if episodes > 0 else []:
         plain(out, f"{fig} [{ctx.scale}]: {g['group']}: last and best policies on {episodes} held-out episodes")
         g["held_out"] = held_out(ctx, g, episodes)
+    held_refs = held_out_references(ctx, groups, episodes) if episodes > 0 else {}
     refs: dict[str, Any] = next(
         (g["references"] for g in groups if g["references"]), {}
     )  # the first group that measured them
@@ -321,7 +342,8 @@ def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]
         shown = {k: v for k, v in refs.items() if k != "random" or len(refs) == 1} if refs else {}
         plot_groups(groups, png, f"{meta['title']} ({ctx.scale})", references=shown or refs,
                     xlabel=meta.get("xlabel", "env steps"), ylabel=meta.get("ylabel", "greedy return"))  # fmt: skip
-    return {"groups": groups, "references": refs, "png": png.name, "extra": {"references": refs}}
+    extra = {"references": refs, **({"held_out_references": held_refs} if held_refs else {})}
+    return {"groups": groups, "references": refs, "png": png.name, "extra": extra}
 
 
 def benchmark_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
@@ -422,6 +444,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
         "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
+        **{k: result["extra"][k] for k in ("held_out_references",) if result["extra"].get(k)},
         **judged(meta, groups, result["extra"], ctx.scale),
         "png": result["png"],
     }
@@ -456,7 +479,7 @@ def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError("--rejudge", f"no stored record {path}: run `convoy reproduce {fig}` first")
     record = json.loads(path.read_text())
-    keys = ("references", "exponents", "analysis", "analysis_groups")
+    keys = ("references", "held_out_references", "exponents", "analysis", "analysis_groups")
     extra = {key: record.get(key) or {} for key in keys}
     record.update(judged(files[fig][0][1]["figure"], record["groups"], extra, record["scale"]))
     path.write_text(json.dumps(record, indent=2) + "\n")
@@ -585,6 +608,10 @@ def render(docs: Path, page: Path) -> None:
         if r.get("references") and one_env:
             refs = ", ".join(f"{k} {v:.3g}" for k, v in r["references"].items())
             lines += [f"References on the same evaluation episodes: {refs}.", ""]
+        if r.get("held_out_references"):
+            held = next((g["held_out"]["episodes"] for g in r["groups"] if g.get("held_out")), None)
+            refs = ", ".join(f"{k} {v:.3g}" for k, v in r["held_out_references"].items())
+            lines += [f"References on the same {held} held-out episodes: {refs}.", ""]
         if r.get("analysis_groups"):  # one column per analysed group, each figure's shuffled baseline beneath it
             names = list(r["analysis_groups"])
             lines += ["| figure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]

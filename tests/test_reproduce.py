@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pytest
 
@@ -406,3 +406,43 @@ def test_table1_of_several_groups_shows_a_column_for_each(tmp_path: Path) -> Non
     assert (
         "| Causal influence | 0.35 ± 0.64 (n=2) (shuffled 0.1 ± 0 (n=2)) | 0 ± 0 (n=2) (shuffled 0 ± 0 (n=2)) |" in text
     )
+
+
+def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tmp_path: Path) -> None:
+    """The references of a figure's held-out columns play the very episodes the policies are re-scored on (the first
+    group's env and rules, ``HELD_OUT_SEED``); the page names them with the episode count; an env without reference
+    policies, or more episodes than one scoring round, gives none."""
+    from convoy.analysis.evaluation import HELD_OUT_SEED
+    from convoy.cli.reproduce import Context, held_out_references, render
+    from convoy.envs.treadmill import TreadmillConfig
+    from convoy.envs.treadmill.config import CHARGER_RULES
+    from convoy.envs.treadmill.references import summary_references
+    from convoy.services.training import SCORING_ENVS
+
+    class Jobs:
+        def __init__(self, env: str, params: dict[str, Any]) -> None:
+            self.config = {"env": env, "env_params": params}
+
+        def call(self, method: str, path: str, **kwargs: Any) -> dict[str, Any]:
+            assert (method, path) == ("GET", "/jobs/j0")
+            return {"config": self.config}
+
+    groups = [{"group": "algo=idqn", "jobs": ["j0"]}]
+    params = {**CHARGER_RULES, "length": 60, "width": 60, "max_steps": 40}
+    ctx = Context(cast(Any, Jobs("treadmill", params)), "mid", {}, tmp_path, tmp_path)
+    refs = held_out_references(ctx, groups, 6)
+    expected = summary_references(TreadmillConfig(**params), 6, HELD_OUT_SEED)
+    assert refs == {name: mean for name, (mean, _) in expected.items()} and "team-planner" in refs
+    assert held_out_references(ctx, groups, SCORING_ENVS + 1) == {}
+    other = Context(cast(Any, Jobs("referential", {})), "mid", {}, tmp_path, tmp_path)
+    assert held_out_references(other, groups, 6) == {}
+    docs = tmp_path / "r"
+    docs.mkdir()
+    group = {"group": "algo=idqn", "jobs": ["j0"], "states": {"completed": 1}, "final": {"values": [1.0]},
+             "held_out": {"episodes": 6, "last": {"values": [1.0]}, "best": {"values": [1.0]}}}  # fmt: skip
+    record = {"id": "fig3", "title": "Fig. 3: x", "paper": "", "scale": "mid", "note": "", "files": [],
+              "command": "convoy reproduce fig3 --scale mid", "minutes": 1.0, "groups": [group], "references": {},
+              "held_out_references": refs, "verdicts": [], "verdict": "not shown", "png": None}  # fmt: skip
+    (docs / "fig3.json").write_text(json.dumps(record))
+    render(docs, tmp_path / "r.md")
+    assert f"References on the same 6 held-out episodes: random {refs['random']:.3g}" in (tmp_path / "r.md").read_text()
