@@ -132,6 +132,15 @@ def said(x: Tensor, start: int, count: int, bits: int, embed: nn.Module) -> Tens
     return F.relu(embed(words))
 
 
+class Dueling(nn.Module):
+    """``[..., 1 + A]`` → ``Q [..., A]``: Q_a = V + A_a − mean_b A_b (Wang et al. 2016). Parameter-free, so the layer
+    before it stacks runs like any other."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        value, advantage = x[..., :1], x[..., 1:]
+        return value + advantage - advantage.mean(dim=-1, keepdim=True)
+
+
 def obs_network(
     spec: EnvSpec,
     cfg: IDQNConfig | MeSNConfig | BoNConfig,
@@ -141,12 +150,18 @@ def obs_network(
     out: int,
     senders: int = 0,
     bits: int = 0,
+    q_values: bool = False,
 ) -> nn.Module:
     """The network reading ``[obs | extra | heard]`` (``extra`` columns, ``senders × bits`` heard) into ``out``
     values: one MLP over the flat columns (``encoder=mlp``), or the entity encoder and an MLP head on its pooled
-    features, both of ``hidden`` widths."""
+    features, both of ``hidden`` widths. ``q_values``: the outputs are Q-values, formed by a dueling head when
+    ``cfg.dueling``."""
+    dueling = q_values and cfg.dueling
+    width = out + 1 if dueling else out
     if cfg.encoder == "mlp":
-        return GroupMLP(groups, spec.obs_dim + extra + senders * bits, hidden, out, norm=cfg.layer_norm)
-    layout = entity_layout(spec)
-    enc = EntityEncoder(layout, spec.obs_dim, groups, extra, cfg.entity_width, cfg.layer_norm, senders, bits)
-    return nn.Sequential(enc, GroupMLP(groups, enc.out_features, hidden, out, norm=cfg.layer_norm))
+        net: nn.Module = GroupMLP(groups, spec.obs_dim + extra + senders * bits, hidden, width, norm=cfg.layer_norm)
+    else:
+        layout = entity_layout(spec)
+        enc = EntityEncoder(layout, spec.obs_dim, groups, extra, cfg.entity_width, cfg.layer_norm, senders, bits)
+        net = nn.Sequential(enc, GroupMLP(groups, enc.out_features, hidden, width, norm=cfg.layer_norm))
+    return nn.Sequential(net, Dueling()) if dueling else net

@@ -33,7 +33,7 @@ class IndependentDQN(NetworkAgent):
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
         extra = self.input_width() - self.obs_dim  # agent id, fingerprint: read beside the own features
-        return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act)}
+        return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act, q_values=True)}
 
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
         return self.online["q"](self.features(obs)), None, None

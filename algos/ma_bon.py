@@ -59,7 +59,9 @@ class MABoN(HearsMessages, NetworkAgent):
             # f′: one broadcast
             "message": GroupMLP(1, self.n_agents * enc, self.cfg.widths, 2 * self.bits, norm=self.cfg.layer_norm),
             # g′: bm one more entity with encoder=entity
-            "policy": obs_network(self.spec, self.cfg, groups, ids, self.cfg.widths, self.n_act, 1, self.bits),
+            "policy": obs_network(
+                self.spec, self.cfg, groups, ids, self.cfg.widths, self.n_act, 1, self.bits, q_values=True
+            ),
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

@@ -48,7 +48,9 @@ class MAMeSN(HearsMessages, NetworkAgent):
         ids, widths = id_width(self.n_agents, self.shared), self.cfg.widths
         return {  # MLPs over [o_i, id] and [o_i, id, m_−i], or entity encoders reading each m_j as one more entity
             "message": obs_network(self.spec, self.cfg, groups, ids, widths, 2 * self.bits),  # f′
-            "policy": obs_network(self.spec, self.cfg, groups, ids, widths, self.n_act, self.senders, self.bits),  # f″
+            "policy": obs_network(  # f″
+                self.spec, self.cfg, groups, ids, widths, self.n_act, self.senders, self.bits, q_values=True
+            ),
         }
 
     def message_logits(self, nets: nn.ModuleDict, obs: Tensor) -> Tensor:

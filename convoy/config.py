@@ -197,7 +197,8 @@ class GumbelConfig(MessageConfig):
 
 
 class EntityFields(BaseModel):
-    """How a network reads the observation (independent DQN and the MA-MeSN / MA-BoN networks)."""
+    """How a network reads the observation and gives its Q-values (independent DQN and the MA-MeSN / MA-BoN
+    networks)."""
 
     encoder: Literal["mlp", "entity"] = Field(
         "mlp",
@@ -209,6 +210,11 @@ class EntityFields(BaseModel):
     )
     entity_width: int = Field(
         64, ge=1, le=4096, description="Units of each car's (and message's) embedding and of the own-feature one."
+    )
+    dueling: bool = Field(
+        False,
+        description="Dueling Q head (Wang et al. 2016): the last layer gives a state value V and one advantage A_a "
+        "per action, Q_a = V + A_a − mean_b A_b, so every TD error moves the value of every action in that state.",
     )
 
 

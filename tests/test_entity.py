@@ -220,6 +220,40 @@ def test_shapes_with_and_without_the_run_axis_and_a_member_is_the_single_run(sha
         torch.testing.assert_close(q[k], single.greedy_q(x[None], None)[0][0], rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("encoder", ["entity", "mlp"])
+@pytest.mark.parametrize("name", ["idqn", "ma-mesn", "ma-bon"])
+def test_a_dueling_head_gives_q_as_the_value_plus_the_centred_advantage(name: str, encoder: str) -> None:
+    """``dueling``: each Q network's last layer gives V and one A per action; its Q-values are V + A − mean A (so
+    their mean over actions is V), the run axis and a population member behave as without it, slot order still
+    changes nothing, and message networks keep their plain outputs."""
+    from convoy.algos.entity import Dueling
+
+    env, obs = env_obs(SIGHTINGS, envs=4, steps=2)
+    x = torch.as_tensor(np.concatenate(obs))
+    algo = build(name, env.spec, seed=SEEDS, dueling=True, encoder=encoder)
+    key = "q" if name == "idqn" else "policy"
+    net = algo.online[key]
+    assert isinstance(net[-1], Dueling)
+    others = [m for k, module in algo.online.items() if k != key for m in module.modules()]  # message, encoder
+    assert not any(isinstance(m, Dueling) for m in others)
+    with torch.no_grad():
+        q, _, _ = algo.greedy_q(x.expand(len(SEEDS), *x.shape), None)
+        assert q.shape == (len(SEEDS), len(x), 3, 9)
+        heads: list[torch.Tensor] = []
+        hook = net[0].register_forward_hook(lambda m, i, o: heads.append(o))
+        algo.greedy_q(x.expand(len(SEEDS), *x.shape), None)
+        hook.remove()
+        (raw,) = heads
+        assert raw.shape[-1] == 10
+        torch.testing.assert_close(q.mean(dim=-1), raw[..., 0], rtol=0, atol=1e-5)
+        torch.testing.assert_close(q - q.mean(dim=-1, keepdim=True), raw[..., 1:] - raw[..., 1:].mean(-1, True))
+        single = build(name, env.spec, seed=SEEDS[1], dueling=True, encoder=encoder)
+        torch.testing.assert_close(q[1], single.greedy_q(x[None], None)[0][0], rtol=0, atol=1e-6)
+        if encoder == "entity":
+            y = torch.as_tensor(permuted(np.concatenate(obs), env.spec, np.random.default_rng(1)))
+            torch.testing.assert_close(algo.greedy_q(y.expand(len(SEEDS), *y.shape), None)[0], q, rtol=0, atol=1e-5)
+
+
 def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> Transition[np.ndarray]:
     """``steps`` random-action transitions of the treadmill, ``[T, R, B, …]`` (the env's B split into R runs)."""
     b, n = env.num_envs, env.spec.n_agents
