@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -57,6 +57,17 @@ def evaluate(env: BatchedEnv, algo: Agent, episodes: int, seed: int, epsilon: fl
     def play(rnd: int) -> np.ndarray:
         policy = AgentPolicy(algo, env.num_envs, epsilon)  # nothing in flight from an earlier round
         return rollout(env, policy, seed=seed + rnd, after_step=policy.after_step).mean_return
+
+    return first_episodes(env, episodes, play)
+
+
+def evaluate_reference(env: BatchedEnv, name: str, episodes: int, seed: int) -> np.ndarray:
+    """Per-episode returns of the treadmill reference policy ``name`` (``envs.treadmill.references``) on the
+    episodes ``evaluate`` plays with ``seed`` on ``env``: a learner and its references on the very same episodes."""
+    from convoy.envs.treadmill.references import reference_policy
+
+    def play(rnd: int) -> np.ndarray:
+        return rollout(env, reference_policy(name, cast(Any, env), seed + rnd), seed=seed + rnd).mean_return
 
     return first_episodes(env, episodes, play)
 
@@ -140,3 +151,4 @@ def evaluate_policy(
 
 
 HELD_OUT_SEED = 777  # episodes no training run evaluates on (those are seed + 10,000 + …): where policies are re-scored
+SCORING_ENVS = 256  # envs a re-scoring steps at once; more episodes are played in rounds of other episodes

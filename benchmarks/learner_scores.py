@@ -1,17 +1,18 @@
 """Trained treadmill learners re-scored on held-out episodes: the figures the docs quote about learners.
 
-Each ``--group LABEL=DIR[,DIR…]`` is a population run or several (``convoy train --seeds …``, one ``DIR/seed-N/``
-per seed; a one-seed run's files sit in ``DIR`` itself). Every
-seed's last policy (``checkpoint.pt``) and best point of its greedy curve (``best.pt``, chosen on the training run's
-own evaluation episodes) are played greedily on ``--episodes`` episodes of seed ``--seed`` — episodes neither was
-chosen on — and the group gets the mean over seeds with its 95 % t-CI, each seed's last ÷ best (below 1: the policy
-fell from its best point). ``--compare A B`` adds Welch's t-test of A's last policies against B's (seeds are
-independent runs, so unpaired; both scored on as many episodes). The JSON (``--json``, default
+Each ``--group LABEL=DIR[,DIR…]`` is a population run or several (``convoy train --seeds …``, one ``DIR/seed-N/`` per
+seed; a one-seed run's files sit in ``DIR`` itself). Every seed's last policy (``checkpoint.pt``) and best point of
+its greedy curve (``best.pt``, chosen on the training run's own evaluation episodes) are played greedily on
+``--episodes`` episodes of seed ``--seed`` — episodes neither was chosen on — and the group gets the mean over seeds
+with its 95 % t-CI, each seed's last ÷ best (below 1: the policy fell from its best point). ``--compare A B`` adds
+Welch's t-test of A's last policies against B's (seeds are independent runs, so unpaired; both scored on as many
+episodes). ``--references private-planner team-planner`` plays those reference policies on the same episodes and
+gives each group's last policies as a ratio to them. The JSON (``--json``, default
 ``docs/figures/treadmill_learners.json``) keeps the groups of earlier calls, so groups can be scored as their runs
 finish, each with its own episode count (one seed of episodes for the whole file: the first N episodes of a longer
 scoring are the same episodes); ``python benchmarks/doc_figures.py`` renders it into docs/benchmarks.md. Why more
-episodes for a budget's headline: a seed's last ÷ best is a ratio of two 200-episode means, noisy by about ±0.06 —
-as wide as the gap between holding and falling.
+episodes for a budget's headline: a seed's last ÷ best is a ratio of two 200-episode means, noisy by about ±0.06 — as
+wide as the gap between holding and falling.
 
 Run: ``python benchmarks/learner_scores.py --group "own, 150 k"=runs/v4/idqn-private`` (~20 s per seed).
 """
@@ -58,10 +59,10 @@ def score(
 ) -> tuple[float, tuple[float, float] | None, Any, dict[str, Any]]:
     """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``
     (when ``values``), its job and counters."""
-    from convoy.analysis.evaluation import evaluate_policy
+    from convoy.analysis.evaluation import SCORING_ENVS, evaluate_policy
     from convoy.services.training import loaded_policy
 
-    with loaded_policy(path, min(episodes, 256)) as (algo, env, job, counters):
+    with loaded_policy(path, min(episodes, SCORING_ENVS)) as (algo, env, job, counters):
         mean = evaluate_policy(algo, env, episodes, seed=seed).mean
         return mean, start_values(algo, env, seed) if values else None, job, counters
 
@@ -149,6 +150,27 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str
     }
 
 
+def reference_scores(env_params: dict[str, Any], names: list[str], episodes: int, seed: int) -> dict[str, float]:
+    """Each treadmill reference policy's mean return per agent on the very episodes the groups' policies are
+    re-scored on (``evaluate_reference``: the same rounds of first episodes)."""
+    from convoy.analysis.evaluation import SCORING_ENVS, evaluate_reference
+    from convoy.envs import make_batched
+
+    env = make_batched("treadmill", min(episodes, SCORING_ENVS), **env_params)
+    try:
+        return {name: float(evaluate_reference(env, name, episodes, seed).mean()) for name in names}
+    finally:
+        env.close()
+
+
+def against_references(group: dict[str, Any], refs: dict[str, float]) -> dict[str, list[float]]:
+    """The group's last policies' mean over seeds ÷ each reference's mean on the same episodes, with the 95 % CI of
+    the seeds' mean carried through (the reference plays the same episodes: its episode noise is the learners')."""
+    half = group["last_ci95"]
+    return {name: [group["last_mean"] / r, (group["last_mean"] - half) / r, (group["last_mean"] + half) / r]
+            for name, r in refs.items()}  # fmt: skip
+
+
 def compare(a: dict[str, Any], b: dict[str, Any]) -> dict[str, float]:
     """Welch's t-test of group a's last policies against group b's, and the difference of means with its 95 % CI."""
     x, y = np.asarray(a["last"]), np.asarray(b["last"])
@@ -170,8 +192,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--rescore", action="store_true", help="play every seed again, even one an earlier group of "
                    "the file scored on the same episodes (default: reuse its figures)")  # fmt: skip
+    p.add_argument("--references", nargs="*", default=[], metavar="NAME",
+                   help="treadmill reference policies (convoy env rollout --policy names, e.g. private-planner "
+                   "team-planner) played on the same episodes as each --group, each group's last policies given as a "
+                   "ratio to them (default: none)")  # fmt: skip
     p.add_argument("--json", default=str(DEFAULT_JSON), help="figures file, updated in place (default %(default)s)")
     args = p.parse_args(argv)
+    from convoy.envs.treadmill.config import INFORMATION_FIELDS
+    from convoy.envs.treadmill.references import REFERENCES
+
+    unknown = [name for name in args.references if name not in REFERENCES]
+    if unknown:
+        p.error(f"--references: no reference policy {unknown[0]!r}; choose from {', '.join(REFERENCES)}")
 
     path = Path(args.json)
     data: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {}
@@ -183,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     groups: dict[str, Any] = data.setdefault("groups", {})
     for g in groups.values():
         g.setdefault("episodes", data["episodes"])
+    played: dict[str, dict[str, float]] = {}  # references per rule set and episode count, played once
     for spec in args.group:
         label, sep, dirs = spec.rpartition("=")
         if not sep or not label or not dirs:
@@ -193,6 +226,17 @@ def main(argv: list[str] | None = None) -> int:
         g = groups[label]
         print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
               f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds", flush=True)  # fmt: skip
+        if args.references:
+            rules = {k: v for k, v in g["env_params"].items() if k not in INFORMATION_FIELDS}  # refs know their own
+            key = json.dumps([rules, args.episodes], sort_keys=True)
+            if key not in played:
+                names = ", ".join(args.references)
+                print(f"  the references on the same {args.episodes} episodes: {names}", flush=True)
+                played[key] = reference_scores(rules, args.references, args.episodes, args.seed)
+            g["references"] = played[key]
+            g["last_over_reference"] = against_references(g, played[key])
+            for name, (r, lo, hi) in g["last_over_reference"].items():
+                print(f"  ÷ {name} ({played[key][name]:.1f}): {r:.2f} [{lo:.2f}, {hi:.2f}]", flush=True)
     comparisons: list[dict[str, Any]] = data.setdefault("comparisons", [])
     for a, b in args.compare:
         missing = [g for g in (a, b) if g not in groups]

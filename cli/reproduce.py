@@ -290,9 +290,8 @@ def held_out_references(ctx: Context, groups: list[dict[str, Any]], episodes: in
     """The env's reference policies (planners, the best constant, the tuned driver, random) on the held-out episodes
     the groups' policies are re-scored on, for the first group's env; {} where the env has none, or where more
     episodes than one round of ``held_out`` are asked (its rounds would be other episodes)."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED
+    from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS
     from convoy.envs.registry import env_entry
-    from convoy.services.training import SCORING_ENVS
 
     job_id = next((j for g in groups for j in g["jobs"]), None)
     if job_id is None or episodes > SCORING_ENVS:

@@ -34,13 +34,10 @@ def loaded_policy(path: str | Path, num_envs: int) -> Iterator[tuple[Any, Batche
         env.close()
 
 
-SCORING_ENVS = 256  # envs a re-scoring steps at once; more episodes are played in rounds of other episodes
-
-
 def score_checkpoint(path: str | Path, episodes: int, seed: int | None = None) -> float:
     """A saved policy's mean greedy return over ``episodes`` episodes of ``seed`` (default: the held-out ones): the
     last policy and ``best.pt`` re-scored on episodes neither was chosen on."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED, evaluate_policy
+    from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS, evaluate_policy
 
     with loaded_policy(path, min(episodes, SCORING_ENVS)) as (algo, env, _, _):
         return evaluate_policy(algo, env, episodes, seed=HELD_OUT_SEED if seed is None else seed).mean

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import Any, cast
 
 import pytest
 
@@ -107,3 +108,34 @@ def test_learner_scores_plays_only_the_seeds_no_earlier_group_scored(tmp_path: P
     group = learner_scores.score_group([Path(d) for d in dirs], 500, 777, before)
     assert group["seeds"] == [0, 1, 5] and group["last"] == [10.0, 12.0, 9.0] and group["algo"] == "idqn"
     assert group["last_over_best"][0] == pytest.approx(10 / 11) and learner_scores.scored_before(earlier, 200) == {}
+
+
+def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> None:
+    """``evaluate_reference`` plays the very episodes ``evaluate`` gives a learner, rounds included: a Q-network
+    made to pick action 4 everywhere scores exactly what the reference ``constant-4`` scores; ``learner_scores``
+    gives each group's last policies as a ratio to the references and refuses a name it does not know."""
+    import learner_scores
+    import numpy as np
+    import torch
+
+    from convoy.algos.registry import make_algorithm
+    from convoy.analysis.evaluation import evaluate, evaluate_reference
+    from convoy.config import resolve_algo
+    from convoy.envs import make_batched
+
+    params = {"length": 60, "width": 60, "max_steps": 30}
+    env = make_batched("treadmill", 4, **params)
+    algo = make_algorithm("idqn", env.spec, resolve_algo("idqn", "treadmill", {"hidden": (8,)}), device="cpu", seed=0)
+    last = cast(Any, algo.online["q"]).layers[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+        last.bias[..., 4] = 1.0
+    learner = evaluate(env, algo, 6, seed=777)  # two rounds of 4 envs
+    assert np.array_equal(evaluate_reference(env, "constant-4", 6, 777), learner)
+    assert not np.array_equal(evaluate_reference(env, "constant-1", 6, 777), learner)
+    group = {"last_mean": 90.0, "last_ci95": 9.0}
+    ratios = learner_scores.against_references(group, {"private-planner": 100.0})
+    assert ratios == {"private-planner": [0.9, 0.81, 0.99]}
+    with pytest.raises(SystemExit):
+        learner_scores.main(["--references", "best-planner", "--json", str(tmp_path / "x.json")])

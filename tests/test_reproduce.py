@@ -412,12 +412,11 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tm
     """The references of a figure's held-out columns play the very episodes the policies are re-scored on (the first
     group's env and rules, ``HELD_OUT_SEED``); the page names them with the episode count; an env without reference
     policies, or more episodes than one scoring round, gives none."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED
+    from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS
     from convoy.cli.reproduce import Context, held_out_references, render
     from convoy.envs.treadmill import TreadmillConfig
     from convoy.envs.treadmill.config import CHARGER_RULES
     from convoy.envs.treadmill.references import summary_references
-    from convoy.services.training import SCORING_ENVS
 
     class Jobs:
         def __init__(self, env: str, params: dict[str, Any]) -> None:
