@@ -41,6 +41,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SERVICE = ("convoy serve", "convoy jobs", "convoy sweep", "curl ", "export ", "make serve")
 OWN_TESTS = (*SERVICE, "convoy router", "convoy host", "tensorboard", "make ")
 GENERIC = [(w, c) for w, c in COMMANDS if not c.startswith(OWN_TESTS) and not ASSIGNMENT.match(c)]
+# every second command runs in tests/test_docs_run_second_half.py: this file would otherwise hold ~70 % of the suite's
+# time on one worker (``--dist loadfile`` keeps a file on one worker, so its fixtures are made once)
+FIRST_HALF, SECOND_HALF = GENERIC[0::2], GENERIC[1::2]
 
 
 BLOCKS = {b.where: b for b in output_blocks()}  # what the docs show each command print, by its line
@@ -143,9 +146,12 @@ def shrink_toml(text: str) -> str:
 
 @pytest.fixture(scope="module")
 def ws(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """A scratch directory laid out like the repository's root: shrunk sweep files, a small ``job.toml``, the
-    benchmark scripts, ``docs/``."""
-    root = tmp_path_factory.mktemp("docs-run")
+    yield workspace(tmp_path_factory.mktemp("docs-run"))
+
+
+def workspace(root: Path) -> Path:
+    """``root`` laid out like the repository's root, as scratch for the documented commands: shrunk sweep files, a
+    small ``job.toml``, the benchmark scripts, ``docs/``."""
     (root / "experiments").mkdir()
     for path in (ROOT / "experiments").glob("*.toml"):
         (root / "experiments" / path.name).write_text(shrink_toml(path.read_text()))
@@ -153,7 +159,7 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     (root / "benchmarks").symlink_to(ROOT / "benchmarks")
     (root / "examples").symlink_to(ROOT / "examples")
     (root / "docs").mkdir()
-    yield root
+    return root
 
 
 def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
@@ -232,7 +238,7 @@ def check(where: str, command: str, code: int, out: str, shown: str | None = Non
 
 
 @pytest.mark.timeout(1200)  # a hang guard: an 8-agent run's planner references take minutes on a loaded machine
-@pytest.mark.parametrize(("where", "command"), GENERIC, ids=[w for w, _ in GENERIC])
+@pytest.mark.parametrize(("where", "command"), FIRST_HALF, ids=[w for w, _ in FIRST_HALF])
 def test_every_documented_command_runs(where: str, command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, out = run_documented(command, ws, capsys)
     check(where, command, code, out)
