@@ -241,7 +241,7 @@ def tune_planners(cfg: TreadmillConfig, args, kept: dict, returns: dict, notes: 
 def planner_budget(args) -> dict[str, int]:
     """The cross-entropy budget every level gets (``--quick``: a smoke test's)."""
     if args.quick:
-        return {"iterations": min(2, args.planner_iterations), "population": 4, "episodes": 8}
+        return {"iterations": min(1, args.planner_iterations), "population": 3, "episodes": 2}
     return {
         "iterations": args.planner_iterations,
         "population": args.planner_population,

@@ -25,8 +25,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
-# a number standing alone: 30,000 · 0.530 · −1.475 · 1e-5 (not the 16 of "team16", the 6 of "a78fad")
-NUMBER = re.compile(r"(?<![\w.,])[-−]?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?(?:e[-+]?\d+)?(?![\w])")
+# a number standing alone, signed: 30,000 · 0.530 · −1.475 · +0.013 · 1e-5 (not the 16 of "team16", the 6 of "a78fad")
+NUMBER = re.compile(r"(?<![\w.,])[-−+]?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?(?:e[-+]?\d+)?(?![\w])")
 # an id the service made up: a job's or sweep's (demo-ec0bf7, referential-a78fad-000, referential-a78fad-pop00,
 # cli-861d9d), an evaluation's (cf07cb: six hex digits, one a digit at least)
 ID = re.compile(r"\b(?:[a-z][a-z0-9-]*?-[0-9a-f]{6}(?:-\d{3}|-pop\d+)?|(?=[a-f]*\d)[0-9a-f]{6})\b")

@@ -43,7 +43,7 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn",
          "idqn+full-information", "--seeds", "0", "--steps", "1500", "--eval-every", "1000", "--episodes", "8",
-         "--analyze", "ma-mesn", "--analysis-samples", "2000", "--set", "observe_k=2", "--out",
+         "--analyze", "ma-mesn", "--analysis-samples", "256", "--set", "observe_k=2", "--out",
          str(tmp_path / "runs"), "--json", str(out)],
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip
@@ -59,7 +59,7 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
     trained_at = log.stat().st_mtime_ns
     again = subprocess.run(  # --reuse keeps the finished runs: nothing trains, the figures are the same
         [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn", "--seeds", "0",
-         "--steps", "1500", "--episodes", "8", "--analyze", "--analysis-samples", "2000", "--out",
+         "--steps", "1500", "--episodes", "8", "--analyze", "--analysis-samples", "256", "--out",
          str(tmp_path / "runs"), "--reuse"],
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip

@@ -206,7 +206,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                   "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
                               "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued
                   "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
-                                                   "--analysis-samples", "2000"]}[Path(argv[1]).name]  # fmt: skip
+                                                   "--analysis-samples", "256"]}[Path(argv[1]).name]  # fmt: skip
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
                               cwd=ws)  # fmt: skip
         return done.returncode, done.stdout + done.stderr

@@ -291,7 +291,9 @@ def test_a_population_member_trains_as_the_single_run_of_its_seed(name: str, sha
             single.update()
     gap = max(float((run_state(a.online, 0)[p] - w).abs().max())
               for k, a in enumerate(singles) for p, w in run_state(pop.online, k).items())  # fmt: skip
-    assert gap < 1e-5
+    # batched and single matmuls sum in different orders, by CPU (1.3e-5 seen after 40 updates); a wrong batch or
+    # seed moves weights by 1e-2 and more
+    assert gap < 1e-4
 
 
 def test_mesn_listener_loss_reaches_the_other_agents_message_networks_through_heard_entities() -> None:

@@ -303,10 +303,12 @@ def open_loop_search(
     """The open-loop references, each chosen on tuning episodes: best constant, best cycle, best CEM sequence shared
     by every agent and one per agent (``{name: (sequence [N, T] or [T], tuning mean)}``)."""
     steps = cfg.max_steps
-    const = sequence_returns(cfg, np.arange(N_ACTIONS)[:, None], 32 if quick else 128, TUNING_SEED).mean(axis=1)
-    cycles = search_cycles(cfg, max_period, keep=16 if quick else 64, episodes=16 if quick else 64)
+    const = sequence_returns(cfg, np.arange(N_ACTIONS)[:, None], 8 if quick else 128, TUNING_SEED).mean(axis=1)
+    if quick:  # a smoke test: the ~1,100 cycles up to period 6, not the ~37,000 up to 32
+        max_period = min(max_period, 6)
+    cycles = search_cycles(cfg, max_period, keep=8 if quick else 64, episodes=4 if quick else 64)
     seeds = [c for c, _ in cycles[:8]]
-    kw = dict(iterations=4 if quick else cem_iterations, population=32 if quick else 128, episodes=8 if quick else 16)
+    kw = dict(iterations=2 if quick else cem_iterations, population=16 if quick else 128, episodes=4 if quick else 16)
     shared, shared_val = cem_sequences(cfg, seeds, per_agent=False, **kw)
     per_agent, per_val = cem_sequences(cfg, seeds, per_agent=True, **kw)
     best_c = int(np.argmax(const))
