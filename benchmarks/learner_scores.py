@@ -10,9 +10,10 @@ episodes). ``--references private-planner team-planner`` plays those reference p
 gives each group's last policies as a ratio to them. The JSON (``--json``, default
 ``docs/figures/treadmill_learners.json``) keeps the groups of earlier calls, so groups can be scored as their runs
 finish, each with its own episode count (one seed of episodes for the whole file: the first N episodes of a longer
-scoring are the same episodes); ``python benchmarks/doc_figures.py`` renders it into docs/benchmarks.md. Why more
-episodes for a budget's headline: a seed's last ÷ best is a ratio of two 200-episode means, noisy by about ±0.06 — as
-wide as the gap between holding and falling.
+scoring are the same episodes), and ``--pool LABEL A B`` joins scored groups' seeds from their stored figures (a study
+whose populations ran in different sessions); ``python benchmarks/doc_figures.py`` renders it into docs/benchmarks.md.
+Why more episodes for a budget's headline: a seed's last ÷ best is a ratio of two 200-episode means, noisy by about
+±0.06 — as wide as the gap between holding and falling.
 
 Run: ``python benchmarks/learner_scores.py --group "own, 150 k"=runs/v4/idqn-private`` (~20 s per seed).
 """
@@ -150,6 +151,45 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str
     }
 
 
+SETTINGS = ("algo", "env_params", "hyper_parameters", "env_steps")
+
+
+def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
+    """One group of the seeds of scored ``parts``, from their stored figures alone (no checkpoint is played): a study
+    whose arms ran in different sessions, on machines that did not keep each other's runs. The parts must have been
+    scored on the same episodes and trained with the same settings, and share no seed."""
+    missing = [name for name in parts if name not in groups]
+    if missing:
+        raise SystemExit(f"--pool: no scored group {missing[0]!r}; scored: {', '.join(groups) or 'none'}")
+    first = groups[parts[0]]
+    for name in parts[1:]:
+        g = groups[name]
+        if g["episodes"] != first["episodes"]:
+            raise SystemExit(f"--pool: {name!r} was scored on {g['episodes']} episodes, {parts[0]!r} on "
+                             f"{first['episodes']}; score both with the same --episodes")  # fmt: skip
+        differ = [k for k in SETTINGS if g.get(k) != first.get(k)]
+        if differ:
+            raise SystemExit(f"--pool: {name!r} and {parts[0]!r} differ in {differ[0]} ({g.get(differ[0])!r} vs "
+                             f"{first.get(differ[0])!r}); pool only runs of one recipe")  # fmt: skip
+    seeds = [s for name in parts for s in groups[name]["seeds"]]
+    twice = sorted({s for s in seeds if seeds.count(s) > 1})
+    if twice:
+        raise SystemExit(f"--pool: seed {twice[0]} is in more than one part; a seed counts once")
+    last = np.asarray([x for name in parts for x in groups[name]["last"]])
+    best = np.asarray([x for name in parts for x in groups[name]["best"]])
+    out = {"dirs": [d for name in parts for d in groups[name]["dirs"]], "pooled": parts, "episodes": first["episodes"],
+           **{k: first[k] for k in SETTINGS if k in first}, "seeds": seeds, "last": last.tolist(),
+           "best": best.tolist(), "last_mean": float(last.mean()), "last_ci95": ci95_half(last, single=0.0),
+           "best_mean": float(best.mean()), "best_ci95": ci95_half(best, single=0.0),
+           "last_over_best": (last / best).tolist(),
+           "start_values": [v for name in parts for v in groups[name]["start_values"]]}  # fmt: skip
+    refs = [groups[name].get("references") for name in parts]
+    if refs[0] and all(r == refs[0] for r in refs):  # references are deterministic on the same episodes
+        out["references"] = refs[0]
+        out["last_over_reference"] = against_references(out, refs[0])
+    return out
+
+
 def reference_scores(env_params: dict[str, Any], names: list[str], episodes: int, seed: int) -> dict[str, float]:
     """Each treadmill reference policy's mean return per agent on the very episodes the groups' policies are
     re-scored on (``evaluate_reference``: the same rounds of first episodes)."""
@@ -184,6 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--group", action="append", default=[], metavar="LABEL=DIR[,DIR…]",
                    help="population runs (comma-separated) to score under LABEL, repeatable")  # fmt: skip
+    p.add_argument("--pool", nargs="+", action="append", default=[], metavar="LABEL",
+                   help="LABEL GROUP GROUP…: a group LABEL of the seeds of groups scored before (this call's or "
+                   "earlier calls'), from their stored figures: arms run in other sessions; repeatable")  # fmt: skip
     p.add_argument("--compare", nargs=2, action="append", default=[], metavar=("A", "B"),
                    help="Welch's test of group A's last policies against group B's, repeatable")  # fmt: skip
     p.add_argument("--episodes", type=int, default=200, help="held-out episodes per policy (default %(default)s)")
@@ -237,6 +280,12 @@ def main(argv: list[str] | None = None) -> int:
             g["last_over_reference"] = against_references(g, played[key])
             for name, (r, lo, hi) in g["last_over_reference"].items():
                 print(f"  ÷ {name} ({played[key][name]:.1f}): {r:.2f} [{lo:.2f}, {hi:.2f}]", flush=True)
+    for label, *parts in args.pool:
+        if len(parts) < 2:
+            raise SystemExit(f"--pool {label!r}: name the new group, then two or more scored groups to pool")
+        groups[label] = g = pool_groups(groups, parts)
+        print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
+              f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds (pooled)", flush=True)  # fmt: skip
     comparisons: list[dict[str, Any]] = data.setdefault("comparisons", [])
     for a, b in args.compare:
         missing = [g for g in (a, b) if g not in groups]

@@ -110,6 +110,41 @@ def test_learner_scores_plays_only_the_seeds_no_earlier_group_scored(tmp_path: P
     assert group["last_over_best"][0] == pytest.approx(10 / 11) and learner_scores.scored_before(earlier, 200) == {}
 
 
+def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path) -> None:
+    """``--pool LABEL A B`` makes one group of two scored groups' seeds from the JSON alone (their run folders gone),
+    with the references they share; groups of other recipes, other episodes or a seed in both are refused."""
+    import learner_scores
+
+    settings = {"algo": "idqn", "env_params": {"adversary_speed": 7}, "hyper_parameters": {"n_step": 3},
+                "env_steps": 150_000}  # fmt: skip
+    refs = {"private-planner": 140.0}
+
+    def group(seeds: list[int], last: list[float], **extra: Any) -> dict[str, Any]:
+        return {"dirs": [f"gone-{seeds[0]}"], "episodes": 500, "seeds": seeds, "last": last, "best": last,
+                "start_values": [{}] * len(seeds), "references": refs, **settings, **extra}  # fmt: skip
+
+    path = tmp_path / "scores.json"
+    groups = {"a": group([0, 1], [100.0, 110.0]), "b": group([5, 6, 7], [90.0, 120.0, 105.0]),
+              "other recipe": group([8], [1.0], hyper_parameters={"n_step": 1}), "overlap": group([1], [3.0]),
+              "200": group([9], [4.0], episodes=200)}  # fmt: skip
+    path.write_text(json.dumps({"episodes": 500, "seed": 777, "groups": groups, "comparisons": []}))
+    assert learner_scores.main(["--pool", "ab", "a", "b", "--json", str(path)]) == 0
+    ab = json.loads(path.read_text())["groups"]["ab"]
+    assert ab["seeds"] == [0, 1, 5, 6, 7] and ab["last_mean"] == pytest.approx(105.0) and ab["pooled"] == ["a", "b"]
+    assert ab["references"] == refs and ab["last_over_reference"]["private-planner"][0] == pytest.approx(0.75)
+    assert ab["hyper_parameters"] == {"n_step": 3} and ab["last_ci95"] > 0
+    refused = (
+        (["a", "other recipe"], "differ in hyper_parameters"),
+        (["a", "overlap"], "seed 1"),
+        (["a", "200"], "200 episodes"),
+        (["a", "nope"], "no scored group 'nope'"),
+        (["a"], "two or more"),
+    )
+    for parts, error in refused:
+        with pytest.raises(SystemExit, match=error):
+            learner_scores.main(["--pool", "x", *parts, "--json", str(path)])
+
+
 def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> None:
     """``evaluate_reference`` plays the very episodes ``evaluate`` gives a learner, rounds included: a Q-network
     made to pick action 4 everywhere scores exactly what the reference ``constant-4`` scores; ``learner_scores``
