@@ -176,6 +176,40 @@ def learner_comparisons(scores: dict[str, Any], headline: bool = False) -> str:
     return markdown_table(header, rows, [False, True, True, True])
 
 
+def charger_learners(scores: dict[str, Any]) -> str:
+    """docs/treadmill.md: every learner group trained on the charger rules, last policies held out, each against the
+    planner of its information (the private planner for its own sensor, the team planner told every sighting) on the
+    same episodes. A group scored without ``--references`` takes the figure another group on those rules and episodes
+    stored: a planner plays the same episodes the same way."""
+    from convoy.envs.treadmill.config import CHARGER_RULES, INFORMATION_FIELDS
+
+    def rules(g: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in g["env_params"].items() if k not in INFORMATION_FIELDS}
+
+    chosen = {label: g for label, g in scores["groups"].items() if rules(g) == CHARGER_RULES}
+    played: dict[tuple[int, str], float] = {}
+    for g in chosen.values():
+        for name, value in g.get("references", {}).items():
+            played[g["episodes"], name] = value
+
+    def against(g: dict[str, Any]) -> str:
+        name = "team-planner" if g["env_params"].get("team_sightings") else "private-planner"
+        ref = played.get((g["episodes"], name))
+        if ref is None:
+            return "—"
+        lo, hi = (g["last_mean"] - g["last_ci95"]) / ref, (g["last_mean"] + g["last_ci95"]) / ref
+        return f"{g['last_mean'] / ref:.2f} [{lo:.2f}, {hi:.2f}] of {name} ({ref:.1f})"
+
+    rows = [
+        [label.removeprefix("charger rules, "), f"{len(g['seeds'])}", f"{g['last_mean']:.1f} ± {g['last_ci95']:.1f}",
+         against(g), _seeds(g["last_over_best"], "{:.2f}")]
+        for label, g in chosen.items()
+    ]  # fmt: skip
+    header = ["independent DQN on the charger rules", "seeds", "last policies, held out", "÷ the planner of its "
+              "information (95 % CI)", "last ÷ best, per seed"]  # fmt: skip
+    return markdown_table(header, rows, [False, True, True, True, False])
+
+
 def _ratio(search: dict[str, Any], key: str) -> str:
     return f"{search['ratios'][key]['ratio']:.2f} ×"
 
@@ -502,6 +536,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
     "treadmill-learner-headline": ((SCORES,), lambda scores: learner_comparisons(scores, headline=True)),
+    "treadmill-charger-learners": ((SCORES,), charger_learners),
     "treadmill-causes": ((CAUSES,), causes),
     "treadmill-variants": ((VARIANTS,), variants),
     "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),
