@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import inspect
 from collections.abc import Callable
-from typing import Any, Literal, get_args, get_origin
+from types import UnionType
+from typing import Any, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel
 
@@ -71,7 +72,11 @@ def add_model_flags(
             p.add_argument(flag, dest=name, type=int, nargs="+", metavar="N", help=f"{text} (default none)")
             continue
         default = f"{info.default:,}" if isinstance(info.default, int) else info.default
-        choices = get_args(info.annotation) if get_origin(info.annotation) is Literal else None
+        if default is None:  # an optional choice (``preset``): off unless given
+            default = "none"
+        annotation = next((a for a in get_args(info.annotation) if a is not type(None)), info.annotation)
+        annotation = annotation if get_origin(info.annotation) in (Union, UnionType) else info.annotation
+        choices = get_args(annotation) if get_origin(annotation) is Literal else None
         kind: Callable[[str], Any] = int if info.annotation is int else float if info.annotation is float else str
         metavar = None if choices else "N" if kind in (int, float) else name.upper()
         p.add_argument(flag, dest=name, type=kind, choices=choices, metavar=metavar, help=f"{text} (default {default})")

@@ -431,6 +431,31 @@ def paper_treadmill_hidden(algo: str) -> tuple[int, ...]:
     return PAPER_DIAL_TREADMILL_HIDDEN if algo_name(algo) == "dial" else PAPER_TREADMILL_HIDDEN
 
 
+# Named starting points of a job (``preset``): env rules and learner settings, under whatever the job sets itself.
+# "charger": the hidden charger too fast to steer (envs/treadmill/config.py's CHARGER_RULES, where teammates'
+# knowledge pays the planners) and the learner recipe measured there (docs/treadmill.md, "Learners on the charger
+# rules"): entity encoder, 3-step returns, squared TD error, LayerNorm, a Polyak target, ε over half the run, the
+# learning rate annealed to 0, the averaged policy judged. A setting an algorithm has no field for is left out.
+PRESET_ALGO_PARAMS: dict[str, dict[str, Any]] = {
+    "charger": {"encoder": "entity", "n_step": 3, "huber": False, "layer_norm": True, "target_tau": 0.001,
+                "lr_end": 0.0, "policy_ema": 0.0001, "eps_decay_fraction": 0.5},
+}  # fmt: skip
+Preset = Literal["charger"]
+
+
+def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The preset's (env_params, algo_params) for ``algo``: its settings the algorithm has a field for (no n-step
+    returns where sequences or options are learned: DIAL, hierarchical DQN)."""
+    from convoy.envs.treadmill.config import CHARGER_RULES
+
+    env_params = {"charger": CHARGER_RULES}[name]
+    fields = ALGORITHMS[algo_name(algo)].config.model_fields
+    algo_params = {k: v for k, v in PRESET_ALGO_PARAMS[name].items() if k in fields}
+    if hierarchical or algo_name(algo) == "dial":
+        algo_params.pop("n_step", None)
+    return dict(env_params), algo_params
+
+
 def algo_name(name: str) -> str:
     """Canonical algorithm name (case and ``_`` forgiven), or a ConfigError listing the known ones."""
     key = name.strip().lower().replace("_", "-")
@@ -598,6 +623,12 @@ class JobConfig(BaseModel):
     env: str = Field("treadmill", max_length=32, description="Environment name (see `convoy env list`).")
     env_params: dict[str, Any] = Field(default_factory=dict, description="Environment parameters.")
     algo_params: dict[str, Any] = Field(default_factory=dict, description="Algorithm hyper-parameters.")
+    preset: Preset | None = Field(
+        None,
+        description="Start from named env rules and learner settings; env_params and algo_params set on top win. "
+        "charger: the treadmill's hidden charger too fast to steer and the learner recipe measured on it "
+        "(docs/treadmill.md)",
+    )
     hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
     steps: int = Field(
         200_000,
@@ -644,6 +675,24 @@ class JobConfig(BaseModel):
     device: Device = Field("auto", description="Torch device; auto = CUDA when present.")
     torch_threads: int = Field(1, ge=1, le=256, description="Torch intra-op threads of the learner.")
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig, description="Distributed runtime settings.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _apply_preset(cls, data: Any) -> Any:
+        """The preset's settings under the job's own (applying it again, as a resumed job does, changes nothing)."""
+        if not isinstance(data, dict) or data.get("preset") is None:
+            return data
+        if str(data.get("env", "treadmill")).strip().lower() != "treadmill":
+            raise ConfigError("preset", f"{data['preset']!r} sets treadmill rules; drop it or train on the treadmill")
+        if data["preset"] not in PRESET_ALGO_PARAMS:
+            return data  # the field's own validation names the choices
+        env_params, algo_params = preset_params(
+            data["preset"], str(data.get("algo", "ma-mesn")), bool(data.get("hierarchical"))
+        )
+        given_env, given_algo = data.get("env_params") or {}, data.get("algo_params") or {}
+        if not isinstance(given_env, dict) or not isinstance(given_algo, dict):
+            return data  # the fields' own validation says what they must be
+        return {**data, "env_params": {**env_params, **given_env}, "algo_params": {**algo_params, **given_algo}}
 
     @model_validator(mode="after")
     def _check(self) -> JobConfig:
@@ -752,8 +801,8 @@ class JobConfig(BaseModel):
 
 
 JOB_FIELDS: tuple[str, ...] = (
-    "algo", "env", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_messages", "eval_every",
-    "log_every",
+    "algo", "env", "preset", "steps", "num_envs", "seed", "hierarchical", "eval_episodes", "eval_messages",
+    "eval_every", "log_every",
 )  # fmt: skip
 """The scalar ``JobConfig`` fields a user picks per job: the flags of ``convoy train`` and ``convoy jobs submit``
 (cli/train.py's JOB_FLAGS) and the job fields a sweep's grid may vary (api/models.py's GRID_FIELDS)."""
