@@ -134,14 +134,16 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str
                     "env_steps": counters.get("env_steps", job.steps)}  # fmt: skip
         print(f"  {d}: last {mean:.1f} (start: Q {q:.1f}, discounted return {v:.1f}), best.pt {best[-1]:.1f}",
               flush=True)  # fmt: skip
+    return {"dirs": [str(d) for d in run_dirs], "episodes": episodes, **settings, **figures(seeds, last, best, values)}
+
+
+def figures(seeds: list[int], last: list[float], best: list[float], values: list[Any]) -> dict[str, Any]:
+    """A group's per-seed figures and their means with 95 % CIs over seeds."""
     x, b = np.asarray(last), np.asarray(best)
     return {
-        "dirs": [str(d) for d in run_dirs],
-        "episodes": episodes,
-        **settings,
         "seeds": seeds,
-        "last": last,
-        "best": best,
+        "last": [float(v) for v in last],
+        "best": [float(v) for v in best],
         "last_mean": float(x.mean()),
         "last_ci95": ci95_half(x, single=0.0),
         "best_mean": float(b.mean()),
@@ -175,14 +177,13 @@ def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
     twice = sorted({s for s in seeds if seeds.count(s) > 1})
     if twice:
         raise SystemExit(f"--pool: seed {twice[0]} is in more than one part; a seed counts once")
-    last = np.asarray([x for name in parts for x in groups[name]["last"]])
-    best = np.asarray([x for name in parts for x in groups[name]["best"]])
-    out = {"dirs": [d for name in parts for d in groups[name]["dirs"]], "pooled": parts, "episodes": first["episodes"],
-           **{k: first[k] for k in SETTINGS if k in first}, "seeds": seeds, "last": last.tolist(),
-           "best": best.tolist(), "last_mean": float(last.mean()), "last_ci95": ci95_half(last, single=0.0),
-           "best_mean": float(best.mean()), "best_ci95": ci95_half(best, single=0.0),
-           "last_over_best": (last / best).tolist(),
-           "start_values": [v for name in parts for v in groups[name]["start_values"]]}  # fmt: skip
+
+    def joined(key: str) -> list[Any]:
+        return [v for name in parts for v in groups[name][key]]
+
+    out = {"dirs": joined("dirs"), "pooled": parts, "episodes": first["episodes"],
+           **{k: first[k] for k in SETTINGS if k in first},
+           **figures(seeds, joined("last"), joined("best"), joined("start_values"))}  # fmt: skip
     refs = [groups[name].get("references") for name in parts]
     if refs[0] and all(r == refs[0] for r in refs):  # references are deterministic on the same episodes
         out["references"] = refs[0]

@@ -74,8 +74,8 @@ def add_model_flags(
         default = f"{info.default:,}" if isinstance(info.default, int) else info.default
         if default is None:  # an optional choice (``preset``): off unless given
             default = "none"
-        annotation = next((a for a in get_args(info.annotation) if a is not type(None)), info.annotation)
-        annotation = annotation if get_origin(info.annotation) in (Union, UnionType) else info.annotation
+        optional = get_origin(info.annotation) in (Union, UnionType)  # ``X | None``: its choices are X's
+        annotation = next(a for a in get_args(info.annotation) if a is not type(None)) if optional else info.annotation
         choices = get_args(annotation) if get_origin(annotation) is Literal else None
         kind: Callable[[str], Any] = int if info.annotation is int else float if info.annotation is float else str
         metavar = None if choices else "N" if kind in (int, float) else name.upper()

@@ -456,6 +456,14 @@ def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dic
     return dict(env_params), algo_params
 
 
+def env_name(name: str) -> str:
+    """Canonical env name (any name ``env_entry`` takes), or its ConfigError."""
+    from convoy.envs.registry import env_entry
+
+    entry = env_entry(name)
+    return next(k for k, v in _env_table().items() if v is entry)
+
+
 def algo_name(name: str) -> str:
     """Canonical algorithm name (case and ``_`` forgiven), or a ConfigError listing the known ones."""
     key = name.strip().lower().replace("_", "-")
@@ -680,12 +688,10 @@ class JobConfig(BaseModel):
     @classmethod
     def _apply_preset(cls, data: Any) -> Any:
         """The preset's settings under the job's own (applying it again, as a resumed job does, changes nothing)."""
-        if not isinstance(data, dict) or data.get("preset") is None:
-            return data
-        if str(data.get("env", "treadmill")).strip().lower() != "treadmill":
+        if not isinstance(data, dict) or data.get("preset") not in PRESET_ALGO_PARAMS:
+            return data  # none, or one the field's own validation names the choices for
+        if env_name(str(data.get("env", "treadmill"))) != "treadmill":
             raise ConfigError("preset", f"{data['preset']!r} sets treadmill rules; drop it or train on the treadmill")
-        if data["preset"] not in PRESET_ALGO_PARAMS:
-            return data  # the field's own validation names the choices
         env_params, algo_params = preset_params(
             data["preset"], str(data.get("algo", "ma-mesn")), bool(data.get("hierarchical"))
         )
@@ -699,8 +705,8 @@ class JobConfig(BaseModel):
         from convoy.envs.registry import env_entry
 
         object.__setattr__(self, "algo", algo_name(self.algo))
+        object.__setattr__(self, "env", env_name(self.env))
         entry = env_entry(self.env)
-        object.__setattr__(self, "env", next(k for k, v in _env_table().items() if v is entry))
         build_config(entry.config(), **self.env_params)
         model = ALGORITHMS[self.algo].config
         given = build_config(model, **self.algo_params)  # validates; then store a JSON-stable normal form
