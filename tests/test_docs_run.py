@@ -12,6 +12,7 @@ refused must fail with the error they show; every other must succeed. Runs a com
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -115,6 +116,11 @@ def shrink(argv: list[str]) -> list[str]:
             out += [flag, str(min(int(value), 2))]
         elif flag == "--eval-every":
             out += [flag, "200"]
+        elif flag == "--seeds":  # the first two: still a population (a pool of groups still has no seed twice)
+            values = list(itertools.takewhile(str.isdigit, argv[i + 1 :]))
+            out += [flag, *values[:2]]
+            i += 1 + len(values)
+            continue
         elif flag == "--since":  # a job's rows from the start: a small job has none past the docs' step
             out += [flag, "0"]
         else:
