@@ -43,7 +43,7 @@ def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tm
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "treadmill_learning.py"), "--algos", "ma-mesn",
          "idqn+full-information", "--seeds", "0", "--steps", "1500", "--eval-every", "1000", "--episodes", "8",
-         "--analyze", "ma-mesn", "--analysis-samples", "256", "--set", "observe_k=2", "--out",
+         "--eval-episodes", "4", "--analyze", "ma-mesn", "--analysis-samples", "256", "--set", "observe_k=2", "--out",
          str(tmp_path / "runs"), "--json", str(out)],
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip

@@ -86,6 +86,11 @@ PRODUCERS = {
 for _w, _c in COMMANDS:
     if _c.startswith("convoy train") and " --out runs/" in _c and "--resume" not in _c:
         PRODUCERS.setdefault(_c.split(" --out ")[1].split()[0], _c)
+# the seeds of a population that a documented command reads (``runs/…/seed-N/``): the suite's --seeds keeps them
+READ_SEEDS: dict[str, set[str]] = {}
+for _w, _c in COMMANDS:
+    for _path, _seed in re.findall(r"(runs/[\w./-]+?)/seed-(\d+)/", _c):
+        READ_SEEDS.setdefault(_path, set()).add(_seed)
 JOB_TOML = """# a small job for the docs' `--config job.toml` lines
 algo = "idqn"
 env = "referential"
@@ -117,9 +122,10 @@ def shrink(argv: list[str]) -> list[str]:
             out += [flag, str(min(int(value), 2))]
         elif flag == "--eval-every":
             out += [flag, "200"]
-        elif flag == "--seeds":  # the first two: still a population (a pool of groups still has no seed twice)
+        elif flag == "--seeds":  # the first two (still a population), and those another command reads
             values = list(itertools.takewhile(str.isdigit, argv[i + 1 :]))
-            out += [flag, *values[:2]]
+            read = READ_SEEDS.get(argv[argv.index("--out") + 1] if "--out" in argv else "", set())
+            out += [flag, *values[:2], *(v for v in values[2:] if v in read)]
             i += 1 + len(values)
             continue
         elif flag == "--since":  # a job's rows from the start: a small job has none past the docs' step

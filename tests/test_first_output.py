@@ -66,7 +66,7 @@ def test_analyze_says_it_is_starting_then_reports_its_progress(tmp_path: Path) -
     agent = make_algorithm("ma-mesn", env.spec, job.algo_config(), device="cpu", seed=5)
     env.close()
     ckpt = save_checkpoint(tmp_path / "best.pt", agent, job, {"env_steps": 0, "episodes": 0, "updates": 0})
-    args = ["analyze", str(ckpt), "--samples", "2000", "--num-envs", "8", "--episodes", "8", "--repeats", "2",
+    args = ["analyze", str(ckpt), "--samples", "600", "--num-envs", "8", "--episodes", "8", "--repeats", "2",
             "--device", "cpu", "--out", str(tmp_path / "analysis")]  # fmt: skip
     proc, lines = start(args)
     try:
@@ -79,5 +79,5 @@ def test_analyze_says_it_is_starting_then_reports_its_progress(tmp_path: Path) -
     finally:
         stop(proc)
     progress = [s for s in seen if s.startswith("convoy analyze: recording")]
-    assert progress and "left" in progress[0] and "2,000 samples" in progress[-1], seen
+    assert progress and "left" in progress[0] and "600 samples" in progress[-1], seen
     assert any("100 %" in s for s in progress) and any("return figures" in s for s in seen), seen

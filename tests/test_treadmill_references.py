@@ -4,6 +4,8 @@ Open loop must not pay (the first version's "floor it" beat every learner) and i
 full-information driver beats its private-observation twin by ≥ 30 % with the CIs apart.
 """
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -248,3 +250,26 @@ def test_how_episodes_end_refuses_a_hostile_checkpoint_with_an_error_line(tmp_pa
     done = subprocess.run([sys.executable, str(script), str(bad), "--episodes", "2"], capture_output=True, text=True)
     assert done.returncode != 0
     assert done.stderr.startswith(f"error: {bad}: ") and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_process_plays_each_reference_once_per_rules_episodes_and_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every run of the same rules shows the same references: a second ask replays nothing, other rules or another
+    seed play afresh."""
+    import convoy.envs.treadmill.references as refs
+
+    played: list[str] = []
+    real = refs.reference_policy
+
+    def counted(name: str, *args: Any) -> Any:
+        played.append(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(refs, "reference_policy", counted)
+    monkeypatch.setattr(refs, "_PLAYED", {})
+    names = ("random", "private-driver")
+    first = evaluate_references(TreadmillConfig(), episodes=3, seed=11, names=names)
+    again = evaluate_references(TreadmillConfig(), episodes=3, seed=11, names=names)
+    assert played == list(names) and all(again[n] is first[n] for n in names)
+    other = evaluate_references(TreadmillConfig(crash_penalty=5.0), episodes=3, seed=11, names=("random",))
+    evaluate_references(TreadmillConfig(), episodes=3, seed=12, names=("random",))
+    assert played == [*names, "random", "random"] and other["random"] is not first["random"]
