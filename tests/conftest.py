@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from convoy.algos.algorithm import Agent
 from convoy.envs.batched import EnvSpec
+from tests.pace import slowness
 
 SLOW_MODULES = {
     "test_algo_benchmarks",  # runs the benchmark scripts
@@ -45,8 +46,17 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_report_header() -> str:
+    return f"pace: this machine takes {slowness():.1f} × the reference machine's time now (tests/pace.py)"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    slow = slowness()  # the hang guards (``timeout`` marks, --timeout) in the reference machine's seconds
     for item in items:
+        guard = item.get_closest_marker("timeout")
+        seconds = float(guard.args[0]) if guard is not None and guard.args else float(config.getoption("timeout") or 0)
+        if seconds > 0:
+            item.add_marker(pytest.mark.timeout(seconds * slow), append=False)
         module = getattr(item, "module", None)  # a test function's module (pytest.Item does not declare it)
         if module is not None and module.__name__.rsplit(".", 1)[-1] in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)

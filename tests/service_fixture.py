@@ -19,6 +19,7 @@ from typing import Any
 import httpx
 
 from convoy.protocol.session import free_port
+from tests.pace import paced
 
 TOKEN = "test-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -52,6 +53,7 @@ class Service:
         self.data.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT)
         log.close()
+        timeout = paced(timeout)
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             if self.proc.poll() is not None:
@@ -96,14 +98,18 @@ class Service:
                 time.sleep(1.0)
         self.client.close()
 
-    def wait(self, job_id: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3) -> dict[str, Any]:
+    def wait(
+        self, job_id: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3, pace: bool = True
+    ) -> dict[str, Any]:
         """Poll GET /jobs/{id} until ``pred(view)``; the last view otherwise (with a clear assertion)."""
-        return self.wait_for(f"/jobs/{job_id}", pred, timeout, what, every)
+        return self.wait_for(f"/jobs/{job_id}", pred, timeout, what, every, pace)
 
     def wait_for(
-        self, url: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3
+        self, url: str, pred: Any, timeout: float = 90.0, what: str = "", every: float = 0.3, pace: bool = True
     ) -> dict[str, Any]:
-        """Poll GET ``url`` until ``pred(answer)``; a clear assertion with the last answer otherwise."""
+        """Poll GET ``url`` until ``pred(answer)``; a clear assertion with the last answer otherwise. ``timeout``
+        is the reference machine's seconds (``tests/pace.py``) unless ``pace`` is off: a bound the product claims."""
+        timeout = paced(timeout) if pace else timeout
         t_end = time.monotonic() + timeout
         view: dict[str, Any] = {}
         while time.monotonic() < t_end:

@@ -35,6 +35,7 @@ from convoy.services.procs import ProcessGroup, Slot
 from convoy.services.training import run_inprocess
 from convoy.transition import from_columns
 from tests.busy import busy_cores
+from tests.pace import paced
 from tests.proctree import descendants
 
 REFERENTIAL: dict[str, Any] = {
@@ -74,7 +75,9 @@ def alive_of(runner: JobRunner) -> AliveSet:
 
 
 def wait_for(cond: Callable[[], bool], timeout: float, what: str, every: float = 0.02) -> float:
-    """Seconds until ``cond()`` held; fails the test naming ``what`` after ``timeout``."""
+    """Seconds until ``cond()`` held; fails the test naming ``what`` after ``timeout`` (the reference machine's
+    seconds: ``tests/pace.py``)."""
+    timeout = paced(timeout)
     t0 = time.monotonic()
     while not cond():
         if time.monotonic() - t0 > timeout:
