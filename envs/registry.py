@@ -33,8 +33,8 @@ class EnvEntry:
     return_bounds: tuple[float, float] | None = None
 
 
-# (k, of, name, (mean, 95 % CI), seconds): reference k of ``of`` has been played
-Report = Callable[[int, int, str, tuple[float, float], float], None]
+# (k, of, name, (mean, 95 % CI), seconds, about how many seconds the rest take): reference k of ``of`` is played
+Report = Callable[[int, int, str, tuple[float, float], float, float | None], None]
 
 
 def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
@@ -54,11 +54,15 @@ def _treadmill_references(
         return refs.summary_references(cfg, episodes, seed)
     played: dict[str, Any] = {}
     groups = [("random",), refs.CONSTANTS, ("private-driver",), *((name,) for name in refs.PLANNERS)]
+    planners_s: list[float] = []  # the planners take nearly all the time, each about as long as the others
     for k, names in enumerate(groups, 1):
         t0 = time.perf_counter()
         played.update(refs.evaluate_references(cfg, episodes, seed, names=names))
         name = refs.best_constant(played) if names == refs.CONSTANTS else names[0]
-        report(k, len(groups), name, played[name].ci95(), time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
+        planners_s += [seconds] if name in refs.PLANNERS else []
+        left = (len(refs.PLANNERS) - len(planners_s)) * sum(planners_s) / len(planners_s) if planners_s else None
+        report(k, len(groups), name, played[name].ci95(), seconds, left)
     best = refs.best_constant(played)  # what summary_references keeps (tests/test_train_cli.py holds them equal)
     return {name: played[name].ci95() for name in ("random", best, "private-driver", *refs.PLANNERS)}
 

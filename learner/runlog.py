@@ -213,11 +213,13 @@ class Evaluator:
             self._env.close()
 
 
-def _reporter(say: Callable[[str], None]) -> Callable[[int, int, str, tuple[float, float], float], None]:
-    """A line per reference policy as it ends (``envs.registry.Report``)."""
+def _reporter(say: Callable[[str], None]) -> Callable[[int, int, str, tuple[float, float], float, float | None], None]:
+    """A line per reference policy as it ends, with the time the rest will take once one has been timed
+    (``envs.registry.Report``)."""
 
-    def report(k: int, of: int, name: str, result: tuple[float, float], seconds: float) -> None:
-        say(f"  reference {k}/{of} {name} {result[0]:.3f} ± {result[1]:.3f} ({seconds:.1f} s)")
+    def report(k: int, of: int, name: str, result: tuple[float, float], seconds: float, left: float | None) -> None:
+        rest = f"; about {left:.0f} s left" if left is not None and k < of else ""
+        say(f"  reference {k}/{of} {name} {result[0]:.3f} ± {result[1]:.3f} ({seconds:.1f} s{rest})")
 
     return report
 

@@ -524,6 +524,8 @@ def test_the_final_evaluation_and_the_references_say_what_they_do(tmp_path, caps
     shown = lines[at + 2 : at + 2 + len(refs)]
     for k, (line, (name, (mean, ci))) in enumerate(zip(shown, refs.items(), strict=True), 1):
         assert line.startswith(f"  reference {k}/{len(refs)} {name} {mean:.3f} ± {ci:.3f} ("), (line, lines)
+    # once a planner is timed, each line says about how long the planners left take
+    assert all(line.endswith(" s left)") for line in shown[3:-1]) and not shown[-1].endswith("left)"), shown
     assert "idqn on treadmill" in lines[at + 2 + len(refs)]  # then the summary table
     alone = summary_references(TreadmillConfig(), 2, EVAL_SEED_OFFSET)  # seed 0's evaluation episodes
     assert {k: list(v) for k, v in alone.items()} == refs
