@@ -56,14 +56,17 @@ def seed_dirs(run_dir: Path) -> list[tuple[int, Path]]:
 
 
 def score(
-    path: Path, episodes: int, seed: int, values: bool = False
+    path: Path, episodes: int, seed: int, values: bool = False, weights: str = "judged"
 ) -> tuple[float, tuple[float, float] | None, Any, dict[str, Any]]:
     """One checkpoint's mean greedy return per agent over ``episodes`` episodes of ``seed``, its ``start_values``
-    (when ``values``), its job and counters."""
+    (when ``values``), its job and counters. ``weights``: the ones the run judges (its ``policy_ema`` average when it
+    keeps one) or its ``online`` weights (the average lags them by ~1 / ``policy_ema`` updates)."""
     from convoy.analysis.evaluation import SCORING_ENVS, evaluate_policy
     from convoy.services.training import loaded_policy
 
     with loaded_policy(path, min(episodes, SCORING_ENVS)) as (algo, env, job, counters):
+        if weights == "online":
+            algo.average = None  # act with the online weights (``NetworkAgent.evaluated``)
         mean = evaluate_policy(algo, env, episodes, seed=seed).mean
         return mean, start_values(algo, env, seed) if values else None, job, counters
 
@@ -90,12 +93,13 @@ def start_values(algo: Any, env: Any, seed: int) -> tuple[float, float]:
     return believed, float(collected.mean())
 
 
-def scored_before(groups: dict[str, Any], episodes: int) -> dict[str, dict[str, Any]]:
-    """Per seed folder, its figures in an earlier group scored on the same episodes (and that group's settings):
-    a group that adds seeds to scored ones plays only the new seeds."""
+def scored_before(groups: dict[str, Any], episodes: int, weights: str = "judged") -> dict[str, dict[str, Any]]:
+    """Per seed folder, its figures in an earlier group scored on the same episodes with the same weights (and that
+    group's settings): a group that adds seeds to scored ones plays only the new seeds."""
     out: dict[str, dict[str, Any]] = {}
     for g in groups.values():
-        if g["episodes"] != episodes or not all(Path(d).is_dir() for d in g["dirs"]):
+        same = g["episodes"] == episodes and g.get("weights", "judged") == weights
+        if not same or not all(Path(d).is_dir() for d in g["dirs"]):
             continue
         folders = [d for run_dir in g["dirs"] for _, d in seed_dirs(Path(run_dir))]
         if len(folders) != len(g["seeds"]):
@@ -105,7 +109,9 @@ def scored_before(groups: dict[str, Any], episodes: int) -> dict[str, dict[str, 
     return out
 
 
-def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str, Any] | None = None) -> dict[str, Any]:
+def score_group(
+    run_dirs: list[Path], episodes: int, seed: int, before: dict[str, Any] | None = None, weights: str = "judged"
+) -> dict[str, Any]:
     """Every seed's last and best policy held out (or its figures from ``before``), the runs' settings, and the means
     with CIs over seeds."""
     seeds, last, best, values = [], [], [], []
@@ -123,18 +129,19 @@ def score_group(run_dirs: list[Path], episodes: int, seed: int, before: dict[str
             }
             print(f"  {d}: last {last[-1]:.1f}, best.pt {best[-1]:.1f} (scored before)", flush=True)
             continue
-        mean, start, job, counters = score(d / "checkpoint.pt", episodes, seed, values=True)
+        mean, start, job, counters = score(d / "checkpoint.pt", episodes, seed, values=True, weights=weights)
         assert start is not None
         q, v = start
         last.append(mean)
         values.append({"q": q, "discounted_return": v})
-        best.append(score(d / "best.pt", episodes, seed)[0])
+        best.append(score(d / "best.pt", episodes, seed, weights=weights)[0])
         settings = {"algo": job.algo, "env_params": job.env_params,
                     "hyper_parameters": job.algo_params,  # the ones set on the command line; the rest: env defaults
                     "env_steps": counters.get("env_steps", job.steps)}  # fmt: skip
         print(f"  {d}: last {mean:.1f} (start: Q {q:.1f}, discounted return {v:.1f}), best.pt {best[-1]:.1f}",
               flush=True)  # fmt: skip
-    return {"dirs": [str(d) for d in run_dirs], "episodes": episodes, **settings, **figures(seeds, last, best, values)}
+    out = {"dirs": [str(d) for d in run_dirs], "episodes": episodes, **settings, **figures(seeds, last, best, values)}
+    return out | ({"weights": weights} if weights != "judged" else {})
 
 
 def figures(seeds: list[int], last: list[float], best: list[float], values: list[Any]) -> dict[str, Any]:
@@ -153,7 +160,7 @@ def figures(seeds: list[int], last: list[float], best: list[float], values: list
     }
 
 
-SETTINGS = ("algo", "env_params", "hyper_parameters", "env_steps")
+SETTINGS = ("algo", "env_params", "hyper_parameters", "env_steps", "weights")  # "weights" only when online
 
 
 def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
@@ -240,6 +247,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="treadmill reference policies (convoy env rollout --policy names, e.g. private-planner "
                    "team-planner) played on the same episodes as each --group, each group's last policies given as a "
                    "ratio to them (default: none)")  # fmt: skip
+    p.add_argument("--weights", choices=("judged", "online"), default="judged",
+                   help="the weights each checkpoint is played with: those its run judges (the policy_ema average "
+                   "when the run keeps one) or its online weights (default %(default)s)")  # fmt: skip
     p.add_argument("--json", default=str(DEFAULT_JSON), help="figures file, updated in place (default %(default)s)")
     args = p.parse_args(argv)
     from convoy.envs.treadmill.config import INFORMATION_FIELDS
@@ -265,8 +275,9 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not label or not dirs:
             raise SystemExit(f"--group {spec!r}: write LABEL=DIR or LABEL=DIR,DIR")
         print(f"{label}: {dirs}", flush=True)
-        before = {} if args.rescore else scored_before(groups, args.episodes)
-        groups[label] = score_group([Path(d) for d in dirs.split(",")], args.episodes, args.seed, before)
+        before = {} if args.rescore else scored_before(groups, args.episodes, args.weights)
+        run_dirs = [Path(d) for d in dirs.split(",")]
+        groups[label] = score_group(run_dirs, args.episodes, args.seed, before, args.weights)
         g = groups[label]
         print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
               f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds", flush=True)  # fmt: skip

@@ -108,6 +108,7 @@ def test_learner_scores_plays_only_the_seeds_no_earlier_group_scored(tmp_path: P
     group = learner_scores.score_group([Path(d) for d in dirs], 500, 777, before)
     assert group["seeds"] == [0, 1, 5] and group["last"] == [10.0, 12.0, 9.0] and group["algo"] == "idqn"
     assert group["last_over_best"][0] == pytest.approx(10 / 11) and learner_scores.scored_before(earlier, 200) == {}
+    assert learner_scores.scored_before(earlier, 500, "online") == {}  # judged weights' figures are not the online's
 
 
 def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path) -> None:
@@ -126,7 +127,7 @@ def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path
     path = tmp_path / "scores.json"
     groups = {"a": group([0, 1], [100.0, 110.0]), "b": group([5, 6, 7], [90.0, 120.0, 105.0]),
               "other recipe": group([8], [1.0], hyper_parameters={"n_step": 1}), "overlap": group([1], [3.0]),
-              "200": group([9], [4.0], episodes=200)}  # fmt: skip
+              "200": group([9], [4.0], episodes=200), "online": group([9], [4.0], weights="online")}  # fmt: skip
     path.write_text(json.dumps({"episodes": 500, "seed": 777, "groups": groups, "comparisons": []}))
     assert learner_scores.main(["--pool", "ab", "a", "b", "--json", str(path)]) == 0
     ab = json.loads(path.read_text())["groups"]["ab"]
@@ -137,6 +138,7 @@ def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path
         (["a", "other recipe"], "differ in hyper_parameters"),
         (["a", "overlap"], "seed 1"),
         (["a", "200"], "200 episodes"),
+        (["a", "online"], "differ in weights"),
         (["a", "nope"], "no scored group 'nope'"),
         (["a"], "two or more"),
     )
@@ -174,3 +176,32 @@ def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> 
     assert ratios == {"private-planner": [0.9, 0.81, 0.99]}
     with pytest.raises(SystemExit):
         learner_scores.main(["--references", "best-planner", "--json", str(tmp_path / "x.json")])
+
+
+def test_learner_scores_plays_the_online_weights_or_the_judged_average(tmp_path: Path) -> None:
+    """``--weights online`` scores a checkpoint's online weights, not the ``policy_ema`` average its run judges
+    (which lags them): an average that always brakes and online weights that always take action 4 score what the
+    constant references score."""
+    import learner_scores
+    import torch
+
+    from convoy.algos.checkpoint import save_checkpoint
+    from convoy.algos.registry import make_algorithm
+    from convoy.analysis.evaluation import evaluate_reference
+    from convoy.config import job_config
+    from convoy.envs import make_batched
+
+    params = {"length": 60, "width": 60, "max_steps": 30}
+    job = job_config(algo="idqn", env="treadmill", env_params=params, algo_params={"hidden": (8,), "policy_ema": 0.5})
+    env = make_batched("treadmill", 6, **params)  # as many envs as learner_scores plays 6 episodes on
+    algo = make_algorithm("idqn", env.spec, job.algo_config(), device="cpu", seed=0)
+    for nets, action in ((algo.online, 4), (algo.average, 1)):
+        last = cast(Any, nets)["q"].layers[-1]
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias.zero_()
+            last.bias[..., action] = 1.0
+    path = save_checkpoint(tmp_path / "checkpoint.pt", algo, job, {"env_steps": 0, "episodes": 0, "updates": 0})
+    for weights, action in (("judged", 1), ("online", 4)):
+        played = learner_scores.score(path, 6, 777, weights=weights)[0]
+        assert played == pytest.approx(float(evaluate_reference(env, f"constant-{action}", 6, 777).mean())), weights
