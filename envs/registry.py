@@ -60,7 +60,8 @@ def _treadmill_references(
         played.update(refs.evaluate_references(cfg, episodes, seed, names=names))
         name = refs.best_constant(played) if names == refs.CONSTANTS else names[0]
         seconds = time.perf_counter() - t0
-        planners_s += [seconds] if name in refs.PLANNERS else []
+        if name in refs.PLANNERS:
+            planners_s.append(seconds)
         left = (len(refs.PLANNERS) - len(planners_s)) * sum(planners_s) / len(planners_s) if planners_s else None
         report(k, len(groups), name, played[name].ci95(), seconds, left)
     best = refs.best_constant(played)  # what summary_references keeps (tests/test_train_cli.py holds them equal)

@@ -153,7 +153,6 @@ def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> 
     gives each group's last policies as a ratio to the references and refuses a name it does not know."""
     import learner_scores
     import numpy as np
-    import torch
 
     from convoy.algos.registry import make_algorithm
     from convoy.analysis.evaluation import evaluate, evaluate_reference
@@ -163,11 +162,7 @@ def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> 
     params = {"length": 60, "width": 60, "max_steps": 30}
     env = make_batched("treadmill", 4, **params)
     algo = make_algorithm("idqn", env.spec, resolve_algo("idqn", "treadmill", {"hidden": (8,)}), device="cpu", seed=0)
-    last = cast(Any, algo.online["q"]).layers[-1]
-    with torch.no_grad():
-        last.weight.zero_()
-        last.bias.zero_()
-        last.bias[..., 4] = 1.0
+    always(algo.online, 4)
     learner = evaluate(env, algo, 6, seed=777)  # two rounds of 4 envs
     assert np.array_equal(evaluate_reference(env, "constant-4", 6, 777), learner)
     assert not np.array_equal(evaluate_reference(env, "constant-1", 6, 777), learner)
@@ -183,7 +178,6 @@ def test_learner_scores_plays_the_online_weights_or_the_judged_average(tmp_path:
     (which lags them): an average that always brakes and online weights that always take action 4 score what the
     constant references score."""
     import learner_scores
-    import torch
 
     from convoy.algos.checkpoint import save_checkpoint
     from convoy.algos.registry import make_algorithm
@@ -195,13 +189,20 @@ def test_learner_scores_plays_the_online_weights_or_the_judged_average(tmp_path:
     job = job_config(algo="idqn", env="treadmill", env_params=params, algo_params={"hidden": (8,), "policy_ema": 0.5})
     env = make_batched("treadmill", 6, **params)  # as many envs as learner_scores plays 6 episodes on
     algo = make_algorithm("idqn", env.spec, job.algo_config(), device="cpu", seed=0)
-    for nets, action in ((algo.online, 4), (algo.average, 1)):
-        last = cast(Any, nets)["q"].layers[-1]
-        with torch.no_grad():
-            last.weight.zero_()
-            last.bias.zero_()
-            last.bias[..., action] = 1.0
+    always(algo.online, 4)
+    always(algo.average, 1)
     path = save_checkpoint(tmp_path / "checkpoint.pt", algo, job, {"env_steps": 0, "episodes": 0, "updates": 0})
     for weights, action in (("judged", 1), ("online", 4)):
         played = learner_scores.score(path, 6, 777, weights=weights)[0]
         assert played == pytest.approx(float(evaluate_reference(env, f"constant-{action}", 6, 777).mean())), weights
+
+
+def always(nets: Any, action: int) -> None:
+    """Make an idqn Q-network (``nets``: its online or averaged weights) pick ``action`` in every state."""
+    import torch
+
+    last = cast(Any, nets)["q"].layers[-1]
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias.zero_()
+        last.bias[..., action] = 1.0
