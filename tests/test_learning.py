@@ -244,12 +244,12 @@ def _trained_returns(algo: str, seed: int) -> dict[str, list[float]]:
 
 @pytest.mark.timeout(900)
 def test_ma_mesn_beats_independent_dqn_where_only_a_teammate_sees_the_chaser() -> None:
-    """200 k env steps, seeds 0 and 1, 512 evaluation episodes per algorithm: MA-MeSN's greedy return is above
-    independent DQN's with CIs apart (9.26 ± 0.74 vs 5.89 ± 0.45). Per seed (0-5, 256 episodes each): MA-MeSN 8.1,
-    10.0, 9.3, 8.0, 7.3, 9.8; independent DQN 6.0, 5.4, 7.5, 6.4, 7.4, 6.5 — one seed alone is not always apart, so
-    two are pooled. At 100 k steps neither is ahead (5.5 / 5.5 vs 5.9 / 7.6). What this does not show: that the
-    lead travels in the messages at execution. White noise in their place leaves these policies at 8.99 ± 0.66
-    (printed, not asserted); on the default treadmill at 300 k it costs 34-67 % on 3 seeds of 5 (docs/benchmarks.md).
+    """200 k env steps, seeds 0 and 1, 256 evaluation episodes each, pooled: MA-MeSN's greedy return is above
+    independent DQN's with CIs apart. Per seed: MA-MeSN 9.20 ± 1.06 and 7.37 ± 0.79, independent DQN 7.92 ± 0.94 and
+    4.74 ± 0.52 — seed 0 alone is not apart, so two are pooled (about 8.3 ± 0.7 against 6.3 ± 0.6). At 100 k steps
+    neither was ahead. What this does not show: that the lead travels in the messages at execution. White noise in
+    their place leaves these policies at 7.11 and 6.90 (printed, not asserted); on the default treadmill at 300 k it
+    costs 34-67 % on 3 seeds of 5 (docs/benchmarks.md).
     """
     import multiprocessing as mp
 
@@ -294,9 +294,9 @@ def _told_returns(told: bool, seed: int) -> list[float]:
 @pytest.mark.timeout(900)
 def test_a_learner_told_its_teammates_sightings_beats_its_own_twin() -> None:
     """Independent DQN with the entity encoder, told every car a teammate sees (``team_sightings``) against the same
-    learner on its own sensor, 40 k env steps, seeds 0 and 1 pooled (512 episodes each): 38.5 ± 1.6 against 28.4 ±
-    1.6. Per seed (0, 1, 2): told 38.8, 38.3, 35.0; own 33.7, 23.2, 30.5 — ahead on every seed, one seed alone not
-    always with CIs apart, so two are pooled. At 60 k steps on the blind-rear treadmill above the same told learner
+    learner on its own sensor, 40 k env steps, seeds 0 and 1 pooled (512 episodes each). Per seed: told 38.85 ± 2.28
+    and 30.98 ± 2.21, own 29.99 ± 2.21 and 28.42 ± 2.24 — ahead on both, seed 1 alone not apart, so two are pooled
+    (about 34.9 ± 1.6 against 29.2 ± 1.6). At 60 k steps on the blind-rear treadmill above the same told learner
     was no better than its twin (29.1 vs 32.4): there the chaser is slow enough to see coming."""
     import multiprocessing as mp
 
