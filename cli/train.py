@@ -121,6 +121,7 @@ def resumed_inprocess(args: argparse.Namespace, out: Path) -> bool:
 
 
 RESUME_FLAGS = ("steps", "device", "torch_threads", "loggers")  # what may change when a run goes on
+RESUME_HP = ("compile",)  # how the update runs, not what it computes: a long run may go on captured
 
 
 def resumed_job(args: argparse.Namespace) -> JobConfig:
@@ -130,14 +131,17 @@ def resumed_job(args: argparse.Namespace) -> JobConfig:
         raise ConfigError("--resume", f"{path.parent} has no job.json, the run's config: give the run's folder (Convoy "
                           "writes job.json there), or train it again with its flags and --overwrite")  # fmt: skip
     other = [f for f in (*JOB_FLAGS, "seeds") if getattr(args, f) is not None and f not in RESUME_FLAGS]
-    other += [flag for flag, value in (("--set", args.set), ("--hp", args.hp), ("--config", args.config),
-                                       ("--out", args.out), ("--agents", args.agents),
-                                       ("--adversaries", args.adversaries)) if value]  # fmt: skip
+    hp = parse_pairs(args.hp, "--hp")
+    other += [f"--hp {key}" for key in hp if key not in RESUME_HP]
+    fixed = (("--set", args.set), ("--config", args.config), ("--out", args.out), ("--agents", args.agents),
+             ("--adversaries", args.adversaries))  # fmt: skip
+    other += [flag for flag, value in fixed if value]
     if other:
         raise ConfigError("--resume", f"goes on with the run's own job ({path}); {', '.join(other)} cannot change "
-                          "(only --steps, --device, --threads, --actors and --runtime)")  # fmt: skip
+                          "(only --steps, --device, --threads, --actors, --runtime and --hp compile)")  # fmt: skip
     values = json.loads(path.read_text())
     values.update(given(args, RESUME_FLAGS))
+    values["algo_params"] = {**values.get("algo_params", {}), **hp}
     return job_config(**with_runtime_flags(values, args))
 
 
@@ -301,8 +305,8 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         "--resume",
         metavar="DIR",
         help="go on with the run in DIR (its job.json, checkpoint and replay) up to its steps, or to a new --steps; "
-        "the way it was started (in this process or with actors); only --steps, --device, --threads, --actors and "
-        "--runtime may change",
+        "the way it was started (in this process or with actors); only --steps, --device, --threads, --actors, "
+        "--runtime and --hp compile=true|false may change",
     )
     tr.add_argument("--no-progress", action="store_true", help="no progress bar (for logs)")
     add_limit_flags(tr)

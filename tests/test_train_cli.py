@@ -210,7 +210,13 @@ def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
     capsys.readouterr()
     assert main(["train", "--resume", str(out), "--inprocess", "--hp", "lr=0.1"]) == 2
     err = " ".join(capsys.readouterr().err.split())
-    assert "--resume" in err and "--hp cannot change" in err, err
+    assert "--resume" in err and "--hp lr cannot change" in err and "--hp compile" in err, err
+    from convoy.cli.main import build_parser
+    from convoy.cli.train import resumed_job
+
+    args = build_parser().parse_args(["train", "--resume", str(out), "--hp", "compile=true"])
+    job = resumed_job(args)  # how the update runs may change as a long run goes on: what it learns may not
+    assert job.algo_params["compile"] is True and job.steps == 1000 and job.algo == "idqn"
     assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 2
     assert "--resume" in capsys.readouterr().err  # the refusal to reuse a folder names the way to go on
     (out / "launch.json").write_text("{not json")
