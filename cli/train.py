@@ -142,7 +142,13 @@ def resumed_job(args: argparse.Namespace) -> JobConfig:
     values = json.loads(path.read_text())
     values.update(given(args, RESUME_FLAGS))
     values["algo_params"] = {**values.get("algo_params", {}), **hp}
-    return job_config(**with_runtime_flags(values, args))
+    job = job_config(**with_runtime_flags(values, args))
+    unsaved = [str(d) for d in job.member_dirs(path.parent) if not (d / "checkpoint.pt").is_file()]
+    if unsaved:  # before job.json is written again: a refused resume changes nothing
+        raise ConfigError("--resume", f"{', '.join(unsaved)} has no checkpoint.pt to go on from (the run stopped "
+                          f"before its first, every {job.checkpoint_every:,} steps): train it again with "
+                          f"`convoy train --config {path} --out {path.parent} --overwrite`")  # fmt: skip
+    return job
 
 
 def with_runtime_flags(values: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:

@@ -217,6 +217,13 @@ def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
     args = build_parser().parse_args(["train", "--resume", str(out), "--hp", "compile=true"])
     job = resumed_job(args)  # how the update runs may change as a long run goes on: what it learns may not
     assert job.algo_params["compile"] is True and job.steps == 1000 and job.algo == "idqn"
+    before = (out / "job.json").read_text()
+    (out / "checkpoint.pt").rename(out / "stopped-early.pt")  # a run stopped before its first checkpoint
+    assert main(["train", "--resume", str(out), "--hp", "compile=true", "--no-progress"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "has no checkpoint.pt to go on from" in err and f"--config {out / 'job.json'}" in err, err
+    assert (out / "job.json").read_text() == before, "a refused resume leaves the run's job as it was"
+    (out / "stopped-early.pt").rename(out / "checkpoint.pt")
     assert main(["train", "--algo", "idqn", *TINY, "--steps", "1000", "--out", str(out)]) == 2
     assert "--resume" in capsys.readouterr().err  # the refusal to reuse a folder names the way to go on
     (out / "launch.json").write_text("{not json")
