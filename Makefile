@@ -26,13 +26,15 @@ ACTORS ?= 2
 # In one process: at this length the distributed run's policy lag (~290 updates behind, from its flow-control
 # slack) costs it the learning.
 QUICK  ?= --hp lr=0.0003 --hp batch_size=64 --hp target_update=1000 --hp gumbel_noise=1 --eval-every 5000
+# more `convoy train` flags for run and run-distributed, e.g. ARGS="--eval-episodes 20" (a shorter final evaluation)
+ARGS   ?=
 
 run: $(STAMP)
-	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 $(QUICK) --out $(OUT) --overwrite
+	$(BIN)/convoy train --inprocess --algo ma-mesn --env treadmill --steps $(STEPS) --seed 0 $(QUICK) --out $(OUT) --overwrite $(ARGS)
 
 run-distributed: $(STAMP)
 	$(BIN)/convoy train --algo ma-mesn --env treadmill --actors $(ACTORS) --steps $(STEPS) --seed 0 $(QUICK) \
-		--out $(OUT)-distributed --overwrite
+		--out $(OUT)-distributed --overwrite $(ARGS)
 
 serve: $(STAMP)
 	$(BIN)/convoy serve --port $(or $(PORT),8000) --data $(or $(DATA),runs/service)

@@ -223,10 +223,11 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
                               cwd=ws)  # fmt: skip
         return done.returncode, done.stdout + done.stderr
+    small = {"STEPS": str(small_steps(30_000)), "OUT": str(ws / "runs/demo"), "ARGS": "--eval-episodes 2"}
     if argv[:2] == ["make", "run"]:
-        done = run_make("run", ws, STEPS=str(small_steps(30_000)), OUT=str(ws / "runs/demo"))
+        done = run_make("run", ws, **small)
     elif argv[:2] == ["make", "run-distributed"]:
-        done = run_make("run-distributed", ws, STEPS=str(small_steps(30_000)), OUT=str(ws / "runs/demo"))
+        done = run_make("run-distributed", ws, **small)
     else:
         raise AssertionError(f"no rule to run {command!r}")
     return done.returncode, done.stdout + done.stderr
@@ -262,7 +263,9 @@ def test_the_documented_make_targets_run(target: str, ws: Path, capsys: pytest.C
     """``make run`` (the quick start) and ``make run-distributed`` at a small STEPS; ``make serve`` runs in the
     service session below and ``make test`` is what runs this."""
     out = ws / "runs" / f"make-{target}"
-    done = run_make(target, ws, STEPS=str(small_steps(30_000)), OUT=str(out))
+    # run's references are held against README's block below: its full final evaluation; run-distributed's, short
+    evaluation = {} if target == "run" else {"ARGS": "--eval-episodes 2"}
+    done = run_make(target, ws, STEPS=str(small_steps(30_000)), OUT=str(out), **evaluation)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     folder = out if target == "run" else Path(f"{out}-distributed")
     summary = json.loads((folder / "summary.json").read_text())
