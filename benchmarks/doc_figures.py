@@ -524,6 +524,7 @@ HEADLINE = (
 )
 
 SEARCH, SCORES, CAUSES = "treadmill_search.json", "treadmill_learners.json", "treadmill_causes.json"
+CHARGER_CAUSES = "treadmill_charger_causes.json"
 VARIANTS = "treadmill_variants.json"
 POPULATION, POPULATION_ALL, SOAK, GPU = "population.json", "population_all.json", "soak.json", "gpu.json"
 REPRODUCED_FIGURES = "reproduction/*.json"  # every figure in REPRODUCTION, by id
@@ -538,6 +539,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-learner-headline": ((SCORES,), lambda scores: learner_comparisons(scores, headline=True)),
     "treadmill-charger-learners": ((SCORES,), charger_learners),
     "treadmill-causes": ((CAUSES,), causes),
+    "treadmill-charger-causes": ((CHARGER_CAUSES,), causes),
     "treadmill-variants": ((VARIANTS,), variants),
     "reproduction-results": ((SEARCH, REPRODUCED_FIGURES), reproduction_results),
     "population": ((POPULATION,), population_table),

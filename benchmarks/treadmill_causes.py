@@ -18,8 +18,8 @@ front (random play never gets there against the belt) values them like any empty
 
 Run from the repository root: ``python benchmarks/treadmill_causes.py private-driver team-driver
 runs/v4/idqn-private/seed-0/checkpoint.pt`` (a reference policy's name or a checkpoint each; 200 episodes, ~10 s
-per policy); ``--set`` changes the reference policies' rules (a checkpoint plays its own); ``--json`` saves the
-figures.
+per policy; ``LABEL=A.pt,B.pt`` pools a population's seeds on the same episodes); ``--set`` changes the reference
+policies' rules (a checkpoint plays its own); ``--json`` saves the figures.
 """
 
 from __future__ import annotations
@@ -139,7 +139,8 @@ def main(argv: list[str] | None = None) -> None:
         "policies",
         nargs="+",
         metavar="[LABEL=]POLICY",
-        help="a reference policy's name or a checkpoint.pt, optionally named LABEL in the table and the JSON",
+        help="a reference policy's name, a checkpoint.pt or several comma-separated (a population's seeds: each "
+        "plays the same episodes, their ends pooled), optionally named LABEL in the table and the JSON",
     )
     p.add_argument("--episodes", type=int, default=200, help="episodes per policy (default %(default)s)")
     p.add_argument("--seed", type=int, default=777, help="episode seed (default %(default)s, convoy eval's held out)")
@@ -155,8 +156,9 @@ def main(argv: list[str] | None = None) -> None:
     for arg in args.policies:
         label, _, what = arg.rpartition("=")
         label = label or what
-        try:
-            ends = play(what, args.episodes, args.seed, sets)
+        try:  # several checkpoints (a population's seeds) play the same episodes, their ends pooled
+            parts = [play(one, args.episodes, args.seed, sets) for one in what.split(",")]
+            ends = Ends(*(np.concatenate(field) for field in zip(*parts, strict=True)))
         except ValueError as exc:  # a checkpoint it cannot use (CheckpointError), an unknown policy or rule
             raise SystemExit(f"error: {what}: {exc}") from None
         shares = np.bincount(ends.cause, minlength=len(CAUSES)) / len(ends.cause)

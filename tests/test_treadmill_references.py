@@ -168,6 +168,25 @@ def test_how_episodes_end_reads_a_checkpoints_belief_before_it_leaves_the_window
     assert np.isfinite(ends.belief[left]).all() and np.isnan(ends.belief[~left]).all()
 
 
+def test_how_episodes_end_pools_a_populations_seeds(tmp_path) -> None:
+    """``LABEL=A,B`` plays each policy on the same episodes and pools their ends: every share is the parts' mean."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.treadmill_causes import CAUSES, main
+
+    out = tmp_path / "ends.json"
+    main(["constant-5", "constant-3", "both=constant-5,constant-3", "--episodes", "20", "--seed", "3", "--json",
+          str(out)])  # fmt: skip
+    figures = json.loads(out.read_text())
+    a, b, both = figures["constant-5"], figures["constant-3"], figures["both"]
+    assert any(a[c] != b[c] for c in CAUSES)  # two policies that end differently, so the pooling is seen
+    for key in (*CAUSES, "return"):
+        assert both[key] == pytest.approx((a[key] + b[key]) / 2)
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # The planners (``envs.treadmill.planner``): the strongest policy at each information level, with the parameters
 # ``benchmarks/treadmill_search.py`` chose (kept equal to docs/figures/treadmill_search.json's).
