@@ -156,11 +156,13 @@ def main(argv: list[str] | None = None) -> None:
     for arg in args.policies:
         label, _, what = arg.rpartition("=")
         label = label or what
-        try:  # several checkpoints (a population's seeds) play the same episodes, their ends pooled
-            parts = [play(one, args.episodes, args.seed, sets) for one in what.split(",")]
-            ends = Ends(*(np.concatenate(field) for field in zip(*parts, strict=True)))
-        except ValueError as exc:  # a checkpoint it cannot use (CheckpointError), an unknown policy or rule
-            raise SystemExit(f"error: {what}: {exc}") from None
+        parts = []  # several checkpoints (a population's seeds) play the same episodes, their ends pooled
+        for one in what.split(","):
+            try:
+                parts.append(play(one, args.episodes, args.seed, sets))
+            except ValueError as exc:  # a checkpoint it cannot use (CheckpointError), an unknown policy or rule
+                raise SystemExit(f"error: {one}: {exc}") from None
+        ends = Ends(*(np.concatenate(field) for field in zip(*parts, strict=True)))
         shares = np.bincount(ends.cause, minlength=len(CAUSES)) / len(ends.cause)
         share = dict(zip(CAUSES, shares.tolist(), strict=True))
         believed = ends.belief[np.isfinite(ends.belief)]
