@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 from convoy.analysis.verdicts import NOT, REPRODUCED, p_above, significant  # noqa: E402
 from convoy.cli.reproduce import heading_anchor  # noqa: E402
 from convoy.output import markdown_table  # noqa: E402
-from convoy.stats import mean_ci  # noqa: E402
+from convoy.stats import mean_ci, ratio_ci  # noqa: E402
 
 FIGURES = ROOT / "docs" / "figures"
 REPRODUCTION = ROOT / "docs" / "reproduction"
@@ -169,11 +169,17 @@ def learner_comparisons(scores: dict[str, Any], headline: bool = False) -> str:
     rows = [
         [f"{c['a']} vs {c['b']}", f"{groups[c['a']]['last_mean']:.1f} vs {groups[c['b']]['last_mean']:.1f}",
          f"{_signed(c['diff'])} [{_signed(c['diff_low'])}, {_signed(c['diff_high'])}]",
-         f"{c['p']:.2f}" if c["p"] >= 0.01 else f"{c['p']:.1e}"]
+         f"{c['p']:.2f}" if c["p"] >= 0.01 else f"{c['p']:.1e}", _ratio_of(groups[c["a"]], groups[c["b"]])]
         for c in chosen
     ]  # fmt: skip
-    header = ["last policies, held out", "mean per agent", "difference (95 % CI)", "Welch p"]
-    return markdown_table(header, rows, [False, True, True, True])
+    header = ["last policies, held out", "mean per agent", "difference (95 % CI)", "Welch p", "ratio (95 % CI)"]
+    return markdown_table(header, rows, [False, True, True, True, True])
+
+
+def _ratio_of(a: dict[str, Any], b: dict[str, Any]) -> str:
+    """A ÷ B of two groups' last policies with the seeds' bootstrap CI (``convoy.stats.ratio_ci``)."""
+    r = ratio_ci(a["last"], b["last"])
+    return f"{r['ratio']:.2f} [{r['low']:.2f}, {r['high']:.2f}]"
 
 
 def charger_learners(scores: dict[str, Any]) -> str:

@@ -1,13 +1,13 @@
 """Trained treadmill learners re-scored on held-out episodes: the figures the docs quote about learners.
 
 Each ``--group LABEL=DIR[,DIR…]`` is a population run or several (``convoy train --seeds …``, one ``DIR/seed-N/`` per
-seed; a one-seed run's files sit in ``DIR`` itself). Every seed's last policy (``checkpoint.pt``) and best point of
-its greedy curve (``best.pt``, chosen on the training run's own evaluation episodes) are played greedily on
-``--episodes`` episodes of seed ``--seed`` — episodes neither was chosen on — and the group gets the mean over seeds
-with its 95 % t-CI, each seed's last ÷ best (below 1: the policy fell from its best point). ``--compare A B`` adds
-Welch's t-test of A's last policies against B's (seeds are independent runs, so unpaired; both scored on as many
-episodes). ``--references private-planner team-planner`` plays those reference policies on the same episodes and
-gives each group's last policies as a ratio to them. The JSON (``--json``, default
+seed; a one-seed run's files sit in ``DIR`` itself). Every seed's last policy (``checkpoint.pt``) and best point of its
+greedy curve (``best.pt``, chosen on the training run's own evaluation episodes) are played greedily on ``--episodes``
+episodes of seed ``--seed`` — episodes neither was chosen on — and the group gets the mean over seeds with its 95 %
+t-CI, each seed's last ÷ best (below 1: the policy fell from its best point). ``--compare A B`` adds Welch's t-test of
+A's last policies against B's (seeds are independent runs, so unpaired; both scored on as many episodes) and the ratio
+of their means with a bootstrap CI. ``--references private-planner team-planner`` plays those reference policies on the
+same episodes and gives each group's last policies as a ratio to them. The JSON (``--json``, default
 ``docs/figures/treadmill_learners.json``) keeps the groups of earlier calls, so groups can be scored as their runs
 finish, each with its own episode count (one seed of episodes for the whole file: the first N episodes of a longer
 scoring are the same episodes), and ``--pool LABEL A B`` joins scored groups' seeds from their stored figures (a study
@@ -34,7 +34,7 @@ from scipy import stats  # noqa: E402
 
 from benchmarks.report import write_json  # noqa: E402
 from convoy.analysis.evaluation import HELD_OUT_SEED  # noqa: E402
-from convoy.stats import ci95_half  # noqa: E402
+from convoy.stats import ci95_half, ratio_ci  # noqa: E402
 
 DEFAULT_JSON = ROOT / "docs" / "figures" / "treadmill_learners.json"
 
@@ -309,7 +309,9 @@ def main(argv: list[str] | None = None) -> int:
         comparisons[:] = [c for c in comparisons if (c["a"], c["b"]) != (a, b)]
         comparisons.append({"a": a, "b": b, **compare(groups[a], groups[b])})
         c = comparisons[-1]
-        print(f"{a} − {b}: {c['diff']:+.1f} [{c['diff_low']:+.1f}, {c['diff_high']:+.1f}], Welch p = {c['p']:.2f}")
+        r = ratio_ci(groups[a]["last"], groups[b]["last"])  # derived from the stored seeds, not stored again
+        print(f"{a} − {b}: {c['diff']:+.1f} [{c['diff_low']:+.1f}, {c['diff_high']:+.1f}], Welch p = {c['p']:.2f}; "
+              f"ratio {r['ratio']:.2f} [{r['low']:.2f}, {r['high']:.2f}]")  # fmt: skip
     write_json(path, data)
     print(f"wrote {path}")
     return 0

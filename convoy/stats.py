@@ -1,5 +1,5 @@
-"""Statistics every report shares: the 95 % confidence half-width of a mean, the interquartile mean with a bootstrap
-CI, the area under a greedy curve, and seeds' curves as one.
+"""Statistics every report shares: the 95 % confidence half-width of a mean, the interquartile mean and the ratio of
+two groups' means with bootstrap CIs, the area under a greedy curve, and seeds' curves as one.
 
 Student's t, not the normal 1.96: across 3–5 seeds the normal interval is a third too narrow (t₀.₉₇₅ with 4
 degrees of freedom is 2.78); over 100 evaluation episodes the two agree to 1 %.
@@ -55,6 +55,21 @@ def iqm_ci(values: list[float], resamples: int = 2000, seed: int = 0) -> dict[st
                            method="percentile", random_state=np.random.default_rng(seed), vectorized=True)  # fmt: skip
     low, high = boot.confidence_interval
     return {"iqm": iqm, "low": float(low), "high": float(high), "n": len(x)}
+
+
+def ratio_ci(a: list[float], b: list[float], resamples: int = 10_000, seed: int = 0) -> dict[str, float]:
+    """Mean of ``a`` ÷ mean of ``b`` (two independent groups of seeds) with its percentile-bootstrap 95 % CI, each
+    group resampled apart: the goals ask for ratios ("told ≥ 1.3 × own"), which a difference's CI does not answer.
+    Fixed ``seed``: a report regenerated from the same values reads the same."""
+    x, y = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    ratio = float(x.mean() / y.mean())
+    if len(x) < 2 or len(y) < 2:
+        return {"ratio": ratio, "low": ratio, "high": ratio}
+    boot = stats.bootstrap((x, y), lambda u, v, axis: u.mean(axis=axis) / v.mean(axis=axis), n_resamples=resamples,
+                           method="percentile", random_state=np.random.default_rng(seed), vectorized=True,
+                           paired=False)  # fmt: skip
+    low, high = boot.confidence_interval
+    return {"ratio": ratio, "low": float(low), "high": float(high)}
 
 
 def curve_area(steps: np.ndarray, values: np.ndarray) -> float | None:

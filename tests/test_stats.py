@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from convoy.stats import curve_area, iqm_ci
+from convoy.stats import curve_area, iqm_ci, ratio_ci
 
 
 def test_the_interquartile_mean_trims_an_outlier_seed_and_its_ci_covers_it() -> None:
@@ -24,3 +24,18 @@ def test_the_area_under_a_greedy_curve_is_its_return_averaged_over_the_run() -> 
     early, late = np.array([0.0, 10.0, 10.0, 10.0]), np.array([0.0, 0.0, 0.0, 10.0])
     assert curve_area(steps, early) == pytest.approx(8.75) and curve_area(steps, late) == pytest.approx(2.5)
     assert curve_area(np.array([7]), np.array([4.0])) == 4.0 and curve_area(np.zeros(0), np.zeros(0)) is None
+
+
+def test_the_ratio_of_two_groups_means_has_a_ci_around_it_that_narrows_with_seeds() -> None:
+    """Told ÷ own: the CI holds the ratio, excludes 1 for groups far apart, and is reproducible (fixed seed)."""
+    rng = np.random.default_rng(1)
+    told, own = (135 + 5 * rng.standard_normal(10)).tolist(), (100 + 5 * rng.standard_normal(10)).tolist()
+    r = ratio_ci(told, own)
+    assert r["ratio"] == pytest.approx(np.mean(told) / np.mean(own))
+    assert 1.0 < r["low"] < r["ratio"] < r["high"]
+    assert ratio_ci(told, own) == r
+    wide = ratio_ci(told[:3], own[:3])
+    assert wide["high"] - wide["low"] > r["high"] - r["low"]
+    same = ratio_ci(own, own)
+    assert same["low"] < 1.0 < same["high"]
+    assert ratio_ci([2.0], [1.0]) == {"ratio": 2.0, "low": 2.0, "high": 2.0}
