@@ -303,14 +303,24 @@ def causes(ends: dict[str, Any]) -> str:
     (``benchmarks/treadmill_causes.py``)."""
     edges = ("out the front", "out the back", "off a side")
     cols = ("survived", "adversary", "teammate", *edges)
+    lasted = all("steps" in f for f in ends.values())  # figures stored before the benchmark counted steps lack them
     rows = [
         [label, f"{f['return']:.1f} ± {f['ci95']:.1f}", *(f"{f[c]:.0%}" for c in cols),
-         "—" if f["max_q_before_leaving"] is None else f"{f['max_q_before_leaving']:.1f}"]
+         "—" if f["max_q_before_leaving"] is None else f"{f['max_q_before_leaving']:.1f}",
+         *((f"{f['steps']:.0f}", f"{f['return_per_step']:.3f}") if lasted else ())]
         for label, f in ends.items()
     ]  # fmt: skip
-    header = ["policy", "return", "survived 200 steps", "caught by the adversary", "hit a teammate", *edges,
-              "max Q at the last act before leaving"]  # fmt: skip
-    return markdown_table(header, rows, [False, *[True] * 8])
+    header = [
+        "policy",
+        "return",
+        "survived 200 steps",
+        "caught by the adversary",
+        "hit a teammate",
+        *edges,
+        "max Q at the last act before leaving",
+        *(("steps lasted", "return per step") if lasted else ()),
+    ]
+    return markdown_table(header, rows, [False, *[True] * (len(header) - 1)])
 
 
 # --- the paper's figures, from `convoy reproduce`'s JSON (docs/reproduction/ID.json) ------------------------------

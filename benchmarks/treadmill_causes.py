@@ -52,13 +52,15 @@ LEFT = CAUSES[3:]
 
 
 class Ends(NamedTuple):
-    """Per env: the first episode's return (mean over agents), how it ended (an index into ``CAUSES``) and, for an
-    episode that an agent ended by leaving the window, the max Q the policy gave that agent at its last act (NaN
-    otherwise, or without a Q-function)."""
+    """Per env: the first episode's return (mean over agents), how it ended (an index into ``CAUSES``), for an
+    episode that an agent ended by leaving the window the max Q the policy gave that agent at its last act (NaN
+    otherwise, or without a Q-function), and the steps it lasted (how long a policy survives, apart from what it
+    earns per step: a discounted learner may trade the one for the other)."""
 
     returns: np.ndarray
     cause: np.ndarray
     belief: np.ndarray
+    steps: np.ndarray
 
 
 def episode_ends(
@@ -75,12 +77,14 @@ def episode_ends(
     returns = np.zeros(engine.num_envs)
     cause = np.zeros(engine.num_envs, np.int64)
     belief = np.full(engine.num_envs, np.nan)
+    steps = np.zeros(engine.num_envs, np.int64)
     while running.any():
         q = None if max_q is None else max_q(obs)
         res = engine.step(policy(obs))
         if after_step is not None:
             after_step(res)
         returns[running] += res.reward[running].mean(axis=1)
+        steps += running
         ended = running & res.done & ~res.truncated
         crashed = engine.last_crashed[:, :n]
         x, y = engine.x[:, :n], engine.y[:, :n]
@@ -103,7 +107,7 @@ def episode_ends(
             belief[leaving] = (q * left).sum(axis=1)[leaving] / left.sum(axis=1)[leaving]
         running &= ~res.done
         obs = res.obs
-    return Ends(returns, cause, belief)
+    return Ends(returns, cause, belief, steps)
 
 
 def play(what: str, episodes: int, seed: int, sets: dict[str, object]) -> Ends:
@@ -150,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
     sets = parse_pairs(args.set, "--set")
     table = Table(title=f"how {args.episodes} treadmill episodes end (seed {args.seed})")
     table.add_column("policy", overflow="fold")
-    for col in ("return (95 % CI)", *CAUSES, "max Q before leaving"):
+    for col in ("return (95 % CI)", *CAUSES, "max Q before leaving", "steps", "return per step"):
         table.add_column(col, justify="right")
     figures = {}
     for arg in args.policies:
@@ -170,8 +174,11 @@ def main(argv: list[str] | None = None) -> None:
         r = ends.returns
         figures[label] = {"policy": what, "return": float(r.mean()), "ci95": ci95_half(r), **share}
         figures[label]["max_q_before_leaving"] = q
+        steps, rate = float(ends.steps.mean()), float(r.sum() / ends.steps.sum())  # pooled over the episodes
+        figures[label] |= {"steps": steps, "return_per_step": rate}
         cells = (f"{s:.0%}" for s in shares)
-        table.add_row(label, f"{r.mean():.1f} ± {ci95_half(r):.1f}", *cells, "—" if q is None else f"{q:.1f}")
+        table.add_row(label, f"{r.mean():.1f} ± {ci95_half(r):.1f}", *cells, "—" if q is None else f"{q:.1f}",
+                      f"{steps:.0f}", f"{rate:.3f}")  # fmt: skip
     Console().print(table)
     if args.json:
         write_json(args.json, figures)

@@ -144,6 +144,10 @@ def test_how_episodes_end_tells_the_chaser_from_the_window() -> None:
     driver = play("private-driver", 60, 3, {})
     assert np.mean(driver.cause == caught) > 0.6 and np.isin(driver.cause, left).mean() < 0.2
     assert driver.returns.mean() > 30  # it is the tuned driver, driving
+    for ends in (floor_it, driver):  # an episode lasts 1..max_steps; one survived, all of them
+        survived = ends.cause == CAUSES.index("survived")
+        assert ((ends.steps >= 1) & (ends.steps <= 200)).all() and (ends.steps[survived] == 200).all()
+    assert floor_it.steps.mean() < driver.steps.mean()  # flooring it leaves sooner than driving
 
 
 def test_how_episodes_end_reads_a_checkpoints_belief_before_it_leaves_the_window(tmp_path) -> None:
