@@ -9,6 +9,11 @@ a seen car) through its own embedding ψ; so is every word of a fixed code the e
 
     Q_i = head([ρ(own_i, id_i), Σ_e m_e·φ(t_e), max_e m_e·φ(t_e)])      m_e = 1 for a car present, 0 for an empty slot
 
+With ``entity_context`` φ reads ``[t_e, own_i]``: whether a car is on a collision course depends on the agent's own
+heading and speed as much as on the car's, and after the pooling the head sees only a sum and a max over the cars, so
+φ alone can pair each car with the agent's motion. The own features are the same for every car, so the pooled result
+is still independent of slot order.
+
 Why sum and max rather than one attention query from the own state: the sum keeps how many cars are near (a softmax
 average forgets it), the max keeps the most extreme car on every feature however many harmless ones surround it
 (the chaser behind), neither needs a softmax or query/key projections (cheaper), and as φ ends in a ReLU (φ ≥ 0),
@@ -90,6 +95,7 @@ class EntityEncoder(nn.Module):
         norm: bool,
         senders: int = 0,
         bits: int = 0,
+        context: bool = False,
     ) -> None:
         super().__init__()
         index, scale = token_plan(layout)
@@ -100,7 +106,8 @@ class EntityEncoder(nn.Module):
         self.obs_dim, self.own_width, self.extra = obs_dim, layout.own, extra
         self.senders, self.bits = senders, bits
         self.own = GroupMLP(groups, layout.own + extra, (), width)  # ρ
-        self.car = GroupMLP(groups, features, (width,), width, norm=norm)  # φ
+        self.context = context
+        self.car = GroupMLP(groups, features + (layout.own if context else 0), (width,), width, norm=norm)  # φ
         self.heard = GroupMLP(groups, bits, (width,), width, norm=norm) if senders else None  # ψ
         # an env's fixed-code words (team_words): entities through their own ψ_w, as heard messages through ψ
         self.words = layout.words
@@ -112,9 +119,17 @@ class EntityEncoder(nn.Module):
         picked: Tensor = x.index_select(-1, self.index).unflatten(-1, tuple(self.scale.shape))  # [..., N, T, F]
         return (picked * self.scale).transpose(-3, -2)
 
+    def read(self, x: Tensor, tokens: Tensor | None = None) -> Tensor:
+        """φ's input per car ``[..., T, N, F (+ own)]``: its token, and with ``context`` the agent's own features."""
+        tokens = self.tokens(x) if tokens is None else tokens
+        if not self.context:
+            return tokens
+        own = x[..., : self.own_width].unsqueeze(-3).expand(*tokens.shape[:-1], self.own_width)
+        return torch.cat([tokens, own], dim=-1)
+
     def forward(self, x: Tensor) -> Tensor:
         tokens = self.tokens(x)
-        entities = F.relu(self.car(tokens)) * tokens[..., :1]  # m·φ: an empty slot is 0 in the sum and the max
+        entities = F.relu(self.car(self.read(x, tokens))) * tokens[..., :1]  # m·φ: an empty slot adds 0 to both pools
         end = self.obs_dim + self.extra
         if self.heard is not None:
             entities = torch.cat([entities, said(x, end, self.senders, self.bits, self.heard)], dim=-3)
@@ -162,6 +177,8 @@ def obs_network(
         net: nn.Module = GroupMLP(groups, spec.obs_dim + extra + senders * bits, hidden, width, norm=cfg.layer_norm)
     else:
         layout = entity_layout(spec)
-        enc = EntityEncoder(layout, spec.obs_dim, groups, extra, cfg.entity_width, cfg.layer_norm, senders, bits)
+        enc = EntityEncoder(
+            layout, spec.obs_dim, groups, extra, cfg.entity_width, cfg.layer_norm, senders, bits, cfg.entity_context
+        )
         net = nn.Sequential(enc, GroupMLP(groups, enc.out_features, hidden, width, norm=cfg.layer_norm))
     return nn.Sequential(net, Dueling()) if dueling else net

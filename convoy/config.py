@@ -211,6 +211,12 @@ class EntityFields(BaseModel):
     entity_width: int = Field(
         64, ge=1, le=4096, description="Units of each car's (and message's) embedding and of the own-feature one."
     )
+    entity_context: bool = Field(
+        False,
+        description="With encoder=entity: the per-car encoder also reads the agent's own features (position, "
+        "heading, speed) beside each car's token, so it can judge that car against the agent's own motion (a car "
+        "closing in on its line) before the pooling mixes the cars; False = each car read alone.",
+    )
     dueling: bool = Field(
         False,
         description="Dueling Q head (Wang et al. 2016): the last layer gives a state value V and one advantage A_a "

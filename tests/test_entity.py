@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from convoy.algos.algorithm import Progress
 from convoy.algos.entity import EntityEncoder, token_features
@@ -166,12 +167,14 @@ def test_an_env_without_a_layout_or_with_blocks_it_cannot_read_is_a_config_error
     job_config(algo="ma-bon", env="treadmill", env_params=SIGHTINGS, algo_params={"encoder": "entity"})
 
 
+@pytest.mark.parametrize("context", [False, True], ids=["alone", "in-context"])
 @pytest.mark.parametrize("share", [True, False], ids=["shared", "per-agent"])
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn", "ma-bon"])
-def test_q_values_ignore_the_order_of_slots(name: str, share: bool) -> None:
-    """Permuting each agent's sensor slots and its told sightings leaves every Q-value unchanged."""
+def test_q_values_ignore_the_order_of_slots(name: str, share: bool, context: bool) -> None:
+    """Permuting each agent's sensor slots and its told sightings leaves every Q-value unchanged (``entity_context``
+    too: every car reads the same own features)."""
     env, obs = env_obs(SIGHTINGS)
-    algo = build(name, env.spec, share)
+    algo = build(name, env.spec, share, entity_context=context)
     x = torch.as_tensor(np.concatenate(obs))[None]  # one run's [R = 1, M, N, D]
     y = torch.as_tensor(permuted(np.concatenate(obs), env.spec, np.random.default_rng(1)))[None]
     assert not torch.equal(x, y)
@@ -182,11 +185,12 @@ def test_q_values_ignore_the_order_of_slots(name: str, share: bool) -> None:
         assert (flat.greedy_q(y, None)[0] - flat.greedy_q(x, None)[0]).abs().max() > 1e-3, "the flat MLP is not"
 
 
-def test_an_empty_slot_contributes_nothing() -> None:
+@pytest.mark.parametrize("context", [False, True], ids=["alone", "in-context"])
+def test_an_empty_slot_contributes_nothing(context: bool) -> None:
     """A slot whose present flag is 0 is read as absent whatever else it holds: Q-values with garbage in the empty
     slots equal those with the zeros the env writes there, exactly."""
     env, obs = env_obs(SIGHTINGS)
-    algo = build("idqn", env.spec)
+    algo = build("idqn", env.spec, entity_context=context)
     x = torch.as_tensor(np.concatenate(obs))[None]  # one run's [R = 1, M, N, D]
     assert env.spec.layout is not None
     garbage = x.clone()
@@ -204,20 +208,39 @@ def test_an_empty_slot_contributes_nothing() -> None:
         torch.testing.assert_close(q(algo.features(garbage)), q(algo.features(x)), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("context", [False, True], ids=["alone", "in-context"])
 @pytest.mark.parametrize("share", [True, False], ids=["shared", "per-agent"])
-def test_shapes_with_and_without_the_run_axis_and_a_member_is_the_single_run(share: bool) -> None:
+def test_shapes_with_and_without_the_run_axis_and_a_member_is_the_single_run(share: bool, context: bool) -> None:
     """R = 1 and R = 3 populations give ``[R, B, N, A]`` (a single run is R = 1), and run k's Q-values are the
     single run of seed k's (the same initial weights, the encoder stacked like any GroupLinear)."""
     env, obs = env_obs(SIGHTINGS, envs=4, steps=2)
     x = torch.as_tensor(obs[-1])
-    single = build("idqn", env.spec, share, seed=SEEDS[1])
+    single = build("idqn", env.spec, share, seed=SEEDS[1], entity_context=context)
     assert single.greedy_q(x[None], None)[0].shape == (1, 4, 3, 9)
     for seeds in ([SEEDS[1]], SEEDS):
-        pop = build("idqn", env.spec, share, seed=seeds)
+        pop = build("idqn", env.spec, share, seed=seeds, entity_context=context)
         q = pop.greedy_q(x.expand(len(seeds), *x.shape), None)[0]
         assert q.shape == (len(seeds), 4, 3, 9)
         k = seeds.index(SEEDS[1])
         torch.testing.assert_close(q[k], single.greedy_q(x[None], None)[0][0], rtol=0, atol=1e-6)
+
+
+def test_in_context_each_car_is_read_beside_the_agents_own_motion() -> None:
+    """``entity_context``: φ reads every car's token with the agent's own features, so a car's embedding changes
+    with the agent's heading; read alone it does not. The own features come from the observation's first columns,
+    the ones ``ρ`` reads."""
+    env, obs = env_obs(SIGHTINGS, envs=4, steps=3)
+    layout = entity_layout(env.spec)
+    x = torch.as_tensor(obs[-1])  # [B, N, D]
+    turned = x.clone()
+    turned[..., 1 : 1 + N_HEADINGS] = turned[..., 1 : 1 + N_HEADINGS].roll(1, dims=-1)  # own heading one-hot
+    for context in (False, True):
+        torch.manual_seed(0)
+        enc = EntityEncoder(layout, env.spec.obs_dim, 1, 0, 8, False, context=context)
+        with torch.no_grad():
+            cars = [F.relu(enc.car(enc.read(v))) * enc.tokens(v)[..., :1] for v in (x, turned)]
+        assert torch.equal(enc.tokens(x), enc.tokens(turned))  # the cars' tokens are the same
+        assert bool((cars[0] != cars[1]).any()) == context
 
 
 @pytest.mark.parametrize("encoder", ["entity", "mlp"])
