@@ -119,17 +119,18 @@ class EntityEncoder(nn.Module):
         picked: Tensor = x.index_select(-1, self.index).unflatten(-1, tuple(self.scale.shape))  # [..., N, T, F]
         return (picked * self.scale).transpose(-3, -2)
 
-    def read(self, x: Tensor, tokens: Tensor | None = None) -> Tensor:
-        """φ's input per car ``[..., T, N, F (+ own)]``: its token, and with ``context`` the agent's own features."""
-        tokens = self.tokens(x) if tokens is None else tokens
-        if not self.context:
-            return tokens
-        own = x[..., : self.own_width].unsqueeze(-3).expand(*tokens.shape[:-1], self.own_width)
-        return torch.cat([tokens, own], dim=-1)
+    def cars(self, x: Tensor) -> Tensor:
+        """Every car's m·φ ``[..., T, N, width]``: φ reads its token (with ``context``, beside the agent's own
+        features); an empty slot is 0, so it adds nothing to the sum or the max."""
+        tokens = self.tokens(x)
+        read = tokens
+        if self.context:
+            own = x[..., : self.own_width].unsqueeze(-3).expand(*tokens.shape[:-1], self.own_width)
+            read = torch.cat([tokens, own], dim=-1)
+        return F.relu(self.car(read)) * tokens[..., :1]
 
     def forward(self, x: Tensor) -> Tensor:
-        tokens = self.tokens(x)
-        entities = F.relu(self.car(self.read(x, tokens))) * tokens[..., :1]  # m·φ: an empty slot adds 0 to both pools
+        entities = self.cars(x)
         end = self.obs_dim + self.extra
         if self.heard is not None:
             entities = torch.cat([entities, said(x, end, self.senders, self.bits, self.heard)], dim=-3)

@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from convoy.algos.algorithm import Progress
 from convoy.algos.entity import EntityEncoder, token_features
@@ -238,7 +237,7 @@ def test_in_context_each_car_is_read_beside_the_agents_own_motion() -> None:
         torch.manual_seed(0)
         enc = EntityEncoder(layout, env.spec.obs_dim, 1, 0, 8, False, context=context)
         with torch.no_grad():
-            cars = [F.relu(enc.car(enc.read(v))) * enc.tokens(v)[..., :1] for v in (x, turned)]
+            cars = [enc.cars(v) for v in (x, turned)]
         assert torch.equal(enc.tokens(x), enc.tokens(turned))  # the cars' tokens are the same
         assert bool((cars[0] != cars[1]).any()) == context
 
