@@ -143,3 +143,50 @@ def test_gpu_benchmark_quick_run_times_eager_and_captured_updates_and_training(t
         f = data["updates"]["idqn"][size]
         assert f["eager_ms"] > 0 and f["captured_ms"] > 0 and f["cudagraph_skips"] == 0
     assert data["training"]["2"]["steps_per_s"] > 0 and data["training"]["cpu_core_steps_per_s"] > 0
+
+
+def test_treadmill_imitation_clones_the_planner_into_the_learners_network(tmp_path) -> None:
+    """DAgger labels every state the student reaches with the teacher's action; each seed's clone fits those labels
+    far above chance (1 in 9), is scored on held-out episodes beside its teacher, and --learn Q-learns on from it."""
+    out = tmp_path / "imitation.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "treadmill_imitation.py"), "--rounds", "2", "--episodes", "8",
+         "--eval-episodes", "4", "--epochs", "3", "--seeds", "0", "1", "--learn", "1500", "--hp",
+         "learning_starts=200", "--out", str(tmp_path / "learn"), "--json", str(out)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(out.read_text())
+    first, second = data["rounds"]
+    assert first["beta"] == 1.0 and second["beta"] == 0.5 and second["states"] > first["states"]
+    assert second["train_accuracy"] > 0.4
+    assert data["teacher"] == "private-planner" and data["job"]["preset"] == "charger"
+    assert second["of_teacher"] == pytest.approx(second["mean"] / data["teacher_held_out"])
+    assert len(second["held_out"]) == 2 and len(data["learned"]["held_out"]) == 2  # one clone per seed
+    for seed in (0, 1):  # then Q-learning went on from them as convoy train's runs
+        assert (tmp_path / "learn" / f"seed-{seed}" / "checkpoint.pt").is_file()
+
+
+def test_dagger_records_only_running_envs_and_mixes_teacher_and_student() -> None:
+    import importlib.util
+
+    import numpy as np
+
+    from convoy.envs.batched import StepResult
+
+    spec = importlib.util.spec_from_file_location("bench_imitation", ROOT / "benchmarks" / "treadmill_imitation.py")
+    assert spec is not None and spec.loader is not None
+    imitation = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(imitation)
+    teacher = lambda obs: np.full(obs.shape[:2], 1)  # noqa: E731
+    student = lambda obs: np.full(obs.shape[:2], 2)  # noqa: E731
+    obs = np.zeros((4, 3, 5), np.float32)
+    only_teacher = imitation.Dagger(teacher, student, beta=1.0, epsilon=0.0, num_envs=4, seed=0)
+    assert (only_teacher(obs) == 1).all()
+    only_student = imitation.Dagger(teacher, student, beta=0.0, epsilon=0.0, num_envs=4, seed=0)
+    assert (only_student(obs) == 2).all()
+    done = np.array([True, False, False, True])
+    zeros = np.zeros((4, 3))
+    only_student.after_step(StepResult(obs, zeros, done, np.zeros(4, bool), obs))
+    only_student(obs)
+    assert [len(o) for o in only_student.obs] == [4, 2] and (np.concatenate(only_student.labels) == 1).all()

@@ -112,7 +112,7 @@ def shrink(argv: list[str]) -> list[str]:
     while i < len(argv):
         flag = argv[i]
         value = argv[i + 1] if i + 1 < len(argv) else ""
-        if flag == "--steps":
+        if flag in ("--steps", "--learn"):
             out += [flag, str(small_steps(int(value)))]
         elif flag in ("--episodes", "--eval-episodes", "--tune-episodes", "--final-episodes"):
             out += [flag, str(min(int(value), 2))]
@@ -212,6 +212,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     if argv[0] == "python":
         budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
                   "treadmill_references.py": ["--episodes", "2"], "treadmill_causes.py": ["--episodes", "2"],
+                  "treadmill_imitation.py": ["--rounds", "1", "--epochs", "1"],
                   "treadmill_variants.py": ["--episodes", "2", "--cache", "variants"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
