@@ -21,7 +21,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -58,10 +58,10 @@ class Dagger:
         if self.beta >= 1.0:
             return label
         acted = self.student(obs)
-        explore = self.rng.random(acted.shape) < self.epsilon
+        explore = self.rng.random(size=acted.shape) < self.epsilon
         acted = np.where(explore, self.rng.integers(0, self.n_actions, acted.shape), acted)
-        teach = self.rng.random(obs.shape[0]) < self.beta
-        return np.where(teach[:, None], label, acted)
+        teach = self.rng.random(size=(len(obs), 1)) < self.beta
+        return np.where(teach, label, acted)
 
     def after_step(self, res: StepResult) -> None:
         self.running &= ~res.done
@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import REPLAY_FILE
+    from convoy.algos.idqn import IndependentDQN
     from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS, evaluate_policy, evaluate_reference
     from convoy.config import job_config
     from convoy.envs.rollout import rollout
@@ -163,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
     runs = len(args.seeds)
     play_env = make_env(job, num_envs=args.episodes * runs)  # run k drives its own share of the envs
     score_env = make_env(job, num_envs=min(args.eval_episodes, SCORING_ENVS))
-    agent = make_agent(job, play_env.spec, run_configs=[j.algo_config() for j in job.members()])
+    agent = cast(IndependentDQN, make_agent(job, play_env.spec, run_configs=[j.algo_config() for j in job.members()]))
     net, device = agent.online["q"], agent.device
 
     def student(obs: np.ndarray) -> np.ndarray:
@@ -184,7 +185,9 @@ def main(argv: list[str] | None = None) -> None:
     for k in range(args.rounds):
         start = time.perf_counter()
         beta = 0.5**k
-        policy = Dagger(reference_policy(args.teacher, play_env), student, beta, args.epsilon, play_env.num_envs, k)
+        policy = Dagger(
+            reference_policy(args.teacher, cast(Any, play_env)), student, beta, args.epsilon, play_env.num_envs, k
+        )
         rollout(play_env, policy, seed=TUNING_SEED * 100_000 + k, after_step=policy.after_step)
         obs_all += policy.obs
         labels_all += policy.labels

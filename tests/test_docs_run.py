@@ -84,7 +84,8 @@ PRODUCERS = {
     "--out runs/bench/decentralized/ma-mesn-mm-2",
 }
 for _w, _c in COMMANDS:
-    if _c.startswith("convoy train") and " --out runs/" in _c and "--resume" not in _c:
+    learns = _c.startswith("python benchmarks/treadmill_imitation.py") and " --learn " in _c  # clones, then trains
+    if (_c.startswith("convoy train") or learns) and " --out runs/" in _c and "--resume" not in _c:
         PRODUCERS.setdefault(_c.split(" --out ")[1].split()[0], _c)
 # the seeds of a population that a documented command reads (``runs/…/seed-N/``): the suite's --seeds keeps them
 READ_SEEDS: dict[str, set[str]] = {}
