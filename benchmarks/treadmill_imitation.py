@@ -156,8 +156,8 @@ def main(argv: list[str] | None = None) -> None:
     from convoy.services.training import make_env
 
     job = job_config(
-        algo="idqn", env="treadmill", preset=args.preset, steps=max(args.learn, 1), seeds=args.seeds,
-        eval_episodes=args.eval_episodes,
+        algo="idqn", env="treadmill", preset=args.preset, seeds=args.seeds,
+        eval_episodes=args.eval_episodes, **({"steps": args.learn} if args.learn else {}),
         env_params=parse_pairs(args.set, "--set"), algo_params=parse_pairs(args.hp, "--hp"),
     )  # fmt: skip
     configure_learner(job.torch_threads)

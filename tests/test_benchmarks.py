@@ -165,6 +165,13 @@ def test_treadmill_imitation_clones_the_planner_into_the_learners_network(tmp_pa
     assert len(second["held_out"]) == 2 and len(data["learned"]["held_out"]) == 2  # one clone per seed
     for seed in (0, 1):  # then Q-learning went on from them as convoy train's runs
         assert (tmp_path / "learn" / f"seed-{seed}" / "checkpoint.pt").is_file()
+    clone_only = subprocess.run(  # without --learn: the clones alone
+        [sys.executable, str(ROOT / "benchmarks" / "treadmill_imitation.py"), "--rounds", "1", "--episodes", "4",
+         "--eval-episodes", "2", "--epochs", "1", "--json", str(out)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )  # fmt: skip
+    assert clone_only.returncode == 0, clone_only.stderr
+    assert "learned" not in json.loads(out.read_text())
 
 
 def test_dagger_records_only_running_envs_and_mixes_teacher_and_student() -> None:

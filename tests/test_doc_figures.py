@@ -206,3 +206,14 @@ def always(nets: Any, action: int) -> None:
         last.weight.zero_()
         last.bias.zero_()
         last.bias[..., action] = 1.0
+
+
+def test_the_readme_headline_keeps_the_latest_told_against_own_comparison_not_a_later_screen() -> None:
+    scores = json.loads((doc_figures.FIGURES / "treadmill_learners.json").read_text())
+    told = [c for c in scores["comparisons"] if "team_sightings" in scores["groups"][c["a"]]["env_params"]
+            and "team_sightings" not in scores["groups"][c["b"]]["env_params"]]  # fmt: skip
+    own = [g for g, v in scores["groups"].items() if "team_sightings" not in v["env_params"]]
+    screen = {**told[-1], "a": own[0], "b": own[1]}  # one own setting against another, compared last
+    scores["comparisons"] = [*scores["comparisons"], screen]
+    headline = doc_figures.learner_comparisons(scores, headline=True)
+    assert f"| {told[-1]['a']} vs {told[-1]['b']}" in headline and f"| {own[0]} vs {own[1]}" not in headline
