@@ -46,7 +46,6 @@ class Dagger:
     def __init__(self, teacher: Any, student: Any, beta: float, epsilon: float, num_envs: int, seed: int) -> None:
         self.teacher, self.student, self.beta, self.epsilon = teacher, student, beta, epsilon
         self.rng = np.random.default_rng(seed)
-        self.n_actions = N_ACTIONS
         self.running = np.ones(num_envs, bool)
         self.obs: list[np.ndarray] = []
         self.labels: list[np.ndarray] = []
@@ -59,7 +58,7 @@ class Dagger:
             return label
         acted = self.student(obs)
         explore = self.rng.random(size=acted.shape) < self.epsilon
-        acted = np.where(explore, self.rng.integers(0, self.n_actions, acted.shape), acted)
+        acted = np.where(explore, self.rng.integers(0, N_ACTIONS, acted.shape), acted)
         teach = self.rng.random(size=(len(obs), 1)) < self.beta
         return np.where(teach, label, acted)
 
