@@ -115,28 +115,66 @@ def epsilon_at(cfg: AlgoConfig, env_steps: int, total_steps: int) -> float:
 
 
 def epsilon_greedy(
-    q: Tensor, epsilon: np.ndarray, mask: Tensor, n_actions: Tensor, stream: RunStreams
+    q: Tensor, epsilon: np.ndarray, mask: Tensor, n_actions: Tensor, stream: RunStreams, hold: Hold | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(actions, greedy actions) ``[R, B, N]`` from Q ``[R, B, N, A]`` of R runs and ε per run and env ``[R, B]``;
     random actions stay within each agent's own action count (``mask`` ``[N, A]``, ``n_actions`` ``[N]``). A run
     whose ε is 0 draws no random number: greedy acting (an evaluation in the middle of training) leaves the
-    exploration stream, and so the training run, as it was."""
-    return explore(q.masked_fill(~mask, NEG).argmax(dim=-1), epsilon, n_actions, stream)
+    exploration stream, and so the training run, as it was. ``hold``: εz-greedy (``Hold``)."""
+    return explore(q.masked_fill(~mask, NEG).argmax(dim=-1), epsilon, n_actions, stream, hold)
+
+
+@dataclass
+class Hold:
+    """εz-greedy's state (Dabney et al. 2021, "Temporally-extended ε-greedy exploration"): an agent that explores
+    repeats its random action for n steps, n drawn from a zeta distribution P(n) ∝ n^−μ on 1 … n_max, so that
+    exploration can carry a car somewhere its greedy policy never goes, where one-step dithering averages out.
+    ``action`` and ``left`` (steps still to repeat) per run, env and agent ``[R, B, N]``; ``cdf`` the durations'
+    cumulative distribution ``[n_max]``. It belongs to the acting loop's envs, like their episodes: a checkpoint
+    does not keep it, and a batch of another shape starts with no hold."""
+
+    cdf: Tensor
+    action: Tensor | None = None
+    left: Tensor | None = None
+
+    @classmethod
+    def zeta(cls, mu: float, n_max: int, device: torch.device) -> Hold:
+        p = torch.arange(1, n_max + 1, dtype=torch.float64) ** -mu
+        return cls(cdf=(p.cumsum(0) / p.sum()).to(torch.float32).to(device))
+
+    def durations(self, u: Tensor) -> Tensor:
+        """Hold lengths 1 … n_max for uniforms ``u`` in [0, 1) (inverse CDF)."""
+        return (torch.searchsorted(self.cdf, u.contiguous(), right=True) + 1).clamp(max=len(self.cdf))
 
 
 def explore(
-    greedy: Tensor, epsilon: np.ndarray, n_actions: Tensor, stream: RunStreams
+    greedy: Tensor, epsilon: np.ndarray, n_actions: Tensor, stream: RunStreams, hold: Hold | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``epsilon_greedy`` from the greedy actions ``[R, B, N]`` (on the device): one draw for every run, from each
-    run's own stream, and one copy of the actions to the host."""
+    run's own stream, and one copy of the actions to the host. With ``hold`` an agent in the middle of a hold
+    repeats its action; any other explores with probability ε and holds for a drawn length (env rows whose ε is 0
+    act greedily and leave their holds as they are)."""
     drawing = epsilon.reshape(len(epsilon), -1).any(axis=1)  # [R]: the runs that explore at all
     if not drawing.any():
         greedy_np = greedy.cpu().numpy()
         return greedy_np, greedy_np
     advance = None if drawing.all() else torch.as_tensor(drawing, device=greedy.device).long()
-    words = stream.bits((2, *greedy.shape[1:]), advance)  # [R, 2, B, N]: whether to explore, which action
+    words = stream.bits((2 if hold is None else 3, *greedy.shape[1:]), advance)  # [R, 2|3, B, N]
     eps = torch.as_tensor(np.array(epsilon, dtype=np.float32), device=greedy.device).unsqueeze(-1)  # [R, B, 1]
-    actions = torch.where(to_uniform(words[:, 0]) < eps, to_integers(words[:, 1], n_actions), greedy)
+    explores = to_uniform(words[:, 0]) < eps
+    randoms = to_integers(words[:, 1], n_actions)
+    if hold is None:
+        actions = torch.where(explores, randoms, greedy)
+    else:
+        if hold.left is None or hold.left.shape != greedy.shape:
+            hold.action, hold.left = torch.zeros_like(greedy), torch.zeros_like(greedy)
+        assert hold.action is not None
+        holding = (hold.left > 0) & (eps > 0)
+        starts = ~holding & explores
+        actions = torch.where(holding, hold.action, torch.where(starts, randoms, greedy))
+        hold.action = torch.where(starts, randoms, hold.action)
+        hold.left = torch.where(holding, hold.left - 1, torch.where(starts, hold.durations(to_uniform(words[:, 2])) - 1,
+                                                                       hold.left))  # fmt: skip
     both = torch.stack([actions, greedy]).cpu().numpy()
     return both[0], both[1]
 
@@ -219,6 +257,7 @@ class NetworkAgent(ABC):
         self.action_counts = torch.as_tensor(self.n_actions_np, device=self.device)  # [N]
         mask = torch.arange(self.n_act)[None, :] < torch.as_tensor(spec.n_actions)[:, None]
         self.action_mask = mask.to(self.device)  # [N, A]
+        self.hold = Hold.zeta(cfg.eps_hold_mu, cfg.eps_hold_max, self.device) if cfg.eps_hold_max > 1 else None
         self.progress = Progress()
         # Initial weights are a function of ``seed`` alone, not of whatever the caller's global RNG holds: a run
         # built without seeding torch first (a benchmark, a notebook) repeats, and the caller's stream is untouched.
@@ -343,7 +382,8 @@ class NetworkAgent(ABC):
         actions, the greedy actions and ε per env and agent, ``[R, B, N]``."""
         eps = np.asarray(epsilon, dtype=np.float64)
         eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, q.shape[:2])  # [R, B]
-        actions, greedy = epsilon_greedy(q, eps, self.action_mask, self.action_counts, self.streams["explore"])
+        actions, greedy = epsilon_greedy(q, eps, self.action_mask, self.action_counts, self.streams["explore"],
+                                         self.hold)  # fmt: skip
         return actions, greedy, np.broadcast_to(eps[..., None], actions.shape)
 
     @property

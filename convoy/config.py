@@ -132,6 +132,15 @@ class AlgoConfig(BaseModel):
     eps_end: Fraction = Field(0.05, description="Exploration ε after the decay (paper: 0.05).")
     eps_decay_fraction: float = Field(0.2, gt=0, le=1, description="ε decays over this fraction of the run ...")
     eps_decay_max_steps: int = Field(100_000, ge=1, description="... or over this many env steps, if fewer.")
+    eps_hold_max: int = Field(
+        1,
+        ge=1,
+        le=10_000,
+        description="Temporally extended ε-greedy (εz-greedy, Dabney et al. 2021): an agent that explores repeats "
+        "its random action for n steps, n drawn from P(n) ∝ n^−eps_hold_mu on 1 … eps_hold_max, then acts "
+        "greedily again; 1 = ε-greedy one step at a time (the paper).",
+    )
+    eps_hold_mu: float = Field(2.0, gt=0, le=10, description="The exponent μ of εz-greedy's hold lengths (paper: 2).")
 
     @field_validator("hidden", mode="before")
     @classmethod

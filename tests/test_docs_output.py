@@ -109,9 +109,11 @@ def test_process_events_match_in_any_order_and_a_missing_one_is_reported() -> No
         # actor processes: the transitions the learner has at each update depend on the actors' timing (in four
         # runs seed 2's greedy return was 0.17, 0.17, 0.40 and 0.45; seed 0's 0.53 and 0.21 in two), and so do the
         # policy lag and how many actors have said they are alive at a row: a seed's row is held to its shape and
-        # step count, the mean over seeds and the progress lines' returns within 0.3
+        # step count, the mean over seeds and the progress lines' returns within 0.3; the mean's CI half-width over
+        # three such seeds is not compared (0.36 in the docs, 0.83 in one CI run: Student's t at 2 dof is 4.3)
         ("convoy train --algo ma-mesn --env referential --steps 3000 --seeds", 0.3,
-         [(r"actor-@", None), (r"lag @|actors @", None), (r"^# [@#] ± [@#] [@#] \(#\) [@#]$", None)]),
+         [(r"actor-@", None), (r"lag @|actors @", None), (r"^# [@#] ± [@#] [@#] \(#\) [@#]$", None),
+          (r"^mean over seeds # ± @$", None)]),
     ],
     ids=["inprocess", "distributed"],
 )  # fmt: skip

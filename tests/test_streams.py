@@ -185,6 +185,39 @@ def test_greedy_acting_draws_nothing_and_each_run_draws_only_where_it_explores()
         assert len(np.unique(agent_actions)) > 1
 
 
+def test_ez_greedy_holds_each_random_action_for_a_zeta_drawn_length_run_by_run() -> None:
+    """εz-greedy (``eps_hold_max`` > 1): at ε = 1 every agent repeats a random action for runs whose lengths follow
+    P(n) ∝ n^−μ on 1 … n_max; greedy acting neither draws nor moves a hold; and run k of a population acts
+    exactly as the single run of its seed (each run's holds come from its own stream)."""
+    hp = {"eps_hold_max": 8, "eps_hold_mu": 1.5}
+    pop = make_algorithm("idqn", SPEC, config("idqn", **hp), device="cpu", seed=SEEDS[:3])
+    singles = [make_algorithm("idqn", SPEC, config("idqn", **hp), device="cpu", seed=s) for s in SEEDS[:3]]
+    obs = np.zeros((3, 64, SPEC.n_agents, SPEC.obs_dim), dtype=np.float32)
+    acted = []
+    for t in range(300):
+        eps = 1.0 if t % 50 else 0.0  # a greedy act now and then: draws nothing, holds nothing
+        together = pop.act(obs, eps).actions
+        for k, single in enumerate(singles):
+            np.testing.assert_array_equal(together[k], single.act(obs[k], eps).actions)
+        if eps:
+            acted.append(together)
+    assert pop.hold is not None and pop.streams["explore"].counters.tolist() == [294] * 3
+    # lengths of the runs of one action (a run that ends on a new hold of the same action joins the next: counted
+    # on agent b, 3 actions, against the model of it)
+    runs_of = [np.diff(np.flatnonzero(np.diff(np.r_[-1, seq, -1]))) for seq in np.array(acted)[:, :, :, 1].reshape(
+        len(acted), -1).T]  # fmt: skip
+    lengths = np.concatenate([r[1:-1] for r in runs_of])
+    p = np.arange(1, 9) ** -1.5
+    p /= p.sum()
+    mean_hold = (np.arange(1, 9) * p).sum()
+    same = 1 / 3  # a new hold picks the previous action again
+    assert lengths.mean() == pytest.approx(mean_hold / (1 - same), rel=0.08)
+    assert lengths.max() > 8  # holds of the same action join
+    plain = make_algorithm("idqn", SPEC, config("idqn"), device="cpu", seed=SEEDS[0])
+    seq = np.array([plain.act(obs[0], 1.0).actions[:, 1] for _ in range(300)])
+    assert (seq[1:] == seq[:-1]).mean() == pytest.approx(1 / 3, abs=0.03)  # one step at a time: no holds
+
+
 def continue_training(agent: NetworkAgent, g: np.random.Generator, steps: int) -> list[np.ndarray]:
     """Act, observe and update ``steps`` times: what a run goes on doing after a resume."""
     acted = []
