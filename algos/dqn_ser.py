@@ -18,7 +18,7 @@ from torch import Tensor
 
 from convoy.algos.algorithm import epsilon_at
 from convoy.algos.idqn import IndependentDQN
-from convoy.algos.updater import Batch, Loss, td_loss
+from convoy.algos.updater import Batch, Loss
 from convoy.config import SERConfig
 
 
@@ -69,7 +69,7 @@ class DQNSER(IndependentDQN):
         ``episode`` = the number of episodes finished when its episode started, so ``progress.episodes − episode``
         counts the episodes collected since (in a population, each run's own episodes).
         """
-        err = td_loss(*self.q_and_y(batch), self.cfg)
+        err = self.td_losses(batch)
         now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
         w = age_weights(batch.episode, now, self.cfg.ser_horizon)
         return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))

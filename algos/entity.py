@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from convoy.algos.nets import GroupMLP
-from convoy.config import BoNConfig, IDQNConfig, MeSNConfig
+from convoy.config import BoNConfig, ConfigError, IDQNConfig, MeSNConfig
 from convoy.envs.batched import ENTITY_SOURCES, EnvSpec, ObsLayout
 from convoy.envs.layout import entity_layout
 
@@ -157,6 +157,19 @@ class Dueling(nn.Module):
         return value + advantage - advantage.mean(dim=-1, keepdim=True)
 
 
+class Heads(nn.Module):
+    """``[..., F]`` → ``[..., K, out]``: K heads, the K groups of one ``GroupMLP``, each reading the same features
+    (Bootstrapped DQN's heads on a shared torso: one batched matmul for all of them)."""
+
+    def __init__(self, heads: int, mlp: GroupMLP) -> None:
+        super().__init__()
+        self.heads, self.mlp = heads, mlp
+
+    def forward(self, x: Tensor) -> Tensor:
+        out: Tensor = self.mlp(x.unsqueeze(-2).expand(*x.shape[:-1], self.heads, x.shape[-1]))
+        return out
+
+
 def obs_network(
     spec: EnvSpec,
     cfg: IDQNConfig | MeSNConfig | BoNConfig,
@@ -167,19 +180,29 @@ def obs_network(
     senders: int = 0,
     bits: int = 0,
     q_values: bool = False,
+    heads: int = 1,
 ) -> nn.Module:
     """The network reading ``[obs | extra | heard]`` (``extra`` columns, ``senders × bits`` heard) into ``out``
     values: one MLP over the flat columns (``encoder=mlp``), or the entity encoder and an MLP head on its pooled
     features, both of ``hidden`` widths. ``q_values``: the outputs are Q-values, formed by a dueling head when
-    ``cfg.dueling``."""
+    ``cfg.dueling``. ``heads`` > 1 (shared weights only): that many MLPs on one encoder (the flat observation for
+    ``mlp``), ``[..., N, heads, out]``."""
     dueling = q_values and cfg.dueling
     width = out + 1 if dueling else out
+
+    def head(features: int) -> nn.Module:
+        if heads == 1:
+            return GroupMLP(groups, features, hidden, width, norm=cfg.layer_norm)
+        if groups != 1:
+            raise ConfigError("heads", f"{heads} heads need one network for every agent; set share_params=true")
+        return Heads(heads, GroupMLP(heads, features, hidden, width, norm=cfg.layer_norm))
+
     if cfg.encoder == "mlp":
-        net: nn.Module = GroupMLP(groups, spec.obs_dim + extra + senders * bits, hidden, width, norm=cfg.layer_norm)
+        net: nn.Module = head(spec.obs_dim + extra + senders * bits)
     else:
         layout = entity_layout(spec)
         enc = EntityEncoder(
             layout, spec.obs_dim, groups, extra, cfg.entity_width, cfg.layer_norm, senders, bits, cfg.entity_context
         )
-        net = nn.Sequential(enc, GroupMLP(groups, enc.out_features, hidden, width, norm=cfg.layer_norm))
+        net = nn.Sequential(enc, head(enc.out_features))
     return nn.Sequential(net, Dueling()) if dueling else net

@@ -1,18 +1,26 @@
 """Independent DQN: each agent's Q-network sees only its own observation — the no-communication baseline.
 
 The Q-network is an MLP over the flat observation, or (``encoder=entity``) the entity encoder of ``algos/entity.py``
-and an MLP head.
+and an MLP head. With ``heads`` > 1 it is Bootstrapped DQN (Osband et al. 2016, "Deep exploration via bootstrapped
+DQN"): K heads on one encoder, each trained towards its own double-Q target on every sample (the heads differ by
+their initial weights; no bootstrap masks, which Osband et al. found to matter little), and an exploring env drives
+a whole episode on one head drawn at its start. One head is one plausible Q-function, and following it for an episode
+is exploration that commits to a way of driving, where ε-greedy only dithers around the current one. An evaluation
+(ε = 0) acts on the heads' mean.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+import torch
 from torch import Tensor, nn
 
 from convoy.algos.algorithm import NetworkAgent
 from convoy.algos.entity import obs_network
 from convoy.algos.nets import id_width, with_agent_id
+from convoy.algos.streams import to_integers
 from convoy.algos.updater import Batch, Loss, bootstrap_target, taken, td_loss
 from convoy.config import IDQNConfig
 
@@ -33,17 +41,70 @@ class IndependentDQN(NetworkAgent):
     def build(self) -> dict[str, nn.Module]:
         groups = 1 if self.shared else self.n_agents
         extra = self.input_width() - self.obs_dim  # agent id, fingerprint: read beside the own features
-        return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act, q_values=True)}
+        return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act, q_values=True,
+                                 heads=self.cfg.heads)}  # fmt: skip
 
-    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, None]:
-        return self.online["q"](self.features(obs)), None, None
+    def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, Tensor | None]:
+        q = self.online["q"](self.features(obs))
+        return (q if self.cfg.heads == 1 else self.on_heads(q, state)), None, state
 
+    # --- Bootstrapped DQN's heads (``heads`` > 1) ----------------------------------------------------------------
+    def on_heads(self, q: Tensor, head: Tensor | None) -> Tensor:
+        """Q ``[R, B, N, A]`` of each env's head (``head [R, B]``), or the heads' mean where it has none (−1)."""
+        mean = q.mean(dim=-2)
+        if head is None:
+            return mean
+        index = head.clamp_min(0)[:, :, None, None, None].expand(*q.shape[:3], 1, q.shape[-1])
+        return torch.where((head >= 0)[:, :, None, None], q.gather(-2, index).squeeze(-2), mean)
+
+    def initial_state(self, num_envs: int) -> Tensor | None:
+        """Each env's head ``[R, B]``, −1: none yet (one is drawn at the env's first exploring act)."""
+        if self.cfg.heads == 1:
+            return None
+        return torch.full((self.runs, num_envs), -1, dtype=torch.long, device=self.device)
+
+    def reset_runs(self, state: Any, done: np.ndarray) -> Any:
+        """An env whose episode ended gets a new head at its next exploring act."""
+        if state is None:
+            return None
+        return state.masked_fill(torch.as_tensor(done, device=self.device), -1)
+
+    def act_runs(self, obs: np.ndarray, epsilon: float | np.ndarray = 0.0, state: Any = None) -> Any:
+        """``act`` on the heads: an exploring env without a head draws one first, from its run's exploration
+        stream (greedy acting draws nothing)."""
+        if state is not None:
+            eps = np.asarray(epsilon, dtype=np.float64)
+            eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, state.shape)
+            need = (state < 0) & torch.as_tensor(eps > 0, device=self.device)
+            drawing = need.any(dim=1)
+            if bool(drawing.any()):
+                advance = None if bool(drawing.all()) else drawing.long()
+                drawn = to_integers(self.streams["explore"].bits(state.shape[1:], advance), self.cfg.heads)
+                state = torch.where(need, drawn, state)
+        return super().act_runs(obs, epsilon, state)
+
+    # --- learning ------------------------------------------------------------------------------------------------
     def q_and_y(self, batch: Batch) -> tuple[Tensor, Tensor]:
-        """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network."""
-        q = taken(self.online["q"](self.features(batch.obs, batch)), batch.action)
-        q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
-        return q, bootstrap_target(self, q_fn, batch)
+        """Q_i(o_i, a_i) of the actions taken ``[M, N]`` and their double-Q targets from the target network; with
+        heads, ``[K, M, N]``: each head's, towards its own target (the batch seen with a leading head axis)."""
+        if self.cfg.heads == 1:
+            q = taken(self.online["q"](self.features(batch.obs, batch)), batch.action)
+            q_fn = lambda nets, obs: nets["q"](self.features(obs, batch))  # noqa: E731
+            return q, bootstrap_target(self, q_fn, batch)
+        k = self.cfg.heads
+        per_head = batch.map(lambda v: v.expand(k, *v.shape))
+
+        def heads_q(nets: nn.ModuleDict, obs: Tensor) -> Tensor:  # [K, M, N, A], one pass for all heads
+            q: Tensor = nets["q"](self.features(obs[0], batch))
+            return q.movedim(-2, 0)
+
+        return taken(heads_q(self.online, per_head.obs), per_head.action), bootstrap_target(self, heads_q, per_head)
+
+    def td_losses(self, batch: Batch) -> Tensor:
+        """Each sample's TD loss per agent ``[M, N]``, the mean over the heads when there are several."""
+        err = td_loss(*self.q_and_y(batch), self.cfg)
+        return err if self.cfg.heads == 1 else err.mean(dim=0)
 
     def loss(self, batch: Batch) -> Loss:
         """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""
-        return Loss(td_loss(*self.q_and_y(batch), self.cfg).mean(dim=-2))
+        return Loss(self.td_losses(batch).mean(dim=-2))

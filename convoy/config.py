@@ -236,6 +236,16 @@ class EntityFields(BaseModel):
 class IDQNConfig(AlgoConfig, EntityFields):
     """Independent DQN: every agent learns from its own observation only."""
 
+    heads: int = Field(
+        1,
+        ge=1,
+        le=32,
+        description="Bootstrapped DQN (Osband et al. 2016): K Q-heads, each its own MLP of the hidden widths on the "
+        "shared encoder, each learning from every sample with its own double-Q target; an exploring env (ε > 0) "
+        "drives a whole episode on one head drawn at its start, an evaluation (ε = 0) on the heads' mean Q. "
+        "Needs share_params. 1 = one Q-network (the paper).",
+    )
+
 
 class SERConfig(IDQNConfig):
     """DQN with stabilised experience replay (the paper's linearly decaying per-sample weight)."""

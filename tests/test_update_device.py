@@ -245,8 +245,18 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         ("dial", {}),
         ("ma-mesn", {}),
         ("ma-bon", {"channel_control": "noise"}),
+        ("idqn", {"heads": 3, "share_params": True}),  # Bootstrapped DQN: every head's target in the one graph
     ],
-    ids=["idqn", "ma-mesn-noiseless", "ma-bon-noiseless", "dial-noiseless", "dial", "ma-mesn", "ma-bon-noise-control"],
+    ids=[
+        "idqn",
+        "ma-mesn-noiseless",
+        "ma-bon-noiseless",
+        "dial-noiseless",
+        "dial",
+        "ma-mesn",
+        "ma-bon-noise-control",
+        "idqn-heads",
+    ],
 )
 def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any]) -> None:
     pop = filled(name, SEEDS, **params)
