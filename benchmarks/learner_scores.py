@@ -275,9 +275,21 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or not label or not dirs:
             raise SystemExit(f"--group {spec!r}: write LABEL=DIR or LABEL=DIR,DIR")
         print(f"{label}: {dirs}", flush=True)
-        before = {} if args.rescore else scored_before(groups, args.episodes, args.weights)
         run_dirs = [Path(d) for d in dirs.split(",")]
-        groups[label] = score_group(run_dirs, args.episodes, args.seed, before, args.weights)
+        stored = groups.get(label)
+        if (
+            stored
+            and not args.rescore
+            and stored["dirs"] == dirs.split(",")
+            and stored["episodes"] == args.episodes
+            and stored.get("weights", "judged") == args.weights
+            and not any(d.exists() for d in run_dirs)
+        ):
+            # a study across sessions: a group scored where its runs were, named again where they are not
+            print(f"  its runs are not here: the figures {path} keeps for it", flush=True)
+        else:
+            before = {} if args.rescore else scored_before(groups, args.episodes, args.weights)
+            groups[label] = score_group(run_dirs, args.episodes, args.seed, before, args.weights)
         g = groups[label]
         print(f"{label}: last {g['last_mean']:.1f} ± {g['last_ci95']:.1f}, best.pt {g['best_mean']:.1f} ± "
               f"{g['best_ci95']:.1f} over {len(g['seeds'])} seeds", flush=True)  # fmt: skip

@@ -121,8 +121,8 @@ def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path
     refs = {"private-planner": 140.0}
 
     def group(seeds: list[int], last: list[float], **extra: Any) -> dict[str, Any]:
-        return {"dirs": [f"gone-{seeds[0]}"], "episodes": 500, "seeds": seeds, "last": last, "best": last,
-                "start_values": [{}] * len(seeds), "references": refs, **settings, **extra}  # fmt: skip
+        return {"dirs": [f"gone-{seeds[0]}"], "episodes": 500, **learner_scores.figures(seeds, last, last, [{}] * len(
+                seeds)), "references": refs, **settings, **extra}  # fmt: skip
 
     path = tmp_path / "scores.json"
     groups = {"a": group([0, 1], [100.0, 110.0]), "b": group([5, 6, 7], [90.0, 120.0, 105.0]),
@@ -145,6 +145,13 @@ def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path
     for parts, error in refused:
         with pytest.raises(SystemExit, match=error):
             learner_scores.main(["--pool", "x", *parts, "--json", str(path)])
+    # a --group whose runs are not here keeps its stored figures (same label, folders, episodes), and compares
+    assert learner_scores.main(["--group", "a=gone-0", "--group", "b=gone-5", "--compare", "b", "a",
+                                "--episodes", "500", "--json", str(path)]) == 0  # fmt: skip
+    kept = json.loads(path.read_text())
+    assert kept["groups"]["a"] == groups["a"] and kept["comparisons"][-1]["diff"] == pytest.approx(0.0)  # means 105
+    with pytest.raises(SystemExit, match="no seed-N/ folders"):  # other episodes: it would have to play them
+        learner_scores.main(["--group", "a=gone-0", "--episodes", "200", "--json", str(path)])
 
 
 def test_references_play_the_episodes_a_learner_is_scored_on(tmp_path: Path) -> None:
