@@ -376,12 +376,16 @@ class NetworkAgent(ABC):
         stream = self.streams["noise"]
         return stream.normal(x.shape[1:], x.dtype) if normal else stream.uniform(x.shape[1:], x.dtype)
 
+    def env_epsilon(self, epsilon: float | np.ndarray, envs: int) -> np.ndarray:
+        """ε per run and env ``[R, B]`` from a scalar, one per run ``[R]`` or one per run and env."""
+        eps = np.asarray(epsilon, dtype=np.float64)
+        return np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, (self.runs, envs))
+
     def explore(self, q: Tensor, epsilon: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``epsilon_greedy`` for this agent on Q ``[R, B, N, A]``, one greedy pass and one draw for every run (ε a
         scalar, one per run ``[R]`` or per run and env ``[R, B]``; a single run's may be one per env ``[B]``): the
         actions, the greedy actions and ε per env and agent, ``[R, B, N]``."""
-        eps = np.asarray(epsilon, dtype=np.float64)
-        eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, q.shape[:2])  # [R, B]
+        eps = self.env_epsilon(epsilon, q.shape[1])
         actions, greedy = epsilon_greedy(q, eps, self.action_mask, self.action_counts, self.streams["explore"],
                                          self.hold)  # fmt: skip
         return actions, greedy, np.broadcast_to(eps[..., None], actions.shape)

@@ -73,8 +73,7 @@ class IndependentDQN(NetworkAgent):
         """``act`` on the heads: an exploring env without a head draws one first, from its run's exploration
         stream (greedy acting draws nothing)."""
         if state is not None:
-            eps = np.asarray(epsilon, dtype=np.float64)
-            eps = np.broadcast_to(eps.reshape(self.runs, -1) if eps.ndim else eps, state.shape)
+            eps = self.env_epsilon(epsilon, state.shape[1])
             need = (state < 0) & torch.as_tensor(eps > 0, device=self.device)
             drawing = need.any(dim=1)
             if bool(drawing.any()):
