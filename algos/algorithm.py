@@ -30,6 +30,8 @@ from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
 from convoy.transition import Transition, schema
 
+PRIORITY_FLOOR = 1e-3  # added to |δ| before prioritized replay's exponent: no row stops being drawn
+
 
 @dataclass
 class Progress:
@@ -249,7 +251,12 @@ class NetworkAgent(ABC):
         # the joint replay every step-based learner samples from, on the device: rows hold the declared transition
         # (and the act's extras), allocated on the first chunk
         declared = schema(self.n_agents, self.obs_dim)
-        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=declared, device=self.device)
+        # prioritized replay where the algorithm has it (independent DQN's ``priority_alpha``; its loss weighs and
+        # returns priorities): the rows last drawn wait in ``_drawn`` for the update's |δ|
+        self.priority_alpha: float = getattr(cfg, "priority_alpha", 0.0)
+        self._drawn: Tensor | None = None
+        self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=declared, device=self.device,
+                                  prioritized=self.priority_alpha > 0)  # fmt: skip
         # explicit streams per run and purpose, on the device (``algos.streams``), never global state: replay draws,
         # exploration (and CoDBC's teacher share), noise (DIAL's DRU, Gumbel messages, a noisy channel control)
         self.streams = {name: RunStreams(self.seeds, name, self.device) for name in STREAMS}
@@ -350,7 +357,13 @@ class NetworkAgent(ABC):
     def sample(self) -> Batch:
         """The next training batch (``batch_size`` joint transitions, each run's from its own replay), drawn and
         gathered on the device."""
-        return self.replay.sample(self.cfg.batch_size, self.streams["replay"])
+        if not self.replay.prioritized:
+            return self.replay.sample(self.cfg.batch_size, self.streams["replay"])
+        beta0: float = getattr(self.cfg, "priority_beta", 1.0)
+        beta = beta0 + (1.0 - beta0) * run_fraction(self.progress.env_steps, self.progress.total_steps)
+        batch, self._drawn, weight = self.replay.sample_prioritized(self.cfg.batch_size, self.streams["replay"], beta)
+        batch.extras["is_weight"] = weight
+        return batch
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:
@@ -437,7 +450,10 @@ class NetworkAgent(ABC):
     def update(self) -> Figures:
         """One guarded gradient step of ``loss`` on a sampled batch, and the target sync (``Updater.update``)."""
         batch = self.sample()
-        return self.updater.update(batch, run_fraction(self.progress.env_steps, self.progress.total_steps))
+        figures = self.updater.update(batch, run_fraction(self.progress.env_steps, self.progress.total_steps))
+        if self._drawn is not None and self.updater.priority is not None:
+            self.replay.set_priorities(self._drawn, (self.updater.priority + PRIORITY_FLOOR) ** self.priority_alpha)
+        return figures
 
     # --- persistence ---------------------------------------------------------------------------------------------
     def policy_state(self) -> dict[str, Tensor]:

@@ -146,6 +146,9 @@ def replay_buffers(algo: Any) -> dict[str, JointReplay]:
     return {"replay": replay} if isinstance(replay, JointReplay) else {}
 
 
+PRIORITIES = ("priority", "max_priority")  # prioritized replay's arrays in a replay file, beside its rows
+
+
 def save_replay(
     path: str | Path, algo: Any, env_steps: int, max_bytes: int, say: Callable[[str], None] | None = None
 ) -> int:
@@ -170,6 +173,7 @@ def save_replay(
         state = buf.state_dict()
         arrays[f"{name}/next"] = np.asarray(state["next"])
         arrays[f"{name}/size"] = np.asarray(state["size"])
+        arrays.update({f"{name}/{k}": state[k] for k in PRIORITIES if k in state})
         arrays.update({f"{name}/data/{k}": v for k, v in state["data"].items()})
     if path.is_file():  # the checkpoint on disk still points at this one until the next checkpoint is written
         path.replace(previous_replay(path))
@@ -217,6 +221,7 @@ def load_replay(path: str | Path, algo: Any, env_steps: int) -> int:
                 name: {
                     "next": data[f"{name}/next"],
                     **({"size": data[f"{name}/size"]} if f"{name}/size" in data.files else {}),
+                    **{k: data[f"{name}/{k}"] for k in PRIORITIES if f"{name}/{k}" in data.files},
                     "data": {k.split("/", 2)[2]: data[k] for k in data.files if k.startswith(f"{name}/data/")},
                 }
                 for name in buffers

@@ -69,7 +69,11 @@ class DQNSER(IndependentDQN):
         ``episode`` = the number of episodes finished when its episode started, so ``progress.episodes − episode``
         counts the episodes collected since (in a population, each run's own episodes).
         """
-        err = self.td_losses(batch)
+        err, delta = self.td_losses(batch)
         now = torch.as_tensor(self.progress.episodes, device=self.device).reshape(-1, 1)  # [R, 1]: each run's own
         w = age_weights(batch.episode, now, self.cfg.ser_horizon)
-        return Loss((err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8))
+        prioritized = "is_weight" in batch.extras  # drawn by priority: age weights times importance weights
+        if prioritized:
+            w = w * batch.extras["is_weight"]
+        loss = (err * w.unsqueeze(-1)).sum(dim=-2) / w.sum(dim=-1, keepdim=True).clamp_min(1e-8)
+        return Loss(loss, priority=delta if prioritized else None)

@@ -99,11 +99,17 @@ class IndependentDQN(NetworkAgent):
 
         return taken(heads_q(self.online, per_head.obs), per_head.action), bootstrap_target(self, heads_q, per_head)
 
-    def td_losses(self, batch: Batch) -> Tensor:
-        """Each sample's TD loss per agent ``[M, N]``, the mean over the heads when there are several."""
-        err = td_loss(*self.q_and_y(batch), self.cfg)
-        return err if self.cfg.heads == 1 else err.mean(dim=0)
+    def td_losses(self, batch: Batch) -> tuple[Tensor, Tensor]:
+        """Each sample's TD loss per agent ``[M, N]`` and its |TD error| averaged over the agents ``[M]`` (what
+        prioritized replay draws by), both the mean over the heads when there are several."""
+        q, y = self.q_and_y(batch)
+        err, delta = td_loss(q, y, self.cfg), (q - y).abs().mean(dim=-1)
+        return (err, delta) if self.cfg.heads == 1 else (err.mean(dim=0), delta.mean(dim=0))
 
     def loss(self, batch: Batch) -> Loss:
-        """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's."""
-        return Loss(self.td_losses(batch).mean(dim=-2))
+        """Each agent's mean TD loss on its own Q-network; no agent's gradient reaches another's. Drawn by priority,
+        each sample's loss is weighted by its importance weight (``is_weight``), and its |TD error| goes back."""
+        err, delta = self.td_losses(batch)
+        if "is_weight" not in batch.extras:
+            return Loss(err.mean(dim=-2))
+        return Loss((err * batch.extras["is_weight"].unsqueeze(-1)).mean(dim=-2), priority=delta)

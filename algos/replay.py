@@ -24,6 +24,15 @@ indices in one batched draw of the runs' own streams (``algos.streams``), over e
 device tensors: run k's batch is exactly what the single run of its seed samples. The write pointers and sizes stay
 on the host, where the inserts come from; the sizes are mirrored on the device, so a sample reads no host value.
 ``state_dict`` writes numpy arrays, the layout the replay files (``replay.npz``) have always had.
+
+Prioritized replay (``prioritized``; Schaul et al. 2016, "Prioritized experience replay"). Each row holds a priority
+(the agent's ``(|δ| + ε)^α``; a new row the largest any row of its run has had, so it is drawn soon), and
+``sample_prioritized`` draws row i with probability p_i / Σp, stratified (one draw from each of n equal slices of
+the mass), with importance weights (N · P(i))^−β over their batch's largest. The priorities are two levels, rows
+and the sums of blocks of ``BLOCK`` rows, both on the device: a draw picks a block by the block sums' cumulative
+sum, then a row by the block's; an update of n rows' priorities re-sums only their blocks, exactly (no running
+sums that drift). At a million rows that is ~2 ms a batch on one CPU core where a cumulative sum over all rows is
+~20 ms; Schaul et al.'s sum tree is a pointer structure a batched device draw cannot walk cheaply.
 """
 
 from __future__ import annotations
@@ -36,6 +45,8 @@ from torch import Tensor
 
 from convoy.algos.streams import RunStreams
 from convoy.transition import TRANSITION, Transition, from_columns
+
+BLOCK = 1024  # rows per block of prioritized replay's two-level sums
 
 
 def torch_dtype(dtype: np.dtype[Any]) -> torch.dtype:
@@ -53,6 +64,7 @@ class JointReplay:
         runs: int = 1,
         declared: dict[str, tuple[str, tuple[int, ...]]] | None = None,
         device: str | torch.device = "cpu",
+        prioritized: bool = False,
     ) -> None:
         if not 1 <= capacity < 2**31:  # sample's multiply-shift needs size · 2^32 < 2^63
             raise ValueError(f"capacity: must be ≥ 1 and < 2^31 (got {capacity})")
@@ -66,6 +78,10 @@ class JointReplay:
         self._size = np.zeros(runs, dtype=np.int64)
         self._high = torch.zeros(runs, 1, dtype=torch.int64, device=self.device)  # the sizes, on the device
         self._run = torch.arange(runs, device=self.device)[:, None]  # [R, 1]: where each run's rows start
+        self.prioritized = prioritized
+        self._priority = torch.zeros(runs, 0, device=self.device)  # [R, blocks · BLOCK]: 0 where no row is
+        self._block_sum = torch.zeros(runs, 0, device=self.device)  # [R, blocks]
+        self._max_priority = torch.ones(runs, 1, device=self.device)  # what a new row of each run gets
 
     def __len__(self) -> int:
         """Rows held (the fewest any run holds)."""
@@ -108,6 +124,7 @@ class JointReplay:
             new = torch.zeros((v.shape[0], rows, *v.shape[2:]), dtype=v.dtype, device=v.device)
             new[:, :held] = v
             self._data[k] = new
+        self._fit_priorities()
 
     def add(self, rows: Transition[np.ndarray], valid: np.ndarray | None = None) -> None:
         """Append rows ``[R, M, …]`` (every array shares the leading dims); the oldest rows are overwritten when full.
@@ -136,6 +153,10 @@ class JointReplay:
             staged = self._stage(v)
             self._data[k][:, at : at + first] = staged[:, :first]
             self._data[k][:, : m - first] = staged[:, first:]
+        if self.prioritized:
+            self._priority[:, at : at + first] = self._max_priority
+            self._priority[:, : m - first] = self._max_priority
+            self._sum_blocks()
         self._next = (self._next + m) % self.capacity
         self._size = np.minimum(self._size + m, self.capacity)
         self._sync_sizes()
@@ -151,6 +172,7 @@ class JointReplay:
         """Allocate the fields from the first rows ``[R, M, …]``; later rows must bring the same fields."""
         if not self._data:
             self._data = {k: self._allocate(v) for k, v in runs.items()}
+            self._fit_priorities()
         elif set(runs) != set(self._data):
             raise ValueError(f"rows: fields {sorted(runs)} differ from the buffer's {sorted(self._data)}")
 
@@ -170,6 +192,9 @@ class JointReplay:
         at = (self._stage(run), self._stage(dest))
         for k, v in runs.items():
             self._data[k][at] = self._stage(v[run, col])  # only the kept rows cross to the device
+        if self.prioritized:
+            self._priority[at] = self._max_priority[at[0], 0]
+            self._sum_blocks()
         self._next = (self._next + count - skip) % self.capacity
         self._size = np.minimum(self._size + count, self.capacity)
         self._sync_sizes()
@@ -200,18 +225,74 @@ class JointReplay:
             raise ValueError("sample() from an empty replay buffer")
         if streams.runs != len(self._next):
             raise ValueError(f"streams: one per run ({len(self._next)}), got {streams.runs}")
-        idx = streams.integers(self._high, n)  # [R, n], run k's in [0, size_k)
+        return self._gather(streams.integers(self._high, n), n)  # [R, n], run k's in [0, size_k)
+
+    def _gather(self, idx: Tensor, n: int) -> Transition[Tensor]:
+        """Rows ``idx [R, n]`` of each run's ring, as a batch ``[R, n, …]``."""
         flat = idx.add(self._run, alpha=self.allocated).flatten()  # rows of the runs laid end to end
         return from_columns(
             {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
         )
+
+    def sample_prioritized(self, n: int, streams: RunStreams, beta: float) -> tuple[Transition[Tensor], Tensor, Tensor]:
+        """``n`` rows per run drawn in proportion to their priorities (prioritized replay), on the device: the batch
+        ``[R, n, …]``, the rows drawn ``[R, n]`` (for ``set_priorities``) and their importance weights
+        ``(size · P(i))^−β`` over the batch's largest, ``[R, n]``. One uniform draw of each run's stream."""
+        if not self.prioritized:
+            raise ValueError("sample_prioritized: this replay keeps no priorities (prioritized=False)")
+        if len(self) == 0:
+            raise ValueError("sample() from an empty replay buffer")
+        u = streams.uniform(n)  # [R, n]
+        strata = torch.arange(n, device=self.device, dtype=u.dtype)
+        cum_blocks = torch.cumsum(self._block_sum, dim=1)  # [R, blocks]
+        total = cum_blocks[:, -1:]
+        mass = (strata + u) / n * total  # one point in each of n equal slices of the run's mass
+        last = self._block_sum.shape[1] - 1
+        block = torch.searchsorted(cum_blocks, mass, right=True).clamp_max(last)  # [R, n]
+        rest = mass - (cum_blocks.gather(1, block) - self._block_sum.gather(1, block))
+        rows = self._priority.view(self.runs, -1, BLOCK).gather(1, block[..., None].expand(-1, -1, BLOCK))
+        within = torch.searchsorted(torch.cumsum(rows, dim=2), rest[..., None], right=True).squeeze(-1)
+        idx = torch.minimum(block * BLOCK + within.clamp_max(BLOCK - 1), self._high - 1)
+        p = self._priority.gather(1, idx) / total
+        weight = (self._high * p).pow(-beta)
+        weight = weight / weight.amax(dim=1, keepdim=True)
+        return self._gather(idx, n), idx, weight
+
+    def set_priorities(self, idx: Tensor, priority: Tensor) -> None:
+        """Rows ``idx [R, n]`` (drawn by ``sample_prioritized``) get ``priority [R, n]`` (> 0); a non-finite one
+        (a run whose update was skipped) leaves its row's as it was. Only their blocks are re-summed."""
+        old = self._priority.gather(1, idx)
+        new = torch.where(torch.isfinite(priority), priority.to(old.dtype), old)
+        self._priority.scatter_(1, idx, new)
+        torch.maximum(self._max_priority, new.amax(dim=1, keepdim=True), out=self._max_priority)
+        block = idx // BLOCK
+        rows = self._priority.view(self.runs, -1, BLOCK).gather(1, block[..., None].expand(-1, -1, BLOCK))
+        self._block_sum.scatter_(1, block, rows.sum(dim=2))
+
+    def _fit_priorities(self) -> None:
+        """Priorities for every allocated row, padded to whole blocks (the padding is never drawn: priority 0)."""
+        if not self.prioritized:
+            return
+        rows = -(-self.allocated // BLOCK) * BLOCK
+        held = self._priority.shape[1]
+        if rows > held:
+            new = torch.zeros(self.runs, rows, device=self.device)
+            new[:, :held] = self._priority
+            self._priority = new
+            self._sum_blocks()
+
+    def _sum_blocks(self) -> None:
+        self._block_sum = self._priority.view(self.runs, -1, BLOCK).sum(dim=2)
 
     def state_dict(self) -> dict[str, Any]:
         """Contents for a full checkpoint, as numpy arrays ``[R, rows, …]`` (only the filled part: up to the fullest
         run's size)."""
         top = int(self._size.max(initial=0))
         data = {k: _host(v[:, :top]) for k, v in self._data.items()}
-        return {"data": data, "next": self._next.copy(), "size": self._size.copy()}
+        state = {"data": data, "next": self._next.copy(), "size": self._size.copy()}
+        if self.prioritized:
+            state.update(priority=_host(self._priority[:, :top]), max_priority=_host(self._max_priority))
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """What ``state_dict`` wrote (a file without ``size`` holds every run's rows up to its length). A single run's
@@ -234,7 +315,30 @@ class JointReplay:
             shape = self._size.shape
             self._size = np.broadcast_to(np.asarray(state.get("size", rows), dtype=np.int64), shape).copy()
             self._next = np.broadcast_to(np.asarray(state["next"], dtype=np.int64), shape) % self.capacity
+        self._load_priorities(state)
         self._sync_sizes()
+
+    def _load_priorities(self, state: dict[str, Any]) -> None:
+        """The saved priorities, or (a file written without them) 1 for every row held: uniform until updated."""
+        if not self.prioritized:
+            return
+        self._priority = torch.zeros(self.runs, 0, device=self.device)
+        self._fit_priorities()
+        if "priority" in state:
+            saved, top = np.asarray(state["priority"], np.float32), np.asarray(state["max_priority"], np.float32)
+            if saved.shape != (self.runs, int(self._size.max(initial=0))) or top.size != self.runs:
+                raise ValueError(f"replay: priorities {saved.shape} (largest {top.shape}) do not fit its rows "
+                                 f"{(self.runs, int(self._size.max(initial=0)))}")  # fmt: skip
+            if not (np.isfinite(saved).all() and (saved >= 0).all() and np.isfinite(top).all() and (top > 0).all()):
+                raise ValueError("replay: priorities must be finite and ≥ 0 (the largest > 0)")
+            self._priority[:, : saved.shape[1]] = torch.as_tensor(saved, device=self.device)
+            self._max_priority.copy_(torch.as_tensor(top).reshape(-1, 1))
+        else:
+            sizes = torch.as_tensor(self._size, device=self.device)[:, None]
+            held = torch.arange(self._priority.shape[1], device=self.device) < sizes
+            self._priority[held] = 1.0
+            self._max_priority.fill_(1.0)
+        self._sum_blocks()
 
 
 def _host(t: Tensor) -> np.ndarray:

@@ -44,11 +44,12 @@ class Loss(NamedTuple):
     agents: Tensor  # [R, N]
     extra: Tensor | None = None  # [R]
     stats: dict[str, float | Tensor] = {}  # noqa: RUF012  (a NamedTuple default, never mutated)
+    priority: Tensor | None = None  # [R, M]: each sample's |TD error|, for prioritized replay
 
     def plus(self, extra: Tensor | None, stats: Mapping[str, float | Tensor]) -> Loss:
         """This loss with one more auxiliary term and its figures."""
         total = self.extra if extra is None else extra if self.extra is None else self.extra + extra
-        return Loss(self.agents, total, {**self.stats, **stats})
+        return Loss(self.agents, total, {**self.stats, **stats}, self.priority)
 
 
 def taken(q: Tensor, action: Tensor) -> Tensor:
@@ -146,7 +147,8 @@ class Updater:
         self._skipped = torch.zeros((), dtype=torch.int64, device=self.device)
         self._nonfinite_in_a_row = torch.zeros(len(seeds), dtype=torch.int64, device=self.device)
         self._optimizer: RunAdam | None = None
-        self._compiled: Callable[[Batch], tuple[tuple[str, ...], Tensor]] | None = None
+        self._compiled: Callable[[Batch], tuple[tuple[str, ...], Tensor, Tensor | None]] | None = None
+        self.priority: Tensor | None = None  # the last update's per-sample |TD error| [R, M], if its loss gave one
         self.set_run_configs(configs)
 
     def set_run_configs(self, configs: Sequence[AlgoConfig]) -> None:
@@ -193,13 +195,13 @@ class Updater:
         """
         if any(c.lr_end is not None for c in self.run_cfgs):  # one op on the device; none at constant lr
             self.optimizer.anneal(fraction)
-        names, table = self._compiled_step(batch) if self.cfg.compile else self._step(batch)
+        names, table, self.priority = self._compiled_step(batch) if self.cfg.compile else self._step(batch)
         self.updates += 1
         if self.syncs_by_updates:
             self.sync_targets()
         return StepFigures(self.name, self.seeds, names, table)
 
-    def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
+    def _compiled_step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor, Tensor | None]:
         """``_step`` compiled whole on first use (no graph break: a break is an error). On CUDA the graph is also
         captured as a CUDA graph (``cuda_graph_options``): one launch per update instead of one per kernel.
         A CUDA graph replays fixed addresses, so the state the step writes in place (Adam's moments and counts, the
@@ -214,12 +216,15 @@ class Updater:
                     torch._dynamo.mark_static_address(t)
             self._compiled = torch.compile(self._step, fullgraph=True, options=cuda_graph_options() if cuda else None)
         with torch._dynamo.config.patch(trace_autograd_ops=True):  # autograd.grad inside the graph
-            names, table = self._compiled(batch)
-        return names, table.clone() if cuda else table
+            names, table, priority = self._compiled(batch)
+        if cuda:
+            table, priority = table.clone(), None if priority is None else priority.clone()
+        return names, table, priority
 
-    def _step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor]:
+    def _step(self, batch: Batch) -> tuple[tuple[str, ...], Tensor, Tensor | None]:
         """Loss → gradients → each run's clip → the non-finite guard → Adam → Polyak target and policy average,
-        all on the device. Returns the figures' names and their table (``StepFigures``)."""
+        all on the device. Returns the figures' names, their table (``StepFigures``) and the loss's per-sample
+        priorities (or None)."""
         out = self.loss(batch)
         loss = out.agents.sum(dim=-1)  # [] or [R]
         total = loss.sum() if out.extra is None else loss.sum() + out.extra.sum()
@@ -242,7 +247,8 @@ class Updater:
             stats = [v.float().expand_as(loss) if isinstance(v, Tensor) else torch.full_like(loss, v)
                      for v in out.stats.values()]  # fmt: skip
             table = torch.stack([loss.detach(), grad_norm, *stats, self._nonfinite_in_a_row.float()])
-        return ("loss", "grad_norm", *out.stats), table.reshape(table.shape[0], -1)
+            priority = None if out.priority is None else out.priority.detach()
+        return ("loss", "grad_norm", *out.stats), table.reshape(table.shape[0], -1), priority
 
     def sync_targets(self) -> None:
         """After an update: copy the online weights into the target of every run whose ``target_update`` period

@@ -245,6 +245,23 @@ class IDQNConfig(AlgoConfig, EntityFields):
         "drives a whole episode on one head drawn at its start, an evaluation (ε = 0) on the heads' mean Q. "
         "Needs share_params. 1 = one Q-network (the paper).",
     )
+    priority_alpha: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="Prioritized replay (Schaul et al. 2016, as in Rainbow): a joint transition is drawn with "
+        "probability ∝ (|δ| + 0.001)^α, δ its TD error averaged over the agents at its last draw (a new one at the "
+        "largest priority its run has had), and its loss weighted by (N·P)^−β over the batch's largest, so that the "
+        "rare transitions the network gets most wrong (a crash) are learned from often; 0 = uniform draws (the "
+        "paper).",
+    )
+    priority_beta: float = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description="Prioritized replay's importance-sampling exponent β at the run's start, annealed linearly to 1 "
+        "at its end (Schaul et al.: the bias of non-uniform draws matters most near convergence).",
+    )
 
 
 class SERConfig(IDQNConfig):

@@ -246,6 +246,7 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         ("ma-mesn", {}),
         ("ma-bon", {"channel_control": "noise"}),
         ("idqn", {"heads": 3, "share_params": True}),  # Bootstrapped DQN: every head's target in the one graph
+        ("idqn", {"priority_alpha": 0.6}),  # prioritized replay: importance weights in, |TD errors| out
     ],
     ids=[
         "idqn",
@@ -256,6 +257,7 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         "ma-mesn",
         "ma-bon-noise-control",
         "idqn-heads",
+        "idqn-prioritized",
     ],
 )
 def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any]) -> None:
