@@ -161,7 +161,8 @@ def learners(scores: dict[str, Any]) -> str:
 def learner_comparisons(scores: dict[str, Any], headline: bool = False) -> str:
     """docs: the learner comparisons that ask whether teammates' knowledge pays, with Welch's test; the README's
     ``headline`` keeps the studies of ≥ 15 seeds an arm and the latest comparison of arms told different things
-    (a screen of one learner setting against another is not the README's question)."""
+    with ≥ 10 seeds an arm (a screen of one learner setting against another is not the README's question, and a
+    3-seed screen of told against own does not replace a 10-seed study)."""
     from convoy.envs.treadmill.config import INFORMATION_FIELDS
 
     groups = scores["groups"]
@@ -169,7 +170,8 @@ def learner_comparisons(scores: dict[str, Any], headline: bool = False) -> str:
     if headline:
         seeds = lambda c: min(len(groups[c["a"]]["last"]), len(groups[c["b"]]["last"]))  # noqa: E731
         told = lambda g: {k: v for k, v in g["env_params"].items() if k in INFORMATION_FIELDS}  # noqa: E731
-        latest = [c for c in chosen if told(groups[c["a"]]) != told(groups[c["b"]])][-1:]
+        contrasts = [c for c in chosen if told(groups[c["a"]]) != told(groups[c["b"]])]
+        latest = ([c for c in contrasts if seeds(c) >= 10] or contrasts)[-1:]
         chosen = [c for c in chosen if seeds(c) >= 15 and c not in latest] + latest
     rows = [
         [f"{c['a']} vs {c['b']}", f"{groups[c['a']]['last_mean']:.1f} vs {groups[c['b']]['last_mean']:.1f}",

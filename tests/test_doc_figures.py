@@ -215,12 +215,17 @@ def always(nets: Any, action: int) -> None:
         last.bias[..., action] = 1.0
 
 
-def test_the_readme_headline_keeps_the_latest_told_against_own_comparison_not_a_later_screen() -> None:
+def test_the_readme_headline_keeps_the_latest_10_seed_told_against_own_study_not_a_later_screen() -> None:
     scores = json.loads((doc_figures.FIGURES / "treadmill_learners.json").read_text())
-    told = [c for c in scores["comparisons"] if "team_sightings" in scores["groups"][c["a"]]["env_params"]
-            and "team_sightings" not in scores["groups"][c["b"]]["env_params"]]  # fmt: skip
-    own = [g for g, v in scores["groups"].items() if "team_sightings" not in v["env_params"]]
+    groups = scores["groups"]
+    told = [c for c in scores["comparisons"] if "team_sightings" in groups[c["a"]]["env_params"]
+            and "team_sightings" not in groups[c["b"]]["env_params"]]  # fmt: skip
+    seeds = [min(len(groups[c["a"]]["last"]), len(groups[c["b"]]["last"])) for c in told]
+    best = [c for c, n in zip(told, seeds, strict=True) if n >= 10][-1]
+    own = [g for g, v in groups.items() if "team_sightings" not in v["env_params"]]
     screen = {**told[-1], "a": own[0], "b": own[1]}  # one own setting against another, compared last
     scores["comparisons"] = [*scores["comparisons"], screen]
     headline = doc_figures.learner_comparisons(scores, headline=True)
-    assert f"| {told[-1]['a']} vs {told[-1]['b']}" in headline and f"| {own[0]} vs {own[1]}" not in headline
+    assert f"| {best['a']} vs {best['b']}" in headline and f"| {own[0]} vs {own[1]}" not in headline
+    assert min(seeds) < max(seeds)  # a later, smaller told-against-own screen is there and not the headline
+    assert all(f"| {c['a']} vs {c['b']}" not in headline for c in told if c is not best and seeds[told.index(c)] < 15)
