@@ -228,4 +228,5 @@ def test_the_readme_headline_keeps_the_latest_10_seed_told_against_own_study_not
     headline = doc_figures.learner_comparisons(scores, headline=True)
     assert f"| {best['a']} vs {best['b']}" in headline and f"| {own[0]} vs {own[1]}" not in headline
     assert min(seeds) < max(seeds)  # a later, smaller told-against-own screen is there and not the headline
-    assert all(f"| {c['a']} vs {c['b']}" not in headline for c in told if c is not best and seeds[told.index(c)] < 15)
+    smaller = [c for c, n in zip(told, seeds, strict=True) if c is not best and n < 15]
+    assert all(f"| {c['a']} vs {c['b']}" not in headline for c in smaller)
