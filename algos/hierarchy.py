@@ -102,6 +102,10 @@ LATERAL, HEADING, SPEED = 0, slice(1, 1 + N_HEADINGS), 1 + N_HEADINGS  # own fea
 META_PREFIX = "meta/"  # extras of the meta-controller's act, carried to its transitions
 
 
+# independent DQN settings the controller takes from a job that has them (``_controller_config``)
+CONTROLLER_TAKES = ("dueling", "priority_alpha", "priority_beta")
+
+
 class GoalCritic:
     """Internal critic: has each agent reached its goal between two observations of the same episode?"""
 
@@ -320,9 +324,12 @@ class HierarchicalAgent:
 
     def _controller_config(self, cfg: AlgoConfig) -> IDQNConfig:
         """The controller's config from the job's: shared weights over every (env, agent) row, and replay capacity,
-        batch and warm-up scaled by N so an update sees as many agent transitions as one of a joint algorithm."""
+        batch and warm-up scaled by N so an update sees as many agent transitions as one of a joint algorithm. Of
+        independent DQN's own settings it takes those that leave its input and acting alone (``CONTROLLER_TAKES``:
+        the dueling head, prioritized replay); the encoder and Bootstrapped heads stay the MLP and one head, as its
+        input ``obs ⊕ one_hot(goal)`` has no car layout and it acts row by row without an episode's head."""
         n = self.n_agents
-        base = {k: getattr(cfg, k) for k in AlgoConfig.model_fields}
+        base = {k: getattr(cfg, k) for k in (*AlgoConfig.model_fields, *CONTROLLER_TAKES) if hasattr(cfg, k)}
         base.update(
             share_params=True,
             batch_size=cfg.batch_size * n,

@@ -295,6 +295,19 @@ def test_every_meta_algorithm_trains_both_levels(algo: str) -> None:
     assert (out.messages is not None) == agent.uses_messages
 
 
+def test_controller_takes_the_jobs_dueling_head_and_prioritized_replay() -> None:
+    hp = {"hidden": (32,), "learning_starts": 100, "batch_size": 32, "replay_ratio": 1.0, "dueling": True,
+          "priority_alpha": 0.5, "priority_beta": 0.6}  # fmt: skip
+    j = job(algo_params=hp, steps=600, num_envs=8, eval_episodes=0)
+    env = make_env(j)
+    agent = hierarchical(make_agent(j, env.spec, device="cpu"))
+    ctrl = agent.controller.cfg
+    assert (ctrl.dueling, ctrl.priority_alpha, ctrl.priority_beta) == (True, 0.5, 0.6)
+    Trainer(j, env, agent, progress=False).run()
+    assert agent.controller.updates > 0 and agent.meta.updates > 0
+    assert agent.controller.replay.prioritized  # drawn by priority, not uniformly
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["idqn", "ma-mesn"])
 def test_hierarchical_training_beats_the_random_policy(algo: str) -> None:
