@@ -55,7 +55,7 @@ def read_config_file(path: str) -> dict[str, Any]:
 def job_from_args(args: argparse.Namespace) -> JobConfig:
     """Config file first, then every flag given on the command line on top of it."""
     values: dict[str, Any] = read_config_file(args.config) if args.config else {}
-    values.update(given(args, (*JOB_FLAGS, "seeds", "loggers", "device", "torch_threads")))
+    values.update(given(args, (*JOB_FLAGS, "seeds", "loggers", "device", "torch_threads", "checkpoint_every")))
     with_runtime_flags(values, args)
     values["env_params"] = env_params(args, values.get("env_params"))
     values["algo_params"] = {**values.get("algo_params", {}), **parse_pairs(args.hp, "--hp")}
@@ -120,7 +120,7 @@ def resumed_inprocess(args: argparse.Namespace, out: Path) -> bool:
     return started_inprocess
 
 
-RESUME_FLAGS = ("steps", "device", "torch_threads", "loggers")  # what may change when a run goes on
+RESUME_FLAGS = ("steps", "device", "torch_threads", "loggers", "checkpoint_every")  # what may change when a run goes on
 RESUME_HP = ("compile",)  # how the update runs, not what it computes: a long run may go on captured
 
 
@@ -138,7 +138,8 @@ def resumed_job(args: argparse.Namespace) -> JobConfig:
     other += [flag for flag, value in fixed if value]
     if other:
         raise ConfigError("--resume", f"goes on with the run's own job ({path}); {', '.join(other)} cannot change "
-                          "(only --steps, --device, --threads, --actors, --runtime and --hp compile)")  # fmt: skip
+                          "(only --steps, --device, --threads, --checkpoint-every, --actors, --runtime and --hp "
+                          "compile)")  # fmt: skip
     values = json.loads(path.read_text())
     values.update(given(args, RESUME_FLAGS))
     values["algo_params"] = {**values.get("algo_params", {}), **hp}
@@ -321,7 +322,9 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
 def add_job_arguments(tr: argparse.ArgumentParser) -> None:
     """The flags that build a JobConfig (``job_from_args``): shared by train and the single-role commands."""
     add_job_flags(tr)
-    add_model_flags(tr, JobConfig, ("seeds", "device", "torch_threads"), flags={"torch_threads": "--threads"})
+    add_model_flags(
+        tr, JobConfig, ("seeds", "device", "torch_threads", "checkpoint_every"), flags={"torch_threads": "--threads"}
+    )
     tr.add_argument(
         "--logger",
         dest="loggers",

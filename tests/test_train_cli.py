@@ -50,9 +50,10 @@ def test_config_file_with_flag_overrides(tmp_path, capsys) -> None:
     cfg = tmp_path / "job.toml"
     cfg.write_text('algo = "idqn"\nenv = "treadmill"\nsteps = 999\n[algo_params]\nlr = 0.002\n')
     out = tmp_path / "run"
-    assert main(["train", "--config", str(cfg), *TINY, "--out", str(out)]) == 0
+    assert main(["train", "--config", str(cfg), *TINY, "--checkpoint-every", "1500", "--out", str(out)]) == 0
     _, job, _ = load_checkpoint(out / "checkpoint.pt", device="cpu")
     assert job.algo == "idqn" and job.env == "referential" and job.steps == 3000  # flags win
+    assert job.checkpoint_every == 1500
     assert job.algo_params["lr"] == 0.002 and job.algo_params["hidden"] == [32]  # file and flags merge
 
 
@@ -214,9 +215,12 @@ def test_resume_says_what_cannot_change(tmp_path, capsys) -> None:
     from convoy.cli.main import build_parser
     from convoy.cli.train import resumed_job
 
-    args = build_parser().parse_args(["train", "--resume", str(out), "--hp", "compile=true"])
+    args = build_parser().parse_args(
+        ["train", "--resume", str(out), "--hp", "compile=true", "--checkpoint-every", "200"]
+    )
     job = resumed_job(args)  # how the update runs may change as a long run goes on: what it learns may not
     assert job.algo_params["compile"] is True and job.steps == 1000 and job.algo == "idqn"
+    assert job.checkpoint_every == 200  # how often it is saved may change too
     before = (out / "job.json").read_text()
     (out / "checkpoint.pt").rename(out / "stopped-early.pt")  # a run stopped before its first checkpoint
     assert main(["train", "--resume", str(out), "--hp", "compile=true", "--no-progress"]) == 2
