@@ -29,7 +29,7 @@ from convoy.algos.hierarchy import (
     LockstepQueue,
 )
 from convoy.algos.updater import bootstrap_target
-from convoy.config import job_config
+from convoy.config import IDQNConfig, job_config
 from convoy.envs import make_batched
 from convoy.envs.treadmill.config import N_HEADINGS, TreadmillConfig
 from convoy.learner.inprocess import Trainer
@@ -302,6 +302,7 @@ def test_controller_takes_the_jobs_dueling_head_and_prioritized_replay() -> None
     env = make_env(j)
     agent = hierarchical(make_agent(j, env.spec, device="cpu"))
     ctrl = agent.controller.cfg
+    assert isinstance(ctrl, IDQNConfig)
     assert (ctrl.dueling, ctrl.priority_alpha, ctrl.priority_beta) == (True, 0.5, 0.6)
     Trainer(j, env, agent, progress=False).run()
     assert agent.controller.updates > 0 and agent.meta.updates > 0
