@@ -254,7 +254,6 @@ class NetworkAgent(ABC):
         # prioritized replay where the algorithm has it (independent DQN's ``priority_alpha``; its loss weighs and
         # returns priorities): the rows last drawn wait in ``_drawn`` for the update's |δ|
         self.priority_alpha: float = getattr(cfg, "priority_alpha", 0.0)
-        self.priority_beta: float = getattr(cfg, "priority_beta", 1.0)  # at the run's start; 1 by its end
         self._drawn: Tensor | None = None
         self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=declared, device=self.device,
                                   prioritized=self.priority_alpha > 0)  # fmt: skip
@@ -360,8 +359,8 @@ class NetworkAgent(ABC):
         gathered on the device."""
         if not self.replay.prioritized:
             return self.replay.sample(self.cfg.batch_size, self.streams["replay"])
-        fraction = run_fraction(self.progress.env_steps, self.progress.total_steps)
-        beta = self.priority_beta + (1.0 - self.priority_beta) * fraction
+        beta0: float = getattr(self.cfg, "priority_beta", 1.0)  # at the run's start; 1 by its end
+        beta = beta0 + (1.0 - beta0) * run_fraction(self.progress.env_steps, self.progress.total_steps)
         batch, self._drawn, weight = self.replay.sample_prioritized(self.cfg.batch_size, self.streams["replay"], beta)
         batch.extras["is_weight"] = weight
         return batch
