@@ -262,6 +262,22 @@ class IDQNConfig(AlgoConfig, EntityFields):
         description="Prioritized replay's importance-sampling exponent β at the run's start, annealed linearly to 1 "
         "at its end (Schaul et al.: the bias of non-uniform draws matters most near convergence).",
     )
+    demonstrator: str | None = Field(
+        None,
+        max_length=64,
+        description="A treadmill reference policy (convoy env rollout --policy's names: private-planner for a learner "
+        "on its own observation, team-planner for one told every sighting) cloned into the Q-network by DAgger "
+        "before Q-learning starts (learner/imitation.py): demo_rounds rounds of demo_episodes tuning episodes per "
+        "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
+        "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
+    )
+    demo_rounds: int = Field(8, ge=1, le=64, description="DAgger rounds of a demonstrator start.")
+    demo_episodes: int = Field(
+        128, ge=1, le=4096, description="Tuning episodes each run plays per DAgger round (its own states)."
+    )
+    demo_epochs: int = Field(
+        4, ge=1, le=100, description="Passes over a run's states so far after each DAgger round (cross-entropy)."
+    )
 
 
 class SERConfig(IDQNConfig):
@@ -776,9 +792,24 @@ class JobConfig(BaseModel):
             why = "hierarchical DQN's options span many steps" if self.hierarchical else "DIAL learns from sequences"
             raise ConfigError("algo_params.n_step", f"{why}; drop n_step (one-step returns) for this job")
         self._check_seeds()
+        if self.algo_params.get("demonstrator"):
+            self._check_demonstrator()
         if self.algo_params.get("encoder") == "entity":
             self._check_layout()
         return self
+
+    def _check_demonstrator(self) -> None:
+        """A demonstrator is a treadmill reference cloned into one Q-network: refused where it could not be."""
+        from convoy.envs.treadmill.references import REFERENCES
+
+        name, field = self.algo_params["demonstrator"], "algo_params.demonstrator"
+        if self.env != "treadmill" or self.hierarchical:
+            where = "a hierarchical job's controller" if self.hierarchical else f"env {self.env!r}"
+            raise ConfigError(field, f"demonstrators are treadmill reference policies, not for {where}; drop it")
+        if name not in REFERENCES:
+            raise ConfigError(field, f"unknown reference policy {name!r}; choose one of: {', '.join(REFERENCES)}")
+        if self.algo_params.get("heads", 1) != 1:
+            raise ConfigError(field, "a demonstration starts one Q-head; drop heads (or the demonstrator)")
 
     def _check_layout(self) -> None:
         """``encoder=entity`` reads the env's observation layout: refused here, before any process starts, when the

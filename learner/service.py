@@ -36,6 +36,7 @@ from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
+from convoy.learner.imitation import start_from_demonstrations
 from convoy.learner.population import PopulationCore, mean_row
 from convoy.learner.resume import restore
 from convoy.learner.runtime import configure_learner
@@ -140,6 +141,7 @@ class Learner:
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
         if counters is None:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
+            start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info)
         watch = ParentWatch()
         try:
             session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())

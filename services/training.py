@@ -67,6 +67,8 @@ def run_population(
     there."""
     from convoy.algos.agent import make_agent
     from convoy.algos.checkpoint import REPLAY_FILE
+    from convoy.learner.core import print_line
+    from convoy.learner.imitation import start_from_demonstrations
     from convoy.learner.population import PopulationTrainer
     from convoy.learner.resume import restore_population
     from convoy.learner.runtime import configure_learner
@@ -83,6 +85,8 @@ def run_population(
         if resume and replay is not None:
             dirs = [d for d in out_dirs if d is not None]
             counters = restore_population(agent, jobs, dirs, replay, strict=True)
+        if counters is None:
+            start_from_demonstrations(agent, population, out_dirs, print_line)  # minutes: said even without a bar
         trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs,
                                     progress=progress, replay=replay, counters=counters)  # fmt: skip
         return trainer.run()

@@ -172,28 +172,3 @@ def test_treadmill_imitation_clones_the_planner_into_the_learners_network(tmp_pa
     )  # fmt: skip
     assert clone_only.returncode == 0, clone_only.stderr
     assert "learned" not in json.loads(out.read_text())
-
-
-def test_dagger_records_only_running_envs_and_mixes_teacher_and_student() -> None:
-    import importlib.util
-
-    import numpy as np
-
-    from convoy.envs.batched import StepResult
-
-    spec = importlib.util.spec_from_file_location("bench_imitation", ROOT / "benchmarks" / "treadmill_imitation.py")
-    assert spec is not None and spec.loader is not None
-    imitation = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(imitation)
-    teacher = lambda obs: np.full(obs.shape[:2], 1)  # noqa: E731
-    student = lambda obs: np.full(obs.shape[:2], 2)  # noqa: E731
-    obs = np.zeros((4, 3, 5), np.float32)
-    only_teacher = imitation.Dagger(teacher, student, beta=1.0, epsilon=0.0, num_envs=4, seed=0)
-    assert (only_teacher(obs) == 1).all()
-    only_student = imitation.Dagger(teacher, student, beta=0.0, epsilon=0.0, num_envs=4, seed=0)
-    assert (only_student(obs) == 2).all()
-    done = np.array([True, False, False, True])
-    zeros = np.zeros((4, 3))
-    only_student.after_step(StepResult(obs, zeros, done, np.zeros(4, bool), obs))
-    only_student(obs)
-    assert [len(o) for o in only_student.obs] == [4, 2] and (np.concatenate(only_student.labels) == 1).all()

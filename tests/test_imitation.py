@@ -1,0 +1,102 @@
+"""A demonstration start (``--hp demonstrator=NAME``): DAgger of a treadmill planner into the Q-network before
+Q-learning, each run on its own states; refused where it cannot apply; not repeated when a run goes on."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from convoy.algos.agent import make_agent
+from convoy.cli.main import main
+from convoy.config import job_config
+from convoy.envs import make_batched
+from convoy.envs.batched import StepResult
+from convoy.learner import imitation
+from convoy.learner.imitation import Dagger, demonstration_start
+from convoy.validation import ConfigError
+
+DEMO = {"demonstrator": "private-planner", "demo_rounds": 2, "demo_episodes": 6, "demo_epochs": 3}
+
+
+def test_dagger_records_only_running_envs_and_mixes_teacher_and_student() -> None:
+    teacher = lambda obs: np.full(obs.shape[:2], 1)  # noqa: E731
+    student = lambda obs: np.full(obs.shape[:2], 2)  # noqa: E731
+    obs = np.arange(4 * 3 * 5, dtype=np.float32).reshape(4, 3, 5)
+    only_teacher = Dagger(teacher, student, beta=1.0, n_actions=9, envs=4, seed=0, epsilon=0.0)
+    assert (only_teacher(obs) == 1).all()
+    only_student = Dagger(teacher, student, beta=0.0, n_actions=9, envs=4, seed=0, epsilon=0.0)
+    assert (only_student(obs) == 2).all()
+    done = np.array([True, False, False, True])
+    zeros = np.zeros((4, 3))
+    only_student.after_step(StepResult(obs, zeros, done, np.zeros(4, bool), obs))
+    only_student(obs)
+    (first, second), (labels0, labels1) = only_student.per_run(2)  # run 0: envs 0–1, run 1: envs 2–3
+    assert len(first) == 3 and len(second) == 3  # env 0 and env 3 ended after the first step
+    np.testing.assert_array_equal(first, obs[[0, 1, 1]])
+    np.testing.assert_array_equal(second, obs[[2, 3, 2]])
+    assert (np.concatenate([labels0, labels1]) == 1).all()  # the teacher labels every state, whoever drove
+
+
+def test_each_run_clones_the_planner_from_its_own_states() -> None:
+    torch.manual_seed(0)
+    job = job_config(algo="idqn", env="treadmill", preset="charger", seeds=[0, 1], algo_params=DEMO)
+    env = make_batched(job.env, 1, **job.env_params)
+    agent = make_agent(job, env.spec, run_configs=[j.algo_config() for j in job.members()])
+    said: list[str] = []
+    seen: list[list[dict]] = []
+    figures = demonstration_start(agent, job, said.append, after_round=seen.append)
+    assert figures is not None and len(figures) == 2 and len(said) == 2 and len(seen) == 2
+    for run in figures:
+        first, second = run["rounds"]
+        assert first["beta"] == 1.0 and second["beta"] == 0.5 and second["states"] > first["states"]
+        assert second["accuracy"] > 0.4  # far above chance (1 in 9): the network fits the planner's choices
+        assert run["demo_env_steps"] == second["states"] and run["demonstrator"] == "private-planner"
+    assert figures[0]["demo_env_steps"] != figures[1]["demo_env_steps"]  # each run played its own episodes
+    for a, b in zip(agent.online.parameters(), agent.target.parameters(), strict=True):
+        assert torch.equal(a, b)  # Q-learning bootstraps from the clone
+    plain = job_config(algo="idqn", env="treadmill", preset="charger")
+    assert demonstration_start(make_agent(plain, env.spec), plain) is None  # no demonstrator: nothing happens
+
+
+@pytest.mark.parametrize(
+    ("values", "says"),
+    [
+        ({"env": "predator-prey"}, "not for env 'predator-prey'"),
+        ({"hierarchical": True}, "hierarchical"),
+        ({"algo_params": {"demonstrator": "best-driver"}}, "unknown reference policy 'best-driver'"),
+        ({"algo_params": {"demonstrator": "team-planner", "heads": 3}}, "drop heads"),
+    ],
+)
+def test_a_demonstrator_that_cannot_apply_is_refused_naming_the_field(values, says) -> None:
+    job = {"algo": "idqn", "env": "treadmill", "algo_params": {"demonstrator": "private-planner"}, **values}
+    with pytest.raises(ConfigError, match=r"algo_params\.demonstrator") as err:
+        job_config(**job)
+    assert says in str(err.value)
+
+
+def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, monkeypatch, capsys) -> None:
+    out = tmp_path / "run"
+    args = ["train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--preset", "charger", "--seeds", "0",
+            "1", "--steps", "256", "--num-envs", "8", "--eval-episodes", "2", "--checkpoint-every", "128",
+            "--no-progress", "--out", str(out), "--hp", "hidden=32", "--hp", "learning_starts=64",
+            *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")]]  # fmt: skip
+    old = torch.get_num_threads()
+    try:
+        assert main(args) == 0
+        assert "demonstration round 2/2 (private-planner)" in capsys.readouterr().out
+        for seed in (0, 1):
+            demo = json.loads((out / f"seed-{seed}" / imitation.DEMONSTRATION_FILE).read_text())
+            assert demo["demo_env_steps"] > 0 and len(demo["rounds"]) == 2
+
+        def again(*_a, **_k):
+            raise AssertionError("a resumed run started from demonstrations again")
+
+        monkeypatch.setattr(imitation, "demonstration_start", again)
+        assert main(["train", "--resume", str(out), "--steps", "384", "--no-progress"]) == 0
+    finally:
+        torch.set_num_threads(old)
+    summary = json.loads((out / "seed-1" / "summary.json").read_text())
+    assert summary["env_steps"] >= 384
