@@ -178,11 +178,13 @@ DEMONSTRATION_FILE = "demonstration.json"
 
 def start_from_demonstrations(
     agent: Any, job: JobConfig, dirs: list[Path] | list[Path | None], say: Callable[[str], None] | None = None
-) -> None:
+) -> bool:
     """A fresh population ``agent`` of ``job`` (its runs' folders ``dirs``) cloned from the job's demonstrator, if it
-    names one, each run's DAgger figures in its folder's ``demonstration.json``."""
+    names one, each run's DAgger figures in its folder's ``demonstration.json``; whether it did (then the caller
+    checkpoints the clone at step 0, so that a stop before the first checkpoint does not repeat it)."""
     figures = demonstration_start(agent, job, say)
     for run_figures, out in zip(figures or [], dirs, strict=False):
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             (out / DEMONSTRATION_FILE).write_text(json.dumps(run_figures, indent=1) + "\n")
+    return figures is not None

@@ -199,16 +199,19 @@ class PopulationTrainer:
         replay: Path | None = None,
         counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
         on_row: Callable[[int], dict[str, float]] | None = None,
+        checkpoint_first: bool = False,
     ) -> None:
         """``replay``: where the population's replay goes with each checkpoint; ``counters``: the runs'
         checkpoints' when ``algo`` resumes from them (``learner/resume.py``); ``on_row(env_steps)``: figures
-        measured at every metric row and added to it (periodic evaluation)."""
+        measured at every metric row and added to it (periodic evaluation); ``checkpoint_first``: checkpoint
+        before the first step (a demonstration start's clone, minutes of work a stop should not lose)."""
         self.jobs, self.env, self.algo = jobs, env, algo
         self.make_eval_env = make_eval_env
         self.out_dirs = out_dirs
         self.show_progress = progress
         self.replay, self.counters = replay, counters
         self.on_row = on_row
+        self.checkpoint_first = checkpoint_first
 
     def run(self) -> list[TrainResult]:
         algo, env = self.algo, self.env
@@ -219,6 +222,8 @@ class PopulationTrainer:
                               counters=self.counters, replay=replay)  # fmt: skip
         stepper = EnvStepper(env, algo, seed=self.jobs[0].seed)
         try:
+            if self.checkpoint_first:
+                core.checkpoint()
             while not core.done:
                 core.set_progress()
                 returns = stepper.step(core.epsilon)

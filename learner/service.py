@@ -120,6 +120,7 @@ class Learner:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.on_data = on_data
         self.stopping = False
+        self.cloned = False  # whether this run started from its demonstrator (learner/imitation.py)
         self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
 
     def stop(self, *_: Any) -> None:
@@ -141,7 +142,7 @@ class Learner:
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
         if counters is None:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
-            start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info)
+            self.cloned = start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info)
         watch = ParentWatch()
         try:
             session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())
@@ -223,6 +224,8 @@ class Learner:
         job, rt = self.job, self.job.runtime
         t_len = rt.chunk_len(algo.chunk_len)
         s = _Ingest(self._core(algo, counters), job.num_envs * t_len, rt.slack(job.num_envs, t_len), inbox)
+        if self.cloned:  # a demonstration start's clone: minutes of work a stop should not lose
+            s.core.checkpoint()
         try:
             while not s.core.done and not self.stopping:
                 if watch.orphaned():

@@ -85,10 +85,10 @@ def run_population(
         if resume and replay is not None:
             dirs = [d for d in out_dirs if d is not None]
             counters = restore_population(agent, jobs, dirs, replay, strict=True)
-        if counters is None:
-            start_from_demonstrations(agent, population, out_dirs, print_line)  # minutes: said even without a bar
-        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs,
-                                    progress=progress, replay=replay, counters=counters)  # fmt: skip
+        # minutes of DAgger when the job names a demonstrator: said even without a progress bar
+        cloned = counters is None and start_from_demonstrations(agent, population, out_dirs, print_line)
+        trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress,
+                                    replay=replay, counters=counters, checkpoint_first=cloned)  # fmt: skip
         return trainer.run()
     finally:
         env.close()

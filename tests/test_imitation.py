@@ -77,26 +77,40 @@ def test_a_demonstrator_that_cannot_apply_is_refused_naming_the_field(values, sa
     assert says in str(err.value)
 
 
-def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, monkeypatch, capsys) -> None:
+def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, monkeypatch) -> None:
+    """The clone is checkpointed before the first step: a run stopped then goes on from it, not from DAgger again."""
+    from convoy.actors.stepping import EnvStepper
+    from convoy.algos.checkpoint import load_checkpoint
+
     out = tmp_path / "run"
     args = ["train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--preset", "charger", "--seeds", "0",
             "1", "--steps", "256", "--num-envs", "8", "--eval-episodes", "2", "--checkpoint-every", "128",
             "--no-progress", "--out", str(out), "--hp", "hidden=32", "--hp", "learning_starts=64",
             *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")]]  # fmt: skip
+
+    class Stopped(Exception):
+        pass
+
+    def stop(*_a, **_k):
+        raise Stopped  # the machine went away at the first step
+
     old = torch.get_num_threads()
     try:
-        assert main(args) == 0
-        assert "demonstration round 2/2 (private-planner)" in capsys.readouterr().out
+        with monkeypatch.context() as m:
+            m.setattr(EnvStepper, "step", stop)
+            with pytest.raises(Stopped):
+                main(args)
         for seed in (0, 1):
             demo = json.loads((out / f"seed-{seed}" / imitation.DEMONSTRATION_FILE).read_text())
             assert demo["demo_env_steps"] > 0 and len(demo["rounds"]) == 2
+            assert load_checkpoint(out / f"seed-{seed}" / "checkpoint.pt", device="cpu")[2]["env_steps"] == 0
 
         def again(*_a, **_k):
             raise AssertionError("a resumed run started from demonstrations again")
 
         monkeypatch.setattr(imitation, "demonstration_start", again)
-        assert main(["train", "--resume", str(out), "--steps", "384", "--no-progress"]) == 0
+        assert main(["train", "--resume", str(out), "--no-progress"]) == 0
     finally:
         torch.set_num_threads(old)
     summary = json.loads((out / "seed-1" / "summary.json").read_text())
-    assert summary["env_steps"] >= 384
+    assert summary["env_steps"] >= 256
