@@ -27,6 +27,7 @@ from convoy.config import (
     ALGORITHMS,
     JOB_FIELDS,
     AlgoConfig,
+    IDQNConfig,
     JobConfig,
     env_default_note,
     job_config,
@@ -179,6 +180,10 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
         head = (f"{env}: {len(seeds)} runs (seeds {' '.join(map(str, seeds))}) × {job.steps:,} env steps, "
                 f"{job.num_envs} envs each{per_actor}, hidden {job.algo_config().hidden}, {where} → "
                 f"{out}/seed-N/")  # fmt: skip
+    cfg = job.algo_config()
+    if isinstance(cfg, IDQNConfig) and cfg.demonstrator and not args.resume:
+        head += (f"\nfirst cloned from {cfg.demonstrator} (DAgger, {cfg.demo_rounds} rounds of {cfg.demo_episodes} "
+                 "episodes per run): a few minutes per round")  # fmt: skip
     console.print(head, highlight=False, soft_wrap=True)
     out.mkdir(parents=True, exist_ok=True)  # the job's own config (each run writes its own): for --resume
     job.write(out / "job.json")

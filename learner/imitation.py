@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from convoy.config import JobConfig
+from convoy.config import IDQNConfig, JobConfig
 from convoy.envs import make_batched
 from convoy.envs.batched import StepResult
 from convoy.envs.rollout import rollout
@@ -128,9 +128,9 @@ def demonstration_start(
     (rounds, states, accuracy, ``demo_env_steps``), or None when the job names no demonstrator. ``after_round``
     sees each round's per-run figures (a benchmark scores the clones there and adds to them)."""
     cfg = job.algo_config()
-    teacher_name = getattr(cfg, "demonstrator", None)
-    if not teacher_name:
+    if not isinstance(cfg, IDQNConfig) or not cfg.demonstrator:
         return None
+    teacher_name = cfg.demonstrator
     from convoy.envs.treadmill.references import reference_policy
 
     runs = agent.runs
@@ -149,7 +149,7 @@ def demonstration_start(
         for k in range(cfg.demo_rounds):
             start = time.perf_counter()
             teacher = reference_policy(teacher_name, env)  # type: ignore[arg-type]
-            policy = Dagger(teacher, student, 0.5**k, env.spec.n_actions, env.num_envs, seed=job.seed * 1000 + k)
+            policy = Dagger(teacher, student, 0.5**k, max(env.spec.n_actions), env.num_envs, seed=job.seed * 1000 + k)
             rollout(env, policy, seed=TUNING_SEED * 100_000 + k, after_step=policy.after_step)
             for r, (o, y) in enumerate(zip(*policy.per_run(runs), strict=True)):
                 obs[r].append(o)

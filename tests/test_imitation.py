@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from convoy.algos.agent import make_agent
+from convoy.algos.algorithm import NetworkAgent
 from convoy.cli.main import main
 from convoy.config import job_config
 from convoy.envs import make_batched
@@ -55,6 +56,7 @@ def test_each_run_clones_the_planner_from_its_own_states() -> None:
         assert second["accuracy"] > 0.4  # far above chance (1 in 9): the network fits the planner's choices
         assert run["demo_env_steps"] == second["states"] and run["demonstrator"] == "private-planner"
     assert figures[0]["demo_env_steps"] != figures[1]["demo_env_steps"]  # each run played its own episodes
+    assert isinstance(agent, NetworkAgent) and agent.target is not None
     for a, b in zip(agent.online.parameters(), agent.target.parameters(), strict=True):
         assert torch.equal(a, b)  # Q-learning bootstraps from the clone
     plain = job_config(algo="idqn", env="treadmill", preset="charger")
