@@ -265,8 +265,9 @@ class IDQNConfig(AlgoConfig, EntityFields):
     demonstrator: str | None = Field(
         None,
         max_length=64,
-        description="A treadmill reference policy (convoy env rollout --policy's names: private-planner for a learner "
-        "on its own observation, team-planner for one told every sighting) cloned into the Q-network by DAgger "
+        description="A treadmill reference policy (convoy env rollout --policy's names; planner = the planner of the "
+        "learner's information: team-planner when told teammates' sightings or observations, team16-planner when "
+        "told their words, else private-planner) cloned into the Q-network by DAgger "
         "before Q-learning starts (learner/imitation.py): demo_rounds rounds of demo_episodes tuning episodes per "
         "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
         "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
@@ -806,8 +807,9 @@ class JobConfig(BaseModel):
         if self.env != "treadmill" or self.hierarchical:
             where = "a hierarchical job's controller" if self.hierarchical else f"env {self.env!r}"
             raise ConfigError(field, f"demonstrators are treadmill reference policies, not for {where}; drop it")
-        if name not in REFERENCES:
-            raise ConfigError(field, f"unknown reference policy {name!r}; choose one of: {', '.join(REFERENCES)}")
+        if name != "planner" and name not in REFERENCES:
+            names = ", ".join(("planner", *REFERENCES))
+            raise ConfigError(field, f"unknown reference policy {name!r}; choose one of: {names}")
         if self.algo_params.get("heads", 1) != 1:
             raise ConfigError(field, "a demonstration starts one Q-head; drop heads (or the demonstrator)")
 

@@ -37,6 +37,7 @@ EPSILON = 0.05  # the student's exploration while it drives a DAgger round
 BATCH = 256  # env steps (each run's) per gradient step
 LR = 5e-4  # Adam's step size for the clone
 CLIP = 10.0  # gradient norm, as the Q-learning update's
+PLANNER = "planner"  # the demonstrator that stands for the planner of the learner's information
 
 
 class Dagger:
@@ -118,6 +119,17 @@ def clone(agent: Any, obs: list[np.ndarray], labels: list[np.ndarray], epochs: i
     return (correct / steps).tolist()
 
 
+def teacher_for(demonstrator: str, env_params: dict[str, Any]) -> str:
+    """The reference policy a ``demonstrator`` names: ``planner`` is the planner of the learner's information (the
+    team planner for a learner told teammates' observations or sightings, the 16-bit one for a learner told their
+    words, else the private planner), so that one recipe serves every information level."""
+    if demonstrator != PLANNER:
+        return demonstrator
+    if env_params.get("team_observations") or env_params.get("team_sightings"):
+        return "team-planner"
+    return "team16-planner" if env_params.get("team_words") else "private-planner"
+
+
 def demonstration_start(
     agent: Any,
     job: JobConfig,
@@ -130,7 +142,7 @@ def demonstration_start(
     cfg = job.algo_config()
     if not isinstance(cfg, IDQNConfig) or not cfg.demonstrator:
         return None
-    teacher_name = cfg.demonstrator
+    teacher_name = teacher_for(cfg.demonstrator, job.env_params)
     from convoy.envs.treadmill.references import reference_policy
 
     runs = agent.runs

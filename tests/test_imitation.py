@@ -16,7 +16,7 @@ from convoy.config import job_config
 from convoy.envs import make_batched
 from convoy.envs.batched import StepResult
 from convoy.learner import imitation
-from convoy.learner.imitation import Dagger, demonstration_start
+from convoy.learner.imitation import Dagger, demonstration_start, teacher_for
 from convoy.validation import ConfigError
 
 DEMO = {"demonstrator": "private-planner", "demo_rounds": 2, "demo_episodes": 6, "demo_epochs": 3}
@@ -61,6 +61,15 @@ def test_each_run_clones_the_planner_from_its_own_states() -> None:
         assert torch.equal(a, b)  # Q-learning bootstraps from the clone
     plain = job_config(algo="idqn", env="treadmill", preset="charger")
     assert demonstration_start(make_agent(plain, env.spec), plain) is None  # no demonstrator: nothing happens
+
+
+def test_planner_names_the_planner_of_the_learners_information() -> None:
+    assert teacher_for("planner", {}) == "private-planner"
+    assert teacher_for("planner", {"team_sightings": True, "sighting_headings": True}) == "team-planner"
+    assert teacher_for("planner", {"team_observations": True}) == "team-planner"
+    assert teacher_for("planner", {"team_words": True}) == "team16-planner"
+    assert teacher_for("full-planner", {}) == "full-planner"  # a named reference is itself
+    job_config(algo="idqn", env="treadmill", algo_params={"demonstrator": "planner"})  # accepted
 
 
 @pytest.mark.parametrize(
