@@ -44,6 +44,11 @@ class IndependentDQN(NetworkAgent):
         return {"q": obs_network(self.spec, self.cfg, groups, extra, self.cfg.widths, self.n_act, q_values=True,
                                  heads=self.cfg.heads)}  # fmt: skip
 
+    def imitation_logits(self, obs: Tensor) -> Tensor:
+        """The online Q-values ``[R, b, N, A]`` as a clone's logits (``learner/imitation.py``)."""
+        logits: Tensor = self.online["q"](self.features(obs))
+        return logits
+
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, None, Tensor | None]:
         q = self.online["q"](self.features(obs))
         return (q if self.cfg.heads == 1 else self.on_heads(q, state)), None, state

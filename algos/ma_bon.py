@@ -99,3 +99,4 @@ class MABoN(HearsMessages, NetworkAgent):
     # losses, summed, so every agent's loss reaches f′ and every encoder; only ``speak`` above differs.
     q_values = MAMeSN.q_values
     loss = MAMeSN.loss
+    imitation_logits = MAMeSN.imitation_logits

@@ -76,6 +76,11 @@ class MAMeSN(HearsMessages, NetworkAgent):
         x, sent, heard = self.speak(nets, obs, train)
         return self.listen(nets, x, heard if received is None else received), sent
 
+    def imitation_logits(self, obs: Tensor) -> Tensor:
+        """Q-values ``[R, b, N, A]`` as a clone's logits, through the channel as in training (straight-through
+        bits): imitating a teacher that knows what teammates see teaches the speakers to say it."""
+        return self.forward(self.online, obs, train=True)[0]
+
     def greedy_q(self, obs: Tensor, state: Any) -> tuple[Tensor, Tensor, Any]:
         x, sent, heard = self.speak(self.online, obs, False)
         return self.listen(self.online, x, self.hear(heard)), sent, None

@@ -27,7 +27,7 @@ from convoy.config import (
     ALGORITHMS,
     JOB_FIELDS,
     AlgoConfig,
-    IDQNConfig,
+    DemonstrationFields,
     JobConfig,
     env_default_note,
     job_config,
@@ -181,7 +181,7 @@ def _train(args: argparse.Namespace, job: JobConfig, out: Path) -> int:
                 f"{job.num_envs} envs each{per_actor}, hidden {job.algo_config().hidden}, {where} → "
                 f"{out}/seed-N/")  # fmt: skip
     cfg = job.algo_config()
-    if isinstance(cfg, IDQNConfig) and cfg.demonstrator and not args.resume:
+    if isinstance(cfg, DemonstrationFields) and cfg.demonstrator and not args.resume:
         head += (f"\nfirst cloned from {cfg.demonstrator} (DAgger, {cfg.demo_rounds} rounds of {cfg.demo_episodes} "
                  "episodes per run): a few minutes per round")  # fmt: skip
     console.print(head, highlight=False, soft_wrap=True)

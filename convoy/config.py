@@ -233,7 +233,33 @@ class EntityFields(BaseModel):
     )
 
 
-class IDQNConfig(AlgoConfig, EntityFields):
+DEMONSTRABLE = ("idqn", "dqn-ser", "ma-mesn", "ma-bon")  # feed-forward learners a demonstrator can start
+
+
+class DemonstrationFields(BaseModel):
+    """A start from a planner's demonstrations (independent DQN, DQN-SER, MA-MeSN, MA-BoN; learner/imitation.py)."""
+
+    demonstrator: str | None = Field(
+        None,
+        max_length=64,
+        description="A treadmill reference policy (convoy env rollout --policy's names; planner = the planner of the "
+        "learner's information: team-planner when told teammates' sightings or observations, team16-planner when "
+        "told their words, else private-planner) cloned into the Q-network by DAgger (MA-MeSN, MA-BoN: into "
+        "speakers and listeners together, through the channel) "
+        "before Q-learning starts (learner/imitation.py): demo_rounds rounds of demo_episodes tuning episodes per "
+        "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
+        "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
+    )
+    demo_rounds: int = Field(8, ge=1, le=64, description="DAgger rounds of a demonstrator start.")
+    demo_episodes: int = Field(
+        128, ge=1, le=4096, description="Tuning episodes each run plays per DAgger round (its own states)."
+    )
+    demo_epochs: int = Field(
+        4, ge=1, le=100, description="Passes over a run's states so far after each DAgger round (cross-entropy)."
+    )
+
+
+class IDQNConfig(AlgoConfig, EntityFields, DemonstrationFields):
     """Independent DQN: every agent learns from its own observation only."""
 
     heads: int = Field(
@@ -261,23 +287,6 @@ class IDQNConfig(AlgoConfig, EntityFields):
         le=1,
         description="Prioritized replay's importance-sampling exponent β at the run's start, annealed linearly to 1 "
         "at its end (Schaul et al.: the bias of non-uniform draws matters most near convergence).",
-    )
-    demonstrator: str | None = Field(
-        None,
-        max_length=64,
-        description="A treadmill reference policy (convoy env rollout --policy's names; planner = the planner of the "
-        "learner's information: team-planner when told teammates' sightings or observations, team16-planner when "
-        "told their words, else private-planner) cloned into the Q-network by DAgger "
-        "before Q-learning starts (learner/imitation.py): demo_rounds rounds of demo_episodes tuning episodes per "
-        "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
-        "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
-    )
-    demo_rounds: int = Field(8, ge=1, le=64, description="DAgger rounds of a demonstrator start.")
-    demo_episodes: int = Field(
-        128, ge=1, le=4096, description="Tuning episodes each run plays per DAgger round (its own states)."
-    )
-    demo_epochs: int = Field(
-        4, ge=1, le=100, description="Passes over a run's states so far after each DAgger round (cross-entropy)."
     )
 
 
@@ -333,11 +342,11 @@ class ChannelControl(BaseModel):
     )
 
 
-class MeSNConfig(GumbelConfig, ChannelControl, EntityFields):
+class MeSNConfig(GumbelConfig, ChannelControl, EntityFields, DemonstrationFields):
     """MA-MeSN (Algorithm 1): separate message networks f′ and policy networks f″."""
 
 
-class BoNConfig(GumbelConfig, ChannelControl, EntityFields):
+class BoNConfig(GumbelConfig, ChannelControl, EntityFields, DemonstrationFields):
     """MA-BoN: one broadcast message from all agents' encodings."""
 
     encoding: int = Field(64, ge=1, le=65536, description="Width of each agent's observation encoding.")
@@ -800,10 +809,14 @@ class JobConfig(BaseModel):
         return self
 
     def _check_demonstrator(self) -> None:
-        """A demonstrator is a treadmill reference cloned into one Q-network: refused where it could not be."""
+        """A demonstrator is a treadmill reference cloned into a feed-forward Q-network (one head): refused where it
+        could not be."""
         from convoy.envs.treadmill.references import REFERENCES
 
         name, field = self.algo_params["demonstrator"], "algo_params.demonstrator"
+        if self.algo not in DEMONSTRABLE:
+            raise ConfigError(field, f"{self.algo} cannot start from demonstrations; use one of "
+                              f"{', '.join(DEMONSTRABLE)}, or drop it")  # fmt: skip
         if self.env != "treadmill" or self.hierarchical:
             where = "a hierarchical job's controller" if self.hierarchical else f"env {self.env!r}"
             raise ConfigError(field, f"demonstrators are treadmill reference policies, not for {where}; drop it")

@@ -13,6 +13,11 @@ its own states so far. Each run plays its own share of the envs and learns from 
 independent. The states are the tuning episodes (``TUNING_SEED``), never the held-out ones a learner is scored on.
 The env steps played here are not counted in the job's ``steps``: they are reported per run (``demo_env_steps``)
 and belong in any statement of a run's budget.
+
+MA-MeSN and MA-BoN clone through their channel as they train (straight-through bits, ``imitation_logits``): a
+listener imitating a teacher that knows what its teammates see can match it only through what they say, so the
+cross-entropy's gradient teaches the speakers what to say — the channel-cut twin, cloned alike, shows what that is
+worth.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from convoy.config import IDQNConfig, JobConfig
+from convoy.config import DemonstrationFields, JobConfig
 from convoy.envs import make_batched
 from convoy.envs.batched import StepResult
 from convoy.envs.rollout import rollout
@@ -90,8 +95,9 @@ def clone(agent: Any, obs: list[np.ndarray], labels: list[np.ndarray], epochs: i
     """``epochs`` passes of cross-entropy between run k's Q-values (as logits) and the teacher's actions on run k's
     own states, all runs in one batched step; then target and judged networks take the clone. Each run's share of
     correct actions in the last pass."""
-    net, runs, device = agent.online["q"], agent.runs, agent.device
-    opt = torch.optim.Adam(net.parameters(), lr=LR)
+    runs, device = agent.runs, agent.device
+    params = list(agent.online.parameters())
+    opt = torch.optim.Adam(params, lr=LR)
     xs = [torch.as_tensor(o, dtype=torch.float32) for o in obs]
     ys = [torch.as_tensor(y, dtype=torch.int64) for y in labels]
     gen = torch.Generator().manual_seed(seed)
@@ -106,11 +112,11 @@ def clone(agent: Any, obs: list[np.ndarray], labels: list[np.ndarray], epochs: i
             idx = [o[i * BATCH : (i + 1) * BATCH] for o in order]
             x = torch.stack([xk[ik] for xk, ik in zip(xs, idx, strict=True)]).to(device)  # [R, b, N, D]
             y = torch.stack([yk[ik] for yk, ik in zip(ys, idx, strict=True)]).to(device)  # [R, b, N]
-            logits = net(agent.features(x))  # [R, b, N, A]
+            logits = agent.imitation_logits(x)  # [R, b, N, A]
             loss = F.cross_entropy(logits.flatten(0, -2), y.flatten()) * runs  # each run's mean, summed over runs
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(net.parameters(), CLIP)
+            torch.nn.utils.clip_grad_norm_(params, CLIP)
             opt.step()
             correct += (logits.argmax(-1) == y).flatten(1).float().mean(1).cpu()
     for nets in (agent.target, agent.average):  # the clone is also what Q-learning bootstraps from and is judged by
@@ -140,19 +146,19 @@ def demonstration_start(
     (rounds, states, accuracy, ``demo_env_steps``), or None when the job names no demonstrator. ``after_round``
     sees each round's per-run figures (a benchmark scores the clones there and adds to them)."""
     cfg = job.algo_config()
-    if not isinstance(cfg, IDQNConfig) or not cfg.demonstrator:
+    if not isinstance(cfg, DemonstrationFields) or not cfg.demonstrator:
         return None
     teacher_name = teacher_for(cfg.demonstrator, job.env_params)
     from convoy.envs.treadmill.references import reference_policy
 
     runs = agent.runs
     env = make_batched(job.env, cfg.demo_episodes * runs, **job.env_params)
-    net, device = agent.online["q"], agent.device
+    device = agent.device
 
-    def student(obs: np.ndarray) -> np.ndarray:
+    def student(obs: np.ndarray) -> np.ndarray:  # greedy, as the run acts (MA-MeSN, MA-BoN: argmax messages)
         with torch.no_grad():
             x = torch.as_tensor(obs, dtype=torch.float32, device=device).reshape(runs, -1, *obs.shape[1:])
-            return net(agent.features(x)).argmax(-1).reshape(obs.shape[:2]).cpu().numpy()
+            return agent.greedy_q(x, None)[0].argmax(-1).reshape(obs.shape[:2]).cpu().numpy()
 
     obs: list[list[np.ndarray]] = [[] for _ in range(runs)]
     labels: list[list[np.ndarray]] = [[] for _ in range(runs)]
@@ -160,7 +166,7 @@ def demonstration_start(
     try:
         for k in range(cfg.demo_rounds):
             start = time.perf_counter()
-            teacher = reference_policy(teacher_name, env)  # type: ignore[arg-type]
+            teacher = reference_policy(teacher_name, env)
             policy = Dagger(teacher, student, 0.5**k, max(env.spec.n_actions), env.num_envs, seed=job.seed * 1000 + k)
             rollout(env, policy, seed=TUNING_SEED * 100_000 + k, after_step=policy.after_step)
             for r, (o, y) in enumerate(zip(*policy.per_run(runs), strict=True)):

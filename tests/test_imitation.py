@@ -63,6 +63,22 @@ def test_each_run_clones_the_planner_from_its_own_states() -> None:
     assert demonstration_start(make_agent(plain, env.spec), plain) is None  # no demonstrator: nothing happens
 
 
+@pytest.mark.parametrize("algo", ["ma-mesn", "ma-bon"])
+def test_a_speaker_learns_from_the_listeners_imitation(algo) -> None:
+    """MA-MeSN and MA-BoN clone through the channel (straight-through bits): the speakers' weights move too."""
+    torch.manual_seed(0)
+    demo = {**DEMO, "demonstrator": "team-planner", "demo_rounds": 1, "demo_episodes": 4, "demo_epochs": 2}
+    job = job_config(algo=algo, env="treadmill", preset="charger", algo_params=demo)
+    env = make_batched(job.env, 1, **job.env_params)
+    agent = make_agent(job, env.spec)
+    assert isinstance(agent, NetworkAgent)
+    before = [p.detach().clone() for p in agent.online["message"].parameters()]
+    figures = demonstration_start(agent, job)
+    assert figures is not None and figures[0]["rounds"][0]["accuracy"] > 0.2  # above chance (1 in 9)
+    after = list(agent.online["message"].parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
+
+
 def test_planner_names_the_planner_of_the_learners_information() -> None:
     assert teacher_for("planner", {}) == "private-planner"
     assert teacher_for("planner", {"team_sightings": True, "sighting_headings": True}) == "team-planner"
@@ -79,6 +95,7 @@ def test_planner_names_the_planner_of_the_learners_information() -> None:
         ({"hierarchical": True}, "hierarchical"),
         ({"algo_params": {"demonstrator": "best-driver"}}, "unknown reference policy 'best-driver'"),
         ({"algo_params": {"demonstrator": "team-planner", "heads": 3}}, "drop heads"),
+        ({"algo": "ma-mesn-mm"}, "ma-mesn-mm cannot start from demonstrations"),
     ],
 )
 def test_a_demonstrator_that_cannot_apply_is_refused_naming_the_field(values, says) -> None:
