@@ -38,6 +38,12 @@ from convoy.stats import ci95_half  # noqa: E402
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--teacher", default="private-planner", help="reference policy to clone (default %(default)s)")
+    p.add_argument(
+        "--algo",
+        default="idqn",
+        help="the learner whose network clones (idqn, dqn-ser, ma-mesn, ma-bon: these through their channel) "
+        "(default %(default)s)",
+    )
     p.add_argument("--preset", default="charger", help="job preset: rules and network (default %(default)s)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env rule, as convoy train's")
     p.add_argument(
@@ -95,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
     demo = {"demonstrator": args.teacher, "demo_rounds": args.rounds, "demo_episodes": args.episodes,
             "demo_epochs": args.epochs}  # fmt: skip
     job = job_config(
-        algo="idqn", env="treadmill", preset=args.preset, seeds=args.seeds,
+        algo=args.algo, env="treadmill", preset=args.preset, seeds=args.seeds,
         eval_episodes=args.eval_episodes, **({"steps": args.learn} if args.learn else {}),
         env_params=parse_pairs(args.set, "--set"), algo_params={**parse_pairs(args.hp, "--hp"), **demo},
     )  # fmt: skip
