@@ -504,11 +504,16 @@ def paper_treadmill_hidden(algo: str) -> tuple[int, ...]:
 # knowledge pays the planners) and the learner recipe measured there (docs/treadmill.md, "Learners on the charger
 # rules"): entity encoder, 3-step returns, squared TD error, LayerNorm, a Polyak target, ε over half the run, the
 # learning rate annealed to 0, the averaged policy judged. A setting an algorithm has no field for is left out.
+# "charger-demo": the same, started from the planner of the learner's information (``demonstrator=planner``, DAgger;
+# learner/imitation.py) and Q-learning gently from there (ε from 0.05, updates after 20 k steps) — where the learner
+# can take a demonstration (DEMONSTRABLE); any other algorithm gets "charger".
+_CHARGER = {"encoder": "entity", "n_step": 3, "huber": False, "layer_norm": True, "target_tau": 0.001, "lr_end": 0.0,
+            "policy_ema": 0.0001, "eps_decay_fraction": 0.5}  # fmt: skip
 PRESET_ALGO_PARAMS: dict[str, dict[str, Any]] = {
-    "charger": {"encoder": "entity", "n_step": 3, "huber": False, "layer_norm": True, "target_tau": 0.001,
-                "lr_end": 0.0, "policy_ema": 0.0001, "eps_decay_fraction": 0.5},
-}  # fmt: skip
-Preset = Literal["charger"]
+    "charger": _CHARGER,
+    "charger-demo": {**_CHARGER, "demonstrator": "planner", "eps_start": 0.05, "learning_starts": 20_000},
+}
+Preset = Literal["charger", "charger-demo"]
 
 
 def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -516,7 +521,9 @@ def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dic
     returns where sequences or options are learned: DIAL, hierarchical DQN)."""
     from convoy.envs.treadmill.config import CHARGER_RULES
 
-    env_params = {"charger": CHARGER_RULES}[name]
+    env_params = CHARGER_RULES  # every preset's rules
+    if name == "charger-demo" and (hierarchical or algo_name(algo) not in DEMONSTRABLE):
+        name = "charger"  # no demonstration to start from: nor its gentle start
     fields = ALGORITHMS[algo_name(algo)].config.model_fields
     algo_params = {k: v for k, v in PRESET_ALGO_PARAMS[name].items() if k in fields}
     if hierarchical or algo_name(algo) == "dial":
@@ -703,7 +710,8 @@ class JobConfig(BaseModel):
         None,
         description="Start from named env rules and learner settings; env_params and algo_params set on top win. "
         "charger: the treadmill's hidden charger too fast to steer and the learner recipe measured on it "
-        "(docs/treadmill.md)",
+        "(docs/treadmill.md); charger-demo: the same, started from the planner of the learner's information "
+        "(demonstrator=planner) where the algorithm can take one",
     )
     hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
     steps: int = Field(

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from convoy.cli.main import main
-from convoy.config import ALGORITHMS, PRESET_ALGO_PARAMS, JobConfig
+from convoy.config import ALGORITHMS, DEMONSTRABLE, PRESET_ALGO_PARAMS, JobConfig
 from convoy.envs.treadmill.config import CHARGER_RULES
 from convoy.validation import ConfigError, build_config
 
@@ -33,10 +33,23 @@ def test_every_algorithm_takes_the_preset_settings_it_has(algo: str) -> None:
     assert "n_step" not in JobConfig(algo="idqn", preset="charger", hierarchical=True).algo_params  # options span steps
 
 
+@pytest.mark.parametrize("algo", [a for a in ALGORITHMS if a != "codbc"])
+def test_charger_demo_starts_from_the_planner_where_the_algorithm_can(algo: str) -> None:
+    """A demonstration start and its gentle Q-learning where the learner can take one; else the charger recipe."""
+    demo, charger = JobConfig(algo=algo, preset="charger-demo"), JobConfig(algo=algo, preset="charger")
+    assert demo.env_params == CHARGER_RULES
+    if algo in DEMONSTRABLE:
+        start = {"demonstrator": "planner", "eps_start": 0.05, "learning_starts": 20_000}
+        assert demo.algo_params == {**charger.algo_params, **start}
+    else:
+        assert demo.algo_params == charger.algo_params
+    assert "demonstrator" not in JobConfig(algo="idqn", preset="charger-demo", hierarchical=True).algo_params
+
+
 def test_a_preset_off_the_treadmill_or_unknown_is_refused_naming_the_field() -> None:
     with pytest.raises(ConfigError, match="preset: 'charger' sets treadmill rules; drop it or train on the treadmill"):
         build_config(JobConfig, env="speaker-listener", preset="charger")
-    with pytest.raises(ConfigError, match=r"preset: Input should be 'charger' \(got 'chargr'\)"):
+    with pytest.raises(ConfigError, match=r"preset: Input should be 'charger' or 'charger-demo' \(got 'chargr'\)"):
         build_config(JobConfig, preset="chargr")
 
 
