@@ -740,3 +740,21 @@ def test_a_normal_end_on_a_loaded_machine_is_no_crash(tmp_path: Path) -> None:
     assert len({ident for kind, ident in events if kind == "exited" and ident.startswith("actor-")}) == 4, text[-4000:]
     assert ("exited", "learner-0") in events, text[-4000:]
     assert json.loads((out / "summary.json").read_text())["env_steps"] >= 3000
+
+
+def test_a_distributed_learner_starts_from_its_demonstrator(tmp_path: Path) -> None:
+    """``demonstrator``: the learner process clones the planner before it takes a chunk (its actors act with the
+    clone from the first weights it broadcasts) and writes each run's ``demonstration.json``; the job then trains
+    to its steps as any other."""
+    demo = {"demonstrator": "private-planner", "demo_rounds": 1, "demo_episodes": 2, "demo_epochs": 1,
+            "hidden": [32], "learning_starts": 200}  # fmt: skip
+    job = job_config(algo="idqn", steps=1_000, seeds=[0, 1], runtime={"actors": 1},
+                     **{**TREADMILL, "algo_params": demo})  # fmt: skip
+    runner = JobRunner("demo", job, tmp_path, progress=False)
+    result = runner.run()
+    assert not [e for e in runner.events if e.kind in ("crashed", "respawned")], runner.events
+    assert len(result["runs"]) == 2
+    for seed, summary in zip((0, 1), result["runs"], strict=True):
+        figures = json.loads((tmp_path / f"seed-{seed}" / "demonstration.json").read_text())
+        assert figures["demonstrator"] == "private-planner" and figures["demo_env_steps"] > 0
+        assert summary["env_steps"] >= job.steps
