@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from convoy.algos.updater import clip_grad_norm_per_run
 from convoy.config import DemonstrationFields, JobConfig
 from convoy.envs import make_batched
 from convoy.envs.batched import StepResult
@@ -41,7 +42,7 @@ TUNING_SEED = 1  # the episodes a student learns on; learners are scored on the 
 EPSILON = 0.05  # the student's exploration while it drives a DAgger round
 BATCH = 256  # env steps (each run's) per gradient step
 LR = 5e-4  # Adam's step size for the clone
-CLIP = 10.0  # gradient norm, as the Q-learning update's
+CLIP = 10.0  # each run's gradient norm, as the Q-learning update's
 PLANNER = "planner"  # the demonstrator that stands for the planner of the learner's information
 
 
@@ -116,7 +117,7 @@ def clone(agent: Any, obs: list[np.ndarray], labels: list[np.ndarray], epochs: i
             loss = F.cross_entropy(logits.flatten(0, -2), y.flatten()) * runs  # each run's mean, summed over runs
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, CLIP)
+            clip_grad_norm_per_run([p.grad for p in params if p.grad is not None], CLIP)  # runs stay apart
             opt.step()
             correct += (logits.argmax(-1) == y).flatten(1).float().mean(1).cpu()
     for nets in (agent.target, agent.average):  # the clone is also what Q-learning bootstraps from and is judged by
