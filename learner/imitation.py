@@ -126,15 +126,17 @@ def clone(agent: Any, obs: list[np.ndarray], labels: list[np.ndarray], epochs: i
     return (correct / steps).tolist()
 
 
-def teacher_for(demonstrator: str, env_params: dict[str, Any]) -> str:
+def teacher_for(demonstrator: str, env_params: dict[str, Any], speaks: bool = False) -> str:
     """The reference policy a ``demonstrator`` names: ``planner`` is the planner of the learner's information (the
     team planner for a learner told teammates' observations or sightings, the 16-bit one for a learner told their
-    words, else the private planner), so that one recipe serves every information level."""
+    words or one that hears teammates over an open channel (``speaks``: MA-MeSN, MA-BoN; 16 bits a teammate is what
+    their 2-byte messages can carry), else the private planner), so that one recipe serves every information level
+    and a channel-cut twin starts from the best policy its own sensor allows."""
     if demonstrator != PLANNER:
         return demonstrator
     if env_params.get("team_observations") or env_params.get("team_sightings"):
         return "team-planner"
-    return "team16-planner" if env_params.get("team_words") else "private-planner"
+    return "team16-planner" if env_params.get("team_words") or speaks else "private-planner"
 
 
 def demonstration_start(
@@ -149,7 +151,8 @@ def demonstration_start(
     cfg = job.algo_config()
     if not isinstance(cfg, DemonstrationFields) or not cfg.demonstrator:
         return None
-    teacher_name = teacher_for(cfg.demonstrator, job.env_params)
+    speaks = getattr(cfg, "channel_control", None) == "open"  # a communicating learner whose channel is not cut
+    teacher_name = teacher_for(cfg.demonstrator, job.env_params, speaks)
     from convoy.envs.treadmill.references import reference_policy
 
     runs = agent.runs

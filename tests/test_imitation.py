@@ -67,16 +67,20 @@ def test_each_run_clones_the_planner_from_its_own_states() -> None:
 def test_a_speaker_learns_from_the_listeners_imitation(algo) -> None:
     """MA-MeSN and MA-BoN clone through the channel (straight-through bits): the speakers' weights move too."""
     torch.manual_seed(0)
-    demo = {**DEMO, "demonstrator": "team-planner", "demo_rounds": 1, "demo_episodes": 4, "demo_epochs": 2}
+    demo = {**DEMO, "demonstrator": "planner", "demo_rounds": 1, "demo_episodes": 4, "demo_epochs": 2}
     job = job_config(algo=algo, env="treadmill", preset="charger", algo_params=demo)
+    cut = job_config(algo=algo, env="treadmill", preset="charger", algo_params={**demo, "channel_control": "cut"})
     env = make_batched(job.env, 1, **job.env_params)
     agent = make_agent(job, env.spec)
     assert isinstance(agent, NetworkAgent)
     before = [p.detach().clone() for p in agent.online["message"].parameters()]
     figures = demonstration_start(agent, job)
     assert figures is not None and figures[0]["rounds"][0]["accuracy"] > 0.2  # above chance (1 in 9)
+    assert figures[0]["demonstrator"] == "team16-planner"  # the planner of what its channel can carry
     after = list(agent.online["message"].parameters())
     assert any(not torch.equal(a, b) for a, b in zip(before, after, strict=True))
+    cut_figures = demonstration_start(make_agent(cut, env.spec), cut)
+    assert cut_figures is not None and cut_figures[0]["demonstrator"] == "private-planner"  # its sensor alone
 
 
 def test_planner_names_the_planner_of_the_learners_information() -> None:
@@ -84,6 +88,7 @@ def test_planner_names_the_planner_of_the_learners_information() -> None:
     assert teacher_for("planner", {"team_sightings": True, "sighting_headings": True}) == "team-planner"
     assert teacher_for("planner", {"team_observations": True}) == "team-planner"
     assert teacher_for("planner", {"team_words": True}) == "team16-planner"
+    assert teacher_for("planner", {}, speaks=True) == "team16-planner"  # MA-MeSN, MA-BoN: what 2 bytes carry
     assert teacher_for("full-planner", {}) == "full-planner"  # a named reference is itself
     job_config(algo="idqn", env="treadmill", algo_params={"demonstrator": "planner"})  # accepted
 
