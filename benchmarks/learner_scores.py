@@ -163,6 +163,19 @@ def figures(seeds: list[int], last: list[float], best: list[float], values: list
 SETTINGS = ("algo", "env_params", "hyper_parameters", "env_steps", "weights")  # "weights" only when online
 
 
+def recipe(group: dict[str, Any]) -> dict[str, Any]:
+    """A scored group's settings with its demonstrator resolved to the reference it names (``planner`` is the
+    private planner for an own-sensor learner), so that runs started from the same teacher pool."""
+    params = group.get("hyper_parameters") or {}
+    if not params.get("demonstrator"):
+        return group
+    from convoy.config import job_config
+    from convoy.learner.imitation import job_teacher
+
+    job = job_config(algo=group["algo"], env="treadmill", env_params=group["env_params"], algo_params=params)
+    return {**group, "hyper_parameters": {**params, "demonstrator": job_teacher(job)}}
+
+
 def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
     """One group of the seeds of scored ``parts``, from their stored figures alone (no checkpoint is played): a study
     whose arms ran in different sessions, on machines that did not keep each other's runs. The parts must have been
@@ -176,7 +189,7 @@ def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
         if g["episodes"] != first["episodes"]:
             raise SystemExit(f"--pool: {name!r} was scored on {g['episodes']} episodes, {parts[0]!r} on "
                              f"{first['episodes']}; score both with the same --episodes")  # fmt: skip
-        differ = [k for k in SETTINGS if g.get(k) != first.get(k)]
+        differ = [k for k in SETTINGS if recipe(g).get(k) != recipe(first).get(k)]
         if differ:
             raise SystemExit(f"--pool: {name!r} and {parts[0]!r} differ in {differ[0]} ({g.get(differ[0])!r} vs "
                              f"{first.get(differ[0])!r}); pool only runs of one recipe")  # fmt: skip

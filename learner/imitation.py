@@ -139,6 +139,16 @@ def teacher_for(demonstrator: str, env_params: dict[str, Any], speaks: bool = Fa
     return "team16-planner" if env_params.get("team_words") or speaks else "private-planner"
 
 
+def job_teacher(job: JobConfig) -> str | None:
+    """The reference policy ``job`` starts from (its ``demonstrator`` resolved), or None: two jobs that name it
+    differently (``planner``, ``private-planner``) follow one recipe when this is the same."""
+    cfg = job.algo_config()
+    if not isinstance(cfg, DemonstrationFields) or not cfg.demonstrator:
+        return None
+    speaks = getattr(cfg, "channel_control", None) == "open"  # a communicating learner whose channel is not cut
+    return teacher_for(cfg.demonstrator, job.env_params, speaks)
+
+
 def demonstration_start(
     agent: Any,
     job: JobConfig,
@@ -148,11 +158,11 @@ def demonstration_start(
     """Clone the job's ``demonstrator`` into every run of ``agent`` (a fresh one) by DAgger; each run's figures
     (rounds, states, accuracy, ``demo_env_steps``), or None when the job names no demonstrator. ``after_round``
     sees each round's per-run figures (a benchmark scores the clones there and adds to them)."""
-    cfg = job.algo_config()
-    if not isinstance(cfg, DemonstrationFields) or not cfg.demonstrator:
+    teacher_name = job_teacher(job)
+    if teacher_name is None:
         return None
-    speaks = getattr(cfg, "channel_control", None) == "open"  # a communicating learner whose channel is not cut
-    teacher_name = teacher_for(cfg.demonstrator, job.env_params, speaks)
+    cfg = job.algo_config()
+    assert isinstance(cfg, DemonstrationFields)
     from convoy.envs.treadmill.references import reference_policy
 
     runs = agent.runs

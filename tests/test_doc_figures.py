@@ -125,20 +125,31 @@ def test_learner_scores_pools_groups_scored_in_different_sessions(tmp_path: Path
                 seeds)), "references": refs, **settings, **extra}  # fmt: skip
 
     path = tmp_path / "scores.json"
-    groups = {"a": group([0, 1], [100.0, 110.0]), "b": group([5, 6, 7], [90.0, 120.0, 105.0]),
-              "other recipe": group([8], [1.0], hyper_parameters={"n_step": 1}), "overlap": group([1], [3.0]),
-              "200": group([9], [4.0], episodes=200), "online": group([9], [4.0], weights="online")}  # fmt: skip
+    groups = {
+        "a": group([0, 1], [100.0, 110.0]),
+        "b": group([5, 6, 7], [90.0, 120.0, 105.0]),
+        "other recipe": group([8], [1.0], hyper_parameters={"n_step": 1}),
+        "overlap": group([1], [3.0]),
+        "200": group([9], [4.0], episodes=200),
+        "online": group([9], [4.0], weights="online"),
+        "planner": group([2], [100.0], hyper_parameters={"n_step": 3, "demonstrator": "planner"}),
+        "private-planner": group([3], [100.0], hyper_parameters={"n_step": 3, "demonstrator": "private-planner"}),
+        "team-planner": group([4], [100.0], hyper_parameters={"n_step": 3, "demonstrator": "team-planner"}),
+    }
     path.write_text(json.dumps({"episodes": 500, "seed": 777, "groups": groups, "comparisons": []}))
     assert learner_scores.main(["--pool", "ab", "a", "b", "--json", str(path)]) == 0
     ab = json.loads(path.read_text())["groups"]["ab"]
     assert ab["seeds"] == [0, 1, 5, 6, 7] and ab["last_mean"] == pytest.approx(105.0) and ab["pooled"] == ["a", "b"]
     assert ab["references"] == refs and ab["last_over_reference"]["private-planner"][0] == pytest.approx(0.75)
     assert ab["hyper_parameters"] == {"n_step": 3} and ab["last_ci95"] > 0
+    # `planner` names the private planner for an own-sensor learner: runs started from it either way are one recipe
+    assert learner_scores.main(["--pool", "pp", "planner", "private-planner", "--json", str(path)]) == 0
     refused = (
         (["a", "other recipe"], "differ in hyper_parameters"),
         (["a", "overlap"], "seed 1"),
         (["a", "200"], "200 episodes"),
         (["a", "online"], "differ in weights"),
+        (["planner", "team-planner"], "differ in hyper_parameters"),
         (["a", "nope"], "no scored group 'nope'"),
         (["a"], "two or more"),
     )
