@@ -20,6 +20,7 @@ from convoy.config import (
     ConfigError,
     JobConfig,
     MessageSource,
+    Preset,
     RuntimeConfig,
     algo_name,
     job_config,
@@ -63,6 +64,7 @@ class JobSubmit(JsonBody):
 
     algo: str = job_field("algo")
     env: str = job_field("env")
+    preset: Preset | None = job_field("preset")
     env_params: dict[str, Any] = job_field("env_params")
     algo_params: dict[str, Any] = job_field("algo_params")
     hierarchical: bool = job_field("hierarchical")

@@ -180,8 +180,12 @@ def workspace(root: Path) -> Path:
 
 def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """``convoy ARGV`` in this process with ``ws`` as the working directory: (exit code, stdout + stderr)."""
+    import torch._dynamo
+
     from convoy.cli.main import main
 
+    torch._dynamo.reset()  # each command compiles afresh: dozens of `--hp compile=true` runs in one process would
+    # otherwise reach dynamo's recompile limit, and whether they share a worker is the scheduler's choice
     cwd = os.getcwd()
     os.chdir(ws)
     try:
@@ -215,7 +219,8 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
     if argv[0] == "python":
         budget = {"treadmill_search.py": ["--quick", "--episodes", "2", "--tune-episodes", "2"],
                   "treadmill_references.py": ["--episodes", "2"], "treadmill_causes.py": ["--episodes", "2"],
-                  "treadmill_imitation.py": ["--rounds", "1", "--epochs", "1"],
+                  "treadmill_imitation.py": ["--rounds", "1", "--epochs", "1", "--episodes", "2",
+                                             "--eval-episodes", "2"],
                   "treadmill_variants.py": ["--episodes", "2", "--cache", "variants"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
