@@ -46,6 +46,11 @@ CLIP = 10.0  # each run's gradient norm, as the Q-learning update's
 PLANNER = "planner"  # the demonstrator that stands for the planner of the learner's information
 
 
+class DemonstrationStopped(Exception):
+    """A stop (SIGTERM, an orphaned learner) between DAgger rounds: the rounds are minutes each, and a learner whose
+    job was stopped must not go on cloning for half an hour; nothing was checkpointed, a resumed job clones again."""
+
+
 class Dagger:
     """A rollout policy over R runs' envs (run k's are ``k·E … (k+1)·E − 1``): records each running env's
     observation and the teacher's action there, and plays the teacher's action with probability ``beta`` per env
@@ -154,10 +159,12 @@ def demonstration_start(
     job: JobConfig,
     say: Callable[[str], None] | None = None,
     after_round: Callable[[list[dict[str, Any]]], None] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> list[dict[str, Any]] | None:
     """Clone the job's ``demonstrator`` into every run of ``agent`` (a fresh one) by DAgger; each run's figures
     (rounds, states, accuracy, ``demo_env_steps``), or None when the job names no demonstrator. ``after_round``
-    sees each round's per-run figures (a benchmark scores the clones there and adds to them)."""
+    sees each round's per-run figures (a benchmark scores the clones there and adds to them); ``stop`` is asked
+    before each round (DemonstrationStopped when it says so)."""
     teacher_name = job_teacher(job)
     if teacher_name is None:
         return None
@@ -179,6 +186,8 @@ def demonstration_start(
     figures: list[dict[str, Any]] = [{"demonstrator": teacher_name, "rounds": []} for _ in range(runs)]
     try:
         for k in range(cfg.demo_rounds):
+            if stop is not None and stop():
+                raise DemonstrationStopped(f"stopped before demonstration round {k + 1}/{cfg.demo_rounds}")
             start = time.perf_counter()
             teacher = reference_policy(teacher_name, env)
             policy = Dagger(teacher, student, 0.5**k, max(env.spec.n_actions), env.num_envs, seed=job.seed * 1000 + k)
@@ -209,12 +218,16 @@ DEMONSTRATION_FILE = "demonstration.json"
 
 
 def start_from_demonstrations(
-    agent: Any, job: JobConfig, dirs: list[Path] | list[Path | None], say: Callable[[str], None] | None = None
+    agent: Any,
+    job: JobConfig,
+    dirs: list[Path] | list[Path | None],
+    say: Callable[[str], None] | None = None,
+    stop: Callable[[], bool] | None = None,
 ) -> bool:
     """A fresh population ``agent`` of ``job`` (its runs' folders ``dirs``) cloned from the job's demonstrator, if it
     names one, each run's DAgger figures in its folder's ``demonstration.json``; whether it did (then the caller
     checkpoints the clone at step 0, so that a stop before the first checkpoint does not repeat it)."""
-    figures = demonstration_start(agent, job, say)
+    figures = demonstration_start(agent, job, say, stop=stop)
     for run_figures, out in zip(figures or [], dirs, strict=False):
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)

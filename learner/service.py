@@ -36,7 +36,7 @@ from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
 from convoy.config import JobConfig
 from convoy.envs import make_batched
-from convoy.learner.imitation import start_from_demonstrations
+from convoy.learner.imitation import DemonstrationStopped, start_from_demonstrations
 from convoy.learner.population import PopulationCore, mean_row
 from convoy.learner.resume import restore
 from convoy.learner.runtime import configure_learner
@@ -140,10 +140,15 @@ class Learner:
         algo = make_agent(job, spec)
         schema = transition_schema(job, algo)
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
+        watch = ParentWatch()
         if counters is None:
             algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
-            self.cloned = start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info)
-        watch = ParentWatch()
+            try:
+                self.cloned = start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info,
+                                                        stop=lambda: self.stopping or watch.orphaned())  # fmt: skip
+            except DemonstrationStopped as exc:
+                log.info("%s", exc)
+                return STOPPED
         try:
             session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())
         except SessionAbandoned:

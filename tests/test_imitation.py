@@ -147,3 +147,19 @@ def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, 
         torch.set_num_threads(old)
     summary = json.loads((out / "seed-1" / "summary.json").read_text())
     assert summary["env_steps"] >= 256
+
+
+def test_a_stop_between_rounds_ends_the_demonstration() -> None:
+    """A stopped job's learner asks before each DAgger round (rounds take minutes): it stops there, after the rounds
+    already played, instead of cloning on for half an hour as an orphan."""
+    job = job_config(algo="idqn", env="treadmill", preset="charger", algo_params={**DEMO, "demo_episodes": 2})
+    env = make_batched(job.env, 1, **job.env_params)
+    asked: list[int] = []
+
+    def stop() -> bool:
+        asked.append(1)
+        return len(asked) > 1  # after the first round
+
+    with pytest.raises(imitation.DemonstrationStopped, match="round 2/2"):
+        demonstration_start(make_agent(job, env.spec), job, stop=stop)
+    assert len(asked) == 2
