@@ -535,3 +535,16 @@ def test_a_refused_jobs_error_is_the_whole_refusal_once() -> None:
     ]
     text = failure_summary("x", records)
     assert text.count(said) == 1 and "cause:" not in text and text.endswith("convoy jobs logs x"), text
+
+
+def test_a_job_body_takes_a_preset_as_convoy_train_does(service: Service) -> None:
+    """``preset`` in POST /jobs (and so in a sweep's base, which Fig. 3's real budget uses): its settings under the
+    body's own; one on an env it does not fit, or an unknown name, is refused naming the field."""
+    from convoy.api.models import JobSubmit
+
+    job = JobSubmit(algo="idqn", env="treadmill", preset="charger-demo", algo_params={"n_step": 1}).job_config()
+    assert job.algo_params["demonstrator"] == "planner" and job.algo_params["n_step"] == 1  # the body's own wins
+    assert job.env_params["adversary_stealth"] is True
+    body = assert_error(submit(service, env="referential", algo_params={}, env_params={}, preset="charger"), 422)
+    assert body["field"] == "preset" and "treadmill" in body["problem"], body
+    assert_error(submit(service, preset="chargr"), 422, "preset")
