@@ -244,8 +244,9 @@ class DemonstrationFields(BaseModel):
         max_length=64,
         description="A treadmill reference policy (convoy env rollout --policy's names; planner = the planner of the "
         "learner's information: team-planner when told teammates' sightings or observations, team16-planner when "
-        "told their words or hearing teammates over an open channel (MA-MeSN, MA-BoN), else private-planner) cloned into the Q-network by DAgger (MA-MeSN, MA-BoN: into "
-        "speakers and listeners together, through the channel) "
+        "told their words or hearing teammates over an open channel (MA-MeSN, MA-BoN), else private-planner) "
+        "cloned into the Q-network by DAgger (MA-MeSN, MA-BoN: into speakers and listeners together, through the "
+        "channel) "
         "before Q-learning starts (learner/imitation.py): demo_rounds rounds of demo_episodes tuning episodes per "
         "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
         "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
