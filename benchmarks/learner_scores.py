@@ -184,12 +184,14 @@ def pool_groups(groups: dict[str, Any], parts: list[str]) -> dict[str, Any]:
     if missing:
         raise SystemExit(f"--pool: no scored group {missing[0]!r}; scored: {', '.join(groups) or 'none'}")
     first = groups[parts[0]]
+    first_recipe = recipe(first)
     for name in parts[1:]:
         g = groups[name]
         if g["episodes"] != first["episodes"]:
             raise SystemExit(f"--pool: {name!r} was scored on {g['episodes']} episodes, {parts[0]!r} on "
                              f"{first['episodes']}; score both with the same --episodes")  # fmt: skip
-        differ = [k for k in SETTINGS if recipe(g).get(k) != recipe(first).get(k)]
+        g_recipe = recipe(g)
+        differ = [k for k in SETTINGS if g_recipe.get(k) != first_recipe.get(k)]
         if differ:
             raise SystemExit(f"--pool: {name!r} and {parts[0]!r} differ in {differ[0]} ({g.get(differ[0])!r} vs "
                              f"{first.get(differ[0])!r}); pool only runs of one recipe")  # fmt: skip
