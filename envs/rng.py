@@ -42,13 +42,28 @@ def env_keys(seeds: np.ndarray) -> np.ndarray:
     return splitmix64(np.asarray(seeds).astype(np.uint64))
 
 
-def uniform(keys: np.ndarray, ticks: np.ndarray, stream: int, n: int) -> np.ndarray:
-    """``[len(keys), n]`` floats in [0, 1), a function of (key_b, tick_b, stream, column) only."""
-    col = np.arange(n, dtype=np.uint64)
-    offset = np.uint64((stream * int(_STREAM_MUL)) & 0xFFFFFFFFFFFFFFFF)
-    counter = ticks.astype(np.uint64)[:, None] * _TICK_MUL + offset + col[None, :]
+def _columns(stream: int, n: int) -> np.ndarray:
+    """The counter offsets of a stream's first ``n`` columns (uint64, wrapping)."""
+    return np.uint64((stream * int(_STREAM_MUL)) & 0xFFFFFFFFFFFFFFFF) + np.arange(n, dtype=np.uint64)
+
+
+def _draw(keys: np.ndarray, ticks: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    counter = ticks.astype(np.uint64)[:, None] * _TICK_MUL + columns[None, :]
     bits = splitmix64(keys[:, None] ^ splitmix64(counter))
     return (bits >> _S11).astype(np.float64) * _INV_2_53
+
+
+def uniform(keys: np.ndarray, ticks: np.ndarray, stream: int, n: int) -> np.ndarray:
+    """``[len(keys), n]`` floats in [0, 1), a function of (key_b, tick_b, stream, column) only."""
+    return _draw(keys, ticks, _columns(stream, n))
+
+
+def uniforms(keys: np.ndarray, ticks: np.ndarray, *draws: tuple[int, int]) -> list[np.ndarray]:
+    """``uniform(keys, ticks, stream, n)`` for each ``(stream, n)`` of ``draws``, hashed in one pass: a step's
+    draws cost one call's overhead instead of one per purpose (the values are the same)."""
+    sizes = [n for _, n in draws]
+    table = _draw(keys, ticks, np.concatenate([_columns(stream, n) for stream, n in draws]))
+    return np.split(table, np.cumsum(sizes)[:-1], axis=1)
 
 
 class EnvStreams:
@@ -81,3 +96,9 @@ class EnvStreams:
         if envs is None:
             return uniform(self.keys, self.ticks, stream, n)
         return uniform(self.keys[envs], self.ticks[envs], stream, n)
+
+    def uniforms(self, *draws: tuple[int, int], envs: np.ndarray | None = None) -> list[np.ndarray]:
+        """``uniform(stream, n, envs)`` for each ``(stream, n)`` of ``draws``, in one pass."""
+        if envs is None:
+            return uniforms(self.keys, self.ticks, *draws)
+        return uniforms(self.keys[envs], self.ticks[envs], *draws)

@@ -224,6 +224,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                   "treadmill_variants.py": ["--episodes", "2", "--cache", "variants"],
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
+                  "env_throughput.py": ["--quick"],
                   "ma_mesn_single.py": [],  # its documented 25 k steps take seconds
                   "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
                               "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued

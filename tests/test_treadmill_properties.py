@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from convoy.envs.batched import env_seeds
 from convoy.envs.treadmill import TreadmillConfig, TreadmillEngine, distance
 from convoy.envs.treadmill.config import DX, DY, FULL_FEATURES, N_HEADINGS, OWN_FEATURES, SIGHTING_FEATURES
+from convoy.envs.treadmill.engine import _in_sight
 
 KEEP = 4  # steer 0, accelerate 0
 FAST = settings(max_examples=60, deadline=None)
@@ -24,7 +25,7 @@ def observe_placed(cfg: TreadmillConfig, x, y, heading, speed) -> tuple[np.ndarr
     e = TreadmillEngine(cfg, 1)
     e.reset(0)
     place(e, x, y, heading, speed)
-    return e._observe(np.array([0]))
+    return e.observe(np.array([0]))
 
 
 def two_cars(length: int = 40, width: int = 20, max_speed: int = 3) -> TreadmillEngine:
@@ -239,7 +240,7 @@ def test_spawned_agents_are_apart_in_the_middle_and_adversaries_enter_at_an_edge
 def test_observation_encodes_the_closest_car_in_sight() -> None:
     e = two_cars(length=100, width=100)
     place(e, [60, 65], [50, 52], [0, 2], [1, 3])  # the other car is 5 cells ahead, 2 to the left
-    obs, closest = e._observe(np.array([0]))
+    obs, closest = e.observe(np.array([0]))
     own, near = obs[0, 0, :OWN_FEATURES], obs[0, 0, OWN_FEATURES:]
     r = e.cfg.sensor_range
     assert own[1] == 1.0 and own[9] == pytest.approx(1 / 3)  # heading 0, speed 1 of 3
@@ -261,6 +262,38 @@ def test_sensor_sees_within_its_range_and_field_of_view(other, fov, seen) -> Non
     if not seen:
         assert (near == 0).all()
     assert closest[0, 0] == pytest.approx(np.hypot(other[0] - 60, other[1] - 50))  # the reward still counts it
+
+
+@FAST
+@given(st.sampled_from([90.0, 200.0, 240.0, 360.0]), st.floats(2.0, 90.0), st.integers(0, 2**31 - 1))
+def test_the_sight_lookup_is_the_sight_rule(fov: float, sensor_range: float, seed: int) -> None:
+    """``visible`` reads a table inside the window's reach and computes the rule beyond it: both are the rule."""
+    e = TreadmillEngine(TreadmillConfig(sensor_fov=fov, sensor_range=sensor_range))
+    rs = np.random.default_rng(seed)
+    heading = rs.integers(0, N_HEADINGS, (32, 3))
+    for reach in (60, 100, 300):  # well inside, at the edge of and past the table
+        rel_x, rel_y = rs.integers(-reach, reach + 1, (2, 32, 3, 4))
+        expected = _in_sight(rel_x, rel_y, heading, sensor_range, fov)
+        np.testing.assert_array_equal(e.visible(rel_x, rel_y, heading), expected)
+
+
+def test_each_agent_observes_its_closest_cars_in_sight_ties_by_index() -> None:
+    """The sort-key selection of ``nearest`` against a stable argsort of distances, on a crowded small window."""
+    cfg = TreadmillConfig(n_agents=6, n_adversaries=3, length=24, width=10, spawn_gap=2, observe_k=4, sensor_range=9)
+    e = TreadmillEngine(cfg, 256)
+    e.reset(3)
+    rs = np.random.default_rng(0)
+    for _ in range(20):
+        e.step(rs.integers(0, 9, (256, cfg.n_agents)))
+        near, near_dist, closest = e.nearest()
+        rel_x, rel_y = e.offsets()
+        dist = distance(0, 0, rel_x, rel_y) + np.where(np.eye(cfg.n_agents, cfg.n_cars, dtype=bool), np.inf, 0)
+        seen = e.visible(rel_x, rel_y, e.heading[:, : cfg.n_agents])
+        expected = np.argsort(np.where(seen, dist, np.inf), axis=2, kind="stable")[..., : cfg.observe_k]
+        expected_dist = np.take_along_axis(np.where(seen, dist, np.inf), expected, axis=2)
+        np.testing.assert_array_equal(near_dist, expected_dist)
+        np.testing.assert_array_equal(near, expected)
+        np.testing.assert_array_equal(closest, dist.min(axis=2))
 
 
 def test_full_information_tells_every_position_and_who_is_an_adversary() -> None:
