@@ -23,7 +23,7 @@ def test_env_throughput_quick_run_reports_every_case(tmp_path) -> None:
     assert data  # figures were written
 
 
-def test_speaker_listener_quick_run_reports_both_algorithms_and_bounds(tmp_path) -> None:
+def test_speaker_listener_quick_run_reports_every_variant_and_the_bounds(tmp_path) -> None:
     out, png = tmp_path / "sl.json", tmp_path / "sl.png"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "speaker_listener.py"), "--quick", "--json", str(out),
@@ -31,9 +31,9 @@ def test_speaker_listener_quick_run_reports_both_algorithms_and_bounds(tmp_path)
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
-    assert "target MA-MeSN better than" in proc.stdout
+    assert "target ma-mesn better than" in proc.stdout and "target ma-mesn+ps better than" in proc.stdout
     data = json.loads(out.read_text())
-    assert set(data["summary"]) == {"ma-mesn", "idqn"} and png.stat().st_size > 10_000
+    assert set(data["summary"]) == {"ma-mesn", "ma-mesn+ps", "idqn"} and png.stat().st_size > 10_000
 
 
 def test_treadmill_learning_tiny_run_reports_variants_references_and_analysis(tmp_path) -> None:
