@@ -18,11 +18,12 @@ listener keeps training on the speaker's coin flips.
 
 ``ma-mesn+ps`` is MA-MeSN with Eccles et al.'s positive signalling (``signalling_coef=0.1``: the loss also rewards
 I(speaker's observation; message)). The paper's MA-MeSN forms a full protocol on about two seeds in three within 300 k
-steps; on the third the speaker keeps two goals on one codeword and the listener cannot tell them apart (≈ −10.5 to
-−14.5). Rewarding a message that varies with what the speaker sees splits them early. The script prints a table
-(mean over seeds, each seed) and writes a PNG of the training curves with the bounds; ``--json`` saves the figures and
-``--load`` reports saved ones again (runs split over processes, one table). ``--quick`` is a smoke run of the first
-seed (numbers meaningless).
+steps; on the third it stays between the two bounds (≈ −10.5 to −14.5: the speaker tells only some goals apart).
+Rewarding a message that varies with what the speaker sees forms it on every seed tried (docs/benchmarks.md).
+
+The script prints a table (mean over seeds, each seed) and writes a PNG of the training curves with the bounds;
+``--json`` saves the figures and ``--load`` reports saved ones again (runs split over processes, one table).
+``--quick`` is a smoke run of the first seed (numbers meaningless).
 
 Run: ``python benchmarks/speaker_listener.py`` (9 runs of ~5 minutes on one core each; split ``--algos`` over two
 processes and ``--load`` their JSON files for one table).

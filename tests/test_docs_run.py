@@ -87,6 +87,8 @@ for _w, _c in COMMANDS:
     learns = _c.startswith("python benchmarks/treadmill_imitation.py") and " --learn " in _c  # clones, then trains
     if (_c.startswith("convoy train") or learns) and " --out runs/" in _c and "--resume" not in _c:
         PRODUCERS.setdefault(_c.split(" --out ")[1].split()[0], _c)
+    if _c.startswith("python benchmarks/") and " --json runs/" in _c:  # figures another command reads (--load)
+        PRODUCERS.setdefault(_c.split(" --json ")[1].split()[0], _c)
 # the seeds of a population that a documented command reads (``runs/…/seed-N/``): the suite's --seeds keeps them
 READ_SEEDS: dict[str, set[str]] = {}
 for _w, _c in COMMANDS:
@@ -210,7 +212,7 @@ def run_make(target: str, ws: Path, **variables: str) -> subprocess.CompletedPro
 def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     """Run one documented command (a ``convoy`` line, a benchmark script or a ``make`` target) at a small budget."""
     argv = shrink(expand(command))
-    outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--out"}
+    outputs = {argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--out", "--json")}
     for arg in set(argv) - outputs:  # a run this command reads: made by the documented command that writes it
         for value in arg.rpartition("=")[2].split(","):  # a path, --hp teacher=PATH or a group LABEL=DIR,DIR
             for path in PRODUCERS:
@@ -227,6 +229,7 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                   "learner_scores.py": ["--episodes", "2", "--json", "learner_scores.json"],
                   "doc_figures.py": ["--check"],  # never rewrites the repository's docs from a test
                   "env_throughput.py": ["--quick"],
+                  "speaker_listener.py": [] if "--load" in argv else ["--quick"],  # --load replays saved figures
                   "ma_mesn_single.py": [],  # its documented 25 k steps take seconds
                   "soak.py": ["--minutes", "0.2", "--jobs", "2", "--sweeps", "1", "--kills", "1", "--burst", "2",
                               "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued
@@ -247,8 +250,8 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
 
 def ensure(path: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The run at ``ws/path``, made by its documented producer unless it is there."""
-    if (ws / path / "summary.json").is_file() or any((ws / path).glob("seed-*/summary.json")):
-        return  # a single run, or a population whose seeds need not start at 0
+    if (ws / path).is_file() or (ws / path / "summary.json").is_file() or any((ws / path).glob("seed-*/summary.json")):
+        return  # a benchmark's figures, a single run, or a population whose seeds need not start at 0
     producer = PRODUCERS[path]
     code, out = run_documented(producer, ws, capsys)
     assert code == 0, f"{producer} (which writes {path}) failed:\n{out[-4000:]}"
