@@ -113,6 +113,11 @@ class TreadmillEngine:
         self._steer_cap = np.where(self._is_agent, cfg.top_speed, cfg.adversary_steer_cap)
         # [N, C] added to an agent's squared distance to its own car: never its closest, never observed
         self._own_car = np.where(np.eye(n, c, dtype=bool), _UNSEEN, 0)
+        self._not_own_car = ~np.eye(n, c, dtype=bool)
+        # the sight rule as a table over every offset a car can have from an agent, cars just off the window included
+        margin = 2 * (cfg.top_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed)) + 2
+        self._reach = (cfg.length + margin, cfg.width + margin)
+        self._sight = _sight_table(*self._reach, cfg.sensor_range, cfg.sensor_fov)
         self._rows = np.arange(2 * num_envs) * c  # env e's first car in a flattened [E, C] array (E ≤ 2B)
         # a seen car's slot by (heading, speed): seen flag, offset (filled in per car), heading one-hot, speed; then
         # the empty slot's zeros
@@ -331,9 +336,7 @@ class TreadmillEngine:
         and inside its field of view (``sensor_fov`` degrees, centred on the heading). Read from ``_sight_table``,
         the rule evaluated once for every offset the window allows (the rule itself where an offset falls outside)."""
         cfg = self.cfg
-        margin = 2 * (cfg.top_speed + (cfg.treadmill_speed_max or cfg.treadmill_speed)) + 2  # cars off the window
-        rx, ry = cfg.length + margin, cfg.width + margin
-        table = _sight_table(rx, ry, cfg.sensor_range, cfg.sensor_fov)
+        (rx, ry), table = self._reach, self._sight
         if table is None or np.abs(rel_x).max(initial=0) > rx or np.abs(rel_y).max(initial=0) > ry:
             return _in_sight(rel_x, rel_y, heading, cfg.sensor_range, cfg.sensor_fov)
         ny = 2 * ry + 1
@@ -362,7 +365,7 @@ class TreadmillEngine:
         n, k, c = cfg.n_agents, cfg.observe_k, cfg.n_cars
         d2 = rel_x * rel_x + rel_y * rel_y  # [E, N, C], exact
         closest = np.sqrt((d2 + self._own_car).min(axis=2).astype(np.float64))
-        seen = self.sees(rel_x, rel_y, heading[:, :n], d2) & (self._own_car == 0)
+        seen = self.sees(rel_x, rel_y, heading[:, :n], d2) & self._not_own_car
         bits = max(1, (c - 1).bit_length())  # the car's index in a key's low bits
         key = (np.where(seen, d2, _UNSEEN) << bits) | np.arange(c)
         key = key.min(axis=2, keepdims=True) if k == 1 else np.sort(key, axis=2)[..., :k]
