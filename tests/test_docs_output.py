@@ -172,13 +172,13 @@ def test_the_readme_prose_quotes_the_make_run_block() -> None:
     assert f"after {int(rows['env steps'][0]) // 1000} k steps" in prose
 
 
-@pytest.mark.docs_budget("README's make run: 30,000 steps, 2–3 min on 2 cores")
+@pytest.mark.docs_budget("README's make run: 90,000 steps, ~5 min on 2 cores")
 @pytest.mark.timeout(1800)
 def test_the_make_run_block_at_its_budget(tmp_path: Path) -> None:
     """README's ``make run`` as the README runs it. Counts exact but the episodes (the policy decides when they
     end: within 10 %); the references exact (played by fixed policies on fixed episodes); the learning figures
-    within 8 — the README says another 2-core machine's float kernels gave a greedy return of 26.7 ± 3.7 for its
-    32.0 ± 4.5 — and the losses within 0.5."""
+    within 30 — another float path is another draw of the run, and the recipe's seeds end at 68–112 (README) —
+    and the losses within 3 (they are about 18 at the end)."""
     shown = block("README.md", "make run")
     done = subprocess.run(["make", "-C", str(ROOT), "-o", ".venv/.convoy-installed", "--no-print-directory",
                            f"BIN={Path(sys.executable).parent}", "run", f"OUT={tmp_path / 'demo'}"],
@@ -188,6 +188,6 @@ def test_the_make_run_block_at_its_budget(tmp_path: Path) -> None:
                                                                                 ".venv/bin")  # fmt: skip
     episodes = next(numbers(line)[0][1] for line in shown.output if line.startswith("│ episodes "))
     rules = [(r"reference|^random|^constant|planner|driver", 0.0), (r"^episodes @", 0.1 * episodes), (r"ε @", 0.0),
-             (r"loss @", 0.5)]  # fmt: skip
-    problems = compare(shown.output, printed, 8.0, rules, whole=True)
+             (r"loss @", 3.0)]  # fmt: skip
+    problems = compare(shown.output, printed, 30.0, rules, whole=True)
     assert not problems, "\n".join(problems) + "\n\nprinted:\n" + printed
