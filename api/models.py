@@ -139,6 +139,11 @@ class SweepSubmit(JsonBody):
         "update; each seed still its own job of the sweep, with its own folder, metrics and summary), fewer where "
         "the service's resource limits allow fewer; 1 = one process group per job.",
     )
+    exclude: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description='Grid points not to run, each naming every axis, e.g. [{"algo": "idqn", "seed": 3}]: runs '
+        "measured already (`convoy reproduce` leaves out those its ledger holds).",
+    )
 
     @field_validator("grid")
     @classmethod
@@ -160,6 +165,25 @@ class SweepSubmit(JsonBody):
         if size > MAX_SWEEP_JOBS:
             raise ConfigError("grid", f"makes {size:,} jobs; a sweep has at most {MAX_SWEEP_JOBS:,} — split it")
         return grid
+
+    @field_validator("exclude")
+    @classmethod
+    def _exclude(cls, exclude: list[dict[str, Any]], info: ValidationInfo) -> list[dict[str, Any]]:
+        grid: dict[str, list[Any]] = info.data.get("grid") or {}
+        for i, point in enumerate(exclude):
+            if set(point) != set(grid):
+                raise ConfigError(
+                    f"exclude[{i}]", f"names the axes {sorted(point)}; name every grid axis, {sorted(grid)}"
+                )
+            for axis, value in point.items():
+                if repr(value) not in {repr(v) for v in grid[axis]}:
+                    raise ConfigError(f"exclude[{i}].{axis}", f"{value!r} is not among grid.{axis}'s values")
+        size = 1
+        for values in grid.values():
+            size *= len(values)
+        if grid and len({repr(sorted(p.items())) for p in exclude}) >= size:
+            raise ConfigError("exclude", "leaves no job of the grid to run; drop a point or submit nothing")
+        return exclude
 
     @field_validator("algos")
     @classmethod

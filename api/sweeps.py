@@ -14,17 +14,26 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobState, SweepRecord, UnknownJob
+from convoy.api.lifecycle import ACTIVE_STATES, JobReader, JobRecord, JobState, SweepRecord, UnknownJob
 from convoy.api.models import GRID_TABLES, JobSubmit, SweepMember, SweepSubmit, SweepView
 from convoy.catalog import return_bounds
 from convoy.config import ConfigError, JobConfig, algo_name
 from convoy.stats import curve_area, iqm_ci, mean_curve
 from convoy.stats import mean_ci as _mean_ci
 from convoy.validation import build_config
+
+
+class RunReader(Protocol):
+    """The reads a summary makes: a job and its metric rows (the job store, or a reproduction's ledger)."""
+
+    def get(self, job_id: str) -> JobRecord: ...
+    def metrics(
+        self, job_id: str, since: int | None = None, names: list[str] | None = None, limit: int | None = None
+    ) -> list[dict[str, Any]]: ...
 
 
 @dataclass(frozen=True)
@@ -48,11 +57,15 @@ def _canonical(algo: Any) -> str | None:
 
 
 def expand(spec: SweepSubmit) -> list[SweepJob]:
-    """Every job of the grid, validated; seeds outermost, so that each group's first seed runs first."""
+    """Every job of the grid but the excluded points, validated; seeds outermost, so that each group's first seed
+    runs first."""
     axes = sorted(spec.grid, key=lambda axis: axis != "seed")
+    left_out = [sorted(point.items(), key=repr) for point in spec.exclude]
     jobs = []
     for values in itertools.product(*(spec.grid[axis] for axis in axes)):
         point = dict(zip(axes, values, strict=True))
+        if sorted(point.items(), key=repr) in left_out:
+            continue
         body = copy.deepcopy(spec.base)
         algo = _canonical(point.get("algo", body.get("algo", JobConfig.model_fields["algo"].default)))
         own = spec.algos.get(algo) if algo else None
@@ -168,7 +181,7 @@ def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_s
 
 
 def summarize_group(
-    name: str, members: list[tuple[str, dict[str, Any]]], reader: JobReader, threshold: float | None
+    name: str, members: list[tuple[str, dict[str, Any]]], reader: RunReader, threshold: float | None
 ) -> dict[str, Any]:
     """One group: its jobs' states, the mean greedy curve ± CI at common steps (and ``bounds``, the returns its env
     allows, where the rules bound them), the final return (mean ± t-CI and interquartile mean with a bootstrap CI),
@@ -182,7 +195,7 @@ def summarize_group(
         except UnknownJob:
             continue  # deleted: the summary is of the jobs that remain
         jobs.append(job_id)
-        bounds = return_bounds(str(rec.config.get("env", "")))
+        bounds = return_bounds(str(rec.config.get("env", ""))) or bounds
         states[rec.state.value] = states.get(rec.state.value, 0) + 1
         final = rec.progress.get("final") if rec.state == JobState.completed else None
         rows = reader.metrics(job_id, names=["eval_return", "wall_s"])
@@ -219,7 +232,7 @@ def summarize_group(
     return out
 
 
-def summarize(members: list[dict[str, Any]], reader: JobReader, threshold: float | None) -> list[dict[str, Any]]:
+def summarize(members: list[dict[str, Any]], reader: RunReader, threshold: float | None) -> list[dict[str, Any]]:
     """Every group of a sweep's jobs (``members``: ``{"id", "point"}`` in grid order), in order of appearance."""
     groups: dict[str, list[tuple[str, dict[str, Any]]]] = {}
     for member in members:

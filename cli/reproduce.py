@@ -23,7 +23,8 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, cast
 
@@ -31,11 +32,12 @@ from rich.console import Console
 
 from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
+from convoy.api.sweeps import group_name
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
+from convoy.cli.ledger import Ledger, point_key, request
 from convoy.cli.sweep_file import read_file, scale_table, skipped, sweep_body
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
-from convoy.stats import mean_ci as seeds_summary
 from convoy.validation import ConfigError, build_config
 
 FIGURES = ("fig3", "fig4a", "fig4b", "fig5", "fig6", "fig7", "fig8", "table1")
@@ -108,11 +110,19 @@ def normal(body: dict[str, Any]) -> dict[str, Any] | None:
         return None
 
 
-def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
-    """The summary of ``body``'s sweep once no job of it is queued or running: an existing sweep with the same
-    request is reused (resumed if stopped or failed), else it is submitted."""
+def run_sweep(
+    api: Api, body: dict[str, Any], label: str, harvest: Callable[[dict[str, Any]], None] | None = None
+) -> dict[str, Any]:
+    """The summary of ``body``'s sweep once no job of it is queued or running (with ``members``, its jobs' points
+    and states): an existing sweep with the same request that runs every point this one does is reused (resumed
+    if stopped or failed), else it is submitted. ``harvest`` sees each member as soon as it completes."""
     spec = normal(body)
-    same = [s for s in api.call("GET", "/sweeps")["sweeps"] if normal(s["spec"]) == spec]
+    if spec is None:
+        raise CliError(label, "the sweep request does not validate", "check the experiment file")
+    left_out = {point_key(p) for p in spec["exclude"]}
+    same = [s for s in api.call("GET", "/sweeps")["sweeps"]
+            if (old := normal(s["spec"])) is not None and request(old) == request(spec)
+            and {point_key(p) for p in old["exclude"]} <= left_out]  # fmt: skip
     if same:  # a finished one first, then one that runs, else the newest (resumed)
         rank = {"completed": 0, "running": 1}
         sweep = min(reversed(same), key=lambda s: rank.get(s["state"], 2))
@@ -124,7 +134,12 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
         plain(out, f"{label}: submitted sweep {sweep['id']} ({len(sweep['jobs'])} jobs)")
     t0, said, last = time.monotonic(), "", 0.0
     try:
-        while sweep["state"] == "running":
+        while True:
+            for member in sweep["jobs"]:
+                if harvest is not None and member["state"] == "completed":
+                    harvest(member)
+            if sweep["state"] != "running":
+                break
             states = ", ".join(f"{n} {s}" for s, n in sorted(sweep["states"].items()))
             text = f"{label}: {sweep['fraction']:.0%} of its env steps · {states}"
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:
@@ -140,22 +155,10 @@ def run_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
         raise CliError(label, f"sweep {sweep['id']} was stopped before its jobs finished",
                        f"resume it (`convoy sweep resume {sweep['id']}`) or run the same command again")  # fmt: skip
     summary = api.call("GET", f"/sweeps/{sweep['id']}/summary")
-    summary["spec"] = spec
+    summary["spec"], summary["members"] = spec, sweep["jobs"]
     summary["minutes"] = sweep["busy_s"] / 60
     plain(out, f"{label}: sweep {sweep['id']} {sweep['state']} after {(time.monotonic() - t0) / 60:.1f} min")
     return summary
-
-
-def references(api: Api, groups: list[dict[str, Any]]) -> dict[str, float]:
-    """The reference policies' returns the first completed job of ``groups`` measured (on its env: pass one group
-    when the groups' envs differ, e.g. in the number of agents)."""
-    for group in groups:
-        for job_id in group["jobs"]:
-            final = api.call("GET", f"/jobs/{job_id}").get("final") or {}
-            refs = final.get("references") or {}
-            if refs:
-                return {name: float(pair[0]) for name, pair in refs.items() if pair and pair[0] is not None}
-    return {}
 
 
 def resolve_links(node: Any, ctx: Context) -> Any:
@@ -193,8 +196,9 @@ class Context:
         self.minutes: dict[str, float] = {}  # the service's wall time of each figure's sweeps
 
     def sweep_summaries(self, fig: str) -> list[dict[str, Any]]:
-        """Every group of figure ``fig``'s sweeps (run or reused), in file order, each algorithm at the settings
-        its tuning chose (when the figure tunes at this scale)."""
+        """Every group of figure ``fig``'s sweeps, in file order, summarised from its ledgers after the runs they
+        lack were trained (or reused), each algorithm at the settings its tuning chose (when the figure tunes at
+        this scale)."""
         if fig not in self._summaries:
             groups: list[dict[str, Any]] = []
             chosen = self.tuned(fig)
@@ -202,11 +206,123 @@ class Context:
                 if data["figure"].get("kind", "sweep") != "sweep" or skipped(data, self.scale):
                     continue
                 body = with_settings(resolve_links(sweep_body(data, self.scale, where=str(path)), self), chosen)
-                summary = run_sweep(self.api, body, f"{fig} [{self.scale}] {path.name}")
-                groups += [{**g, "sweep": summary["id"]} for g in summary["groups"]]
-                self.minutes[fig] = self.minutes.get(fig, 0.0) + summary["minutes"]
+                groups += self.measured(fig, path, body)
             self._summaries[fig] = groups
         return self._summaries[fig]
+
+    def measured(self, fig: str, path: Path, body: dict[str, Any], tuning: bool = False) -> list[dict[str, Any]]:
+        """The groups of one experiment file's sweep (or of its tuning sweep): the runs its ledger lacks trained
+        through the service (each recorded as it completes), then every group summarised from the ledger."""
+        from convoy.api.sweeps import expand
+
+        name = f"{path.stem}-tuning" if tuning else path.stem
+        label = f"{fig} [{self.scale}] {path.name}{' tuning' * tuning}"
+        spec = normal(body)
+        if spec is None:
+            raise CliError(label, "the sweep request does not validate", "check the experiment file")
+        ledger, note = Ledger.open(self.docs / "ledger" / self.scale / f"{name}.json", spec)
+        if note:
+            plain(out, f"{label}: {note}")
+        points = [job.point for job in expand(build_config(SweepSubmit, **spec))]
+        measured = [p for p in points if ledger.has(p)]
+        others: dict[str, str] = {}
+        if len(measured) < len(points):
+            if measured:
+                plain(out, f"{label}: {len(measured)} of {len(points)} runs measured already ({ledger.path})")
+            summary = run_sweep(self.api, {**body, "exclude": measured}, label,
+                                lambda member: self.harvest(fig, ledger, member, score=not tuning))  # fmt: skip
+            ledger.busy_s[summary["id"]] = round(summary["minutes"] * 60, 1)
+            ledger.save()
+            others = {point_key(m["point"]): m["state"] for m in summary["members"]
+                      if not ledger.has(m["point"]) and m["state"] != "deleted"}  # fmt: skip
+        else:
+            plain(out, f"{label}: all {len(points)} runs measured ({ledger.path}); nothing to train")
+        self.minutes[fig] = self.minutes.get(fig, 0.0) + sum(ledger.busy_s.values()) / 60
+        return [{**g, "ledger": ledger, "sweep": str(ledger.path)} for g in ledger.groups(points, others)]
+
+    def harvest(self, fig: str, ledger: Ledger, member: dict[str, Any], score: bool = True) -> None:
+        """Record a completed job in ``ledger`` (once): its greedy curve and final evaluation, the references it
+        measured, its population's wall time and, when ``score``, its last and best policies on the figure's
+        held-out episodes and Table 1's analysis of its last checkpoint where an analysis figure reads its group
+        at this scale."""
+        from convoy.analysis.evaluation import HELD_OUT_SEED
+        from convoy.services.training import score_checkpoint
+
+        point, job_id = member["point"], member["id"]
+        if ledger.has(point):
+            return
+        job = self.api.call("GET", f"/jobs/{job_id}")
+        rows = self.api.call("GET", f"/jobs/{job_id}/metrics", params={"names": "eval_return,wall_s"})["rows"]
+        kept = [{k: r[k] for k in ("env_steps", "eval_return", "wall_s") if k in r} for r in rows
+                if isinstance(r.get("eval_return"), int | float) and math.isfinite(r["eval_return"])]  # fmt: skip
+        if rows and (not kept or kept[-1]["env_steps"] != rows[-1].get("env_steps")):
+            kept.append({k: rows[-1][k] for k in ("env_steps", "wall_s") if k in rows[-1]})  # the run's end
+        final = job.get("final") or {}
+        refs = {
+            name: float(pair[0])
+            for name, pair in (final.get("references") or {}).items()
+            if pair and pair[0] is not None
+        }
+        run: dict[str, Any] = {
+            "job": job_id,
+            "population": job.get("population") or job_id,
+            "env": job["env"],
+            "env_steps": job["progress"]["env_steps"],
+            "final": final,
+            "references": refs,
+            "rows": kept,
+            "env_params": job["config"].get("env_params") or {},
+            "wall_s": next((r["wall_s"] for r in reversed(rows) if r.get("wall_s") is not None), None),
+        }
+        episodes = self.held_out_episodes(fig) if score else 0
+        if episodes > 0:
+            plain(out, f"{fig} [{self.scale}]: {job_id}: last and best policies on {episodes} held-out episodes")
+            scores = {}
+            for key, name in (("last", "checkpoint.pt"), ("best", "best.pt")):
+                path = self.checkpoint(job_id, name)
+                scores[key] = None if path is None else score_checkpoint(path, episodes)
+            run["held_out"] = {"episodes": episodes, "seed": HELD_OUT_SEED, **scores}
+        opts = self.analysis_opts(fig, group_name(point)) if score else None
+        if opts is not None:
+            run["analysis"] = self.analyse(fig, job_id, opts)
+        ledger.record(point, run)
+
+    def held_out_episodes(self, fig: str) -> int:
+        """How many held-out episodes re-score each run's last and best policies (0: none)."""
+        data = self.files[fig][0][1]
+        scale = scale_table(data, self.scale)
+        return int(scale.get("held_out_episodes", data["figure"].get("held_out_episodes", 100)))
+
+    def analysis_opts(self, fig: str, group: str) -> dict[str, Any] | None:
+        """The settings of the analysis figure (Table 1) that reads ``fig``'s group ``group`` at this scale, or
+        None when none does."""
+        for files in self.files.values():
+            meta = files[0][1]["figure"]
+            opts = (meta.get("scales") or {}).get(self.scale)
+            if meta.get("kind") != "analysis" or meta.get("source") != fig or opts is None:
+                continue
+            if group in (meta["group"], *opts.get("also", [])):
+                return opts
+        return None
+
+    def analyse(self, fig: str, job_id: str, opts: dict[str, Any]) -> dict[str, Any] | None:
+        """Table 1's figures of job ``job_id``'s last checkpoint (as the ledger keeps them), None without one."""
+        from convoy.algos.checkpoint import load_checkpoint
+        from convoy.analysis.recording import analyze
+        from convoy.services.training import make_env
+
+        path = self.checkpoint(job_id, "checkpoint.pt")
+        if path is None:
+            return None
+        algo, job, _ = load_checkpoint(path, device="cpu")
+        env = make_env(job, int(opts.get("num_envs", 256)))
+        try:
+            steps = -(-int(opts["samples"]) // env.num_envs)
+            plain(out, f"{fig} [{self.scale}]: analysing {job_id} ({steps * env.num_envs:,} samples)")
+            result = analyze(algo, env, job.env, steps, int(opts["episodes"]), int(opts.get("seed", 12345)))
+        finally:
+            env.close()
+        return {"opts": analysis_key(opts), "title": result.title, "figures": [asdict(f) for f in result.figures]}
 
     def checkpoint(self, job_id: str, name: str) -> Path | None:
         """Job ``job_id``'s ``name`` (``checkpoint.pt``, ``best.pt``) fetched from the service once, or None when it
@@ -230,9 +346,7 @@ class Context:
             return {}
         if fig not in self.tuning:
             body = tuning_body(resolve_links(sweep_body(data, self.scale, where=str(path)), self), tuning)
-            summary = run_sweep(self.api, body, f"{fig} [{self.scale}] tuning")
-            self.minutes[fig] = self.minutes.get(fig, 0.0) + summary["minutes"]
-            self.tuning[fig] = choose_settings(summary["groups"], list(tuning["grid"]))
+            self.tuning[fig] = choose_settings(self.measured(fig, path, body, tuning=True), list(tuning["grid"]))
         return {algo: t["chosen"] for algo, t in self.tuning[fig].items()}
 
 
@@ -271,64 +385,29 @@ def with_settings(body: dict[str, Any], chosen: dict[str, dict[str, Any]]) -> di
     return {**body, "algos": algos}
 
 
-def held_out(ctx: Context, group: dict[str, Any], episodes: int) -> dict[str, Any]:
-    """Each job's last policy and ``best.pt`` re-scored on held-out episodes: the best point was chosen on the
-    training run's own evaluation episodes, so only here do the two compare fairly."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED
-    from convoy.services.training import score_checkpoint
-
-    scores: dict[str, list[float]] = {"last": [], "best": []}
-    for job_id in group["jobs"]:
-        for key, name in (("last", "checkpoint.pt"), ("best", "best.pt")):
-            path = ctx.checkpoint(job_id, name)
-            if path is not None:
-                scores[key].append(score_checkpoint(path, episodes))
-    return {"episodes": episodes, "seed": HELD_OUT_SEED, **{k: seeds_summary(v) for k, v in scores.items()}}
-
-
 def held_out_references(ctx: Context, groups: list[dict[str, Any]], episodes: int) -> dict[str, float]:
     """The env's reference policies (planners, the best constant, the tuned driver, random) on the held-out episodes
     the groups' policies are re-scored on, for the first group's env; {} where the env has none, or where more
-    episodes than one round of ``held_out`` are asked (its rounds would be other episodes)."""
+    episodes than one round of the re-scoring are asked (its rounds would be other episodes)."""
     from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS
     from convoy.envs.registry import env_entry
 
-    job_id = next((j for g in groups for j in g["jobs"]), None)
-    if job_id is None or episodes > SCORING_ENVS:
+    run = next((r for g in groups for r in g["runs"]), None)
+    if run is None or episodes > SCORING_ENVS:
         return {}
-    config = ctx.api.call("GET", f"/jobs/{job_id}")["config"]
-    table = env_entry(config["env"]).references
+    table = env_entry(run["env"]).references
     if table is None:
         return {}
     plain(out, f"{ctx.current} [{ctx.scale}]: the reference policies on the same {episodes} held-out episodes")
-    refs = table(config.get("env_params") or {}, episodes, HELD_OUT_SEED)
+    refs = table(run.get("env_params") or {}, episodes, HELD_OUT_SEED)
     return {name: float(mean) for name, (mean, _) in refs.items()}
-
-
-def wall_seconds(api: Api, group: dict[str, Any]) -> float | None:
-    """The seconds of training the group took here: each population's learner wall clock (carried across resumes) at
-    its last row, summed over the group's populations (a seed trained alone is a population of one)."""
-    walls: dict[str, float] = {}
-    for job_id in group["jobs"]:
-        job = api.call("GET", f"/jobs/{job_id}")
-        since = max(-1, int(job["steps"] * 0.99))
-        rows = api.call("GET", f"/jobs/{job_id}/metrics", params={"names": "wall_s", "since": since})["rows"]
-        if rows and rows[-1].get("wall_s") is not None:
-            key = job.get("population") or job_id
-            walls[key] = max(walls.get(key, 0.0), float(rows[-1]["wall_s"]))
-    return round(sum(walls.values()), 1) if walls else None
 
 
 def sweep_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
     from convoy.analysis.curves import plot_final_by, plot_groups
 
-    groups = [{**g, "references": references(ctx.api, [g]), "wall_s": wall_seconds(ctx.api, g)}
-              for g in ctx.sweep_summaries(fig)]  # fmt: skip
-    scale = scale_table(ctx.files[fig][0][1], ctx.scale)
-    episodes = int(scale.get("held_out_episodes", meta.get("held_out_episodes", 100)))
-    for g in groups if episodes > 0 else []:
-        plain(out, f"{fig} [{ctx.scale}]: {g['group']}: last and best policies on {episodes} held-out episodes")
-        g["held_out"] = held_out(ctx, g, episodes)
+    groups = ctx.sweep_summaries(fig)
+    episodes = ctx.held_out_episodes(fig)
     held_refs = held_out_references(ctx, groups, episodes) if episodes > 0 else {}
     refs: dict[str, Any] = next(
         (g["references"] for g in groups if g["references"]), {}
@@ -358,9 +437,9 @@ def benchmark_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, 
 
 
 def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, Any]:
-    """Table 1: analyse every checkpoint of another figure's group (``source``, ``group``; and at a scale whose
-    table names them, its ``also`` groups, e.g. the channel-cut twins) and collect each metric over seeds."""
-    from convoy.analysis.comm_metrics import plot_figures
+    """Table 1: every last checkpoint of another figure's group analysed (``source``, ``group``; and at a scale
+    whose table names them, its ``also`` groups, e.g. the channel-cut twins), each metric collected over seeds."""
+    from convoy.analysis.comm_metrics import MetricFigure, plot_figures
 
     opts = meta["scales"][ctx.scale]
     summaries = {g["group"]: g for g in ctx.sweep_summaries(meta["source"])}
@@ -370,46 +449,47 @@ def analysis_figure(ctx: Context, fig: str, meta: dict[str, Any]) -> dict[str, A
     for name in [meta["group"], *opts.get("also", [])]:
         if name not in summaries:
             raise CliError("figure.group", f"{meta['source']} has no group {name!r}", "fix the table1 file")
-        by_group[name], analysed = analyse_group(ctx, fig, summaries[name], opts, names)
+        by_group[name], analysed = analyse_group(ctx, summaries[name], opts, names)
         last = last or analysed
     png = ctx.docs / f"{fig}.png"
     if last is not None:
-        plot_figures(last.figures, png, title=f"{last.title} (last seed analysed)")
+        figures = [MetricFigure(**f) for f in last["figures"]]
+        plot_figures(figures, png, title=f"{last['title']} (last seed analysed)")
     first = by_group[meta["group"]]
     return {"groups": [summaries[g] for g in by_group], "references": {}, "png": png.name if last else None,
             "extra": {"analysis": first, "analysis_groups": by_group}, "analysis_names": names}  # fmt: skip
 
 
 def analyse_group(
-    ctx: Context, fig: str, group: dict[str, Any], opts: dict[str, Any], names: dict[str, str]
-) -> tuple[dict[str, dict[str, list[Any]]], Any]:
-    """Each metric's values (and shuffled baselines) over the group's last checkpoints, and the last analysis."""
-    from convoy.algos.checkpoint import load_checkpoint
-    from convoy.analysis.recording import analyze
-    from convoy.services.training import make_env
-
+    ctx: Context, group: dict[str, Any], opts: dict[str, Any], names: dict[str, str]
+) -> tuple[dict[str, dict[str, list[Any]]], dict[str, Any] | None]:
+    """Each metric's values (and shuffled baselines) over the group's runs, and the last run's analysis: as the
+    ledger holds them, analysed now (and recorded) where a run was measured under other settings and its
+    checkpoint is still on the service."""
+    ledger: Ledger = group["ledger"]
     figures: dict[str, dict[str, list[Any]]] = {}
     last = None
-    for job_id in group["jobs"]:
-        path = ctx.checkpoint(job_id, "checkpoint.pt")
-        if path is None:
-            continue
-        algo, job, _ = load_checkpoint(path, device="cpu")
-        env = make_env(job, int(opts.get("num_envs", 256)))
-        try:
-            steps = -(-int(opts["samples"]) // env.num_envs)
-            plain(
-                out, f"{fig} [{ctx.scale}]: analysing {job_id} of {group['group']} ({steps * env.num_envs:,} samples)"
-            )
-            last = analyze(algo, env, job.env, steps, int(opts["episodes"]), int(opts.get("seed", 12345)))
-        finally:
-            env.close()
-        for f in last.figures:
-            names[f.key] = f.name
-            entry = figures.setdefault(f.key, {"value": [], "shuffled": []})
-            entry["value"].append(f.value)
-            entry["shuffled"].append(f.shuffled)
+    for run in group["runs"]:
+        analysis = run.get("analysis")
+        if analysis is None or analysis["opts"] != analysis_key(opts):
+            analysis = ctx.analyse(ctx.current, run["job"], opts)
+            if analysis is None:
+                plain(out, f"{ctx.current} [{ctx.scale}]: {run['job']} of {group['group']} has no analysis at these "
+                      "settings and no checkpoint on this service: left out")  # fmt: skip
+                continue
+            ledger.record(run["point"], {**{k: v for k, v in run.items() if k != "point"}, "analysis": analysis})
+        last = analysis
+        for f in analysis["figures"]:
+            names[f["key"]] = f["name"]
+            entry = figures.setdefault(f["key"], {"value": [], "shuffled": []})
+            entry["value"].append(f["value"])
+            entry["shuffled"].append(f["shuffled"])
     return figures, last
+
+
+def analysis_key(opts: dict[str, Any]) -> dict[str, Any]:
+    """The settings an analysis depends on (a run analysed under others is analysed again where it can be)."""
+    return {k: opts[k] for k in ("samples", "episodes", "seed", "num_envs") if k in opts}
 
 
 def stale(record: dict[str, Any]) -> str:
@@ -530,7 +610,9 @@ INTRO = (
     "(each section says how far): a verdict there says what that budget shows, not that the paper is wrong; Fig. "
     "3's and Table 1's `mid` scale is the budget their question needs (each run started from the planner of its "
     "information, then 260 k steps of Q-learning: ≥ 400 k env steps; 10 seeds; days on 2 cores), and the "
-    "command, stopped or killed, goes on from its checkpoints when run again. Each "
+    "command, stopped or killed, goes on from its checkpoints when run again. Each run's scores are kept, as its "
+    "job completes, in `docs/reproduction/ledger/SCALE/`: a run held there is not trained again, so a new machine "
+    "with the committed ledger trains only the runs that had not finished. Each "
     "group's final return is also tested against the random policy's on the same env (*above random?*, one-sided "
     "t-test). A figure measured on an earlier rule set of the treadmill than the current one (rules {rules}) says "
     "so: its numbers do not describe today's treadmill until it is run again. `convoy reproduce --rejudge` judges "

@@ -4,6 +4,7 @@ run again, it reuses the finished sweep instead of training anew."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any, cast
 
@@ -26,6 +27,7 @@ from convoy.api.sweeps import expand, group_name
 from convoy.cli.main import main
 from convoy.cli.reproduce import figure_files, tuning_body
 from convoy.cli.sweep_file import skipped, sweep_body
+from convoy.services.store import JobStore
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,6 +128,27 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert main(argv) == 0
     again = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
     assert again["groups"][0]["sweep"] == sweep and again["groups"] == record["groups"]
+    # a lost machine: the service's data gone, the ledger kept (docs/…/ledger/SCALE/FILE.json, committed with the
+    # page) — nothing is trained again and the figure is the same
+    shutil.rmtree(tmp_path / "data")
+    assert main(argv) == 0
+    assert json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())["groups"] == record["groups"]
+    assert not list((tmp_path / "data").glob("quick/service/jobs/*")), "a run the ledger holds was trained again"
+    # one run taken out of the ledger: that run alone is trained again, the others are read from the ledger
+    ledger = tmp_path / "docs" / "r" / "ledger" / "quick" / "fig8.json"
+    kept = json.loads(ledger.read_text())
+    dropped = kept["runs"].pop("algo=idqn seed=1")
+    ledger.write_text(json.dumps(kept))
+    assert main(argv) == 0
+    store = JobStore(tmp_path / "data" / "quick" / "service" / "jobs.sqlite")
+    try:
+        (sweep_run,) = store.sweeps()
+        assert [m["point"] for m in sweep_run.jobs] == [{"seed": 1, "algo": "idqn"}]
+    finally:
+        store.close()
+    retrained = json.loads((tmp_path / "docs" / "r" / "fig8.json").read_text())
+    assert retrained["groups"][0] == record["groups"][0] and retrained["groups"][1]["final"]["n"] == 2
+    assert dropped["job"] not in retrained["groups"][1]["jobs"] and len(retrained["groups"][1]["jobs"]) == 2
 
 
 def _links_as_paths(node: Any) -> Any:
@@ -425,23 +448,16 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tm
     from convoy.envs.treadmill.config import CHARGER_RULES
     from convoy.envs.treadmill.references import summary_references
 
-    class Jobs:
-        def __init__(self, env: str, params: dict[str, Any]) -> None:
-            self.config = {"env": env, "env_params": params}
+    def groups(env: str, params: dict[str, Any]) -> list[dict[str, Any]]:  # as the ledger keeps each run
+        return [{"group": "algo=idqn", "jobs": ["j0"], "runs": [{"job": "j0", "env": env, "env_params": params}]}]
 
-        def call(self, method: str, path: str, **kwargs: Any) -> dict[str, Any]:
-            assert (method, path) == ("GET", "/jobs/j0")
-            return {"config": self.config}
-
-    groups = [{"group": "algo=idqn", "jobs": ["j0"]}]
     params = {**CHARGER_RULES, "length": 60, "width": 60, "max_steps": 40}
-    ctx = Context(cast(Any, Jobs("treadmill", params)), "mid", {}, tmp_path, tmp_path)
-    refs = held_out_references(ctx, groups, 6)
+    ctx = Context(cast(Any, None), "mid", {}, tmp_path, tmp_path)  # no service: the ledger's runs name their env
+    refs = held_out_references(ctx, groups("treadmill", params), 6)
     expected = summary_references(TreadmillConfig(**params), 6, HELD_OUT_SEED)
     assert refs == {name: mean for name, (mean, _) in expected.items()} and "team-planner" in refs
-    assert held_out_references(ctx, groups, SCORING_ENVS + 1) == {}
-    other = Context(cast(Any, Jobs("referential", {})), "mid", {}, tmp_path, tmp_path)
-    assert held_out_references(other, groups, 6) == {}
+    assert held_out_references(ctx, groups("treadmill", params), SCORING_ENVS + 1) == {}
+    assert held_out_references(ctx, groups("referential", {}), 6) == {}
     docs = tmp_path / "r"
     docs.mkdir()
     group = {"group": "algo=idqn", "jobs": ["j0"], "states": {"completed": 1}, "final": {"values": [1.0]},

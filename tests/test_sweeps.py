@@ -120,6 +120,9 @@ BAD_BODIES = [
     ({**TINY, "actors": 0}, "actors"),
     ({**TINY, "algos": {"ppo": {"lr": 0.1}}}, "algos.ppo"),
     ({**TINY, "algos": {"ma-mesn": {"replay": True}}}, "algos.ma-mesn.replay"),
+    ({**TINY, "exclude": [{"seed": 0}]}, "exclude[0]"),
+    ({**TINY, "exclude": [{"seed": 7, "algo": "idqn"}]}, "exclude[0].seed"),
+    ({**TINY, "exclude": [{"seed": s, "algo": a} for s in (0, 1) for a in ("ma-mesn", "idqn")]}, "exclude"),
 ]
 
 
@@ -234,6 +237,15 @@ def test_an_algorithms_own_parameters_reach_its_jobs_only() -> None:
     jobs = {job.config.algo: job.config.algo_params for job in expand(spec)}
     assert jobs["dial"]["replay"] is True and jobs["dial"]["lr"] == 0.01  # the grid's axis wins
     assert "replay" not in jobs["idqn"] and jobs["idqn"]["hidden"] == [32]
+
+
+def test_excluded_points_are_left_out_of_the_sweep_and_the_rest_pack_as_before() -> None:
+    """A sweep's ``exclude`` (runs measured already, e.g. a reproduction's ledger) removes exactly those points."""
+    from convoy.api.models import SweepSubmit
+    from convoy.api.sweeps import expand
+
+    spec = SweepSubmit(**{**TINY, "exclude": [{"algo": "idqn", "seed": 0}, {"seed": 1, "algo": "ma-mesn"}]})
+    assert sorted((j.point["algo"], j.point["seed"]) for j in expand(spec)) == [("idqn", 1), ("ma-mesn", 0)]
 
 
 def test_a_sweeps_seeds_pack_into_populations_the_limits_allow() -> None:

@@ -1,0 +1,121 @@
+"""A reproduction's measured runs, kept in the repository: ``docs/reproduction/ledger/SCALE/FILE.json``.
+
+Why: a real-budget figure takes days of compute, across sessions, on machines that need not keep ``runs/``. Each
+run's scores — its greedy curve and final return, its last policy and ``best.pt`` re-scored on held-out episodes,
+the references its job measured, Table 1's analysis of its checkpoint — are recorded as soon as its job completes.
+A run the ledger holds is never trained again (the sweep leaves its grid point out), and the figure's groups are
+summarised from the ledger alone, so committing the ledger keeps what a lost machine would otherwise take with it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from convoy.api.lifecycle import JobRecord, JobState
+from convoy.api.sweeps import summarize
+from convoy.stats import mean_ci as seeds_summary
+
+
+def point_key(point: dict[str, Any]) -> str:
+    """A grid point as the ledger names it: ``algo=idqn seed=3`` (axes sorted, so the grid's order does not
+    matter)."""
+    return " ".join(f"{k}={point[k]}" for k in sorted(point))
+
+
+def request(spec: dict[str, Any]) -> dict[str, Any]:
+    """The part of a sweep request that decides what its runs measure: all of it but the points left out."""
+    return {k: v for k, v in spec.items() if k != "exclude"}
+
+
+@dataclass
+class Ledger:
+    """One experiment file's runs at one scale: the sweep request they were measured under and, per grid point,
+    what its completed job measured."""
+
+    path: Path
+    spec: dict[str, Any]
+    runs: dict[str, dict[str, Any]] = field(default_factory=dict)
+    busy_s: dict[str, float] = field(default_factory=dict)  # per sweep: the seconds its jobs ran, across machines
+
+    @classmethod
+    def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
+        """The ledger at ``path`` for sweep request ``spec``, and a line saying what was set aside (or ""): runs
+        measured under another request (the experiment file changed) do not describe this one and are dropped
+        (git history keeps them)."""
+        spec = request(spec)
+        if not path.is_file():
+            return cls(path, spec), ""
+        data = json.loads(path.read_text())
+        if data.get("spec") != spec:
+            return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
+        return cls(path, spec, dict(data.get("runs", {})), dict(data.get("busy_s", {}))), ""
+
+    def has(self, point: dict[str, Any]) -> bool:
+        return point_key(point) in self.runs
+
+    def record(self, point: dict[str, Any], run: dict[str, Any]) -> None:
+        """Keep ``run`` (what point ``point``'s completed job measured) and write the ledger at once."""
+        self.runs[point_key(point)] = {"point": point, **run}
+        self.save()
+
+    def save(self) -> None:
+        """Write atomically: a kill mid-write leaves the previous ledger whole."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp")
+        body = {"spec": self.spec, "busy_s": self.busy_s, "runs": dict(sorted(self.runs.items()))}
+        tmp.write_text(json.dumps(body, indent=1, sort_keys=False) + "\n")
+        os.replace(tmp, self.path)
+
+    def groups(self, points: list[dict[str, Any]], others: dict[str, str]) -> list[dict[str, Any]]:
+        """The sweep's groups summarised from the runs held (grid order), as the service summarises a sweep, with
+        each group's held-out scores, references and training wall time; ``others``: the state of each point the
+        ledger does not hold (failed, stopped, …), counted in its group's states."""
+        held = [p for p in points if self.has(p)]
+        reader = _Reader({point_key(p): self.runs[point_key(p)] for p in held})
+        members = [{"id": point_key(p), "point": p} for p in held]
+        members += [{"id": point_key(p), "point": p} for p in points if not self.has(p) and point_key(p) in others]
+        reader.states = others
+        threshold = self.spec.get("threshold")
+        out = []
+        for g in summarize(members, reader, threshold):
+            runs = [self.runs[j] for j in g["jobs"] if j in self.runs]
+            g["jobs"] = [r["job"] for r in runs] + [j for j in g["jobs"] if j not in self.runs]
+            g["runs"] = runs
+            g["references"] = next((r["references"] for r in runs if r.get("references")), {})
+            walls: dict[str, float] = {}
+            for r in runs:
+                if r.get("wall_s") is not None:
+                    walls[r["population"]] = max(walls.get(r["population"], 0.0), float(r["wall_s"]))
+            g["wall_s"] = round(sum(walls.values()), 1) if walls else None
+            scored = [r["held_out"] for r in runs if r.get("held_out")]
+            if scored:
+                g["held_out"] = {
+                    "episodes": scored[0]["episodes"],
+                    "seed": scored[0]["seed"],
+                    **{k: seeds_summary([s[k] for s in scored if s.get(k) is not None]) for k in ("last", "best")},
+                }
+            out.append(g)
+        return out
+
+
+class _Reader:
+    """The two reads ``summarize`` makes of a job store, answered from ledger runs."""
+
+    def __init__(self, runs: dict[str, dict[str, Any]]) -> None:
+        self.runs, self.states = runs, dict[str, str]()
+
+    def get(self, job_id: str) -> JobRecord:
+        run = self.runs.get(job_id)
+        if run is None:  # a point the ledger does not hold: its state only
+            return JobRecord(job_id, JobState(self.states[job_id]), {}, 1, 0.0, 0.0)
+        progress = {"final": run["final"], "env_steps": run["env_steps"]}
+        return JobRecord(job_id, JobState.completed, {"env": run["env"]}, 1, 0.0, 0.0, progress=progress)
+
+    def metrics(
+        self, job_id: str, since: int | None = None, names: list[str] | None = None, limit: int | None = None
+    ) -> list[dict[str, Any]]:
+        return list(self.runs[job_id]["rows"]) if job_id in self.runs else []
