@@ -75,13 +75,14 @@ def _told_returns(told: bool) -> list[list[float]]:
     return _population_returns([small_treadmill_job("idqn", env_params, CHARGER_HP, 40_000, s) for s in (0, 1)])
 
 
-@pytest.mark.timeout(900)
+@pytest.mark.timeout(1800)
 def test_a_learner_told_its_teammates_sightings_beats_its_own_twin() -> None:
     """Independent DQN with the entity encoder, told every car a teammate sees (``team_sightings``) against the same
     learner on its own sensor, 40 k env steps, seeds 0 and 1 of each arm one population, pooled (512 episodes an
     arm): told 33.45 ± 1.62, own 26.32 ± 1.44 (as single runs, 34.9 ± 1.6 against 29.2 ± 1.6; seed 1 alone was not
-    apart, so two are pooled). At 60 k steps on a blind-rear treadmill (a slow chaser that always
-    chases) the same told learner was no better than its twin (29.1 vs 32.4): there it is slow enough to see coming."""
+    apart, so two are pooled); on another machine's float path 37.56 ± 1.68 against 29.82 ± 1.53. At 60 k steps on a
+    blind-rear treadmill (a slow chaser that always chases) the same told learner was no better than its twin (29.1
+    vs 32.4): there it is slow enough to see coming."""
     import multiprocessing as mp
 
     from convoy.stats import ci95_half
