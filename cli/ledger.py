@@ -27,8 +27,10 @@ def point_key(point: dict[str, Any]) -> str:
 
 
 def request(spec: dict[str, Any]) -> dict[str, Any]:
-    """The part of a sweep request that decides what its runs measure: all of it but the points left out."""
-    return {k: v for k, v in spec.items() if k != "exclude"}
+    """The part of a sweep request that decides what its runs measure: all of it but the points left out and
+    ``pack``, which only lays seeds out on processes (member k of a population is the single run of seed k:
+    tests/test_population.py), so a slower machine may train smaller populations into the same ledger."""
+    return {k: v for k, v in spec.items() if k not in ("exclude", "pack")}
 
 
 @dataclass
@@ -50,7 +52,7 @@ class Ledger:
         if not path.is_file():
             return cls(path, spec), ""
         data = json.loads(path.read_text())
-        if data.get("spec") != spec:
+        if request(data.get("spec", {})) != spec:
             return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
         return cls(path, spec, dict(data.get("runs", {})), dict(data.get("busy_s", {}))), ""
 

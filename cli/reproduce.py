@@ -37,6 +37,7 @@ from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
 from convoy.cli.ledger import Ledger, point_key, request
 from convoy.cli.sweep_file import read_file, scale_table, skipped, sweep_body
+from convoy.config import MAX_POPULATION
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.validation import ConfigError, build_config
 
@@ -188,8 +189,11 @@ def resolve_links(node: Any, ctx: Context) -> Any:
 class Context:
     """What every figure needs: the service, the scale, where results go, and the figure files."""
 
-    def __init__(self, api: Api, scale: str, files: dict[str, Any], docs: Path, work: Path) -> None:
+    def __init__(
+        self, api: Api, scale: str, files: dict[str, Any], docs: Path, work: Path, pack: int | None = None
+    ) -> None:
         self.api, self.scale, self.files, self.docs, self.work = api, scale, files, docs, work
+        self.pack = pack  # seeds per population instead of the files' (what runs measure does not change)
         self.current = ""
         self._summaries: dict[str, list[dict[str, Any]]] = {}
         self.tuning: dict[str, dict[str, dict[str, Any]]] = {}  # per figure, per algorithm: tried and chosen
@@ -217,6 +221,8 @@ class Context:
 
         name = f"{path.stem}-tuning" if tuning else path.stem
         label = f"{fig} [{self.scale}] {path.name}{' tuning' * tuning}"
+        if self.pack is not None:
+            body = {**body, "pack": self.pack}
         spec = normal(body)
         if spec is None:
             raise CliError(label, "the sweep request does not validate", "check the experiment file")
@@ -749,6 +755,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         if fig not in files:
             raise ConfigError("FIGURE", f"no experiment file for {fig!r}; known: {', '.join(sorted(files))}")
     docs, page, work = Path(args.docs), Path(args.page), Path(args.data).resolve() / args.scale
+    if args.pack is not None and not 1 <= args.pack <= MAX_POPULATION:
+        raise ConfigError("--pack", f"{args.pack} seeds per population; give 1 to {MAX_POPULATION}")
     if args.rejudge:
         for fig in wanted:
             record = rejudge(files, docs, fig)
@@ -762,7 +770,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         else:
             url, token = stack.enter_context(local_service(work / "service", args.max_processes))
         api = stack.enter_context(Api(url, token))
-        ctx = Context(api, args.scale, files, docs, work)
+        ctx = Context(api, args.scale, files, docs, work, pack=args.pack)
         try:
             for fig in wanted:
                 run_figure(ctx, fig)
@@ -790,6 +798,9 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="process budget of the local service (a job takes actors + 2; default: CPU count + 1, at least 3)",
     )
+    p.add_argument("--pack", type=int, metavar="N", help="seeds per population job instead of each experiment "
+                   "file's `pack` (smaller populations finish sooner on a slow machine; the ledger's runs still "
+                   "count: packing does not change what a run measures)")  # fmt: skip
     p.add_argument(
         "--experiments", default="experiments", metavar="DIR", help="the figure files (default: %(default)s)"
     )

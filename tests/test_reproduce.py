@@ -3,6 +3,7 @@ run again, it reuses the finished sweep instead of training anew."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 from pathlib import Path
@@ -468,3 +469,25 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tm
     (docs / "fig3.json").write_text(json.dumps(record))
     render(docs, tmp_path / "r.md")
     assert f"References on the same 6 held-out episodes: random {refs['random']:.3g}" in (tmp_path / "r.md").read_text()
+
+
+def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_another_recipe(tmp_path: Path) -> None:
+    """Packing lays seeds out on processes without changing what a run measures, so a ledger written under one
+    ``pack`` serves another (``--pack``: smaller populations on a slower machine); a changed recipe does not."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduce import add_reproduce_parser, cmd_reproduce
+    from convoy.validation import ConfigError
+
+    spec = {"name": "f", "base": {"steps": 100}, "grid": {"seed": [0, 1]}, "pack": 5, "exclude": []}
+    ledger, _ = Ledger.open(tmp_path / "f.json", spec)
+    ledger.record({"seed": 0}, {"final": {"eval_return": 1.0}})
+    same, note = Ledger.open(tmp_path / "f.json", {**spec, "pack": 2, "exclude": [{"seed": 0}]})
+    assert same.has({"seed": 0}) and not same.has({"seed": 1}) and note == ""
+    other, note = Ledger.open(tmp_path / "f.json", {**spec, "base": {"steps": 200}})
+    assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
+    parser = argparse.ArgumentParser()
+    add_reproduce_parser(parser.add_subparsers())
+    experiments = str(Path(__file__).resolve().parents[1] / "experiments")
+    args = parser.parse_args(["reproduce", "fig3", "--pack", "0", "--experiments", experiments])
+    with pytest.raises(ConfigError, match=r"--pack: 0 seeds per population; give 1 to 256"):
+        cmd_reproduce(args)
