@@ -794,9 +794,10 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-processes",
         type=int,
-        default=max(3, (os.cpu_count() or 2) + 1),
+        default=3 * (os.cpu_count() or 1),
         metavar="N",
-        help="process budget of the local service (a job takes actors + 2; default: CPU count + 1, at least 3)",
+        help="process budget of the local service (a job takes actors + 2; default: 3 × CPU count, one "
+        "single-actor job per core: its learner computes on one torch thread, its host and actor mostly wait)",
     )
     p.add_argument("--pack", type=int, metavar="N", help="seeds per population job instead of each experiment "
                    "file's `pack` (smaller populations finish sooner on a slow machine; the ledger's runs still "
