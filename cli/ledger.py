@@ -27,10 +27,28 @@ def point_key(point: dict[str, Any]) -> str:
 
 
 def request(spec: dict[str, Any]) -> dict[str, Any]:
-    """The part of a sweep request that decides what its runs measure: all of it but the points left out and
-    ``pack``, which only lays seeds out on processes (member k of a population is the single run of seed k:
-    tests/test_population.py), so a slower machine may train smaller populations into the same ledger."""
-    return {k: v for k, v in spec.items() if k not in ("exclude", "pack")}
+    """The part of a sweep request that decides what its runs measure: all of it but the points left out, ``pack``,
+    which only lays seeds out on processes (member k of a population is the single run of seed k:
+    tests/test_population.py), so a slower machine may train smaller populations into the same ledger, and the
+    ``compile`` switch, which captures the same update as one graph (equal to the eager one within 1e-5:
+    tests/test_update_device.py), so a ledger's eager and compiled runs are one recipe's."""
+    out = {k: v for k, v in spec.items() if k not in ("exclude", "pack")}
+    if isinstance(out.get("base"), dict):
+        out["base"] = _without_compile(out["base"], "algo_params")
+    for name in list(out.get("algos") or {}):
+        out["algos"] = _without_compile(out["algos"], name)
+    return _without_compile(out, "algos")  # no algorithm's table left: as none
+
+
+def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
+    """``table`` with its parameter table ``key`` less ``compile``; a table left empty dropped (it sets nothing,
+    as an absent one)."""
+    params = table.get(key)
+    if not isinstance(params, dict):
+        return table
+    rest = {k: v for k, v in table.items() if k != key}
+    params = {k: v for k, v in params.items() if k != "compile"}
+    return {**rest, key: params} if params else rest
 
 
 @dataclass

@@ -278,6 +278,7 @@ class Context:
             "references": refs,
             "rows": kept,
             "env_params": job["config"].get("env_params") or {},
+            "compiled": bool((job["config"].get("algo_params") or {}).get("compile")),  # its wall time's context
             "wall_s": next((r["wall_s"] for r in reversed(rows) if r.get("wall_s") is not None), None),
         }
         episodes = self.held_out_episodes(fig) if score else 0

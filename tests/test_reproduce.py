@@ -472,8 +472,9 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tm
 
 
 def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_another_recipe(tmp_path: Path) -> None:
-    """Packing lays seeds out on processes without changing what a run measures, so a ledger written under one
-    ``pack`` serves another (``--pack``: smaller populations on a slower machine); a changed recipe does not."""
+    """Packing lays seeds out on processes and ``compile`` captures the same update, neither changing what a run
+    measures, so a ledger written under one ``pack`` serves another (``--pack``: smaller populations on a slower
+    machine) and eager runs serve a compiled recipe; a changed recipe does not."""
     from convoy.cli.ledger import Ledger
     from convoy.cli.reproduce import add_reproduce_parser, cmd_reproduce
     from convoy.validation import ConfigError
@@ -483,6 +484,12 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
     ledger.record({"seed": 0}, {"final": {"eval_return": 1.0}})
     same, note = Ledger.open(tmp_path / "f.json", {**spec, "pack": 2, "exclude": [{"seed": 0}]})
     assert same.has({"seed": 0}) and not same.has({"seed": 1}) and note == ""
+    compiled = {**spec, "base": {"steps": 100, "algo_params": {"compile": True}}, "algos": {"idqn": {"compile": True}}}
+    same, note = Ledger.open(tmp_path / "f.json", compiled)
+    assert same.has({"seed": 0}) and note == ""
+    tuned = {**compiled, "base": {"steps": 100, "algo_params": {"compile": True, "lr": 0.1}}}
+    other, note = Ledger.open(tmp_path / "f.json", tuned)
+    assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
     other, note = Ledger.open(tmp_path / "f.json", {**spec, "base": {"steps": 200}})
     assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
     parser = argparse.ArgumentParser()
