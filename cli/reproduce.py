@@ -627,6 +627,42 @@ INTRO = (
 )
 
 
+def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
+    """A section on the ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet: per group,
+    the runs held of those planned, their held-out scores and their wall time, so that a study that takes days
+    shows where it stands between sessions. Interim: no verdict until the figure is run to the end."""
+    from convoy.api.sweeps import expand
+
+    read = {(r["scale"], Path(f).stem) for r in records.values() for f in r.get("files", [])}
+    rows: list[str] = []
+    for path in sorted((docs / "ledger").glob("*/*.json")):
+        scale = path.parent.name
+        if (scale, path.stem) in read or path.stem.endswith("-tuning"):
+            continue
+        data = json.loads(path.read_text())
+        ledger = Ledger(path, data["spec"], data.get("runs", {}), data.get("busy_s", {}))
+        points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
+        held = {g["group"]: g for g in ledger.groups(points, {})}
+        for name in dict.fromkeys(group_name(p) for p in points):  # grid order
+            g = held.get(name, {})
+            h = g.get("held_out") or {}
+            wall = f"{duration(g['wall_s'])}" if g.get("wall_s") else "–"
+            rows.append(f"| {scale} | `{path.stem}` | {name} | {len(g.get('runs', []))} of "
+                        f"{sum(group_name(p) == name for p in points)} | "
+                        f"{mean_ci((h.get('last') or {}).get('values', []))} | "
+                        f"{mean_ci((h.get('best') or {}).get('values', []))} | {wall} |")  # fmt: skip
+    if not rows:
+        return []
+    return ["", "## Studies still training", "",
+            *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
+                           "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
+                           "seeds held), no verdict until the command has run every group; wall time is its "
+                           "populations' learners, resumes included. The same command goes on where it stopped.",
+                           108),
+            "", "| scale | file | group | seeds held | last, held out | best.pt, held out | wall time |",
+            "|---|---|---|---|---|---|---|", *rows]  # fmt: skip
+
+
 def render(docs: Path, page: Path) -> None:
     """``page`` from every figure's JSON in ``docs``: an overview table, then one section per figure."""
     records = {r["id"]: r for r in (json.loads(p.read_text()) for p in sorted(docs.glob("*.json")))}
@@ -646,6 +682,7 @@ def render(docs: Path, page: Path) -> None:
                          f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
+    lines += studies_in_progress(docs, records)
     for fig in FIGURES:
         if fig not in records:
             continue

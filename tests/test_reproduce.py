@@ -498,3 +498,30 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
     args = parser.parse_args(["reproduce", "fig3", "--pack", "0", "--experiments", experiments])
     with pytest.raises(ConfigError, match=r"--pack: 0 seeds per population; give 1 to 256"):
         cmd_reproduce(args)
+
+
+def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_reads_it(tmp_path: Path) -> None:
+    """A ledger no figure at its scale has read yet appears as interim rows (runs held of those planned, held-out
+    scores, no verdict); once the figure's record at that scale names its file, the figure's section stands alone."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduce import render
+
+    docs = tmp_path / "docs"
+    spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["idqn", "ma-mesn"], "seed": [0, 1]}, "exclude": []}
+    ledger, _ = Ledger.open(docs / "ledger" / "mid" / "fig3_centralised.json", spec)
+    held_out = {"episodes": 500, "seed": 777, "last": 130.0, "best": 140.0}
+    run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "final": {"eval_return": 1.0},
+           "rows": [], "wall_s": 3600.0, "held_out": held_out}  # fmt: skip
+    ledger.record({"algo": "idqn", "seed": 0}, run)
+    page = tmp_path / "r.md"
+    render(docs, page)
+    text = page.read_text()
+    assert "## Studies still training" in text
+    assert "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 1.0 h |" in text, text
+    assert "| mid | `fig3_centralised` | algo=ma-mesn | 0 of 2 | – | – | – |" in text
+    record = {"id": "fig3", "title": "Fig. 3: x", "paper": "", "scale": "mid", "note": "", "minutes": 1.0,
+              "files": ["experiments/fig3_centralised.toml"], "command": "convoy reproduce fig3 --scale mid",
+              "groups": [], "references": {}, "verdicts": [], "verdict": "not shown", "png": None}  # fmt: skip
+    (docs / "fig3.json").write_text(json.dumps(record))
+    render(docs, page)
+    assert "Studies still training" not in page.read_text()
