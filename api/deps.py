@@ -19,7 +19,8 @@ from convoy.api.remedy import WORDS_HEADER, words_of
 from convoy.config import JobConfig
 from convoy.output import json_safe
 
-PROGRESS_FIELDS = ("updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag")
+PROGRESS_FIELDS = ("updates", "return", "eval_return", "loss", "env_steps_per_s", "updates_per_s", "policy_lag",
+                   "demo_round", "demo_rounds")  # fmt: skip
 JOB_ID = r"^[A-Za-z0-9_.-]{1,64}$"
 
 

@@ -268,6 +268,10 @@ class Progress(BaseModel):
     env_steps_per_s: float | None = None
     updates_per_s: float | None = None
     policy_lag: float | None = None
+    demo_round: int | None = Field(
+        None, description="DAgger rounds played so far by a job that starts from a demonstrator (at 0 env steps)."
+    )
+    demo_rounds: int | None = Field(None, description="Its DAgger rounds in all (algo_params.demo_rounds).")
     dropped: dict[str, dict[str, int]] = Field(
         default_factory=dict,
         description="Messages the job refused so far, by role (learner, actors, service) and reason: garbage, "

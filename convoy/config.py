@@ -236,6 +236,9 @@ class EntityFields(BaseModel):
 DEMONSTRABLE = ("idqn", "dqn-ser", "ma-mesn", "ma-bon")  # feed-forward learners a demonstrator can start
 
 
+MAX_DEMO_ROUNDS = 64  # DAgger rounds of a demonstrator start (a learner reports each: services/jobrunner.py)
+
+
 class DemonstrationFields(BaseModel):
     """A start from a planner's demonstrations (independent DQN, DQN-SER, MA-MeSN, MA-BoN; learner/imitation.py)."""
 
@@ -251,7 +254,7 @@ class DemonstrationFields(BaseModel):
         "run, the env steps they take reported beside the run's steps (demonstration.json). Start Q-learning gently "
         "(eps_start=0.05, learning_starts=20000) or it unlearns the clone. None = from scratch (the paper).",
     )
-    demo_rounds: int = Field(8, ge=1, le=64, description="DAgger rounds of a demonstrator start.")
+    demo_rounds: int = Field(8, ge=1, le=MAX_DEMO_ROUNDS, description="DAgger rounds of a demonstrator start.")
     demo_episodes: int = Field(
         128, ge=1, le=4096, description="Tuning episodes each run plays per DAgger round (its own states)."
     )

@@ -223,11 +223,12 @@ def start_from_demonstrations(
     dirs: list[Path] | list[Path | None],
     say: Callable[[str], None] | None = None,
     stop: Callable[[], bool] | None = None,
+    after_round: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> bool:
     """A fresh population ``agent`` of ``job`` (its runs' folders ``dirs``) cloned from the job's demonstrator, if it
     names one, each run's DAgger figures in its folder's ``demonstration.json``; whether it did (then the caller
     checkpoints the clone at step 0, so that a stop before the first checkpoint does not repeat it)."""
-    figures = demonstration_start(agent, job, say, stop=stop)
+    figures = demonstration_start(agent, job, say, after_round=after_round, stop=stop)
     for run_figures, out in zip(figures or [], dirs, strict=False):
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)

@@ -131,7 +131,7 @@ class Learner:
         return dict(collections.Counter(inbox.dropped) + collections.Counter(self.rejected))
 
     def run(self) -> int:
-        job, rt = self.job, self.job.runtime
+        job = self.job
         configure_learner(job.torch_threads)
         torch.manual_seed(job.seed)
         probe = make_batched(job.env, 1, **job.env_params)
@@ -141,29 +141,43 @@ class Learner:
         schema = transition_schema(job, algo)
         counters = restore(algo, job, self.out_dir)  # the last checkpoint, after a crash or a stop
         watch = ParentWatch()
-        if counters is None:
-            algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
-            try:
-                self.cloned = start_from_demonstrations(algo, job, job.member_dirs(self.out_dir), log.info,
-                                                        stop=lambda: self.stopping or watch.orphaned())  # fmt: skip
-            except DemonstrationStopped as exc:
-                log.info("%s", exc)
-                return STOPPED
         try:
             session = open_session(self.settings, give_up=lambda: self.stopping or watch.orphaned())
         except SessionAbandoned:
             return STOPPED  # nothing learnt since the last checkpoint: no session, no chunk
+        # alive and reporting before a demonstration start: its DAgger rounds take minutes each, at 0 env steps
+        self._keep = [session.liveliness().declare_token(keys.alive(self.job_id, "learner", "0"))]
+        self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
+        try:
+            if counters is None:
+                algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
+                try:
+                    self.cloned = start_from_demonstrations(
+                        algo, job, job.member_dirs(self.out_dir), log.info,
+                        stop=lambda: self.stopping or watch.orphaned(), after_round=self._publish_round,
+                    )  # fmt: skip
+                except DemonstrationStopped as exc:
+                    log.info("%s", exc)
+                    return STOPPED
+            return self._serve(session, algo, schema, counters, watch)
+        finally:
+            session.close()
+
+    def _publish_round(self, rows: list[dict[str, Any]]) -> None:
+        """A DAgger round's figures, for the job service to show while the job is at 0 env steps."""
+        values = {"demo_round": rows[0]["round"] + 1, "demo_rounds": self.job.algo_config().demo_rounds,
+                  "demo_accuracy": float(np.mean([r["accuracy"] for r in rows]))}  # fmt: skip
+        self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
+
+    def _serve(self, session: Any, algo: Agent, schema: dict, counters: Any, watch: ParentWatch) -> int:
+        """The training loop's channels (chunks in; weights, budget out), then the loop."""
         import zenoh
 
-        block = zenoh.CongestionControl.BLOCK
+        block, rt = zenoh.CongestionControl.BLOCK, self.job.runtime
         inbox = Inbox({"chunk"}, maxlen=rt.inbox)
-        self._keep = [
-            session.liveliness().declare_token(keys.alive(self.job_id, "learner", "0")),
-            session.declare_subscriber(keys.exp_all(self.job_id), inbox),
-        ]
+        self._keep.append(session.declare_subscriber(keys.exp_all(self.job_id), inbox))
         self.pub_weights = session.declare_publisher(keys.weights(self.job_id), congestion_control=block)
         self.pub_budget = session.declare_publisher(keys.ctl(self.job_id, "budget"), congestion_control=block)
-        self.pub_metrics = session.declare_publisher(keys.metrics(self.job_id, "learner", "0"))
         if counters:  # say so: the supervisor reports it, tests check how far back the restart went
             first = counters[0]
             values = {
@@ -172,10 +186,7 @@ class Learner:
                 "resumed_replay_rows": first["replay_rows"],
             }
             self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
-        try:
-            return self._loop(algo, schema, inbox, counters, watch)
-        finally:
-            session.close()
+        return self._loop(algo, schema, inbox, counters, watch)
 
     def _publish_weights(self, algo: Agent) -> None:
         state = {k: v.numpy() for k, v in algo.policy_state().items()}

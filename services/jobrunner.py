@@ -21,7 +21,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from convoy.config import JobConfig
+from convoy.config import MAX_DEMO_ROUNDS, JobConfig
 from convoy.learner.runlog import ProgressDisplay
 from convoy.protocol import keys, wire
 from convoy.protocol.inbox import Inbox
@@ -42,8 +42,9 @@ class MetricReports:
         self.bad = 0
 
     def take(self, msg: wire.Message, live: set[str]) -> str:
-        """Sort one message: ``actor``, ``resumed`` (a learner back from its checkpoint), ``row`` (a learner row
-        with a usable step count), ``other`` (a learner message with no row, e.g. its last) or ``bad``."""
+        """Sort one message: ``actor``, ``resumed`` (a learner back from its checkpoint), ``demonstration`` (a
+        learner's DAgger round, 1 ≤ round ≤ rounds ≤ 64), ``row`` (a learner row with a usable step count),
+        ``other`` (a learner message with no row, e.g. its last) or ``bad``."""
         values, role, ident = msg.body["values"], msg.body["role"], msg.body["id"]
         kind = "bad"
         if role == "actor" and (ident in live or ident in self.actors):
@@ -52,6 +53,9 @@ class MetricReports:
             pass
         elif "resumed_updates" in values or "resumed_env_steps" in values:
             kind = "resumed" if "resumed_updates" in values and "resumed_env_steps" in values else "bad"
+        elif "demo_round" in values or "demo_rounds" in values:
+            k, n = values.get("demo_round", math.nan), values.get("demo_rounds", math.nan)
+            kind = "demonstration" if 1 <= k <= n <= MAX_DEMO_ROUNDS and k == int(k) and n == int(n) else "bad"
         elif "return" not in values:
             kind = "other"
         elif math.isfinite(values.get("env_steps", math.nan)) and values["env_steps"] >= 0:

@@ -406,6 +406,14 @@ class JobService:
                 self.store.cut_metrics(job_id, int(values["resumed_env_steps"]))
                 say(f"job {job_id}: its learner resumed from its checkpoint at {int(values['resumed_env_steps']):,} "
                     f"env steps ({int(values.get('resumed_replay_rows', 0)):,} replay rows)")  # fmt: skip
+            elif kind == "demonstration":
+                demo = {"demo_round": int(values["demo_round"]), "demo_rounds": int(values["demo_rounds"])}
+                progress.update(demo)
+                for member in self._members(self.store.get(job_id)):  # the seeds a sweep shows: where their run is
+                    self.store.update(member, progress=demo)
+                accuracy = values.get("demo_accuracy")
+                said = f", clone accuracy {accuracy:.3f}" if isinstance(accuracy, float) and 0 <= accuracy <= 1 else ""
+                say(f"job {job_id}: demonstration round {demo['demo_round']}/{demo['demo_rounds']}{said}")
             elif kind == "row":
                 row = {**values, "env_steps": int(values["env_steps"]), "actors_alive": tracked.alive.count("actor")}
                 rows.append(row)

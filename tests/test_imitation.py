@@ -163,3 +163,53 @@ def test_a_stop_between_rounds_ends_the_demonstration() -> None:
     with pytest.raises(imitation.DemonstrationStopped, match="round 2/2"):
         demonstration_start(make_agent(job, env.spec), job, stop=stop)
     assert len(asked) == 2
+
+
+@pytest.mark.parametrize(
+    ("values", "kind"),
+    [
+        ({"demo_round": 3.0, "demo_rounds": 8.0, "demo_accuracy": 0.7}, "demonstration"),
+        ({"demo_round": 0.0, "demo_rounds": 8.0}, "bad"),  # rounds count from 1
+        ({"demo_round": 9.0, "demo_rounds": 8.0}, "bad"),
+        ({"demo_round": 2.5, "demo_rounds": 8.0}, "bad"),
+        ({"demo_round": 1.0, "demo_rounds": 65.0}, "bad"),  # more than a job can ask for
+        ({"demo_round": float("nan"), "demo_rounds": 8.0}, "bad"),
+        ({"demo_round": 1.0}, "bad"),
+    ],
+)
+def test_a_demonstration_report_is_sorted_by_its_values(values: dict, kind: str) -> None:
+    """A learner's DAgger round reaches the job's progress only with values a job can have: well-formed is not
+    enough (a hostile or broken learner could send round 9 of 8)."""
+    from convoy.protocol import wire
+    from convoy.services.jobrunner import MetricReports
+
+    reports = MetricReports()
+    msg = wire.Message("metrics", "learner", 0, 0.0, wire.metrics_body("learner", "0", values))
+    assert reports.take(msg, set()) == kind
+    assert reports.bad == (kind == "bad")
+
+
+def test_a_service_job_is_running_and_says_its_round_while_it_clones(tmp_path) -> None:
+    """Through a real ``convoy serve``: a job that starts from a demonstrator is ``running`` during its DAgger rounds
+    (its learner alive, 0 env steps), its progress names the rounds played, the service's log has a line a round,
+    and the job then trains to the end."""
+    from tests.service_fixture import AUTH, Service
+
+    svc = Service(tmp_path / "svc", max_processes=3).start()
+    try:
+        body = {"algo": "idqn", "env": "treadmill", "preset": "charger", "steps": 512, "num_envs": 8, "actors": 1,
+                "eval_episodes": 2, "log_every": 256, "checkpoint_every": 512, "name": "demo",
+                "algo_params": {**DEMO, "demo_episodes": 2, "hidden": [32], "learning_starts": 128}}  # fmt: skip
+        job = svc.client.post("/jobs", json=body, headers=AUTH)
+        assert job.status_code == 201, job.text
+        job_id = job.json()["id"]
+        view = svc.wait(job_id, lambda v: v["progress"].get("demo_round") == 2 or v["state"] == "completed",
+                        timeout=240, what="the second DAgger round in the job's progress")  # fmt: skip
+        assert view["progress"]["demo_rounds"] == 2 and view["state"] in ("running", "completed"), view
+        svc.wait(job_id, lambda v: v["state"] in ("completed", "failed"), timeout=240, what="the job's end")
+        assert svc.client.get(f"/jobs/{job_id}").json()["state"] == "completed"
+        log = (tmp_path / f"serve-{svc.port}.log").read_text()
+        assert f"job {job_id}: demonstration round 1/2, clone accuracy" in log, log
+        assert log.index(f"job {job_id}: starting → running") < log.index("demonstration round 1/2"), log
+    finally:
+        svc.stop()
