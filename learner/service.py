@@ -34,7 +34,7 @@ from convoy.actors.stepping import EnvStepper
 from convoy.algos.agent import make_agent
 from convoy.algos.algorithm import Agent
 from convoy.algos.checkpoint import REPLAY_FILE
-from convoy.config import JobConfig
+from convoy.config import DemonstrationFields, JobConfig
 from convoy.envs import make_batched
 from convoy.learner.imitation import DemonstrationStopped, start_from_demonstrations
 from convoy.learner.population import PopulationCore, mean_row
@@ -165,7 +165,9 @@ class Learner:
 
     def _publish_round(self, rows: list[dict[str, Any]]) -> None:
         """A DAgger round's figures, for the job service to show while the job is at 0 env steps."""
-        values = {"demo_round": rows[0]["round"] + 1, "demo_rounds": self.job.algo_config().demo_rounds,
+        cfg = self.job.algo_config()
+        assert isinstance(cfg, DemonstrationFields)  # only a learner that can clone plays rounds
+        values = {"demo_round": rows[0]["round"] + 1, "demo_rounds": cfg.demo_rounds,
                   "demo_accuracy": float(np.mean([r["accuracy"] for r in rows]))}  # fmt: skip
         self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
 
