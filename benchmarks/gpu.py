@@ -70,14 +70,15 @@ def ms_per_update(agent: Any, device: str, seconds: float) -> tuple[float, float
             return (time.perf_counter() - t0) / n * 1e3, warm_s
 
 
-def update_figures(algo: str, runs: int, device: str, seconds: float) -> dict[str, float]:
-    """ms per update eager and captured, P runs; the captured step's CUDA-graph skips (0: it replays as one)."""
+def update_figures(algo: str, runs: int, device: str, seconds: float, **params: Any) -> dict[str, float]:
+    """ms per update eager and captured, P runs (``params`` over the treadmill's); the captured step's CUDA-graph
+    skips (0: it replays as one)."""
     out: dict[str, float] = {}
     for mode, compile in (("eager", False), ("captured", True)):
         torch._dynamo.reset()
         torch._dynamo.utils.counters.clear()
         ms, warm_s = ms_per_update(
-            filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile), device, seconds
+            filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile, **params), device, seconds
         )
         out[f"{mode}_ms"], out[f"{mode}_warm_s"] = ms, warm_s
         out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
@@ -106,6 +107,17 @@ def training_figures(sizes: list[int], steps: int, device: str, work: Path, save
         save()
 
 
+def recipe(preset: str | None, algo: str) -> dict[str, Any]:
+    """The algorithm parameters of ``preset``'s learner (none: the treadmill defaults), batches of 128 and Adam 1e-4
+    as ``experiments/fig3_centralised.toml``'s mid scale; deterministic messages (its MA-MeSN and MA-BoN)."""
+    if preset is None:
+        return {}
+    from convoy.config import preset_params
+
+    params = {**preset_params(preset, algo)[1], "batch_size": 128, "lr": 1e-4}
+    return {**params, "gumbel_noise": 0.0} if algo in ("ma-mesn", "ma-bon") else params
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -117,11 +129,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--train-sizes", nargs="*", type=int, default=[20, 128],
                    help="P trained against one CPU core's run (default 20 128; none to skip)")  # fmt: skip
     p.add_argument("--steps", type=int, default=4000, help="env steps per trained run (default %(default)s)")
+    p.add_argument("--preset", choices=["charger"], help="time the updates of a preset's learner recipe (charger: "
+                   "entity encoder, 3-step returns, layer norm, Polyak target, policy average; batches of 128 as the "
+                   "mid reproduction) instead of the treadmill defaults")  # fmt: skip
     p.add_argument("--quick", action="store_true", help="smoke run: idqn, P = 1 and 2, 0.2 s, 300 steps, P = 2")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = p.parse_args(argv)
     if args.quick:
         args.algos, args.sizes, args.seconds, args.train_sizes, args.steps = ["idqn"], [1, 2], 0.2, [2], 300
+    if args.device == "cpu":
+        torch.set_num_threads(1)  # as a learner computes (a job's torch_threads): its updates, not a thread pool's
     console = Console(width=120)
     name = torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else cpu_model()
     console.print(f"{name}; torch {torch.__version__}; treadmill defaults, {ENVS_PER_RUN} envs per run")
@@ -137,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     for algo in args.algos:
         figures["updates"][algo] = {}
         for size in args.sizes:
-            f = update_figures(algo, size, args.device, args.seconds)
+            f = update_figures(algo, size, args.device, args.seconds, **recipe(args.preset, algo))
             figures["updates"][algo][size] = f
             console.print(f"{algo} P = {size}: eager {f['eager_ms']:.2f} ms, captured {f['captured_ms']:.2f} ms")
             table.add_row(algo, str(size), f"{f['eager_ms']:.2f}", f"{f['captured_ms']:.2f}", f"{f['speedup']:.2f}",
