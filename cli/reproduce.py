@@ -648,7 +648,7 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
         for name in dict.fromkeys(group_name(p) for p in points):  # grid order
             g = held.get(name, {})
             h = g.get("held_out") or {}
-            wall = f"{duration(g['wall_s'])}" if g.get("wall_s") else "–"
+            wall = duration(g["wall_s"]) if g.get("wall_s") else "–"
             rows.append(f"| {scale} | `{path.stem}` | {name} | {len(g.get('runs', []))} of "
                         f"{sum(group_name(p) == name for p in points)} | "
                         f"{mean_ci((h.get('last') or {}).get('values', []))} | "

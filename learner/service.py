@@ -169,7 +169,7 @@ class Learner:
         assert isinstance(cfg, DemonstrationFields)  # only a learner that can clone plays rounds
         values = {"demo_round": rows[0]["round"] + 1, "demo_rounds": cfg.demo_rounds,
                   "demo_accuracy": float(np.mean([r["accuracy"] for r in rows]))}  # fmt: skip
-        self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
+        self._report(values)
 
     def _serve(self, session: Any, algo: Agent, schema: dict, counters: Any, watch: ParentWatch) -> int:
         """The training loop's channels (chunks in; weights, budget out), then the loop."""
@@ -187,8 +187,12 @@ class Learner:
                 "resumed_env_steps": first.get("env_steps", 0),
                 "resumed_replay_rows": first["replay_rows"],
             }
-            self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
+            self._report(values)
         return self._loop(algo, schema, inbox, counters, watch)
+
+    def _report(self, values: dict[str, Any]) -> None:
+        """One metrics message of this learner's (a row, a resume, a DAgger round, its last words)."""
+        self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", values), "learner"))
 
     def _publish_weights(self, algo: Agent) -> None:
         state = {k: v.numpy() for k, v in algo.policy_state().items()}
@@ -309,7 +313,7 @@ class Learner:
         rows = s.core.row(lambda _: s.transport(self.dropped_by_reason(s.inbox)))  # computed only for a row
         if rows:  # the runs' mean (each run's rows are in its folder)
             row = rows[0] if len(rows) == 1 else mean_row(rows)
-            self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", row), "learner"))
+            self._report(row)
             s.lags = []
         s.core.maybe_checkpoint()
 
@@ -323,7 +327,7 @@ class Learner:
                                                                if several else " (distributed)"), **counts)  # fmt: skip
         eval_return = float(np.mean([r["eval_return"] for r in runs]))
         done = {"done": 1.0, "eval_return": eval_return, "env_steps": core.env_steps, "updates": algo.updates}
-        self.pub_metrics.put(wire.encode("metrics", wire.metrics_body("learner", "0", done), "learner"))
+        self._report(done)
         return 0
 
 
