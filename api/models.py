@@ -292,6 +292,10 @@ class FinalEvaluation(BaseModel):
     )
     best_eval_return: float | None = Field(None, description="The best point of the greedy curve (best.pt).")
     best_eval_step: int | None = None
+    wall_s: float | None = Field(None, description="Seconds the run took, resumes and its demonstration start in.")
+    clone_s: float | None = Field(
+        None, description="Of those, its demonstration start's (0: none; null: not known, resumed from an older run)."
+    )
 
 
 class JobView(BaseModel):
@@ -355,6 +359,11 @@ class SweepView(BaseModel):
     started_at: float | None = Field(None, description="Unix time its first job started.")
     ended_at: float | None = Field(None, description="Unix time its last job ended, once none is queued or running.")
     busy_s: float = Field(0.0, description="Seconds during which at least one of its jobs ran (pauses not counted).")
+    spans: list[tuple[float, float]] = Field(
+        default_factory=list,
+        description="[start, end] Unix times of each job's latest run: busy_s is their union's length; sweeps that "
+        "ran side by side are timed together by the union of all their spans.",
+    )
     spec: dict[str, Any] = Field(description="The sweep as submitted.")
 
 

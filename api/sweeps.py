@@ -160,7 +160,7 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
     return SweepView(id=sweep.id, state=state, created_at=sweep.created_at, jobs=members, states=states,
                      fraction=done / asked if asked else 0.0, started_at=min((a for a, _ in spans), default=None),
                      ended_at=max((b for _, b in spans), default=None) if state != "running" else None,
-                     busy_s=busy_seconds(spans), spec=sweep.spec)  # fmt: skip
+                     busy_s=busy_seconds(spans), spans=spans, spec=sweep.spec)  # fmt: skip
 
 
 def greedy_curve(rows: list[dict[str, Any]], final: dict[str, Any] | None, end_step: int) -> tuple[np.ndarray, ...]:

@@ -60,6 +60,7 @@ class Ledger:
     spec: dict[str, Any]
     runs: dict[str, dict[str, Any]] = field(default_factory=dict)
     busy_s: dict[str, float] = field(default_factory=dict)  # per sweep: the seconds its jobs ran, across machines
+    spans: dict[str, list[list[float]]] = field(default_factory=dict)  # per sweep: its jobs' [start, end] times
 
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
@@ -72,7 +73,8 @@ class Ledger:
         data = json.loads(path.read_text())
         if request(data.get("spec", {})) != spec:
             return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
-        return cls(path, spec, dict(data.get("runs", {})), dict(data.get("busy_s", {}))), ""
+        runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
+        return cls(path, spec, runs, busy, spans), ""
 
     def has(self, point: dict[str, Any]) -> bool:
         return point_key(point) in self.runs
@@ -86,7 +88,7 @@ class Ledger:
         """Write atomically: a kill mid-write leaves the previous ledger whole."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
-        body = {"spec": self.spec, "busy_s": self.busy_s, "runs": dict(sorted(self.runs.items()))}
+        body = {"spec": self.spec, "busy_s": self.busy_s, "spans": self.spans, "runs": dict(sorted(self.runs.items()))}
         tmp.write_text(json.dumps(body, indent=1, sort_keys=False) + "\n")
         os.replace(tmp, self.path)
 
@@ -111,6 +113,8 @@ class Ledger:
                 if r.get("wall_s") is not None:
                     walls[r["population"]] = max(walls.get(r["population"], 0.0), float(r["wall_s"]))
             g["wall_s"] = round(sum(walls.values()), 1) if walls else None
+            # populations whose wall time may leave out a demonstration start (trained before runs said)
+            g["clone_unknown"] = len({r["population"] for r in runs if (r.get("final") or {}).get("clone_s") is None})
             scored = [r["held_out"] for r in runs if r.get("held_out")]
             if scored:
                 g["held_out"] = {

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import math
 import os
@@ -24,7 +25,7 @@ import sys
 import textwrap
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
@@ -32,7 +33,7 @@ from rich.console import Console
 
 from convoy.analysis.verdicts import figure_verdict, judge_figure, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
-from convoy.api.sweeps import group_name
+from convoy.api.sweeps import busy_seconds, group_name
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
 from convoy.cli.ledger import Ledger, point_key, request
@@ -113,12 +114,9 @@ def normal(body: dict[str, Any]) -> dict[str, Any] | None:
         return None
 
 
-def run_sweep(
-    api: Api, body: dict[str, Any], label: str, harvest: Callable[[dict[str, Any]], None] | None = None
-) -> dict[str, Any]:
-    """The summary of ``body``'s sweep once no job of it is queued or running (with ``members``, its jobs' points
-    and states): an existing sweep with the same request that runs every point this one does is reused (resumed
-    if stopped or failed), else it is submitted. ``harvest`` sees each member as soon as it completes."""
+def start_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
+    """``body``'s sweep in the service: an existing sweep with the same request that runs every point this one does
+    (resumed if stopped or failed), else a new one."""
     spec = normal(body)
     if spec is None:
         raise CliError(label, "the sweep request does not validate", "check the experiment file")
@@ -135,33 +133,71 @@ def run_sweep(
     else:
         sweep = api.call("POST", "/sweeps", json=body)
         plain(out, f"{label}: submitted sweep {sweep['id']} ({len(sweep['jobs'])} jobs)")
+    return sweep
+
+
+Harvest = Callable[[dict[str, Any]], None]
+
+
+def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label: str) -> list[dict[str, Any]]:
+    """Each started sweep as ``GET /sweeps/{id}`` shows it once no job of any is queued or running; ``harvest``
+    sees each member as soon as it completes. Interrupted, every sweep still running is stopped (each job
+    checkpoints), so that the same command continues them."""
+    sweeps = [sweep for sweep, _ in started]
     t0, said, last = time.monotonic(), "", 0.0
     try:
         while True:
-            for member in sweep["jobs"]:
-                if harvest is not None and member["state"] == "completed":
-                    harvest(member)
-            if sweep["state"] != "running":
+            for sweep, (_, harvest) in zip(sweeps, started, strict=True):
+                for member in sweep["jobs"]:
+                    if member["state"] == "completed":
+                        harvest(member)
+            if all(sweep["state"] != "running" for sweep in sweeps):
                 break
-            states = ", ".join(f"{n} {s}" for s, n in sorted(sweep["states"].items()))
-            text = f"{label}: {sweep['fraction']:.0%} of its env steps · {states}"
+            members = [m for sweep in sweeps for m in sweep["jobs"] if m["state"] != "deleted"]
+            asked = sum(m.get("steps", 0) for m in members)
+            done = sum(min(m.get("env_steps", 0), m.get("steps", 0)) for m in members)
+            states: dict[str, int] = {}
+            for m in members:
+                states[m["state"]] = states.get(m["state"], 0) + 1
+            runs = ", ".join(f"{n} {s}" for s, n in sorted(states.items()))
+            text = f"{label}: {done / max(asked, 1):.0%} of its env steps · {runs}"
+            if len(sweeps) > 1:
+                text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:
                 plain(out, f"{text} · {(time.monotonic() - t0) / 60:.1f} min")
                 said, last = text, time.monotonic()
             time.sleep(POLL_S)
-            sweep = api.call("GET", f"/sweeps/{sweep['id']}")
+            sweeps = [s if s["state"] != "running" else api.call("GET", f"/sweeps/{s['id']}") for s in sweeps]
     except KeyboardInterrupt:
-        api.call("POST", f"/sweeps/{sweep['id']}/stop")
-        plain(out, f"{label}: stopped sweep {sweep['id']}; the same command continues it")
+        for sweep in sweeps:
+            if sweep["state"] == "running":
+                api.call("POST", f"/sweeps/{sweep['id']}/stop")
+                plain(out, f"{label}: stopped sweep {sweep['id']}; the same command continues it")
         raise
-    if sweep["state"] == "stopped":  # by someone else: its groups are not the figure's
-        raise CliError(label, f"sweep {sweep['id']} was stopped before its jobs finished",
-                       f"resume it (`convoy sweep resume {sweep['id']}`) or run the same command again")  # fmt: skip
-    summary = api.call("GET", f"/sweeps/{sweep['id']}/summary")
-    summary["spec"], summary["members"] = spec, sweep["jobs"]
-    summary["minutes"] = sweep["busy_s"] / 60
-    plain(out, f"{label}: sweep {sweep['id']} {sweep['state']} after {(time.monotonic() - t0) / 60:.1f} min")
-    return summary
+    for sweep in sweeps:
+        if sweep["state"] == "stopped":  # by someone else: its groups are not the figure's
+            raise CliError(label, f"sweep {sweep['id']} was stopped before its jobs finished",
+                           f"resume it (`convoy sweep resume {sweep['id']}`) or run the command again")  # fmt: skip
+    plain(out, f"{label}: {len(sweeps)} sweep(s) ended after {(time.monotonic() - t0) / 60:.1f} min")
+    return sweeps
+
+
+def seed_waves(bodies: list[dict[str, Any]], size: int) -> list[list[int]]:
+    """The seeds of a figure's files (their grids', sorted) in waves of ``size``. The files' sweeps are submitted
+    wave by wave, the service starting queued jobs first come, first served, so every group of every file has its
+    first seeds before any has its last, as each sweep already runs its groups' first seeds first: a study of days
+    stopped part-way holds the same seeds in every arm, its controls included."""
+    seeds = sorted({int(s) for body in bodies for s in body["grid"].get("seed", [])})
+    return [seeds[i : i + size] for i in range(0, len(seeds), size)] or [[]]
+
+
+def wave_body(body: dict[str, Any], seeds: list[int], first: bool) -> dict[str, Any] | None:
+    """``body``'s sweep restricted to the wave's ``seeds`` (None when its grid has none of them); a file whose grid
+    does not vary the seed goes whole in the first wave."""
+    if "seed" not in body["grid"]:
+        return body if first else None
+    kept = [s for s in body["grid"]["seed"] if s in seeds]
+    return {**body, "grid": {**body["grid"], "seed": kept}} if kept else None
 
 
 def resolve_links(node: Any, ctx: Context) -> Any:
@@ -188,6 +224,28 @@ def resolve_links(node: Any, ctx: Context) -> Any:
 # --- figures -----------------------------------------------------------------------------------------------------
 
 
+@dataclass
+class Plan:
+    """One experiment file's sweep at a scale: its request, its ledger, its grid points and, after training, the
+    state of each point its ledger lacks (failed, stopped, …)."""
+
+    label: str
+    body: dict[str, Any]
+    pack: int
+    ledger: Ledger
+    points: list[dict[str, Any]]
+    tuning: bool = False
+    others: dict[str, str] = field(default_factory=dict)
+
+
+def busy_minutes(ledgers: list[Ledger]) -> float:
+    """How long the ledgers' sweeps ran: the union of their jobs' spans (sweeps side by side counted once), plus
+    the busy time of sweeps recorded without spans."""
+    spans = [(a, b) for ledger in ledgers for sweep in ledger.spans.values() for a, b in sweep]
+    alone = sum(s for ledger in ledgers for sid, s in ledger.busy_s.items() if sid not in ledger.spans)
+    return (busy_seconds(spans) + alone) / 60
+
+
 class Context:
     """What every figure needs: the service, the scale, where results go, and the figure files."""
 
@@ -199,26 +257,34 @@ class Context:
         self.current = ""
         self._summaries: dict[str, list[dict[str, Any]]] = {}
         self.tuning: dict[str, dict[str, dict[str, Any]]] = {}  # per figure, per algorithm: tried and chosen
-        self.minutes: dict[str, float] = {}  # the service's wall time of each figure's sweeps
+        self.ledgers: dict[str, list[Ledger]] = {}  # each figure's, tuning included: the time its sweeps ran
 
     def sweep_summaries(self, fig: str) -> list[dict[str, Any]]:
         """Every group of figure ``fig``'s sweeps, in file order, summarised from its ledgers after the runs they
         lack were trained (or reused), each algorithm at the settings its tuning chose (when the figure tunes at
         this scale)."""
         if fig not in self._summaries:
-            groups: list[dict[str, Any]] = []
             chosen = self.tuned(fig)
-            for path, data in self.files[fig]:
-                if data["figure"].get("kind", "sweep") != "sweep" or skipped(data, self.scale):
-                    continue
-                body = with_settings(resolve_links(sweep_body(data, self.scale, where=str(path)), self), chosen)
-                groups += self.measured(fig, path, body)
-            self._summaries[fig] = groups
+            plans = [
+                self.plan(
+                    fig, path, with_settings(resolve_links(sweep_body(data, self.scale, where=str(path)), self), chosen)
+                )
+                for path, data in self.files[fig]
+                if data["figure"].get("kind", "sweep") == "sweep" and not skipped(data, self.scale)
+            ]
+            self.train(fig, plans)
+            self._summaries[fig] = [g for plan in plans for g in self.groups(fig, plan)]
         return self._summaries[fig]
 
     def measured(self, fig: str, path: Path, body: dict[str, Any], tuning: bool = False) -> list[dict[str, Any]]:
-        """The groups of one experiment file's sweep (or of its tuning sweep): the runs its ledger lacks trained
-        through the service (each recorded as it completes), then every group summarised from the ledger."""
+        """The groups of one experiment file's sweep (or of its tuning sweep), its ledger's missing runs trained."""
+        plan = self.plan(fig, path, body, tuning)
+        self.train(fig, [plan])
+        return self.groups(fig, plan)
+
+    def plan(self, fig: str, path: Path, body: dict[str, Any], tuning: bool = False) -> Plan:
+        """One experiment file's sweep at this scale with its ledger (runs measured under another request set
+        aside)."""
         from convoy.api.sweeps import expand
 
         name = f"{path.stem}-tuning" if tuning else path.stem
@@ -232,21 +298,46 @@ class Context:
         if note:
             plain(out, f"{label}: {note}")
         points = [job.point for job in expand(build_config(SweepSubmit, **spec))]
-        measured = [p for p in points if ledger.has(p)]
-        others: dict[str, str] = {}
-        if len(measured) < len(points):
-            if measured:
-                plain(out, f"{label}: {len(measured)} of {len(points)} runs measured already ({ledger.path})")
-            summary = run_sweep(self.api, {**body, "exclude": measured}, label,
-                                lambda member: self.harvest(fig, ledger, member, score=not tuning))  # fmt: skip
-            ledger.busy_s[summary["id"]] = round(summary["minutes"] * 60, 1)
-            ledger.save()
-            others = {point_key(m["point"]): m["state"] for m in summary["members"]
-                      if not ledger.has(m["point"]) and m["state"] != "deleted"}  # fmt: skip
-        else:
+        held = sum(ledger.has(p) for p in points)
+        if held == len(points):
             plain(out, f"{label}: all {len(points)} runs measured ({ledger.path}); nothing to train")
-        self.minutes[fig] = self.minutes.get(fig, 0.0) + sum(ledger.busy_s.values()) / 60
-        return [{**g, "ledger": ledger, "sweep": str(ledger.path)} for g in ledger.groups(points, others)]
+        elif held:
+            plain(out, f"{label}: {held} of {len(points)} runs measured already ({ledger.path})")
+        return Plan(label, {**body, "exclude": []}, int(spec["pack"]), ledger, points, tuning)
+
+    def train(self, fig: str, plans: list[Plan]) -> None:
+        """The runs the plans' ledgers lack, trained through the service wave by wave of seeds (``seed_waves``),
+        all waves submitted at once; each run recorded in its ledger as its job completes."""
+        size = self.pack or min((p.pack for p in plans), default=1)
+        started: list[tuple[dict[str, Any], Harvest]] = []
+        owners: list[Plan] = []
+        for i, seeds in enumerate(seed_waves([p.body for p in plans], size)):
+            for plan in plans:
+                body = wave_body(plan.body, seeds, first=i == 0)
+                if body is None:
+                    continue
+                wave = body["grid"].get("seed")
+                points = [p for p in plan.points if wave is None or p["seed"] in wave]
+                if all(plan.ledger.has(p) for p in points):
+                    continue
+                body = {**body, "exclude": [p for p in points if plan.ledger.has(p)]}
+                harvest = functools.partial(self.harvest, fig, plan.ledger, score=not plan.tuning)
+                started.append((start_sweep(self.api, body, plan.label), harvest))
+                owners.append(plan)
+        if not started:
+            return
+        for plan, sweep in zip(owners, follow_sweeps(self.api, started, f"{fig} [{self.scale}]"), strict=True):
+            plan.ledger.busy_s[sweep["id"]] = round(sweep.get("busy_s", 0.0), 1)
+            plan.ledger.spans[sweep["id"]] = [[round(a, 1), round(b, 1)] for a, b in sweep.get("spans", [])]
+            plan.ledger.save()
+            plan.others.update({point_key(m["point"]): m["state"] for m in sweep["jobs"]
+                                if not plan.ledger.has(m["point"]) and m["state"] != "deleted"})  # fmt: skip
+
+    def groups(self, fig: str, plan: Plan) -> list[dict[str, Any]]:
+        """The plan's groups summarised from its ledger (its sweeps' time counted in its figure's)."""
+        self.ledgers.setdefault(fig, []).append(plan.ledger)
+        groups = plan.ledger.groups(plan.points, plan.others)
+        return [{**g, "ledger": plan.ledger, "sweep": str(plan.ledger.path)} for g in groups]
 
     def harvest(self, fig: str, ledger: Ledger, member: dict[str, Any], score: bool = True) -> None:
         """Record a completed job in ``ledger`` (once): its greedy curve and final evaluation, the references it
@@ -507,7 +598,19 @@ def stale(record: dict[str, Any]) -> str:
     return f" (treadmill rules {rules})" if rules is not None and rules != TREADMILL_RULES else ""
 
 
-RECORDED = ("group", "jobs", "states", "final", "iqm", "auc", "held_out", "sweep", "references", "wall_s")  # per group
+RECORDED = (
+    "group",
+    "jobs",
+    "states",
+    "final",
+    "iqm",
+    "auc",
+    "held_out",
+    "sweep",
+    "references",
+    "wall_s",
+    "clone_unknown",
+)  # per group
 
 
 def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
@@ -529,7 +632,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "note": " ".join(dict.fromkeys(n for n in scale_notes if n)) or meta.get("note", ""),
         "files": [str(p) for p, _ in ctx.files[fig]],
         "command": f"convoy reproduce {fig} --scale {ctx.scale}",
-        "minutes": round(ctx.minutes.get(fig, 0.0) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
+        "minutes": round(busy_minutes(ctx.ledgers.get(fig, [])) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
         "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
         **{k: result["extra"][k] for k in ("held_out_references",) if result["extra"].get(k)},
@@ -621,12 +724,25 @@ INTRO = (
     "information, then 260 k steps of Q-learning: ≥ 400 k env steps; 10 seeds; days on 2 cores), and the "
     "command, stopped or killed, goes on from its checkpoints when run again. Each run's scores are kept, as its "
     "job completes, in `docs/reproduction/ledger/SCALE/`: a run held there is not trained again, so a new machine "
-    "with the committed ledger trains only the runs that had not finished. Each "
+    "with the committed ledger trains only the runs that had not finished. A figure's files train wave by wave "
+    "of seeds (every arm's seeds 0–1, then 2–3, …, at `--pack 2`), so a study stopped part-way holds the same "
+    "seeds in every arm, its controls included. Each "
     "group's final return is also tested against the random policy's on the same env (*above random?*, one-sided "
     "t-test). A figure measured on an earlier rule set of the treadmill than the current one (rules {rules}) says "
     "so: its numbers do not describe today's treadmill until it is run again. `convoy reproduce --rejudge` judges "
     "the stored measurements again with the experiment files' current claims, without training."
 )
+
+
+def wall_text(group: dict[str, Any]) -> str:
+    """A group's training wall time, saying how many of its populations' times may lack their demonstration start
+    (runs trained before a run recorded it: its DAgger minutes are not in them)."""
+    if not group.get("wall_s"):
+        return "–"
+    unknown = group.get("clone_unknown") or 0
+    return duration(group["wall_s"]) + (
+        f" ({unknown} population(s) leave out their demonstration start)" * bool(unknown)
+    )
 
 
 def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
@@ -648,7 +764,7 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
         for name in dict.fromkeys(group_name(p) for p in points):  # grid order
             g = held.get(name, {})
             h = g.get("held_out") or {}
-            wall = duration(g["wall_s"]) if g.get("wall_s") else "–"
+            wall = wall_text(g)
             rows.append(f"| {scale} | `{path.stem}` | {name} | {len(g.get('runs', []))} of "
                         f"{sum(group_name(p) == name for p in points)} | "
                         f"{mean_ci((h.get('last') or {}).get('values', []))} | "
@@ -659,7 +775,8 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
                            "seeds held), no verdict until the command has run every group; wall time is its "
-                           "populations' learners, resumes included. The same command goes on where it stopped.",
+                           "populations' learners, resumes and demonstration starts included. The same command "
+                           "goes on where it stopped.",
                            108),
             "", "| scale | file | group | seeds held | last, held out | best.pt, held out | wall time |",
             "|---|---|---|---|---|---|---|", *rows]  # fmt: skip
@@ -723,9 +840,10 @@ def render(docs: Path, page: Path) -> None:
                     row += f" {'yes' if significant(diff, p) else 'no'} ({mean}p = {p:.2g}) |"
                 lines.append(row)
             lines.append("")
-        walls = [f"{g['group']} {duration(g['wall_s'])}" for g in r["groups"] if g.get("wall_s") is not None]
+        walls = [f"{g['group']} {wall_text(g)}" for g in r["groups"] if g.get("wall_s") is not None]
         if walls and "analysis" not in r:
-            lines += [f"Training wall time per group here (its populations' learners, resumes included): "
+            lines += [f"Training wall time per group here (its populations' learners, resumes and demonstration "
+                      f"starts included): "
                       f"{', '.join(walls)}.", ""]  # fmt: skip
         if r.get("tuning"):
             chosen = "; ".join(f"{algo} " + ", ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"

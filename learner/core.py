@@ -147,6 +147,13 @@ class TrainingCore:
             first_step=self.env_steps,
             first_updates=algo.updates,
         )
+        wall = counters.get("wall_s")  # the checkpoint's clock: a run resumed before its first row keeps its start's
+        if isinstance(wall, int | float) and math.isfinite(wall) and wall > self.log.wall_before:
+            self.log.wall_before = float(wall)
+        # the seconds of its demonstration start in its clock: 0 for a fresh run until one is counted, unknown for a
+        # run resumed from a checkpoint that did not say
+        clone = counters.get("clone_s", None if counters else 0.0)
+        self.clone_s = float(clone) if isinstance(clone, int | float) and math.isfinite(clone) and clone >= 0 else None
         self.evaluator = Evaluator(
             job,
             make_eval_env,
@@ -234,7 +241,10 @@ class TrainingCore:
             "env_steps": self.env_steps,
             "episodes": self.episodes,
             "updates": self.algo.updates,
+            "wall_s": self.log.wall_before + time.perf_counter() - self.log.t0,  # a resume's clock goes on from it
         }
+        if self.clone_s is not None:
+            counters["clone_s"] = self.clone_s
         if self.evaluator.best > -math.inf:
             counters["best_eval_return"] = self.evaluator.best  # a restart keeps best.pt unless it beats it
         if name == "checkpoint.pt" and self.replay_bytes and replay:  # replay first: a crash leaves no mismatch
@@ -289,6 +299,7 @@ class TrainingCore:
             "updates": self.algo.updates,
             "episodes": self.episodes,
             "wall_s": self.log.wall_before + wall,
+            **({"clone_s": self.clone_s} if self.clone_s is not None else {}),
             "env_steps_per_s": steps_here / wall,
             "updates_per_s": (self.algo.updates - self.log.updates_at_start) / wall,
             "final_return": float(np.mean(tail)),

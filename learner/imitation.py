@@ -162,9 +162,9 @@ def demonstration_start(
     stop: Callable[[], bool] | None = None,
 ) -> list[dict[str, Any]] | None:
     """Clone the job's ``demonstrator`` into every run of ``agent`` (a fresh one) by DAgger; each run's figures
-    (rounds, states, accuracy, ``demo_env_steps``), or None when the job names no demonstrator. ``after_round``
-    sees each round's per-run figures (a benchmark scores the clones there and adds to them); ``stop`` is asked
-    before each round (DemonstrationStopped when it says so)."""
+    (rounds, states, accuracy, seconds, ``demo_env_steps``, ``demo_s``), or None when the job names no
+    demonstrator. ``after_round`` sees each round's per-run figures (a benchmark scores the clones there and adds to
+    them); ``stop`` is asked before each round (DemonstrationStopped when it says so)."""
     teacher_name = job_teacher(job)
     if teacher_name is None:
         return None
@@ -184,6 +184,7 @@ def demonstration_start(
     obs: list[list[np.ndarray]] = [[] for _ in range(runs)]
     labels: list[list[np.ndarray]] = [[] for _ in range(runs)]
     figures: list[dict[str, Any]] = [{"demonstrator": teacher_name, "rounds": []} for _ in range(runs)]
+    began = time.perf_counter()
     try:
         for k in range(cfg.demo_rounds):
             if stop is not None and stop():
@@ -197,8 +198,9 @@ def demonstration_start(
                 labels[r].append(y)
             data = [np.concatenate(o) for o in obs], [np.concatenate(y) for y in labels]
             accuracy = clone(agent, *data, epochs=cfg.demo_epochs, seed=job.seed * 1000 + k)
-            rows = [{"round": k, "beta": 0.5**k, "states": len(data[0][r]), "accuracy": accuracy[r]}
-                    for r in range(runs)]  # fmt: skip
+            seconds = round(time.perf_counter() - start, 1)
+            rows = [{"round": k, "beta": 0.5**k, "states": len(data[0][r]), "accuracy": accuracy[r],
+                     "seconds": seconds} for r in range(runs)]  # fmt: skip
             if after_round is not None:
                 after_round(rows)
             for r in range(runs):
@@ -206,11 +208,12 @@ def demonstration_start(
             if say is not None:
                 say(f"demonstration round {k + 1}/{cfg.demo_rounds} ({teacher_name}): "
                     f"{sum(len(o) for o in data[0]) // runs:,} states per run, accuracy "
-                    f"{np.mean(accuracy):.3f} ({time.perf_counter() - start:.0f} s)")  # fmt: skip
+                    f"{np.mean(accuracy):.3f} ({seconds:.0f} s)")  # fmt: skip
     finally:
         env.close()
     for r in range(runs):
         figures[r]["demo_env_steps"] = figures[r]["rounds"][-1]["states"]
+        figures[r]["demo_s"] = round(time.perf_counter() - began, 1)
     return figures
 
 
@@ -224,13 +227,14 @@ def start_from_demonstrations(
     say: Callable[[str], None] | None = None,
     stop: Callable[[], bool] | None = None,
     after_round: Callable[[list[dict[str, Any]]], None] | None = None,
-) -> bool:
+) -> float | None:
     """A fresh population ``agent`` of ``job`` (its runs' folders ``dirs``) cloned from the job's demonstrator, if it
-    names one, each run's DAgger figures in its folder's ``demonstration.json``; whether it did (then the caller
-    checkpoints the clone at step 0, so that a stop before the first checkpoint does not repeat it)."""
+    names one, each run's DAgger figures in its folder's ``demonstration.json``; the seconds it took, None when the
+    job names no demonstrator (after a clone the caller checkpoints at step 0, so that a stop before the first
+    checkpoint does not repeat it, and counts those seconds in each run's wall clock: they are the run's cost)."""
     figures = demonstration_start(agent, job, say, after_round=after_round, stop=stop)
     for run_figures, out in zip(figures or [], dirs, strict=False):
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             (out / DEMONSTRATION_FILE).write_text(json.dumps(run_figures, indent=1) + "\n")
-    return figures is not None
+    return None if figures is None else float(figures[0]["demo_s"])

@@ -146,6 +146,13 @@ class PopulationCore:
         if self.replay is not None:
             save_replay(self.replay[0], self.algo, self.env_steps, self.replay[1], self.say)
 
+    def started_after(self, seconds: float) -> None:
+        """Count ``seconds`` of work before the first step (a demonstration start's clone) in each run's wall
+        clock: the time a run took is what it cost, its start included."""
+        for core in self.cores:
+            core.log.wall_before += seconds
+            core.clone_s = seconds
+
     def checkpoint(self) -> None:
         self._save_replay()
         for k, core in enumerate(self.cores):
@@ -199,19 +206,20 @@ class PopulationTrainer:
         replay: Path | None = None,
         counters: list[dict[str, Any]] | list[dict[str, Any] | None] | None = None,
         on_row: Callable[[int], dict[str, float]] | None = None,
-        checkpoint_first: bool = False,
+        cloned_s: float | None = None,
     ) -> None:
         """``replay``: where the population's replay goes with each checkpoint; ``counters``: the runs'
         checkpoints' when ``algo`` resumes from them (``learner/resume.py``); ``on_row(env_steps)``: figures
-        measured at every metric row and added to it (periodic evaluation); ``checkpoint_first``: checkpoint
-        before the first step (a demonstration start's clone, minutes of work a stop should not lose)."""
+        measured at every metric row and added to it (periodic evaluation); ``cloned_s``: the seconds of a
+        demonstration start's clone, checkpointed before the first step (minutes of work a stop should not lose)
+        and counted in each run's wall clock."""
         self.jobs, self.env, self.algo = jobs, env, algo
         self.make_eval_env = make_eval_env
         self.out_dirs = out_dirs
         self.show_progress = progress
         self.replay, self.counters = replay, counters
         self.on_row = on_row
-        self.checkpoint_first = checkpoint_first
+        self.cloned_s = cloned_s
 
     def run(self) -> list[TrainResult]:
         algo, env = self.algo, self.env
@@ -222,7 +230,8 @@ class PopulationTrainer:
                               counters=self.counters, replay=replay)  # fmt: skip
         stepper = EnvStepper(env, algo, seed=self.jobs[0].seed)
         try:
-            if self.checkpoint_first:
+            if self.cloned_s is not None:
+                core.started_after(self.cloned_s)
                 core.checkpoint()
             while not core.done:
                 core.set_progress()

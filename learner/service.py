@@ -120,7 +120,7 @@ class Learner:
         self.job_id, self.job, self.out_dir, self.settings = job_id, job, Path(out_dir), settings
         self.on_data = on_data
         self.stopping = False
-        self.cloned = False  # whether this run started from its demonstrator (learner/imitation.py)
+        self.cloned_s: float | None = None  # the seconds its start from its demonstrator took (learner/imitation.py)
         self.rejected: dict[str, int] = {}  # chunks that decoded but are not this job's or hold impossible values
 
     def stop(self, *_: Any) -> None:
@@ -152,7 +152,7 @@ class Learner:
             if counters is None:
                 algo = make_agent(job, spec)  # not what a failed restore may have half-loaded
                 try:
-                    self.cloned = start_from_demonstrations(
+                    self.cloned_s = start_from_demonstrations(
                         algo, job, job.member_dirs(self.out_dir), log.info,
                         stop=lambda: self.stopping or watch.orphaned(), after_round=self._publish_round,
                     )  # fmt: skip
@@ -246,7 +246,8 @@ class Learner:
         job, rt = self.job, self.job.runtime
         t_len = rt.chunk_len(algo.chunk_len)
         s = _Ingest(self._core(algo, counters), job.num_envs * t_len, rt.slack(job.num_envs, t_len), inbox)
-        if self.cloned:  # a demonstration start's clone: minutes of work a stop should not lose
+        if self.cloned_s is not None:  # a demonstration start's clone: minutes of work a stop should not lose
+            s.core.started_after(self.cloned_s)
             s.core.checkpoint()
         try:
             while not s.core.done and not self.stopping:

@@ -626,7 +626,8 @@ def check_job_files(job: JobConfig) -> None:
 def final_progress(summary: dict[str, Any]) -> dict[str, Any]:
     """What a finished run's ``summary.json`` adds to its job's progress: the headline figures and ``final``."""
     keep: dict[str, Any] = {k: summary[k] for k in ("eval_return", "eval_ci95", "env_steps", "updates") if k in summary}
-    final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step")
+    final = ("eval_return", "eval_ci95", "random_return", "references", "best_eval_return", "best_eval_step", "wall_s",
+             "clone_s")  # fmt: skip
     keep["final"] = {k: summary[k] for k in final if k in summary}
     return keep
 

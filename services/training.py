@@ -86,9 +86,9 @@ def run_population(
             dirs = [d for d in out_dirs if d is not None]
             counters = restore_population(agent, jobs, dirs, replay, strict=True)
         # minutes of DAgger when the job names a demonstrator: said even without a progress bar
-        cloned = counters is None and start_from_demonstrations(agent, population, out_dirs, print_line)
+        cloned_s = start_from_demonstrations(agent, population, out_dirs, print_line) if counters is None else None
         trainer = PopulationTrainer(jobs, env, agent, lambda n: make_env(job, n), out_dirs, progress=progress,
-                                    replay=replay, counters=counters, checkpoint_first=cloned)  # fmt: skip
+                                    replay=replay, counters=counters, cloned_s=cloned_s)  # fmt: skip
         return trainer.run()
     finally:
         env.close()

@@ -136,6 +136,7 @@ def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, 
         for seed in (0, 1):
             demo = json.loads((out / f"seed-{seed}" / imitation.DEMONSTRATION_FILE).read_text())
             assert demo["demo_env_steps"] > 0 and len(demo["rounds"]) == 2
+            assert demo["demo_s"] >= sum(r["seconds"] for r in demo["rounds"]) > 0
             assert load_checkpoint(out / f"seed-{seed}" / "checkpoint.pt", device="cpu")[2]["env_steps"] == 0
 
         def again(*_a, **_k):
@@ -147,6 +148,7 @@ def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, 
         torch.set_num_threads(old)
     summary = json.loads((out / "seed-1" / "summary.json").read_text())
     assert summary["env_steps"] >= 256
+    assert summary["wall_s"] > summary["clone_s"] == demo["demo_s"]  # the run's clock counts its clone, resumed too
 
 
 def test_a_stop_between_rounds_ends_the_demonstration() -> None:

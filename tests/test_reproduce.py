@@ -29,6 +29,7 @@ from convoy.cli.main import main
 from convoy.cli.reproduce import figure_files, tuning_body
 from convoy.cli.sweep_file import skipped, sweep_body
 from convoy.services.store import JobStore
+from convoy.validation import build_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -511,18 +512,74 @@ def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_
     spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["idqn", "ma-mesn"], "seed": [0, 1]}, "exclude": []}
     ledger, _ = Ledger.open(docs / "ledger" / "mid" / "fig3_centralised.json", spec)
     held_out = {"episodes": 500, "seed": 777, "last": 130.0, "best": 140.0}
-    run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "final": {"eval_return": 1.0},
-           "rows": [], "wall_s": 3600.0, "held_out": held_out}  # fmt: skip
+    run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "rows": [], "wall_s": 3600.0,
+           "final": {"eval_return": 1.0, "clone_s": 600.0}, "held_out": held_out}  # fmt: skip
     ledger.record({"algo": "idqn", "seed": 0}, run)
+    older = {**run, "job": "j1", "population": "p1", "final": {"eval_return": 1.0}}  # its clone's time not recorded
+    ledger.record({"algo": "ma-mesn", "seed": 0}, older)
     page = tmp_path / "r.md"
     render(docs, page)
     text = page.read_text()
     assert "## Studies still training" in text
     assert "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 1.0 h |" in text, text
-    assert "| mid | `fig3_centralised` | algo=ma-mesn | 0 of 2 | – | – | – |" in text
+    assert "| algo=ma-mesn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 1.0 h (1 population(s) leave out their " in text
     record = {"id": "fig3", "title": "Fig. 3: x", "paper": "", "scale": "mid", "note": "", "minutes": 1.0,
               "files": ["experiments/fig3_centralised.toml"], "command": "convoy reproduce fig3 --scale mid",
               "groups": [], "references": {}, "verdicts": [], "verdict": "not shown", "png": None}  # fmt: skip
     (docs / "fig3.json").write_text(json.dumps(record))
     render(docs, page)
     assert "Studies still training" not in page.read_text()
+
+
+def _points(body: dict[str, Any]) -> list[dict[str, Any]]:
+    return [job.point for job in expand(build_config(SweepSubmit, **body))]
+
+
+class _Service:
+    """The job API as ``convoy reproduce`` calls it, answering each new sweep at once with its jobs failed: the
+    order sweeps arrive in is the order the service would start their jobs (first come, first served)."""
+
+    def __init__(self) -> None:
+        self.bodies: list[dict[str, Any]] = []
+
+    def call(self, method: str, path: str, **kwargs: Any) -> Any:
+        if (method, path) == ("GET", "/sweeps"):
+            return {"sweeps": []}
+        assert (method, path) == ("POST", "/sweeps"), (method, path)
+        self.bodies.append(kwargs["json"])
+        n = len(self.bodies)
+        jobs = [{"id": f"{n}-{k}", "point": p, "state": "failed", "steps": 10, "env_steps": 0}
+                for k, p in enumerate(_points(kwargs["json"]))]  # fmt: skip
+        start = 500.0 * n  # each sweep runs 1,000 s, the next one starting half-way through
+        return {"id": f"s{n}", "state": "failed", "jobs": jobs, "busy_s": 1000.0,
+                "spans": [[start, start + 1000.0], [start + 200.0, start + 900.0]]}  # fmt: skip
+
+
+def test_a_figures_files_train_wave_by_wave_of_seeds_so_a_stopped_study_holds_the_same_seeds_in_every_arm(
+    tmp_path: Path,
+) -> None:
+    from convoy.cli.reproduce import Context, busy_minutes
+
+    files = figure_files(ROOT / "experiments")
+    service = _Service()
+    ctx = Context(cast(Any, service), "mid", files, tmp_path / "docs", tmp_path / "work", pack=2)
+    groups = ctx.sweep_summaries("fig3")
+    waves = [sorted({p["seed"] for p in _points(b)}) for b in service.bodies]
+    firsts = [w[0] for w in waves]
+    assert waves[0] == [0, 1] and firsts == sorted(firsts), waves  # every file's seeds 0–1, then 2–3, …
+    names = [b["name"] for b in service.bodies]
+    assert len(set(names)) >= 4 and set(names[: firsts.count(0)]) == set(names)  # every file in the first wave
+    planned = [p for _, d in files["fig3"] if not skipped(d, "mid") for p in _points(sweep_body(d, "mid"))]
+    asked = [p for b in service.bodies for p in _points(b)]
+    assert sorted(map(repr, asked)) == sorted(map(repr, planned))  # each run once, none left out
+    assert all(g["states"] == {"failed": len(g["jobs"])} for g in groups)
+    # sweeps side by side are timed once: the union of their spans, not the sum of their busy seconds
+    assert busy_minutes(ctx.ledgers["fig3"]) == pytest.approx(500 * (len(names) + 1) / 60)
+    # a ledger holding the first sweep's runs leaves that sweep out
+    ledger = next(led for led in ctx.ledgers["fig3"] if led.path.stem == "fig3_centralised")
+    run = {"job": "x", "population": "x", "env": "treadmill", "env_steps": 1, "final": {}, "references": {}, "rows": []}
+    for p in _points(service.bodies[0]):
+        ledger.record(p, run)
+    again = _Service()
+    Context(cast(Any, again), "mid", files, tmp_path / "docs", tmp_path / "work", pack=2).sweep_summaries("fig3")
+    assert [b["name"] for b in again.bodies] == names[1:]

@@ -757,4 +757,4 @@ def test_a_distributed_learner_starts_from_its_demonstrator(tmp_path: Path) -> N
     for seed, summary in zip((0, 1), result["runs"], strict=True):
         figures = json.loads((tmp_path / f"seed-{seed}" / "demonstration.json").read_text())
         assert figures["demonstrator"] == "private-planner" and figures["demo_env_steps"] > 0
-        assert summary["env_steps"] >= job.steps
+        assert summary["env_steps"] >= job.steps and summary["wall_s"] > summary["clone_s"] == figures["demo_s"] > 0
