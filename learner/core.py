@@ -58,6 +58,7 @@ class TrainResult:
     references: dict[str, list[float]] = field(default_factory=dict)  # policy → [mean, 95 % CI], same episodes
     best_eval_return: float = float("nan")  # the best point of the greedy curve (its policy is best.pt)
     best_eval_step: int = -1
+    clone_s: float | None = None  # of wall_s, its demonstration start's (0: none; None: not known, an older resume)
     algo: str = ""
     env: str = ""
     seed: int = 0
