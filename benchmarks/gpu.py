@@ -108,14 +108,17 @@ def training_figures(sizes: list[int], steps: int, device: str, work: Path, save
 
 
 def recipe(preset: str | None, algo: str) -> dict[str, Any]:
-    """The algorithm parameters of ``preset``'s learner (none: the treadmill defaults), batches of 128 and Adam 1e-4
-    as ``experiments/fig3_centralised.toml``'s mid scale; deterministic messages (its MA-MeSN and MA-BoN)."""
+    """The algorithm parameters of ``preset``'s learner (none: the treadmill defaults) under those of
+    ``experiments/fig3_centralised.toml``'s mid scale (its batches, learning rate, deterministic messages), the
+    compile switch left to the timing."""
     if preset is None:
         return {}
+    from convoy.cli.sweep_file import read_file, sweep_body
     from convoy.config import preset_params
 
-    params = {**preset_params(preset, algo)[1], "batch_size": 128, "lr": 1e-4}
-    return {**params, "gumbel_noise": 0.0} if algo in ("ma-mesn", "ma-bon") else params
+    body = sweep_body(read_file(ROOT / "experiments" / "fig3_centralised.toml"), "mid")
+    mid = {k: v for k, v in body["base"].get("algo_params", {}).items() if k != "compile"}
+    return {**preset_params(preset, algo)[1], **mid, **(body.get("algos") or {}).get(algo, {})}
 
 
 def main(argv: list[str] | None = None) -> int:
