@@ -745,6 +745,13 @@ def wall_text(group: dict[str, Any]) -> str:
     )
 
 
+def shuffled_cost(analysis: dict[str, Any]) -> float | None:
+    """The return a run's listeners lose hearing another env's messages instead of their own (Table 1's analysis)."""
+    values = {f["key"]: f["value"] for f in analysis.get("figures", [])}
+    sent, shuffled = values.get("return_sent"), values.get("return_shuffled")
+    return None if sent is None or shuffled is None else float(sent) - float(shuffled)
+
+
 def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
     """A section on the ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet: per group,
     the runs held of those planned, their held-out scores and their wall time, so that a study that takes days
@@ -765,21 +772,25 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
             g = held.get(name, {})
             h = g.get("held_out") or {}
             wall = wall_text(g)
+            costs = [shuffled_cost(r["analysis"]) for r in g.get("runs", []) if r.get("analysis")]
             rows.append(f"| {scale} | `{path.stem}` | {name} | {len(g.get('runs', []))} of "
                         f"{sum(group_name(p) == name for p in points)} | "
                         f"{mean_ci((h.get('last') or {}).get('values', []))} | "
-                        f"{mean_ci((h.get('best') or {}).get('values', []))} | {wall} |")  # fmt: skip
+                        f"{mean_ci((h.get('best') or {}).get('values', []))} | "
+                        f"{mean_ci([c for c in costs if c is not None])} | {wall} |")  # fmt: skip
     if not rows:
         return []
     return ["", "## Studies still training", "",
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
                            "seeds held), no verdict until the command has run every group; wall time is its "
-                           "populations' learners, resumes and demonstration starts included. The same command "
-                           "goes on where it stopped.",
+                           "populations' learners, resumes and demonstration starts included; *shuffled costs* is "
+                           "Table 1's paired cost of hearing another env's messages (return with true messages − "
+                           "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
+                           "where it stopped.",
                            108),
-            "", "| scale | file | group | seeds held | last, held out | best.pt, held out | wall time |",
-            "|---|---|---|---|---|---|---|", *rows]  # fmt: skip
+            "", "| scale | file | group | seeds held | last, held out | best.pt, held out | shuffled costs | wall "
+            "time |", "|---|---|---|---|---|---|---|---|", *rows]  # fmt: skip
 
 
 def render(docs: Path, page: Path) -> None:

@@ -515,14 +515,17 @@ def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_
     run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "rows": [], "wall_s": 3600.0,
            "final": {"eval_return": 1.0, "clone_s": 600.0}, "held_out": held_out}  # fmt: skip
     ledger.record({"algo": "idqn", "seed": 0}, run)
-    older = {**run, "job": "j1", "population": "p1", "final": {"eval_return": 1.0}}  # its clone's time not recorded
+    analysis = {"figures": [{"key": "return_sent", "value": 150.0}, {"key": "return_shuffled", "value": 110.0}]}
+    older = {**run, "job": "j1", "population": "p1", "final": {"eval_return": 1.0}, "analysis": analysis}  # no clone_s
     ledger.record({"algo": "ma-mesn", "seed": 0}, older)
     page = tmp_path / "r.md"
     render(docs, page)
     text = page.read_text()
     assert "## Studies still training" in text
-    assert "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 1.0 h |" in text, text
-    assert "| algo=ma-mesn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 1.0 h (1 population(s) leave out their " in text
+    assert "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | 1.0 h |" in text, text
+    assert (
+        "| algo=ma-mesn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 40 ± 0 (n=1) | 1.0 h (1 population(s) leave " in text
+    )
     record = {"id": "fig3", "title": "Fig. 3: x", "paper": "", "scale": "mid", "note": "", "minutes": 1.0,
               "files": ["experiments/fig3_centralised.toml"], "command": "convoy reproduce fig3 --scale mid",
               "groups": [], "references": {}, "verdicts": [], "verdict": "not shown", "png": None}  # fmt: skip
