@@ -59,8 +59,8 @@ class Ledger:
     path: Path
     spec: dict[str, Any]
     runs: dict[str, dict[str, Any]] = field(default_factory=dict)
-    busy_s: dict[str, float] = field(default_factory=dict)  # per sweep: the seconds its jobs ran, across machines
     spans: dict[str, list[list[float]]] = field(default_factory=dict)  # per sweep: its jobs' [start, end] times
+    busy_s: dict[str, float] = field(default_factory=dict)  # per sweep recorded before its spans were: seconds run
 
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
@@ -74,7 +74,7 @@ class Ledger:
         if request(data.get("spec", {})) != spec:
             return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
         runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
-        return cls(path, spec, runs, busy, spans), ""
+        return cls(path, spec, runs, spans, busy), ""
 
     def has(self, point: dict[str, Any]) -> bool:
         return point_key(point) in self.runs

@@ -240,7 +240,7 @@ class Plan:
 
 def busy_minutes(ledgers: list[Ledger]) -> float:
     """How long the ledgers' sweeps ran: the union of their jobs' spans (sweeps side by side counted once), plus
-    the busy time of sweeps recorded without spans."""
+    the busy time of sweeps recorded before spans were."""
     spans = [(a, b) for ledger in ledgers for sweep in ledger.spans.values() for a, b in sweep]
     alone = sum(s for ledger in ledgers for sid, s in ledger.busy_s.items() if sid not in ledger.spans)
     return (busy_seconds(spans) + alone) / 60
@@ -327,7 +327,6 @@ class Context:
         if not started:
             return
         for plan, sweep in zip(owners, follow_sweeps(self.api, started, f"{fig} [{self.scale}]"), strict=True):
-            plan.ledger.busy_s[sweep["id"]] = round(sweep.get("busy_s", 0.0), 1)
             plan.ledger.spans[sweep["id"]] = [[round(a, 1), round(b, 1)] for a, b in sweep.get("spans", [])]
             plan.ledger.save()
             plan.others.update({point_key(m["point"]): m["state"] for m in sweep["jobs"]
@@ -765,7 +764,7 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
         if (scale, path.stem) in read or path.stem.endswith("-tuning"):
             continue
         data = json.loads(path.read_text())
-        ledger = Ledger(path, data["spec"], data.get("runs", {}), data.get("busy_s", {}))
+        ledger = Ledger(path, data["spec"], data.get("runs", {}))
         points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
         held = {g["group"]: g for g in ledger.groups(points, {})}
         for name in dict.fromkeys(group_name(p) for p in points):  # grid order

@@ -234,6 +234,11 @@ class TrainingCore:
             while self.next_checkpoint <= self.env_steps:
                 self.next_checkpoint += self.job.checkpoint_every
 
+    def started_after(self, seconds: float) -> None:
+        """Count ``seconds`` of work before the first step (a demonstration start's clone) in the run's wall clock."""
+        self.log.wall_before += seconds
+        self.clone_s = seconds
+
     def checkpoint(self, name: str = "checkpoint.pt", replay: bool = True) -> None:
         """The algorithm's state as ``name``: the last one, or ``best.pt`` for the best greedy-curve point (and the
         replay beside the last one, unless ``replay`` is off)."""

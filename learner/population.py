@@ -150,8 +150,7 @@ class PopulationCore:
         """Count ``seconds`` of work before the first step (a demonstration start's clone) in each run's wall
         clock: the time a run took is what it cost, its start included."""
         for core in self.cores:
-            core.log.wall_before += seconds
-            core.clone_s = seconds
+            core.started_after(seconds)
 
     def checkpoint(self) -> None:
         self._save_replay()
