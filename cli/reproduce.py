@@ -486,19 +486,19 @@ def with_settings(body: dict[str, Any], chosen: dict[str, dict[str, Any]]) -> di
 
 def held_out_references(ctx: Context, groups: list[dict[str, Any]], episodes: int) -> dict[str, float]:
     """The env's reference policies (planners, the best constant, the tuned driver, random) on the held-out episodes
-    the groups' policies are re-scored on, for the first group's env; {} where the env has none, or where more
-    episodes than one round of the re-scoring are asked (its rounds would be other episodes)."""
+    the groups' policies are re-scored on (in the re-scoring's rounds of ``SCORING_ENVS`` envs), for the first
+    group's env; {} where the env has none."""
     from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS
     from convoy.envs.registry import env_entry
 
     run = next((r for g in groups for r in g["runs"]), None)
-    if run is None or episodes > SCORING_ENVS:
+    if run is None:
         return {}
     table = env_entry(run["env"]).references
     if table is None:
         return {}
     plain(out, f"{ctx.current} [{ctx.scale}]: the reference policies on the same {episodes} held-out episodes")
-    refs = table(run.get("env_params") or {}, episodes, HELD_OUT_SEED)
+    refs = table(run.get("env_params") or {}, episodes, HELD_OUT_SEED, round_envs=SCORING_ENVS)
     return {name: float(mean) for name, (mean, _) in refs.items()}
 
 

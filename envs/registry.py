@@ -24,9 +24,10 @@ class EnvEntry:
     parallel: Callable[..., ParallelEnv]  # (**params)
     summary: str
     config: Callable[[], type[BaseModel]]  # the pydantic model of its parameters (lazy: particle envs import mpe2)
-    # (params, episodes, seed, report=None) → {policy name: (mean return, 95 % CI)}: the hand-made policies a learner
-    # is judged against beside random (the treadmill: its best constant action, a tuned driver and the planners);
-    # ``report`` hears of each as it ends (``Report``)
+    # (params, episodes, seed, report=None, round_envs=None) → {policy name: (mean return, 95 % CI)}: the hand-made
+    # policies a learner is judged against beside random (the treadmill: its best constant action, a tuned driver and
+    # the planners); ``report`` hears of each as it ends (``Report``); ``round_envs``: played in rounds of that many
+    # envs, as a learner's evaluation on that many envs plays its episodes
     references: Callable[..., dict[str, tuple[float, float]]] | None = None
     # (lowest, highest) return an episode can have, where the rules bound it (the referential game's success rate):
     # a mean's confidence band is drawn within them
@@ -42,7 +43,7 @@ def _treadmill_batch(num_envs: int, **params: Any) -> TreadmillEngine:
 
 
 def _treadmill_references(
-    params: dict[str, Any], episodes: int, seed: int, report: Report | None = None
+    params: dict[str, Any], episodes: int, seed: int, report: Report | None = None, round_envs: int | None = None
 ) -> dict[str, tuple[float, float]]:
     """``summary_references``; with ``report``, the same rollouts played one policy (the constant actions: one
     group) at a time, each reported as it ends — the planners take most of the time, tens of seconds at 100
@@ -51,13 +52,13 @@ def _treadmill_references(
 
     cfg = build_config(TreadmillConfig, **params)
     if report is None:
-        return refs.summary_references(cfg, episodes, seed)
+        return refs.summary_references(cfg, episodes, seed, round_envs)
     played: dict[str, Any] = {}
     groups = [("random",), refs.CONSTANTS, ("private-driver",), *((name,) for name in refs.PLANNERS)]
     planners_s: list[float] = []  # the planners take nearly all the time, each about as long as the others
     for k, names in enumerate(groups, 1):
         t0 = time.perf_counter()
-        played.update(refs.evaluate_references(cfg, episodes, seed, names=names))
+        played.update(refs.evaluate_references(cfg, episodes, seed, names=names, round_envs=round_envs))
         name = refs.best_constant(played) if names == refs.CONSTANTS else names[0]
         seconds = time.perf_counter() - t0
         if name in refs.PLANNERS:

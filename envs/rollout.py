@@ -39,6 +39,13 @@ class RolloutResult:
         r = self.mean_return
         return float(r.mean()), ci95_half(r, single=0.0)
 
+    @classmethod
+    def joined(cls, rounds: list[RolloutResult], episodes: int) -> RolloutResult:
+        """The first ``episodes`` episodes of ``rounds`` played one after another (no frames)."""
+        cut = lambda name: np.concatenate([getattr(r, name) for r in rounds])[:episodes]  # noqa: E731
+        rate = float(np.mean([r.env_steps_per_s for r in rounds]))
+        return cls(cut("returns"), cut("lengths"), cut("terminated"), rate, [])
+
 
 def random_policy(spec: EnvSpec, seed: int | None = None) -> Policy:
     """Uniform actions within each agent's own action range."""

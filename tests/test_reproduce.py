@@ -441,12 +441,17 @@ def test_table1_of_several_groups_shows_a_column_for_each(tmp_path: Path) -> Non
     )
 
 
-def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tmp_path: Path) -> None:
+def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The references of a figure's held-out columns play the very episodes the policies are re-scored on (the first
-    group's env and rules, ``HELD_OUT_SEED``); the page names them with the episode count; an env without reference
-    policies, or more episodes than one scoring round, gives none."""
-    from convoy.analysis.evaluation import HELD_OUT_SEED, SCORING_ENVS
+    group's env and rules, ``HELD_OUT_SEED``), also where the re-scoring plays them in rounds (more episodes than
+    ``SCORING_ENVS``: the mid scale's 500); the page names them with the episode count; an env without reference
+    policies gives none."""
+    from convoy.analysis import evaluation
+    from convoy.analysis.evaluation import HELD_OUT_SEED, evaluate_reference
     from convoy.cli.reproduce import Context, held_out_references, render
+    from convoy.envs import make_batched
     from convoy.envs.treadmill import TreadmillConfig
     from convoy.envs.treadmill.config import CHARGER_RULES
     from convoy.envs.treadmill.references import summary_references
@@ -459,7 +464,11 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(tm
     refs = held_out_references(ctx, groups("treadmill", params), 6)
     expected = summary_references(TreadmillConfig(**params), 6, HELD_OUT_SEED)
     assert refs == {name: mean for name, (mean, _) in expected.items()} and "team-planner" in refs
-    assert held_out_references(ctx, groups("treadmill", params), SCORING_ENVS + 1) == {}
+    monkeypatch.setattr(evaluation, "SCORING_ENVS", 4)  # 6 episodes: a round of 4 envs, then 2 of the next 4
+    rounds = held_out_references(ctx, groups("treadmill", params), 6)
+    env = make_batched("treadmill", 4, **params)  # as score_checkpoint re-scores a policy: the learners' episodes
+    assert rounds == {name: evaluate_reference(env, name, 6, HELD_OUT_SEED).mean() for name in rounds}
+    assert rounds != refs  # other episodes than one round of 6 envs
     assert held_out_references(ctx, groups("referential", {}), 6) == {}
     docs = tmp_path / "r"
     docs.mkdir()

@@ -92,24 +92,34 @@ def _driver_policy(kind: str, engine: TreadmillEngine, params) -> Policy:
     return policy
 
 
-# (rules, episodes, seed, policy) → its rollout: a reference and its episodes are deterministic, so a process plays
-# each once (the planners take seconds per 100 episodes; every run of the same rules and seed shows them)
-_PLAYED: dict[tuple[str, int, int, str], RolloutResult] = {}
+# (rules, episodes, seed, round size, policy) → its rollout: a reference and its episodes are deterministic, so a
+# process plays each once (the planners take seconds per 100 episodes; every run of the same rules and seed shows them)
+_PLAYED: dict[tuple[str, int, int, int, str], RolloutResult] = {}
 
 
 def evaluate_references(
-    cfg: TreadmillConfig, episodes: int = 500, seed: int = 0, names: tuple[str, ...] = REFERENCES
+    cfg: TreadmillConfig,
+    episodes: int = 500,
+    seed: int = 0,
+    names: tuple[str, ...] = REFERENCES,
+    round_envs: int | None = None,
 ) -> dict[str, RolloutResult]:
-    """One ``episodes``-episode rollout per reference policy, every policy on the same env seeds."""
+    """One ``episodes``-episode rollout per reference policy, every policy on the same env seeds: one round of
+    ``episodes`` envs, or rounds of ``round_envs`` envs seeded ``seed``, ``seed + 1``, … — the very episodes a
+    learner's evaluation on ``round_envs`` envs plays (``analysis.evaluation.first_episodes``)."""
     out: dict[str, RolloutResult] = {}
     rules = cfg.model_dump_json()
+    size = episodes if round_envs is None else min(round_envs, episodes)
     for name in names:
-        key = (rules, episodes, seed, name)
+        key = (rules, episodes, seed, size, name)
         if key not in _PLAYED:
             if len(_PLAYED) >= 1024:  # a long-lived process over many rule sets: bounded
                 _PLAYED.clear()
-            engine = TreadmillEngine(cfg, episodes, autoreset=False)
-            _PLAYED[key] = rollout(engine, reference_policy(name, engine, seed), seed=seed)
+            rounds = []
+            for rnd in range(-(-episodes // size)):
+                engine = TreadmillEngine(cfg, size, autoreset=False)
+                rounds.append(rollout(engine, reference_policy(name, engine, seed + rnd), seed=seed + rnd))
+            _PLAYED[key] = rounds[0] if len(rounds) == 1 else RolloutResult.joined(rounds, episodes)
         out[name] = _PLAYED[key]
     return out
 
@@ -119,15 +129,17 @@ def best_constant(results: dict[str, RolloutResult]) -> str:
     return max((n for n in results if n in CONSTANTS), key=lambda n: results[n].ci95()[0])
 
 
-def summary_references(cfg: TreadmillConfig, episodes: int, seed: int) -> dict[str, tuple[float, float]]:
+def summary_references(
+    cfg: TreadmillConfig, episodes: int, seed: int, round_envs: int | None = None
+) -> dict[str, tuple[float, float]]:
     """What a trained policy's summary shows beside it, each as (mean, 95 % CI half-width) over ``episodes``
     episodes: random; the best constant action (named; on the default rules also the best open-loop policy the
     search of ``benchmarks/treadmill_search.py`` finds); the tuned reactive driver on its own sensor (the reference
     of earlier results); and the planners told their own sensor, a 16-bit word per teammate, their teammates'
     observations and every car (tuned on these rules or the defaults, ``planner.tuned_for``): the strongest policy
-    known at each information level."""
+    known at each information level. ``round_envs``: played in rounds (``evaluate_references``)."""
     names = ("random", *CONSTANTS, "private-driver", *PLANNERS)
-    results = evaluate_references(cfg, episodes, seed, names=names)
+    results = evaluate_references(cfg, episodes, seed, names=names, round_envs=round_envs)
     best = best_constant(results)
     return {name: results[name].ci95() for name in ("random", best, "private-driver", *PLANNERS)}
 
