@@ -95,6 +95,22 @@ def _t_test(a: list[float], b: list[float] | float) -> tuple[float, float]:
     return diff, float(stats.ttest_ind(x, y, equal_var=False, alternative="greater").pvalue)
 
 
+def difference_text(a: list[float], b: list[float] | None = None, word: str = "difference") -> str:
+    """``difference +12.3 [4.1, 20.5]``: mean(a) − mean(b) with its two-sided 95 % t-interval (Welch), or with
+    ``b`` None the mean of paired differences ``a`` with theirs; no interval from one seed or no spread."""
+    x = np.asarray(a, dtype=np.float64)
+    y = None if b is None else np.asarray(b, dtype=np.float64)
+    diff = float(x.mean() - (0.0 if y is None else y.mean()))
+    samples = [x] if y is None else [x, y]
+    if min(len(v) for v in samples) < 2 or not any(v.std(ddof=1) > 0 for v in samples):
+        return f"{word} {diff:+.3g} (no CI: one seed or no spread)"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        test = stats.ttest_1samp(x, 0.0) if y is None else stats.ttest_ind(x, y, equal_var=False)
+        ci = test.confidence_interval(0.95)
+    return f"{word} {diff:+.3g} [{ci.low:.3g}, {ci.high:.3g}]"
+
+
 def significant(diff: float, p: float) -> bool:
     """Whether a one-sided test's (difference, p-value) says "above" at ``ALPHA``."""
     return diff > 0 and p < ALPHA
@@ -144,7 +160,7 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
             a, b = _finals(groups, claim["better"]), _finals(groups, claim["than"])
             if not a or not b:
                 return Verdict(text, paper, "no final returns yet", NOT, "a group has no completed job")
-            return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *p_above(a, b))
+            return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}; {difference_text(a, b)}", *p_above(a, b))
         if "above_reference" in claim:
             a = _finals(groups, claim["group"])
             ref = extra.get("references", {}).get(claim["above_reference"])
@@ -224,7 +240,7 @@ def _judge_across(
     a, b = [v for v in a if v is not None], [v for v in b if v is not None]
     if not a or not b:
         return Verdict(text, paper, "not measured", NOT_SHOWN, f"{key!r} of a group is missing: run the figure again")
-    return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}", *p_above(a, b))
+    return _tested(text, paper, f"{mean_ci(a)} vs {mean_ci(b)}; {difference_text(a, b)}", *p_above(a, b))
 
 
 def _judge_exponent(claim: dict[str, Any], text: str, paper: str, fit: Any) -> Verdict:
@@ -264,14 +280,16 @@ def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[st
         if not base:
             return Verdict(text, paper, ours, NOT_SHOWN, "no shuffled baseline: run the figure again")
         diff = [v - s for v, s in zip(values, base, strict=False)]
-        return _tested(text, paper, f"{ours}; shuffled {mean_ci(base)}", *p_above(diff, 0.0))
+        ours = f"{ours}; shuffled {mean_ci(base)}; {difference_text(diff, word='paired gap')}"
+        return _tested(text, paper, ours, *p_above(diff, 0.0))
     if above is not None:
         return _tested(text, paper, ours, *p_above(values, float(above)))
     other = figures.get(str(below), {}).get("value", [])
     diff = [o - v for v, o in zip(values, other, strict=False)]
     if not diff:
         return Verdict(text, paper, ours, NOT_SHOWN, f"no figure {below!r}: run the figure again")
-    return _tested(text, paper, f"{ours} vs {mean_ci(other)}", *p_above(diff, 0.0))
+    ours = f"{ours} vs {mean_ci(other)}; {difference_text(diff, word='paired gap')}"
+    return _tested(text, paper, ours, *p_above(diff, 0.0))
 
 
 def figure_verdict(verdicts: list[Verdict]) -> str:

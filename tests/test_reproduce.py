@@ -226,6 +226,35 @@ def test_claims_get_strict_verdicts_from_one_sided_tests() -> None:
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, {}).verdict == NOT_SHOWN  # not measured
 
 
+def test_a_comparison_states_its_difference_with_a_95_percent_interval() -> None:
+    """A reviewer reads the size of an effect, not only its p-value: a comparison of groups gives the difference of
+    means with its Welch interval, a paired one (true against shuffled messages, per seed) the mean gap with its
+    t-interval; one seed gives no interval and says so."""
+    import re
+
+    def interval(ours: str) -> tuple[float, float, float]:
+        found = re.search(r"(?:difference|paired gap) ([+-][\d.]+) \[([-\d.e]+), ([-\d.e]+)\]", ours)
+        assert found, ours
+        return float(found[1]), float(found[2]), float(found[3])
+
+    groups = {
+        "a": {"final": {"values": [10.0, 11.0, 12.0, 10.5, 11.5]}},
+        "b": {"final": {"values": [5.0, 6.0, 5.5, 6.5, 5.0]}},
+        "c": {"final": {"values": [2.0, 13.0, 4.0, 9.0, 3.0]}},
+        "one": {"final": {"values": [9.0]}},
+    }
+    diff, lo, hi = interval(judge({"text": "", "better": "a", "than": "b"}, groups, {}).ours)
+    assert diff == pytest.approx(5.4) and 0 < lo < diff < hi  # significant: the interval excludes 0
+    diff, lo, hi = interval(judge({"text": "", "better": "c", "than": "b"}, groups, {}).ours)
+    assert lo < 0 < hi  # not significant
+    assert "no CI: one seed" in judge({"text": "", "better": "one", "than": "b"}, groups, {}).ours
+    sent, shuffled = [150.0, 146.0, 152.0], [114.0, 110.0, 113.0]  # per seed
+    extra = {"analysis": {"return_sent": {"value": sent}, "return_shuffled": {"value": shuffled}}}
+    claim = {"text": "", "metric": "return_shuffled", "below": "return_sent"}
+    diff, lo, hi = interval(judge(claim, {}, extra).ours)
+    assert diff == pytest.approx(37.0) and 0 < lo < 37 < hi
+
+
 def test_an_exponent_claim_is_judged_by_its_confidence_interval() -> None:
     """A "quadratic" claim (1.5 ≤ k ≤ 2.5) is not passed by k = 1.51 whose CI reaches down to linear."""
     quadratic = {"text": "", "exponent": "x", "between": [1.5, 2.5]}
