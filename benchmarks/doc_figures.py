@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from convoy.analysis.verdicts import NOT, REPRODUCED, p_above, significant  # noqa: E402
-from convoy.cli.reproduce import heading_anchor  # noqa: E402
+from convoy.cli.reproduction_page import heading_anchor  # noqa: E402
 from convoy.output import markdown_table  # noqa: E402
 from convoy.stats import mean_ci, ratio_ci  # noqa: E402
 

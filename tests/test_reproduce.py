@@ -347,7 +347,7 @@ def test_a_curve_plot_without_any_evaluation_says_so_instead_of_an_empty_legend(
 def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) -> None:
     """A figure's record keeps the treadmill rules it was measured on; the page flags one from earlier rules (in the
     overview and under its heading), and says nothing for the current rules or another env."""
-    from convoy.cli.reproduce import render
+    from convoy.cli.reproduction_page import render
     from convoy.envs.treadmill.config import RULES
 
     docs = tmp_path / "reproduction"
@@ -450,7 +450,7 @@ def test_a_file_or_claim_may_leave_out_a_scale(tmp_path: Path) -> None:
 
 
 def test_table1_of_several_groups_shows_a_column_for_each(tmp_path: Path) -> None:
-    from convoy.cli.reproduce import render
+    from convoy.cli.reproduction_page import render
 
     docs = tmp_path / "r"
     docs.mkdir()
@@ -479,7 +479,8 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(
     policies gives none."""
     from convoy.analysis import evaluation
     from convoy.analysis.evaluation import HELD_OUT_SEED, evaluate_reference
-    from convoy.cli.reproduce import Context, held_out_references, render
+    from convoy.cli.reproduce import Context, held_out_references
+    from convoy.cli.reproduction_page import render
     from convoy.envs import make_batched
     from convoy.envs.treadmill import TreadmillConfig
     from convoy.envs.treadmill.config import CHARGER_RULES
@@ -544,7 +545,7 @@ def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_
     """A ledger no figure at its scale has read yet appears as interim rows (runs held of those planned, held-out
     scores, no verdict); once the figure's record at that scale names its file, the figure's section stands alone."""
     from convoy.cli.ledger import Ledger
-    from convoy.cli.reproduce import render
+    from convoy.cli.reproduction_page import render
 
     docs = tmp_path / "docs"
     spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["idqn", "ma-mesn"], "seed": [0, 1]}, "exclude": []}
