@@ -93,6 +93,8 @@ class MAMeSN(HearsMessages, NetworkAgent):
         """Algorithm 1 on one batch: messages → Q → double-Q target → per-agent TD losses (summed by ``update``)."""
         # every agent's message m_j = f′_j(o_j) (Gumbel bits, straight-through) and what agent i hears: m_−i
         x, _, heard = self.speak(self.online, batch.obs, train=True)
+        if not self.cfg.speakers_learn:  # the listeners learn; the speakers keep what they say (a DAgger protocol)
+            heard = heard.detach()
         # Q_i = f″_i(o_i, m_−i) of the actions taken
         q = taken(self.listen(self.online, x, heard), batch.action)
         # double-Q target: the target copies of f′ and f″ at o′, the action picked by the online pair

@@ -344,6 +344,12 @@ class ChannelControl(BaseModel):
         "= all-zero bits (the channel-cut twin: a gain over it is the messages', not the second network's); noise = "
         "uniformly random bits drawn afresh at every step.",
     )
+    speakers_learn: bool = Field(
+        True,
+        description="Q-learning's TD gradients reach the message networks (Algorithm 1: every listener's loss "
+        "trains each speaker). False trains the listeners only and keeps the speakers as they start: with a "
+        "demonstrator, the protocol DAgger taught, which then cannot drift while the listeners learn its values.",
+    )
 
 
 class MeSNConfig(GumbelConfig, ChannelControl, EntityFields, DemonstrationFields):

@@ -93,6 +93,29 @@ def test_channel_control_cuts_or_randomises_what_listeners_hear_in_training_and_
         resolve_algo("ims", "referential", {"channel_control": "cut"})
 
 
+@pytest.mark.parametrize("name", ["ma-mesn", "ma-bon"])  # the -mm variants add to this loss
+def test_speakers_that_do_not_learn_keep_their_weights_while_the_listeners_learn(name: str) -> None:
+    """``speakers_learn=False``: Q-learning updates the listeners only; the message networks (MA-BoN: and the
+    encoders that feed them) keep the weights they started with — a protocol a demonstration start taught cannot
+    drift — while the same update with speakers learning moves them."""
+
+    def speaker_and_listener(algo) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        named = [(n, p.detach().clone()) for n, p in algo.online.named_parameters()]
+        return ([p for n, p in named if n.startswith(("message", "encoder"))],
+                [p for n, p in named if n.startswith("policy")])  # fmt: skip
+
+    for learn in (False, True):
+        algo = build(name, share_params=False, speakers_learn=learn)
+        fill(algo, SPEC)
+        before = speaker_and_listener(algo)
+        for _ in range(3):
+            single_update(algo)
+        after = speaker_and_listener(algo)
+        speakers_moved = any(not torch.equal(a, b) for a, b in zip(before[0], after[0], strict=True))
+        assert before[0] and speakers_moved == learn, (name, learn)
+        assert any(not torch.equal(a, b) for a, b in zip(before[1], after[1], strict=True))  # listeners learn
+
+
 def test_mesn_message_nets_get_summed_gradients_of_all_agents() -> None:
     algo = build("ma-mesn", share_params=False)
     batch = random_batch(SPEC)
