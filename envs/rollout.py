@@ -42,9 +42,9 @@ class RolloutResult:
     @classmethod
     def joined(cls, rounds: list[RolloutResult], episodes: int) -> RolloutResult:
         """The first ``episodes`` episodes of ``rounds`` played one after another (no frames)."""
-        cut = lambda name: np.concatenate([getattr(r, name) for r in rounds])[:episodes]  # noqa: E731
-        rate = float(np.mean([r.env_steps_per_s for r in rounds]))
-        return cls(cut("returns"), cut("lengths"), cut("terminated"), rate, [])
+        returns, lengths, terminated = (np.concatenate([getattr(r, name) for r in rounds])[:episodes]
+                                        for name in ("returns", "lengths", "terminated"))  # fmt: skip
+        return cls(returns, lengths, terminated, float(np.mean([r.env_steps_per_s for r in rounds])), [])
 
 
 def random_policy(spec: EnvSpec, seed: int | None = None) -> Policy:
