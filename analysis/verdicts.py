@@ -85,14 +85,19 @@ def _t_test(a: list[float], b: list[float] | float) -> tuple[float, float]:
     x = np.asarray(a, dtype=np.float64)
     if isinstance(b, float | int):
         diff = float(x.mean() - b)
-        if len(x) < 2 or x.std(ddof=1) == 0:
+        if not _testable(x):
             return diff, 0.0 if diff > 0 else 1.0
         return diff, float(stats.ttest_1samp(x, b, alternative="greater").pvalue)
     y = np.asarray(b, dtype=np.float64)
     diff = float(x.mean() - y.mean())
-    if len(x) < 2 or len(y) < 2 or (x.std(ddof=1) == 0 and y.std(ddof=1) == 0):
+    if not _testable(x, y):
         return diff, 0.0 if diff > 0 else 1.0
     return diff, float(stats.ttest_ind(x, y, equal_var=False, alternative="greater").pvalue)
+
+
+def _testable(*samples: np.ndarray) -> bool:
+    """Whether a t-test can speak: every sample has two values or more and some sample varies."""
+    return min(len(v) for v in samples) >= 2 and any(v.std(ddof=1) > 0 for v in samples)
 
 
 def difference_text(a: list[float], b: list[float] | None = None, word: str = "difference") -> str:
@@ -101,8 +106,7 @@ def difference_text(a: list[float], b: list[float] | None = None, word: str = "d
     x = np.asarray(a, dtype=np.float64)
     y = None if b is None else np.asarray(b, dtype=np.float64)
     diff = float(x.mean() - (0.0 if y is None else y.mean()))
-    samples = [x] if y is None else [x, y]
-    if min(len(v) for v in samples) < 2 or not any(v.std(ddof=1) > 0 for v in samples):
+    if not _testable(*([x] if y is None else [x, y])):
         return f"{word} {diff:+.3g} (no CI: one seed or no spread)"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

@@ -115,10 +115,9 @@ def evaluate_references(
         if key not in _PLAYED:
             if len(_PLAYED) >= 1024:  # a long-lived process over many rule sets: bounded
                 _PLAYED.clear()
-            rounds = []
-            for rnd in range(-(-episodes // size)):
-                engine = TreadmillEngine(cfg, size, autoreset=False)
-                rounds.append(rollout(engine, reference_policy(name, engine, seed + rnd), seed=seed + rnd))
+            engine = TreadmillEngine(cfg, size, autoreset=False)  # reseeded each round, as a learner's evaluation
+            rounds = [rollout(engine, reference_policy(name, engine, seed + rnd), seed=seed + rnd)
+                      for rnd in range(-(-episodes // size))]  # fmt: skip
             _PLAYED[key] = rounds[0] if len(rounds) == 1 else RolloutResult.joined(rounds, episodes)
         out[name] = _PLAYED[key]
     return out
