@@ -40,6 +40,16 @@ def request(spec: dict[str, Any]) -> dict[str, Any]:
     return _without_compile(out, "algos")  # no algorithm's table left: as none
 
 
+def recipe(spec: dict[str, Any]) -> dict[str, Any]:
+    """What each run of sweep request ``spec`` measures: the request less its seed list, which says which runs there
+    are, not what one of them measures, so a study may grow (or a diagnostic shrink) its seeds and keep the runs it
+    holds."""
+    out = request(spec)
+    if isinstance(out.get("grid"), dict):
+        out["grid"] = {k: v for k, v in out["grid"].items() if k != "seed"}
+    return out
+
+
 def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
     """``table`` with its parameter table ``key`` less ``compile``; a table left empty dropped (it sets nothing,
     as an absent one)."""
@@ -65,13 +75,13 @@ class Ledger:
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
         """The ledger at ``path`` for sweep request ``spec``, and a line saying what was set aside (or ""): runs
-        measured under another request (the experiment file changed) do not describe this one and are dropped
-        (git history keeps them)."""
+        measured under another recipe (the experiment file changed more than its seeds) do not describe this one
+        and are dropped (git history keeps them)."""
         spec = request(spec)
         if not path.is_file():
             return cls(path, spec), ""
         data = json.loads(path.read_text())
-        if request(data.get("spec", {})) != spec:
+        if recipe(data.get("spec", {})) != recipe(spec):
             return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
         runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
         return cls(path, spec, runs, spans, busy), ""
