@@ -343,6 +343,10 @@ class SweepMember(BaseModel):
     state: str = Field(description="The job's state (deleted when it no longer exists).")
     env_steps: int = 0
     steps: int = 0
+    demo_round: int | None = Field(
+        None, description="DAgger rounds played so far while the job starts from a demonstrator (before its steps)."
+    )
+    demo_rounds: int | None = Field(None, description="Its DAgger rounds in all.")
 
 
 class SweepView(BaseModel):

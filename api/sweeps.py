@@ -151,8 +151,9 @@ def sweep_view(sweep: SweepRecord, reader: JobReader) -> SweepView:
         if rec.progress.get("started_at") and rec.state != JobState.queued:  # a queued one's last run ended long ago
             spans.append((float(rec.progress["started_at"]), float(rec.updated_at)))
         done, asked = done + min(env_steps, steps), asked + steps
+        demo = {k: rec.progress.get(k) for k in ("demo_round", "demo_rounds")} if env_steps == 0 else {}
         members.append(SweepMember(id=rec.id, point=member["point"], group=group_name(member["point"]),
-                                   state=rec.state.value, env_steps=env_steps, steps=steps))  # fmt: skip
+                                   state=rec.state.value, env_steps=env_steps, steps=steps, **demo))  # fmt: skip
     states: dict[str, int] = {}
     for m in members:
         states[m.state] = states.get(m.state, 0) + 1

@@ -160,6 +160,9 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                 states[m["state"]] = states.get(m["state"], 0) + 1
             runs = ", ".join(f"{n} {s}" for s, n in sorted(states.items()))
             text = f"{label}: {done / max(asked, 1):.0%} of its env steps · {runs}"
+            if demo := [m for m in members if m["state"] == "running" and m.get("demo_round")]:  # before their steps
+                played = sorted({f"{m['demo_round']}/{m['demo_rounds']}" for m in demo})
+                text += f" ({len(demo)} in DAgger round {', '.join(played)})"
             if len(sweeps) > 1:
                 text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:

@@ -228,6 +228,24 @@ def test_a_sweeps_busy_time_leaves_out_its_pauses() -> None:
     assert busy_seconds([]) == 0.0
 
 
+def test_a_sweeps_view_says_which_dagger_round_a_job_plays_before_its_steps() -> None:
+    """A member that starts from a demonstrator shows 0 env steps for its first minutes: the view names its round
+    (and `convoy reproduce` prints it) until its Q-learning steps count."""
+    from convoy.api.lifecycle import JobRecord, JobState, SweepRecord
+    from convoy.api.sweeps import sweep_view
+
+    def rec(job_id: str, progress: dict[str, Any]) -> JobRecord:
+        return JobRecord(job_id, JobState.running, {"steps": 100}, 1, 0.0, 1.0, progress=progress)
+
+    demo = {"demo_round": 3, "demo_rounds": 8}
+    records = {"a": rec("a", demo), "b": rec("b", {**demo, "env_steps": 40})}
+    reader = type("Reader", (), {"get": lambda self, job_id: records[job_id]})()
+    sweep = SweepRecord("s", 0.0, {}, [{"id": "a", "point": {"seed": 0}}, {"id": "b", "point": {"seed": 1}}])
+    a, b = sweep_view(sweep, reader).jobs
+    assert (a.demo_round, a.demo_rounds, a.env_steps) == (3, 8, 0)
+    assert (b.demo_round, b.demo_rounds, b.env_steps) == (None, None, 40)
+
+
 def test_an_algorithms_own_parameters_reach_its_jobs_only() -> None:
     from convoy.api.models import SweepSubmit
     from convoy.api.sweeps import expand
