@@ -106,7 +106,9 @@ class EnvSpec:
         layout = values.get("layout")
         if isinstance(layout, dict):
             cars = tuple(EntitySlots(**c) for c in layout["cars"])
-            values["layout"] = ObsLayout(**{**layout, "cars": cars, "unread": tuple(layout.get("unread", ()))})
+            words = WordSlots(**layout["words"]) if isinstance(layout.get("words"), dict) else None
+            unread = tuple(layout.get("unread", ()))
+            values["layout"] = ObsLayout(**{**layout, "cars": cars, "unread": unread, "words": words})
         return cls(**values)
 
     @property

@@ -13,7 +13,6 @@ import torch
 
 from convoy.algos.algorithm import Progress
 from convoy.algos.entity import EntityEncoder, token_features
-from convoy.algos.ma_mesn import MAMeSN
 from convoy.algos.nets import run_state
 from convoy.algos.registry import make_algorithm
 from convoy.config import job_config, resolve_algo
@@ -346,21 +345,24 @@ def test_mesn_listener_loss_reaches_the_other_agents_message_networks_through_he
             assert (message[j] > 0) == (j != i), f"agent {i}'s loss and agent {j}'s message network"
 
 
-def test_a_checkpoint_rebuilds_the_entity_networks(tmp_path: Path) -> None:
-    """A checkpoint records the job (encoder=entity) and the env's spec with its layout: loading rebuilds the same
-    networks and acts as the saved agent did."""
+@pytest.mark.parametrize(
+    ("name", "params"), [("ma-mesn", SIGHTINGS), ("idqn", {"team_words": True})], ids=["sightings", "words"]
+)
+def test_a_checkpoint_rebuilds_the_entity_networks(name: str, params: dict[str, Any], tmp_path: Path) -> None:
+    """A checkpoint records the job (encoder=entity) and the env's spec with its layout, car slots and words alike:
+    loading rebuilds the same networks and acts as the saved agent did."""
     from convoy.algos.checkpoint import load_checkpoint, save_checkpoint
 
-    env, obs = env_obs(SIGHTINGS, envs=4, steps=2)
-    job = job_config(algo="ma-mesn", env="treadmill", env_params=SIGHTINGS, seed=5, device="cpu",
+    env, obs = env_obs(params, envs=4, steps=2)
+    job = job_config(algo=name, env="treadmill", env_params=params, seed=5, device="cpu",
                      algo_params={"encoder": "entity", "entity_width": 16, "hidden": (32,)})  # fmt: skip
-    agent = make_algorithm("ma-mesn", env.spec, job.algo_config(), device="cpu", seed=5)
+    agent = make_algorithm(name, env.spec, job.algo_config(), device="cpu", seed=5)
     with torch.no_grad():  # weights a fresh network of the same seed does not have
         for w in agent.online.parameters():
             w.add_(torch.randn_like(w))
     save_checkpoint(tmp_path / "c.pt", agent, job, {"env_steps": 0, "episodes": 0, "updates": 0})
     loaded, _, _ = load_checkpoint(tmp_path / "c.pt", device="cpu")
-    assert isinstance(loaded, MAMeSN)
+    assert type(loaded) is type(agent)
     assert loaded.spec.layout == env.spec.layout is not None and loaded.cfg.encoder == "entity"
     x = torch.as_tensor(obs[-1])[None]  # one run's
     with torch.no_grad():
