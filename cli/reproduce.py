@@ -135,6 +135,16 @@ def start_sweep(api: Api, body: dict[str, Any], label: str) -> dict[str, Any]:
     return sweep
 
 
+def stale_sweeps(
+    sweeps: list[dict[str, Any]], plans: list[Plan], started: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The running ``sweeps`` of the plans' files that none of the ``started`` ones is: left by an earlier run of the
+    command under a request it no longer makes (a file's seeds or settings changed), they would go on training runs
+    no ledger takes."""
+    names, ids = {p.body["name"] for p in plans}, {s["id"] for s in started}
+    return [s for s in sweeps if s["state"] == "running" and s["spec"].get("name") in names and s["id"] not in ids]
+
+
 Harvest = Callable[[dict[str, Any]], None]
 
 
@@ -326,6 +336,10 @@ class Context:
                 harvest = functools.partial(self.harvest, fig, plan.ledger, score=not plan.tuning)
                 started.append((start_sweep(self.api, body, plan.label), harvest))
                 owners.append(plan)
+        for sweep in stale_sweeps(self.api.call("GET", "/sweeps")["sweeps"], plans, [s for s, _ in started]):
+            plain(out, f"{fig} [{self.scale}]: sweep {sweep['id']} of {sweep['spec']['name']} runs under a request "
+                       f"this command no longer makes (its file changed) and takes the service's slots: "
+                       f"`convoy sweep stop {sweep['id']}`")  # fmt: skip
         if not started:
             return
         for plan, sweep in zip(owners, follow_sweeps(self.api, started, f"{fig} [{self.scale}]"), strict=True):

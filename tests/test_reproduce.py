@@ -545,6 +545,20 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
         cmd_reproduce(args)
 
 
+def test_a_sweep_left_running_under_a_request_the_command_no_longer_makes_is_named(tmp_path: Path) -> None:
+    """A file edited mid-study (fewer seeds) leaves its earlier waves' sweeps queued in the service, where they would
+    train runs no ledger takes: the command names them (and how to stop them); other files' sweeps, finished ones
+    and its own are not named."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduce import Plan, stale_sweeps
+
+    plan = Plan("f", {"name": "fig3-words"}, 2, Ledger(tmp_path / "l.json", {}), [])
+    sweeps = [{"id": i, "state": state, "spec": {"name": name}} for i, state, name in [
+        ("kept", "running", "fig3-words"), ("old", "running", "fig3-words"), ("done", "completed", "fig3-words"),
+        ("other", "running", "fig3")]]  # fmt: skip
+    assert [s["id"] for s in stale_sweeps(sweeps, [plan], [sweeps[0]])] == ["old"]
+
+
 def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_reads_it(tmp_path: Path) -> None:
     """A ledger no figure at its scale has read yet appears as interim rows (runs held of those planned, held-out
     scores, no verdict); once the figure's record at that scale names its file, the figure's section stands alone."""
