@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from convoy.algos.nets import pick_device, stack_runs
 from convoy.algos.replay import JointReplay
 from convoy.algos.streams import STREAMS, RunStreams, to_integers, to_uniform
-from convoy.algos.updater import NEG, Batch, Figures, Loss, Updater, run_fraction
+from convoy.algos.updater import NEG, Batch, Figures, Loss, Updater, large_margin, run_fraction
 from convoy.config import ALGORITHMS, AlgoConfig
 from convoy.envs.batched import EnvSpec
 from convoy.transition import Transition, schema
@@ -257,6 +257,13 @@ class NetworkAgent(ABC):
         self._drawn: Tensor | None = None
         self.replay = JointReplay(cfg.replay_capacity, runs=self.runs, declared=declared, device=self.device,
                                   prioritized=self.priority_alpha > 0)  # fmt: skip
+        # ``demo_margin``: a second buffer, of each run's DAgger states and the teacher's actions there, sampled
+        # beside the replay for DQfD's margin (``keep_demonstrations``, ``objective``)
+        self.demo_margin: float = getattr(cfg, "demo_margin", 0.0)
+        self.demos: JointReplay | None = None
+        if self.demo_margin > 0:
+            most = cfg.demo_rounds * cfg.demo_episodes * spec.max_steps  # type: ignore[attr-defined]
+            self.demos = JointReplay(min(most, 2**31 - 1), runs=self.runs, device=self.device)
         # explicit streams per run and purpose, on the device (``algos.streams``), never global state: replay draws,
         # exploration (and CoDBC's teacher share), noise (DIAL's DRU, Gumbel messages, a noisy channel control)
         self.streams = {name: RunStreams(self.seeds, name, self.device) for name in STREAMS}
@@ -287,7 +294,7 @@ class NetworkAgent(ABC):
         self.alpha: float | Tensor = cfg.advantage_learning
         # the update: Adam, clip, guard, target sync, figures and their checkpoint state (``algos/updater.py``)
         nets = (self.online, self.target, self.average)
-        self.updater = Updater(self.name, self.seeds, nets, self.streams, self.loss, self.run_cfgs,
+        self.updater = Updater(self.name, self.seeds, nets, self.streams, self.objective, self.run_cfgs,
                                self.syncs_by_updates)  # fmt: skip
 
     def set_run_configs(self, configs: Sequence[AlgoConfig]) -> None:
@@ -356,14 +363,51 @@ class NetworkAgent(ABC):
 
     def sample(self) -> Batch:
         """The next training batch (``batch_size`` joint transitions, each run's from its own replay), drawn and
-        gathered on the device."""
+        gathered on the device; with ``demo_margin``, as many of the run's demonstrations beside them."""
         if not self.replay.prioritized:
-            return self.replay.sample(self.cfg.batch_size, self.streams["replay"])
-        beta0: float = getattr(self.cfg, "priority_beta", 1.0)  # at the run's start; 1 by its end
-        beta = beta0 + (1.0 - beta0) * run_fraction(self.progress.env_steps, self.progress.total_steps)
-        batch, self._drawn, weight = self.replay.sample_prioritized(self.cfg.batch_size, self.streams["replay"], beta)
-        batch.extras["is_weight"] = weight
+            batch = self.replay.sample(self.cfg.batch_size, self.streams["replay"])
+        else:
+            beta0: float = getattr(self.cfg, "priority_beta", 1.0)  # at the run's start; 1 by its end
+            beta = beta0 + (1.0 - beta0) * run_fraction(self.progress.env_steps, self.progress.total_steps)
+            batch, self._drawn, weight = self.replay.sample_prioritized(
+                self.cfg.batch_size, self.streams["replay"], beta
+            )
+            batch.extras["is_weight"] = weight
+        if self.demos is not None and len(self.demos):
+            shown = self.demos.sample_columns(self.cfg.batch_size, self.streams["replay"])
+            batch.extras.update(demo_obs=shown["obs"], demo_action=shown["action"])
         return batch
+
+    def keep_demonstrations(self, obs: Sequence[np.ndarray], actions: Sequence[np.ndarray]) -> None:
+        """Keep run k's DAgger states ``obs[k] [M_k, N, D]`` and the teacher's actions there ``actions[k] [M_k, N]``
+        for ``demo_margin`` (runs may hold different counts)."""
+        if self.demos is None:
+            raise ValueError("keep_demonstrations: this agent's demo_margin is 0; it keeps no demonstrations")
+        counts = np.array([len(o) for o in obs])
+        m = int(counts.max())
+
+        def padded(arrays: Sequence[np.ndarray], dtype: type) -> np.ndarray:
+            return np.stack([np.concatenate([a, np.zeros((m - len(a), *a.shape[1:]), a.dtype)]) for a in arrays]
+                            ).astype(dtype)  # fmt: skip
+
+        self.demos.reserve(m)
+        self.demos.add_columns({"obs": padded(obs, np.float32), "action": padded(actions, np.int64)},
+                               valid=np.arange(m)[None, :] < counts[:, None])  # fmt: skip
+
+    def objective(self, batch: Batch) -> Loss:
+        """What an update minimises: the algorithm's ``loss``, plus ``demo_margin`` × DQfD's large-margin loss on the
+        batch's demonstrations where the run keeps them (Hester et al. 2018, eq. 2 and 5)."""
+        out = self.loss(batch)
+        if "demo_action" not in batch.extras:
+            return out
+        q = self.imitation_logits(batch.extras["demo_obs"])  # through the channel, as the clone was trained
+        margin = large_margin(q, batch.extras["demo_action"], self.action_mask)
+        return out.plus(self.demo_margin * margin, {"demo_margin": margin.detach()})
+
+    def imitation_logits(self, obs: Tensor) -> Tensor:
+        """Q-values ``[R, b, N, A]`` read as a clone's logits (``learner/imitation.py``): the learners a demonstrator
+        can start define it."""
+        raise NotImplementedError(f"{self.name} cannot start from a demonstrator")
 
     # --- acting --------------------------------------------------------------------------------------------------
     def initial_state(self, num_envs: int) -> Any:

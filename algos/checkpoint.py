@@ -142,8 +142,8 @@ def replay_buffers(algo: Any) -> dict[str, JointReplay]:
             for level in ("controller", "meta")
             for k, v in replay_buffers(getattr(algo, level)).items()
         }
-    replay = getattr(algo, "replay", None)
-    return {"replay": replay} if isinstance(replay, JointReplay) else {}
+    buffers = {name: getattr(algo, name, None) for name in ("replay", "demos")}  # demos: ``demo_margin``'s
+    return {name: buf for name, buf in buffers.items() if isinstance(buf, JointReplay)}
 
 
 PRIORITIES = ("priority", "max_priority")  # prioritized replay's arrays in a replay file, beside its rows

@@ -130,7 +130,11 @@ class JointReplay:
     def add(self, rows: Transition[np.ndarray], valid: np.ndarray | None = None) -> None:
         """Append rows ``[R, M, …]`` (every array shares the leading dims); the oldest rows are overwritten when full.
         ``valid [R, M]``: only those rows, each run's in order, to its ring."""
-        runs = {k: np.asarray(v) for k, v in rows.columns().items()}
+        self.add_columns(rows.columns(), valid)
+
+    def add_columns(self, columns: dict[str, np.ndarray], valid: np.ndarray | None = None) -> None:
+        """``add`` of the fields by name: for a buffer of other rows than transitions (demonstrations)."""
+        runs = {k: np.asarray(v) for k, v in columns.items()}
         if any(v.ndim < 2 or v.shape[0] != self.runs for v in runs.values()):
             shapes = {k: v.shape for k, v in runs.items()}
             raise ValueError(f"rows: every field needs the leading shape [R = {self.runs}, M], got {shapes}")
@@ -222,18 +226,20 @@ class JointReplay:
     def sample(self, n: int, streams: RunStreams) -> Transition[Tensor]:
         """``n`` rows per run drawn uniformly with replacement, on the device, ``[R, n, …]``: run k's rows drawn by its
         stream in ``streams`` (one batched draw for all runs) exactly as its single run's buffer would draw them."""
+        return from_columns(self.sample_columns(n, streams))
+
+    def sample_columns(self, n: int, streams: RunStreams) -> dict[str, Tensor]:
+        """``sample`` as the fields held, by name: for a buffer of other rows than transitions (demonstrations)."""
         if len(self) == 0:
             raise ValueError("sample() from an empty replay buffer")
         if streams.runs != len(self._next):
             raise ValueError(f"streams: one per run ({len(self._next)}), got {streams.runs}")
         return self._gather(streams.integers(self._high, n), n)  # [R, n], run k's in [0, size_k)
 
-    def _gather(self, idx: Tensor, n: int) -> Transition[Tensor]:
-        """Rows ``idx [R, n]`` of each run's ring, as a batch ``[R, n, …]``."""
+    def _gather(self, idx: Tensor, n: int) -> dict[str, Tensor]:
+        """Rows ``idx [R, n]`` of each run's ring, every field as a batch ``[R, n, …]``."""
         flat = idx.add(self._run, alpha=self.allocated).flatten()  # rows of the runs laid end to end
-        return from_columns(
-            {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
-        )
+        return {k: v.flatten(0, 1).index_select(0, flat).view(-1, n, *v.shape[2:]) for k, v in self._data.items()}
 
     def sample_prioritized(self, n: int, streams: RunStreams, beta: float) -> tuple[Transition[Tensor], Tensor, Tensor]:
         """``n`` rows per run drawn in proportion to their priorities (prioritized replay), on the device: the batch
@@ -256,7 +262,7 @@ class JointReplay:
         p = self._priority.gather(1, idx) / total
         weight = (self._high * p).pow(-beta)
         weight = weight / weight.amax(dim=1, keepdim=True)
-        return self._gather(idx, n), idx, weight
+        return from_columns(self._gather(idx, n)), idx, weight
 
     def set_priorities(self, idx: Tensor, priority: Tensor) -> None:
         """Rows ``idx [R, n]`` (drawn by ``sample_prioritized``) get ``priority [R, n]`` (> 0); a non-finite one

@@ -114,6 +114,18 @@ def bootstrap_target(agent: Bootstraps, q_fn: QFn, batch: Batch) -> Tensor:
     return y
 
 
+DQFD_MARGIN = 0.8  # DQfD's l(a_E, a) for every action but the demonstrator's (Hester et al. 2018)
+
+
+def large_margin(q: Tensor, expert: Tensor, mask: Tensor) -> Tensor:
+    """DQfD's supervised loss ``max_a [Q(s, a) + l(a_E, a)] − Q(s, a_E)`` per run: the demonstrator's action must
+    lead every other Q-value by ``DQFD_MARGIN``, and once it does the term asks nothing more of the values, which
+    TD goes on setting. ``q [R, b, N, A]``, ``expert [R, b, N]``, ``mask [N, A]`` (actions each agent has) → ``[R]``."""
+    margins = torch.full_like(q, DQFD_MARGIN).scatter(-1, expert.unsqueeze(-1), 0.0)
+    best = (q + margins).masked_fill(~mask, NEG).amax(dim=-1)
+    return (best - taken(q, expert)).mean(dim=(-2, -1))
+
+
 def td_loss(q: Tensor, y: Tensor, cfg: AlgoConfig) -> Tensor:
     """Elementwise TD loss: Huber (clipped error) or the paper's squared error, per the ``huber`` switch."""
     return F.smooth_l1_loss(q, y, reduction="none") if cfg.huber else 0.5 * (q - y) ** 2

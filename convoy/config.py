@@ -261,6 +261,22 @@ class DemonstrationFields(BaseModel):
     demo_epochs: int = Field(
         4, ge=1, le=100, description="Passes over a run's states so far after each DAgger round (cross-entropy)."
     )
+    demo_margin: float = Field(
+        0.0,
+        ge=0.0,
+        le=100.0,
+        description="Weight λ of DQfD's large-margin loss (Hester et al. 2018) on the DAgger states during "
+        "Q-learning: each update also draws batch_size of them and asks the teacher's action to lead every other "
+        "Q-value by 0.8, so that Q-learning keeps what the clone learned where TD gives no reason to change it "
+        "(the states are kept on the training device and in the replay file). 0 = off.",
+    )
+
+    @model_validator(mode="after")
+    def _margin_on_demonstrations(self) -> DemonstrationFields:
+        if self.demo_margin > 0 and not self.demonstrator:
+            raise ConfigError("demo_margin", "a margin on demonstrations needs a demonstrator: set demonstrator="
+                              "planner (or --preset charger-demo), or leave demo_margin at 0")  # fmt: skip
+        return self
 
 
 class IDQNConfig(AlgoConfig, EntityFields, DemonstrationFields):

@@ -211,6 +211,8 @@ def demonstration_start(
                     f"{np.mean(accuracy):.3f} ({seconds:.0f} s)")  # fmt: skip
     finally:
         env.close()
+    if agent.demo_margin > 0:  # DQfD's margin keeps the clone's states and labels for Q-learning
+        agent.keep_demonstrations(*data)
     for r in range(runs):
         figures[r]["demo_env_steps"] = figures[r]["rounds"][-1]["states"]
         figures[r]["demo_s"] = round(time.perf_counter() - began, 1)

@@ -92,4 +92,9 @@ def restore_population(
             _unusable(by_step[k][step][1], f"does not match the job's networks ({exc})", strict)
             return None
     rows = load_replay(replay, algo, step)
+    demos = getattr(algo, "demos", None)
+    if demos is not None and not len(demos):  # the margin would be off from here on, silently
+        raise CheckpointError(f"{replay}: no demonstrations beside the checkpoint at {step:,} env steps, which "
+                              "demo_margin needs (the replay file is missing or was over runtime.replay_checkpoint_mb)"
+                              "; train afresh, or with a larger --runtime replay_checkpoint_mb=N")  # fmt: skip
     return [{**p["counters"], "replay_rows": rows} for p in payloads]

@@ -151,6 +151,66 @@ def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, 
     assert summary["wall_s"] > summary["clone_s"] == demo["demo_s"]  # the run's clock counts its clone, resumed too
 
 
+def test_dqfds_margin_asks_the_teachers_action_to_lead_every_other_by_0_8() -> None:
+    """``large_margin``: max_a [Q(a) + 0.8·(a ≠ a_E)] − Q(a_E), averaged over samples and agents per run; 0 once the
+    teacher's action leads by the margin, whatever the values; actions an agent lacks never count."""
+    from convoy.algos.updater import large_margin
+
+    q = torch.tensor([[[[1.0, 0.5, 3.0]], [[2.0, 0.0, 0.0]]]])  # [R=1, b=2, N=1, A=3]
+    expert = torch.tensor([[[0], [0]]])
+    mask = torch.tensor([[True, True, False]])  # the third action is not this agent's
+    # sample 1: the best other is 0.5 + 0.8 = 1.3 → 0.3; sample 2: 2.0 leads 0.8 by more than the margin → 0
+    torch.testing.assert_close(large_margin(q, expert, mask), torch.tensor([0.15]))
+    assert large_margin(q, expert, torch.ones(1, 3, dtype=torch.bool)).item() == pytest.approx((2.8 + 0) / 2)
+    with pytest.raises(ConfigError, match="demo_margin: a margin on demonstrations needs a demonstrator"):
+        job_config(algo="idqn", env="treadmill", algo_params={"demo_margin": 1.0})
+
+
+def test_a_margin_run_keeps_its_demonstrations_with_its_replay_and_refuses_a_resume_without_them(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    """``demo_margin``: the DAgger states and labels are kept (each update draws a batch of them beside the replay's
+    and reports the margin), saved with the replay at each checkpoint, so a stopped run goes on with them; a resume
+    that would lose them (no replay file) is refused, naming what to do, instead of going on without the margin."""
+    import shutil
+
+    from convoy.actors.stepping import EnvStepper
+
+    out = tmp_path / "run"
+    args = ["train", "--inprocess", "--algo", "ma-mesn", "--env", "treadmill", "--preset", "charger", "--seeds", "0",
+            "1", "--steps", "256", "--num-envs", "8", "--eval-episodes", "2", "--checkpoint-every", "128",
+            "--no-progress", "--out", str(out), "--hp", "hidden=32", "--hp", "learning_starts=64", "--hp",
+            "demo_margin=1", *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")]]  # fmt: skip
+
+    class Stopped(Exception):
+        pass
+
+    def stop(*_a, **_k):
+        raise Stopped
+
+    old = torch.get_num_threads()
+    try:
+        with monkeypatch.context() as m:
+            m.setattr(EnvStepper, "step", stop)
+            with pytest.raises(Stopped):
+                main(args)
+        with np.load(out / "replay.npz") as saved:
+            sizes = saved["demos/size"]
+            assert saved["demos/data/obs"].shape[:2] == (2, sizes.max()) and saved["demos/data/action"].ndim == 3
+        demo = [json.loads((out / f"seed-{s}" / imitation.DEMONSTRATION_FILE).read_text()) for s in (0, 1)]
+        assert sizes.tolist() == [d["rounds"][-1]["states"] for d in demo]  # every state of the last round
+        lost = tmp_path / "lost"
+        shutil.copytree(out, lost)
+        (lost / "replay.npz").unlink()
+        assert main(["train", "--resume", str(lost), "--no-progress"]) != 0
+        assert "no demonstrations beside the checkpoint" in capsys.readouterr().err
+        assert main(["train", "--resume", str(out), "--no-progress"]) == 0
+    finally:
+        torch.set_num_threads(old)
+    rows = [json.loads(line) for line in (out / "seed-0" / "metrics.jsonl").read_text().splitlines()]
+    assert any(r.get("demo_margin", -1) >= 0 for r in rows), "the margin is reported"
+
+
 def test_a_stop_between_rounds_ends_the_demonstration() -> None:
     """A stopped job's learner asks before each DAgger round (rounds take minutes): it stops there, after the rounds
     already played, instead of cloning on for half an hour as an orphan."""

@@ -76,6 +76,10 @@ def filled(name: str, seeds: int | list[int], device: str = "cpu", **params: Any
     for _ in range(2):
         c = chunk(g, runs)
         agent.observe(c if isinstance(seeds, list) else run_of(c, 0))
+    if agent.demos is not None:  # ``demo_margin``: DAgger's states and labels, a different count per run
+        shape = (SPEC.n_agents, SPEC.obs_dim)
+        obs = [g.standard_normal((40 + 7 * k, *shape)).astype(np.float32) for k in range(runs)]
+        agent.keep_demonstrations(obs, [g.integers(0, SPEC.max_actions, (len(o), SPEC.n_agents)) for o in obs])
     batch = agent.sample()
     agent.sample = lambda: batch.map(torch.clone)  # type: ignore[method-assign]
     return agent
@@ -230,6 +234,7 @@ def test_read_figures_fails_a_run_that_stayed_non_finite_naming_its_seed() -> No
 
 # --- compile: one captured graph -----------------------------------------------------------------------------------
 NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, "dial": {"dru_sigma": 0.0}}
+MARGIN = {"demonstrator": "planner", "demo_margin": 1.0}
 
 
 @pytest.mark.slow  # Dynamo traces each update: ~4 s apiece on a shared 2-core machine
@@ -247,6 +252,7 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         ("ma-bon", {"channel_control": "noise"}),
         ("idqn", {"heads": 3, "share_params": True}),  # Bootstrapped DQN: every head's target in the one graph
         ("idqn", {"priority_alpha": 0.6}),  # prioritized replay: importance weights in, |TD errors| out
+        ("ma-mesn", {**NOISELESS["ma-mesn"], **MARGIN}),  # DQfD's margin: demonstrations in the batch
     ],
     ids=[
         "idqn",
@@ -258,6 +264,7 @@ NOISELESS = {"ma-mesn": {"gumbel_noise": 0.0}, "ma-bon": {"gumbel_noise": 0.0}, 
         "ma-bon-noise-control",
         "idqn-heads",
         "idqn-prioritized",
+        "ma-mesn-demo-margin",
     ],
 )
 def test_the_update_from_its_batch_is_one_graph(name: str, params: dict[str, Any]) -> None:
