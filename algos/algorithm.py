@@ -26,7 +26,7 @@ from convoy.algos.nets import pick_device, stack_runs
 from convoy.algos.replay import JointReplay
 from convoy.algos.streams import STREAMS, RunStreams, to_integers, to_uniform
 from convoy.algos.updater import NEG, Batch, Figures, Loss, Updater, large_margin, run_fraction
-from convoy.config import ALGORITHMS, AlgoConfig
+from convoy.config import ALGORITHMS, AlgoConfig, DemonstrationFields
 from convoy.envs.batched import EnvSpec
 from convoy.transition import Transition, schema
 
@@ -261,8 +261,8 @@ class NetworkAgent(ABC):
         # beside the replay for DQfD's margin (``keep_demonstrations``, ``objective``)
         self.demo_margin: float = getattr(cfg, "demo_margin", 0.0)
         self.demos: JointReplay | None = None
-        if self.demo_margin > 0:
-            most = cfg.demo_rounds * cfg.demo_episodes * spec.max_steps  # type: ignore[attr-defined]
+        if isinstance(cfg, DemonstrationFields) and cfg.demo_margin > 0:
+            most = cfg.demo_rounds * cfg.demo_episodes * spec.max_steps  # every state DAgger can visit
             self.demos = JointReplay(min(most, 2**31 - 1), runs=self.runs, device=self.device)
         # explicit streams per run and purpose, on the device (``algos.streams``), never global state: replay draws,
         # exploration (and CoDBC's teacher share), noise (DIAL's DRU, Gumbel messages, a noisy channel control)
