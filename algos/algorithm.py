@@ -259,9 +259,9 @@ class NetworkAgent(ABC):
                                   prioritized=self.priority_alpha > 0)  # fmt: skip
         # ``demo_margin``: a second buffer, of each run's DAgger states and the teacher's actions there, sampled
         # beside the replay for DQfD's margin (``keep_demonstrations``, ``objective``)
-        self.demo_margin: float = getattr(cfg, "demo_margin", 0.0)
+        self.demo_margin: float = cfg.demo_margin if isinstance(cfg, DemonstrationFields) else 0.0
         self.demos: JointReplay | None = None
-        if isinstance(cfg, DemonstrationFields) and cfg.demo_margin > 0:
+        if isinstance(cfg, DemonstrationFields) and self.demo_margin > 0:
             most = cfg.demo_rounds * cfg.demo_episodes * spec.max_steps  # every state DAgger can visit
             self.demos = JointReplay(min(most, 2**31 - 1), runs=self.runs, device=self.device)
         # explicit streams per run and purpose, on the device (``algos.streams``), never global state: replay draws,
