@@ -50,6 +50,19 @@ def recipe(spec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def preset_table(spec: dict[str, Any]) -> dict[str, Any] | None:
+    """What the request's ``preset`` sets as this Convoy defines it (its rules and its parameters), None without one:
+    the request names a preset, not its settings, so a ledger keeps them beside it and sets its runs aside when the
+    preset has changed since."""
+    from convoy.config import PRESET_ALGO_PARAMS
+    from convoy.envs.treadmill.config import CHARGER_RULES
+
+    name = (spec.get("base") or {}).get("preset")
+    if name not in PRESET_ALGO_PARAMS:
+        return None
+    return json.loads(json.dumps({"env_params": dict(CHARGER_RULES), "algo_params": PRESET_ALGO_PARAMS[name]}))
+
+
 def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
     """``table`` with its parameter table ``key`` less ``compile``; a table left empty dropped (it sets nothing,
     as an absent one)."""
@@ -81,7 +94,8 @@ class Ledger:
         if not path.is_file():
             return cls(path, spec), ""
         data = json.loads(path.read_text())
-        if recipe(data.get("spec", {})) != recipe(spec):
+        preset = data.get("preset")  # absent in a ledger written before it was kept: its runs stand
+        if recipe(data.get("spec", {})) != recipe(spec) or (preset is not None and preset != preset_table(spec)):
             return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
         runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
         return cls(path, spec, runs, spans, busy), ""
@@ -98,7 +112,8 @@ class Ledger:
         """Write atomically: a kill mid-write leaves the previous ledger whole."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp")
-        body = {"spec": self.spec, "busy_s": self.busy_s, "spans": self.spans, "runs": dict(sorted(self.runs.items()))}
+        body = {"spec": self.spec, "preset": preset_table(self.spec), "busy_s": self.busy_s, "spans": self.spans,
+                "runs": dict(sorted(self.runs.items()))}  # fmt: skip
         tmp.write_text(json.dumps(body, indent=1, sort_keys=False) + "\n")
         os.replace(tmp, self.path)
 

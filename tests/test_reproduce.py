@@ -513,13 +513,16 @@ def test_references_are_played_on_the_held_out_episodes_and_shown_beside_them(
     assert f"References on the same 6 held-out episodes: random {refs['random']:.3g}" in (tmp_path / "r.md").read_text()
 
 
-def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_another_recipe(tmp_path: Path) -> None:
+def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_another_recipe(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Packing lays seeds out on processes, ``compile`` captures the same update and the seed list says which runs
     there are, none changing what a run measures, so a ledger written under one ``pack`` serves another (``--pack``:
     smaller populations on a slower machine), eager runs serve a compiled recipe and a study may grow its seeds; a
-    changed recipe does not."""
+    changed recipe does not, nor a preset whose settings changed."""
     from convoy.cli.ledger import Ledger
     from convoy.cli.reproduce import add_reproduce_parser, cmd_reproduce
+    from convoy.config import PRESET_ALGO_PARAMS
     from convoy.validation import ConfigError
 
     spec = {"name": "f", "base": {"steps": 100}, "grid": {"seed": [0, 1]}, "pack": 5, "exclude": []}
@@ -529,6 +532,16 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
     assert same.has({"seed": 0}) and not same.has({"seed": 1}) and note == ""
     more_seeds, note = Ledger.open(tmp_path / "f.json", {**spec, "grid": {"seed": [0, 1, 2]}})
     assert more_seeds.has({"seed": 0}) and note == "" and more_seeds.spec["grid"]["seed"] == [0, 1, 2]
+    # a request names its preset, not the preset's settings: the ledger keeps them and notices when they change
+    preset = {**spec, "base": {"steps": 100, "preset": "charger-demo"}}
+    ledger, _ = Ledger.open(tmp_path / "p.json", preset)
+    ledger.record({"seed": 0}, {"final": {"eval_return": 1.0}})
+    assert Ledger.open(tmp_path / "p.json", preset)[0].has({"seed": 0})
+    changed = {**PRESET_ALGO_PARAMS["charger-demo"], "demo_margin": 1.0}
+    with monkeypatch.context() as m:
+        m.setitem(PRESET_ALGO_PARAMS, "charger-demo", changed)
+        other, note = Ledger.open(tmp_path / "p.json", preset)
+        assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
     compiled = {**spec, "base": {"steps": 100, "algo_params": {"compile": True}}, "algos": {"idqn": {"compile": True}}}
     same, note = Ledger.open(tmp_path / "f.json", compiled)
     assert same.has({"seed": 0}) and note == ""
