@@ -110,29 +110,36 @@ def test_a_demonstrator_that_cannot_apply_is_refused_naming_the_field(values, sa
     assert says in str(err.value)
 
 
-def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, monkeypatch) -> None:
-    """The clone is checkpointed before the first step: a run stopped then goes on from it, not from DAgger again."""
+def train_until_the_first_step(monkeypatch, algo: str, out, *hp: str) -> None:
+    """``convoy train`` of a 2-seed population started from ``DEMO``, stopped as its first env step begins (the
+    machine went away): its clone is checkpointed at step 0 by then."""
     from convoy.actors.stepping import EnvStepper
-    from convoy.algos.checkpoint import load_checkpoint
 
-    out = tmp_path / "run"
-    args = ["train", "--inprocess", "--algo", "idqn", "--env", "treadmill", "--preset", "charger", "--seeds", "0",
+    args = ["train", "--inprocess", "--algo", algo, "--env", "treadmill", "--preset", "charger", "--seeds", "0",
             "1", "--steps", "256", "--num-envs", "8", "--eval-episodes", "2", "--checkpoint-every", "128",
             "--no-progress", "--out", str(out), "--hp", "hidden=32", "--hp", "learning_starts=64",
-            *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")]]  # fmt: skip
+            *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")], *hp]  # fmt: skip
 
     class Stopped(Exception):
         pass
 
     def stop(*_a, **_k):
-        raise Stopped  # the machine went away at the first step
+        raise Stopped
 
+    with monkeypatch.context() as m:
+        m.setattr(EnvStepper, "step", stop)
+        with pytest.raises(Stopped):
+            main(args)
+
+
+def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, monkeypatch) -> None:
+    """The clone is checkpointed before the first step: a run stopped then goes on from it, not from DAgger again."""
+    from convoy.algos.checkpoint import load_checkpoint
+
+    out = tmp_path / "run"
     old = torch.get_num_threads()
     try:
-        with monkeypatch.context() as m:
-            m.setattr(EnvStepper, "step", stop)
-            with pytest.raises(Stopped):
-                main(args)
+        train_until_the_first_step(monkeypatch, "idqn", out)
         for seed in (0, 1):
             demo = json.loads((out / f"seed-{seed}" / imitation.DEMONSTRATION_FILE).read_text())
             assert demo["demo_env_steps"] > 0 and len(demo["rounds"]) == 2
@@ -174,26 +181,10 @@ def test_a_margin_run_keeps_its_demonstrations_with_its_replay_and_refuses_a_res
     that would lose them (no replay file) is refused, naming what to do, instead of going on without the margin."""
     import shutil
 
-    from convoy.actors.stepping import EnvStepper
-
     out = tmp_path / "run"
-    args = ["train", "--inprocess", "--algo", "ma-mesn", "--env", "treadmill", "--preset", "charger", "--seeds", "0",
-            "1", "--steps", "256", "--num-envs", "8", "--eval-episodes", "2", "--checkpoint-every", "128",
-            "--no-progress", "--out", str(out), "--hp", "hidden=32", "--hp", "learning_starts=64", "--hp",
-            "demo_margin=1", *[a for key, value in DEMO.items() for a in ("--hp", f"{key}={value}")]]  # fmt: skip
-
-    class Stopped(Exception):
-        pass
-
-    def stop(*_a, **_k):
-        raise Stopped
-
     old = torch.get_num_threads()
     try:
-        with monkeypatch.context() as m:
-            m.setattr(EnvStepper, "step", stop)
-            with pytest.raises(Stopped):
-                main(args)
+        train_until_the_first_step(monkeypatch, "ma-mesn", out, "--hp", "demo_margin=1")
         with np.load(out / "replay.npz") as saved:
             sizes = saved["demos/size"]
             assert saved["demos/data/obs"].shape[:2] == (2, sizes.max()) and saved["demos/data/action"].ndim == 3
