@@ -532,14 +532,18 @@ def paper_treadmill_hidden(algo: str) -> tuple[int, ...]:
 # learning rate annealed to 0, the averaged policy judged. A setting an algorithm has no field for is left out.
 # "charger-demo": the same, started from the planner of the learner's information (``demonstrator=planner``, DAgger;
 # learner/imitation.py) and Q-learning gently from there (ε from 0.05, updates after 20 k steps) — where the learner
-# can take a demonstration (DEMONSTRABLE); any other algorithm gets "charger".
+# can take a demonstration (DEMONSTRABLE); any other algorithm gets "charger". "charger-dqfd": charger-demo with
+# DQfD's margin on the demonstrations through Q-learning (``demo_margin=1``), which keeps what DAgger taught a
+# communicating learner (docs/treadmill.md, "DQfD's margin keeps it").
 _CHARGER = {"encoder": "entity", "n_step": 3, "huber": False, "layer_norm": True, "target_tau": 0.001, "lr_end": 0.0,
             "policy_ema": 0.0001, "eps_decay_fraction": 0.5}  # fmt: skip
 PRESET_ALGO_PARAMS: dict[str, dict[str, Any]] = {
     "charger": _CHARGER,
     "charger-demo": {**_CHARGER, "demonstrator": "planner", "eps_start": 0.05, "learning_starts": 20_000},
 }
-Preset = Literal["charger", "charger-demo"]
+PRESET_ALGO_PARAMS["charger-dqfd"] = {**PRESET_ALGO_PARAMS["charger-demo"], "demo_margin": 1.0}
+DEMO_PRESETS = ("charger-demo", "charger-dqfd")  # presets that start from a demonstrator where the learner can
+Preset = Literal["charger", "charger-demo", "charger-dqfd"]
 
 
 def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -548,7 +552,7 @@ def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dic
     from convoy.envs.treadmill.config import CHARGER_RULES
 
     env_params = CHARGER_RULES  # every preset's rules
-    if name == "charger-demo" and (hierarchical or algo_name(algo) not in DEMONSTRABLE):
+    if name in DEMO_PRESETS and (hierarchical or algo_name(algo) not in DEMONSTRABLE):
         name = "charger"  # no demonstration to start from: nor its gentle start
     fields = ALGORITHMS[algo_name(algo)].config.model_fields
     algo_params = {k: v for k, v in PRESET_ALGO_PARAMS[name].items() if k in fields}
@@ -737,7 +741,8 @@ class JobConfig(BaseModel):
         description="Start from named env rules and learner settings; env_params and algo_params set on top win. "
         "charger: the treadmill's hidden charger too fast to steer and the learner recipe measured on it "
         "(docs/treadmill.md); charger-demo: the same, started from the planner of the learner's information "
-        "(demonstrator=planner) where the algorithm can take one",
+        "(demonstrator=planner) where the algorithm can take one; charger-dqfd: charger-demo with DQfD's margin on "
+        "the demonstrations through Q-learning (demo_margin=1)",
     )
     hierarchical: bool = Field(False, description="Hierarchical DQN (appendix A.2): goals + controller; treadmill.")
     steps: int = Field(

@@ -32,6 +32,7 @@ from unittest import mock
 import httpx
 import pytest
 
+from convoy.config import DEMO_PRESETS
 from convoy.protocol.session import free_port
 from tests.doc_output import compare, output_blocks
 from tests.service_fixture import Service
@@ -144,7 +145,7 @@ def shrink(argv: list[str]) -> list[str]:
         out += [] if "--steps" in out else ["--steps", "300"]  # the defaults are 100,000s
         out += [] if "--eval-episodes" in out else ["--eval-episodes", "2"]
         out += ["--no-progress"]
-        if any(a.startswith("demonstrator=") or a == "charger-demo" for a in out):  # DAgger: minutes a round
+        if any(a.startswith("demonstrator=") or a in DEMO_PRESETS for a in out):  # DAgger: minutes a round
             out += ["--hp", "demo_rounds=1", "--hp", "demo_episodes=2"]
     if out[:3] == ["convoy", "env", "rollout"] and "--episodes" not in out:
         out += ["--episodes", "2"]

@@ -44,12 +44,15 @@ def test_charger_demo_starts_from_the_planner_where_the_algorithm_can(algo: str)
     else:
         assert demo.algo_params == charger.algo_params
     assert "demonstrator" not in JobConfig(algo="idqn", preset="charger-demo", hierarchical=True).algo_params
+    dqfd = JobConfig(algo=algo, preset="charger-dqfd")  # the same, with DQfD's margin where there is a start
+    assert dqfd.algo_params == ({**demo.algo_params, "demo_margin": 1.0} if algo in DEMONSTRABLE else demo.algo_params)
 
 
 def test_a_preset_off_the_treadmill_or_unknown_is_refused_naming_the_field() -> None:
     with pytest.raises(ConfigError, match="preset: 'charger' sets treadmill rules; drop it or train on the treadmill"):
         build_config(JobConfig, env="speaker-listener", preset="charger")
-    with pytest.raises(ConfigError, match=r"preset: Input should be 'charger' or 'charger-demo' \(got 'chargr'\)"):
+    choices = r"'charger', 'charger-demo' or 'charger-dqfd' \(got 'chargr'\)"
+    with pytest.raises(ConfigError, match=rf"preset: Input should be {choices}"):
         build_config(JobConfig, preset="chargr")
 
 

@@ -28,6 +28,7 @@ from convoy.api.sweeps import expand, group_name
 from convoy.cli.main import main
 from convoy.cli.reproduce import figure_files, tuning_body
 from convoy.cli.sweep_file import skipped, sweep_body
+from convoy.config import DEMO_PRESETS
 from convoy.services.store import JobStore
 from convoy.validation import build_config
 
@@ -187,7 +188,7 @@ def test_every_figure_file_expands_and_its_claims_name_its_groups(scale: str) ->
                 diagnostic = all(j.point.get("env_params.team_words") for j in jobs)  # not an arm of the issue's
                 # a run started from demonstrations has also played its DAgger rounds: ≥ 145 k env steps measured
                 # (demonstration.json of docs/treadmill.md's charger-demo arms: 145–150 k own, 183–189 k told)
-                demo = DEMO_ENV_STEPS if body["base"].get("preset") == "charger-demo" and not few else 0
+                demo = DEMO_ENV_STEPS if body["base"].get("preset") in DEMO_PRESETS and not few else 0
                 steps = body["base"]["steps"] + demo
                 quick = sweep_body(files[0][1], "quick", where=path.name)["base"]["steps"]
                 assert steps >= 10 * quick, (path.name, steps, quick)
