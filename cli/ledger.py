@@ -54,13 +54,13 @@ def preset_table(spec: dict[str, Any]) -> dict[str, Any] | None:
     """What the request's ``preset`` sets as this Convoy defines it (its rules and its parameters), None without one:
     the request names a preset, not its settings, so a ledger keeps them beside it and sets its runs aside when the
     preset has changed since."""
-    from convoy.config import PRESET_ALGO_PARAMS
-    from convoy.envs.treadmill.config import CHARGER_RULES
+    from convoy.config import PRESET_ALGO_PARAMS, preset_settings
 
     name = (spec.get("base") or {}).get("preset")
     if name not in PRESET_ALGO_PARAMS:
         return None
-    return json.loads(json.dumps({"env_params": dict(CHARGER_RULES), "algo_params": PRESET_ALGO_PARAMS[name]}))
+    env_params, algo_params = preset_settings(name)
+    return json.loads(json.dumps({"env_params": env_params, "algo_params": algo_params}))
 
 
 def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:

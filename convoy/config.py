@@ -546,19 +546,24 @@ DEMO_PRESETS = ("charger-demo", "charger-dqfd")  # presets that start from a dem
 Preset = Literal["charger", "charger-demo", "charger-dqfd"]
 
 
+def preset_settings(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Everything preset ``name`` sets, (env_params, algo_params), whatever the algorithm takes of it."""
+    from convoy.envs.treadmill.config import CHARGER_RULES
+
+    return dict(CHARGER_RULES), dict(PRESET_ALGO_PARAMS[name])  # every preset's rules
+
+
 def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """The preset's (env_params, algo_params) for ``algo``: its settings the algorithm has a field for (no n-step
     returns where sequences or options are learned: DIAL, hierarchical DQN)."""
-    from convoy.envs.treadmill.config import CHARGER_RULES
-
-    env_params = CHARGER_RULES  # every preset's rules
     if name in DEMO_PRESETS and (hierarchical or algo_name(algo) not in DEMONSTRABLE):
         name = "charger"  # no demonstration to start from: nor its gentle start
+    env_params, settings = preset_settings(name)
     fields = ALGORITHMS[algo_name(algo)].config.model_fields
-    algo_params = {k: v for k, v in PRESET_ALGO_PARAMS[name].items() if k in fields}
+    algo_params = {k: v for k, v in settings.items() if k in fields}
     if hierarchical or algo_name(algo) == "dial":
         algo_params.pop("n_step", None)
-    return dict(env_params), algo_params
+    return env_params, algo_params
 
 
 def env_name(name: str) -> str:
