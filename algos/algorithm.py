@@ -374,8 +374,7 @@ class NetworkAgent(ABC):
             )
             batch.extras["is_weight"] = weight
         if self.demos is not None and len(self.demos):
-            shown = self.demos.sample_columns(self.cfg.batch_size, self.streams["replay"])
-            batch.extras.update(demo_obs=shown["obs"], demo_action=shown["action"])
+            batch.extras.update(self.demos.sample_columns(self.cfg.batch_size, self.streams["replay"]))
         return batch
 
     def keep_demonstrations(self, obs: Sequence[np.ndarray], actions: Sequence[np.ndarray]) -> None:
@@ -391,7 +390,7 @@ class NetworkAgent(ABC):
                             ).astype(dtype)  # fmt: skip
 
         self.demos.reserve(m)
-        self.demos.add_columns({"obs": padded(obs, np.float32), "action": padded(actions, np.int64)},
+        self.demos.add_columns({"demo_obs": padded(obs, np.float32), "demo_action": padded(actions, np.int64)},
                                valid=np.arange(m)[None, :] < counts[:, None])  # fmt: skip
 
     def objective(self, batch: Batch) -> Loss:

@@ -187,7 +187,8 @@ def test_a_margin_run_keeps_its_demonstrations_with_its_replay_and_refuses_a_res
         train_until_the_first_step(monkeypatch, "ma-mesn", out, "--hp", "demo_margin=1")
         with np.load(out / "replay.npz") as saved:
             sizes = saved["demos/size"]
-            assert saved["demos/data/obs"].shape[:2] == (2, sizes.max()) and saved["demos/data/action"].ndim == 3
+            assert saved["demos/data/demo_obs"].shape[:2] == (2, sizes.max())
+            assert saved["demos/data/demo_action"].ndim == 3
         demo = [json.loads((out / f"seed-{s}" / imitation.DEMONSTRATION_FILE).read_text()) for s in (0, 1)]
         assert sizes.tolist() == [d["rounds"][-1]["states"] for d in demo]  # every state of the last round
         lost = tmp_path / "lost"
