@@ -9,6 +9,7 @@ summarised from the ledger alone, so committing the ledger keeps what a lost mac
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -18,6 +19,8 @@ from typing import Any
 from convoy.api.lifecycle import JobRecord, JobState
 from convoy.api.sweeps import summarize
 from convoy.stats import mean_ci as seeds_summary
+
+SET_ASIDE = "set-aside"  # beside a scale's ledgers: runs of a recipe the study no longer measures
 
 
 def point_key(point: dict[str, Any]) -> str:
@@ -63,6 +66,21 @@ def preset_table(spec: dict[str, Any]) -> dict[str, Any] | None:
     return json.loads(json.dumps({"env_params": env_params, "algo_params": algo_params}))
 
 
+def set_aside_path(path: Path, spec: dict[str, Any], preset: dict[str, Any] | None) -> Path:
+    """Where the runs of ledger ``path`` measured under request ``spec`` and its preset's settings ``preset`` wait
+    while the study measures another recipe: ``set-aside/FILE-HASH.json``, the hash of both."""
+    key = json.dumps({"recipe": recipe(spec), "preset": preset}, sort_keys=True)
+    return path.parent / SET_ASIDE / f"{path.stem}-{hashlib.sha256(key.encode()).hexdigest()[:8]}.json"
+
+
+def _write(path: Path, body: dict[str, Any]) -> None:
+    """Write atomically: a kill mid-write leaves the previous file whole."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(body, indent=1, sort_keys=False) + "\n")
+    os.replace(tmp, path)
+
+
 def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
     """``table`` with its parameter table ``key`` less ``compile``; a table left empty dropped (it sets nothing,
     as an absent one)."""
@@ -88,17 +106,30 @@ class Ledger:
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
         """The ledger at ``path`` for sweep request ``spec``, and a line saying what was set aside (or ""): runs
-        measured under another recipe (the experiment file changed more than its seeds) do not describe this one
-        and are dropped (git history keeps them)."""
+        measured under another recipe (the experiment file changed more than its seeds) do not describe this one, so
+        they move to ``set-aside/`` beside it, where the page still shows them; a recipe changed back takes its runs
+        back from there."""
         spec = request(spec)
         if not path.is_file():
             return cls(path, spec), ""
         data = json.loads(path.read_text())
         preset = data.get("preset")  # absent in a ledger written before it was kept: its runs stand
-        if recipe(data.get("spec", {})) != recipe(spec) or (preset is not None and preset != preset_table(spec)):
-            return cls(path, spec), f"{path}: {len(data.get('runs', {}))} runs measured under another request set aside"
-        runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
-        return cls(path, spec, runs, spans, busy), ""
+        if recipe(data.get("spec", {})) == recipe(spec) and (preset is None or preset == preset_table(spec)):
+            runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
+            return cls(path, spec, runs, spans, busy), ""
+        kept = set_aside_path(path, data.get("spec", {}), preset)
+        n = len(data.get("runs", {}))
+        note = f"{path}: {n} runs measured under another request set aside" + f" in {kept}" * bool(n)
+        if n:
+            _write(kept, data)
+        earlier = set_aside_path(path, spec, preset_table(spec))
+        back = json.loads(earlier.read_text()) if earlier.is_file() else {}
+        ledger = cls(path, spec, dict(back.get("runs", {})), dict(back.get("spans", {})), dict(back.get("busy_s", {})))
+        ledger.save()  # the file now names the recipe measured, before a run of it completes
+        if not back:
+            return ledger, note
+        earlier.unlink()
+        return ledger, f"{note}; {len(ledger.runs)} runs of this request taken back from {earlier}"
 
     def has(self, point: dict[str, Any]) -> bool:
         return point_key(point) in self.runs
@@ -110,12 +141,9 @@ class Ledger:
 
     def save(self) -> None:
         """Write atomically: a kill mid-write leaves the previous ledger whole."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(".tmp")
         body = {"spec": self.spec, "preset": preset_table(self.spec), "busy_s": self.busy_s, "spans": self.spans,
                 "runs": dict(sorted(self.runs.items()))}  # fmt: skip
-        tmp.write_text(json.dumps(body, indent=1, sort_keys=False) + "\n")
-        os.replace(tmp, self.path)
+        _write(self.path, body)
 
     def groups(self, points: list[dict[str, Any]], others: dict[str, str]) -> list[dict[str, Any]]:
         """The sweep's groups summarised from the runs held (grid order), as the service summarises a sweep, with

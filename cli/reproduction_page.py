@@ -14,7 +14,7 @@ from typing import Any, cast
 from convoy.analysis.verdicts import mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import group_name
-from convoy.cli.ledger import Ledger
+from convoy.cli.ledger import SET_ASIDE, Ledger, recipe
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.validation import build_config
 
@@ -102,32 +102,42 @@ def shuffled_cost(analysis: dict[str, Any]) -> float | None:
     return None if sent is None or shuffled is None else float(sent) - float(shuffled)
 
 
-def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
-    """A section on the ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet: per group,
-    the runs held of those planned, their held-out scores and their wall time, so that a study that takes days
-    shows where it stands between sessions. Interim: no verdict until the figure is run to the end."""
+def ledger_rows(path: Path, scale: str) -> list[str]:
+    """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
+    Table 1's shuffled cost where a run was analysed, and the group's wall time."""
     from convoy.api.sweeps import expand
 
+    data = json.loads(path.read_text())
+    ledger = Ledger(path, data["spec"], data.get("runs", {}))
+    points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
+    held = {g["group"]: g for g in ledger.groups(points, {})}
+    rows = []
+    for name in dict.fromkeys(group_name(p) for p in points):  # grid order
+        g = held.get(name, {})
+        h = g.get("held_out") or {}
+        costs = [shuffled_cost(r["analysis"]) for r in g.get("runs", []) if r.get("analysis")]
+        rows.append(f"| {scale} | `{path.stem.rsplit('-', 1)[0] if path.parent.name == SET_ASIDE else path.stem}` | "
+                    f"{name} | {len(g.get('runs', []))} of {sum(group_name(p) == name for p in points)} | "
+                    f"{mean_ci((h.get('last') or {}).get('values', []))} | "
+                    f"{mean_ci((h.get('best') or {}).get('values', []))} | "
+                    f"{mean_ci([c for c in costs if c is not None])} | {wall_text(g)} |")  # fmt: skip
+    return rows
+
+
+LEDGER_HEAD = [
+    "| scale | file | group | seeds held | last, held out | best.pt, held out | shuffled costs | wall time |",
+    "|---|---|---|---|---|---|---|---|",
+]
+
+
+def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
+    """A section on the ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet, so that a
+    study that takes days shows where it stands between sessions. Interim: no verdict until the figure is run to
+    the end."""
     read = {(r["scale"], Path(f).stem) for r in records.values() for f in r.get("files", [])}
-    rows: list[str] = []
-    for path in sorted((docs / "ledger").glob("*/*.json")):
-        scale = path.parent.name
-        if (scale, path.stem) in read or path.stem.endswith("-tuning"):
-            continue
-        data = json.loads(path.read_text())
-        ledger = Ledger(path, data["spec"], data.get("runs", {}))
-        points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
-        held = {g["group"]: g for g in ledger.groups(points, {})}
-        for name in dict.fromkeys(group_name(p) for p in points):  # grid order
-            g = held.get(name, {})
-            h = g.get("held_out") or {}
-            wall = wall_text(g)
-            costs = [shuffled_cost(r["analysis"]) for r in g.get("runs", []) if r.get("analysis")]
-            rows.append(f"| {scale} | `{path.stem}` | {name} | {len(g.get('runs', []))} of "
-                        f"{sum(group_name(p) == name for p in points)} | "
-                        f"{mean_ci((h.get('last') or {}).get('values', []))} | "
-                        f"{mean_ci((h.get('best') or {}).get('values', []))} | "
-                        f"{mean_ci([c for c in costs if c is not None])} | {wall} |")  # fmt: skip
+    rows = [row for path in sorted((docs / "ledger").glob("*/*.json"))
+            if (path.parent.name, path.stem) not in read and not path.stem.endswith("-tuning")
+            for row in ledger_rows(path, path.parent.name)]  # fmt: skip
     if not rows:
         return []
     return ["", "## Studies still training", "",
@@ -139,8 +149,50 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
                            "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
                            "where it stopped.",
                            108),
-            "", "| scale | file | group | seeds held | last, held out | best.pt, held out | shuffled costs | wall "
-            "time |", "|---|---|---|---|---|---|---|---|", *rows]  # fmt: skip
+            "", *LEDGER_HEAD, *rows]  # fmt: skip
+
+
+def flat(table: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested table as ``{"base.preset": …}``, lists kept whole."""
+    if not isinstance(table, dict):
+        return {prefix: table}
+    return {k: v for key, sub in table.items() for k, v in flat(sub, f"{prefix}{key}.").items()} if table else {}
+
+
+def recipe_change(before: dict[str, Any], now: dict[str, Any] | None) -> str:
+    """``base.preset: charger-demo → charger-dqfd; …``: what differs between a set-aside ledger's recipe and the
+    study's current one (its preset's settings included); "" without a current ledger."""
+    if now is None:
+        return ""
+
+    def table(data: dict[str, Any]) -> dict[str, Any]:
+        return {k.rstrip("."): v for k, v in flat({**recipe(data["spec"]), "preset": data.get("preset")}).items()}
+
+    old, new = table(before), table(now)
+    return "; ".join(f"`{k}`: {old.get(k, '–')} → {new.get(k, '–')}"
+                     for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k))  # fmt: skip
+
+
+def set_aside(docs: Path) -> list[str]:
+    """A section on the runs a study measured under an earlier recipe (``ledger/SCALE/set-aside/``): what changed
+    since, and their scores, which the study's figure does not count. Files set aside by the same change share a
+    table."""
+    tables: dict[str, list[str]] = {}
+    for path in sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")):
+        current = path.parent.parent / f"{path.stem.rsplit('-', 1)[0]}.json"
+        now = json.loads(current.read_text()) if current.is_file() else None
+        change = recipe_change(json.loads(path.read_text()), now) or "a study no longer measured"
+        tables.setdefault(change, []).extend(ledger_rows(path, path.parent.parent.name))
+    if not tables:
+        return []
+    lines = ["", "## Runs set aside", "",
+             *textwrap.wrap("Runs a study measured under an earlier recipe of its experiment file, kept beside its "
+                            "ledger (`ledger/SCALE/set-aside/`): what has changed since, then their scores as in the "
+                            "study's table. They do not count toward its figure; the recipe changed back takes them "
+                            "back.", 108)]  # fmt: skip
+    for change, rows in tables.items():
+        lines += ["", f"Since {change}:", "", *LEDGER_HEAD, *rows]
+    return lines
 
 
 def render(docs: Path, page: Path) -> None:
@@ -163,6 +215,7 @@ def render(docs: Path, page: Path) -> None:
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
     lines += studies_in_progress(docs, records)
+    lines += set_aside(docs)
     for fig in FIGURES:
         if fig not in records:
             continue

@@ -549,6 +549,8 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
     tuned = {**compiled, "base": {"steps": 100, "algo_params": {"compile": True, "lr": 0.1}}}
     other, note = Ledger.open(tmp_path / "f.json", tuned)
     assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
+    back, note = Ledger.open(tmp_path / "f.json", compiled)  # the recipe changed back: its runs come back
+    assert back.has({"seed": 0}) and "1 runs of this request taken back" in note
     other, note = Ledger.open(tmp_path / "f.json", {**spec, "base": {"steps": 200}})
     assert not other.has({"seed": 0}) and "1 runs measured under another request set aside" in note
     parser = argparse.ArgumentParser()
@@ -557,6 +559,39 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
     args = parser.parse_args(["reproduce", "fig3", "--pack", "0", "--experiments", experiments])
     with pytest.raises(ConfigError, match=r"--pack: 0 seeds per population; give 1 to 256"):
         cmd_reproduce(args)
+
+
+def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_their_recipe(tmp_path: Path) -> None:
+    """A changed recipe moves the runs of the earlier one to ``set-aside/`` (nothing is lost; the page shows them
+    with what changed, in no figure); the new recipe's ledger is written at once; changing the recipe back takes
+    the runs back, and the page then has no set-aside section."""
+    from convoy.cli.ledger import SET_ASIDE, Ledger
+    from convoy.cli.reproduction_page import render
+
+    docs = tmp_path / "docs"
+    path = docs / "ledger" / "mid" / "f.json"
+    first = {"name": "f", "base": {"steps": 100, "preset": "charger-demo"}, "grid": {"seed": [0, 1]}, "exclude": []}
+    then = {**first, "base": {"steps": 100, "preset": "charger-dqfd"}}
+    ledger, _ = Ledger.open(path, first)
+    held_out = {"episodes": 500, "seed": 777, "last": 130.0, "best": 140.0}
+    ledger.record({"seed": 0}, {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "rows": [],
+                                "final": {"eval_return": 1.0}, "held_out": held_out})  # fmt: skip
+    other, note = Ledger.open(path, then)
+    kept = list((path.parent / SET_ASIDE).glob("f-*.json"))
+    assert not other.runs and len(kept) == 1 and f"1 runs measured under another request set aside in {kept[0]}" in note
+    assert json.loads(path.read_text())["spec"]["base"]["preset"] == "charger-dqfd"  # the new recipe, no run yet
+    render(docs, tmp_path / "r.md")
+    text = (tmp_path / "r.md").read_text()
+    assert "## Runs set aside" in text and (
+        "Since `base.preset`: charger-demo → charger-dqfd; `preset.algo_params.demo_margin`: – → 1.0:" in text
+    )
+    assert "| mid | `f` | all | 0 of 2 | – | – | – | – |" in text  # the study, on its new recipe
+    assert "| mid | `f` | all | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | – |" in text, text  # set aside
+    back, note = Ledger.open(path, first)
+    assert back.has({"seed": 0}) and "1 runs of this request taken back" in note and not kept[0].exists()
+    assert Ledger.open(path, first)[0].has({"seed": 0})  # saved where it came back
+    render(docs, tmp_path / "r.md")
+    assert "Runs set aside" not in (tmp_path / "r.md").read_text()
 
 
 def test_a_sweep_left_running_under_a_request_the_command_no_longer_makes_is_named(tmp_path: Path) -> None:
