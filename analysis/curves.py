@@ -22,9 +22,42 @@ def plot_groups(
     [0, 1]) clip its band: a t-interval over few seeds runs past them (−0.3 to 1.5 on a success rate), and no
     return lies there."""
     plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    draw_groups(ax, groups)
+    for i, (name, value) in enumerate((references or {}).items()):
+        ax.axhline(value, color=f"C{7 + i % 3}", linestyle="--", linewidth=1, label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    finish(ax)
+    return _save(fig, path)
+
+
+def plot_panels(panels: dict[str, list[dict[str, Any]]], path: str | Path, title: str) -> Path:
+    """A PNG of one ``plot_groups`` panel per title in ``panels`` (three a row, each on its own return axis: one
+    group's wide band must not flatten the others): a study's experiment files side by side, a group's
+    ``linestyle`` and ``color`` kept (a recipe set aside dashed beside the current one in the same colour)."""
+    plt = pyplot()
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.6 * rows), squeeze=False)
+    for ax, (name, groups) in zip(axes.flat, panels.items(), strict=False):
+        draw_groups(ax, groups)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("env steps")
+        finish(ax)
+    for ax in axes.flat[len(panels) :]:
+        ax.set_visible(False)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("greedy return")
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def draw_groups(ax: Any, groups: list[dict[str, Any]]) -> None:
+    """Each group's ``curve`` (``env_steps``, ``mean``, ``ci95``) as a line with a shaded band on ``ax``."""
     import numpy as np
 
-    fig, ax = plt.subplots(figsize=(7, 4.2))
     for group in groups:
         curve = group["curve"]
         keep = [i for i, m in enumerate(curve["mean"]) if m is not None]
@@ -34,20 +67,19 @@ def plot_groups(
         y = np.array([curve["mean"][i] for i in keep], dtype=float)
         ci = np.array([curve["ci95"][i] or 0.0 for i in keep], dtype=float)
         n = max(curve["n"][i] for i in keep)
-        (line,) = ax.plot(x, y, label=f"{group['group']} (n={n})")
+        (line,) = ax.plot(x, y, label=f"{group['group']} (n={n})", linestyle=group.get("linestyle", "-"),
+                          color=group.get("color"))  # fmt: skip
         low, high = band(y, ci, group.get("bounds"))
         ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
-    for i, (name, value) in enumerate((references or {}).items()):
-        ax.axhline(value, color=f"C{7 + i % 3}", linestyle="--", linewidth=1, label=name)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
+
+
+def finish(ax: Any) -> None:
+    """Grid and legend, or a note where no group has a greedy evaluation yet."""
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[1]:
         ax.legend(fontsize=7, loc="best")
     else:  # a job that has not reached its first greedy evaluation yet
         ax.text(0.5, 0.5, "no greedy evaluation yet", ha="center", va="center", transform=ax.transAxes)
-    return _save(fig, path)
 
 
 def band(mean: Any, ci: Any, bounds: Any = None) -> tuple[Any, Any]:

@@ -102,26 +102,60 @@ def shuffled_cost(analysis: dict[str, Any]) -> float | None:
     return None if sent is None or shuffled is None else float(sent) - float(shuffled)
 
 
-def ledger_rows(path: Path, scale: str) -> list[str]:
-    """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
-    Table 1's shuffled cost where a run was analysed, and the group's wall time."""
+def ledger_groups(path: Path) -> list[tuple[str, dict[str, Any], int]]:
+    """Per group of the ledger at ``path`` (grid order): its name, its summary from the runs held ({} for none) and
+    the runs its grid plans."""
     from convoy.api.sweeps import expand
 
     data = json.loads(path.read_text())
     ledger = Ledger(path, data["spec"], data.get("runs", {}))
     points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
     held = {g["group"]: g for g in ledger.groups(points, {})}
+    names = dict.fromkeys(group_name(p) for p in points)
+    return [(name, held.get(name, {}), sum(group_name(p) == name for p in points)) for name in names]
+
+
+def file_of(path: Path) -> str:
+    """The experiment file a ledger is of: its name, less the recipe hash of one set aside."""
+    return path.stem.rsplit("-", 1)[0] if path.parent.name == SET_ASIDE else path.stem
+
+
+def ledger_rows(path: Path, scale: str) -> list[str]:
+    """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
+    Table 1's shuffled cost where a run was analysed, and the group's wall time."""
     rows = []
-    for name in dict.fromkeys(group_name(p) for p in points):  # grid order
-        g = held.get(name, {})
+    for name, g, planned in ledger_groups(path):
         h = g.get("held_out") or {}
         costs = [shuffled_cost(r["analysis"]) for r in g.get("runs", []) if r.get("analysis")]
-        rows.append(f"| {scale} | `{path.stem.rsplit('-', 1)[0] if path.parent.name == SET_ASIDE else path.stem}` | "
-                    f"{name} | {len(g.get('runs', []))} of {sum(group_name(p) == name for p in points)} | "
+        rows.append(f"| {scale} | `{file_of(path)}` | {name} | {len(g.get('runs', []))} of {planned} | "
                     f"{mean_ci((h.get('last') or {}).get('values', []))} | "
                     f"{mean_ci((h.get('best') or {}).get('values', []))} | "
                     f"{mean_ci([c for c in costs if c is not None])} | {wall_text(g)} |")  # fmt: skip
     return rows
+
+
+def study_curves(docs: Path, rel: str, scale: str, paths: list[Path]) -> list[str]:
+    """The greedy curves of the ledgers ``paths`` at ``scale`` as ``ledger/SCALE/curves.png`` (one panel per
+    experiment file; a group's runs set aside dashed in its colour beside the study's), and the page's image line
+    (``rel``: the docs folder from the page)."""
+    from convoy.analysis.curves import plot_panels
+
+    panels: dict[str, list[dict[str, Any]]] = {}
+    colours: dict[str, str] = {}
+    for path in paths:
+        aside = path.parent.name == SET_ASIDE
+        for name, g, _ in ledger_groups(path):
+            if g.get("curve"):
+                colour = colours.setdefault(name, f"C{len(colours) % 10}")
+                label = name.replace("algo_params.", "").replace("env_params.", "") + " (set aside)" * aside
+                panels.setdefault(file_of(path), []).append(
+                    {**g, "group": label, "color": colour, "linestyle": "--" if aside else "-"}
+                )
+    if not panels:
+        return []
+    png = plot_panels(dict(sorted(panels.items())), docs / "ledger" / scale / "curves.png",
+                      f"{scale}: greedy return, mean ± 95 % CI over the seeds held")  # fmt: skip
+    return ["", f"![{scale} studies: greedy curves]({rel}/{png.relative_to(docs)})"]
 
 
 LEDGER_HEAD = [
@@ -130,16 +164,25 @@ LEDGER_HEAD = [
 ]
 
 
-def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[str]:
-    """A section on the ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet, so that a
-    study that takes days shows where it stands between sessions. Interim: no verdict until the figure is run to
-    the end."""
+def in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[Path]:
+    """The ledgers (``docs/ledger/SCALE/FILE.json``) no figure at their scale has read yet."""
     read = {(r["scale"], Path(f).stem) for r in records.values() for f in r.get("files", [])}
-    rows = [row for path in sorted((docs / "ledger").glob("*/*.json"))
-            if (path.parent.name, path.stem) not in read and not path.stem.endswith("-tuning")
-            for row in ledger_rows(path, path.parent.name)]  # fmt: skip
+    return [path for path in sorted((docs / "ledger").glob("*/*.json"))
+            if (path.parent.name, path.stem) not in read and not path.stem.endswith("-tuning")]  # fmt: skip
+
+
+def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[str]:
+    """A section on the ledgers no figure at their scale has read yet (``in_progress``), with their curves beside
+    those of their runs set aside, so that a study that takes days shows where it stands between sessions.
+    Interim: no verdict until the figure is run to the end."""
+    paths = in_progress(docs, records)
+    rows = [row for path in paths for row in ledger_rows(path, path.parent.name)]
     if not rows:
         return []
+    curves = []
+    for scale in dict.fromkeys(path.parent.name for path in paths):
+        aside = sorted((docs / "ledger" / scale / SET_ASIDE).glob("*.json"))
+        curves += study_curves(docs, rel, scale, [*(p for p in paths if p.parent.name == scale), *aside])
     return ["", "## Studies still training", "",
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
@@ -147,9 +190,9 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[
                            "populations' learners, resumes and demonstration starts included; *shuffled costs* is "
                            "Table 1's paired cost of hearing another env's messages (return with true messages − "
                            "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
-                           "where it stopped.",
+                           "where it stopped. The curves: solid, the study; dashed, its runs set aside (below).",
                            108),
-            "", *LEDGER_HEAD, *rows]  # fmt: skip
+            "", *LEDGER_HEAD, *rows, *curves]  # fmt: skip
 
 
 def flat(table: Any, prefix: str = "") -> dict[str, Any]:
@@ -173,7 +216,7 @@ def recipe_change(before: dict[str, Any], now: dict[str, Any] | None) -> str:
                      for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k))  # fmt: skip
 
 
-def set_aside(docs: Path) -> list[str]:
+def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[str]:
     """A section on the runs a study measured under an earlier recipe (``ledger/SCALE/set-aside/``): what changed
     since, and their scores, which the study's figure does not count. Files set aside by the same change share a
     table."""
@@ -192,6 +235,10 @@ def set_aside(docs: Path) -> list[str]:
                             "back.", 108)]  # fmt: skip
     for change, rows in tables.items():
         lines += ["", f"Since {change}:", "", *LEDGER_HEAD, *rows]
+    drawn = {path.parent.name for path in in_progress(docs, records)}  # with the study's curves above
+    for folder in sorted({p.parent for p in (docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")}):
+        if folder.parent.name not in drawn:
+            lines += study_curves(docs, rel, folder.parent.name, sorted(folder.glob("*.json")))
     return lines
 
 
@@ -214,8 +261,8 @@ def render(docs: Path, page: Path) -> None:
                          f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
-    lines += studies_in_progress(docs, records)
-    lines += set_aside(docs)
+    lines += studies_in_progress(docs, records, rel)
+    lines += set_aside(docs, records, rel)
     for fig in FIGURES:
         if fig not in records:
             continue

@@ -563,7 +563,8 @@ def test_a_ledger_keeps_its_runs_under_another_pack_and_sets_them_aside_under_an
 
 def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_their_recipe(tmp_path: Path) -> None:
     """A changed recipe moves the runs of the earlier one to ``set-aside/`` (nothing is lost; the page shows them
-    with what changed, in no figure); the new recipe's ledger is written at once; changing the recipe back takes
+    with what changed, in no figure, their curves dashed beside the study's); the new recipe's ledger is written at
+    once; changing the recipe back takes
     the runs back, and the page then has no set-aside section."""
     from convoy.cli.ledger import SET_ASIDE, Ledger
     from convoy.cli.reproduction_page import render
@@ -587,6 +588,8 @@ def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_th
     )
     assert "| mid | `f` | all | 0 of 2 | – | – | – | – |" in text  # the study, on its new recipe
     assert "| mid | `f` | all | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | – |" in text, text  # set aside
+    assert "![mid studies: greedy curves](docs/ledger/mid/curves.png)" in text  # dashed: the runs set aside
+    assert (path.parent / "curves.png").stat().st_size > 0
     back, note = Ledger.open(path, first)
     assert back.has({"seed": 0}) and "1 runs of this request taken back" in note and not kept[0].exists()
     assert Ledger.open(path, first)[0].has({"seed": 0})  # saved where it came back
