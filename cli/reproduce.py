@@ -669,8 +669,24 @@ def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, 
     names them: a control run at some scales only) Holm-corrected together, on its groups and ``extra`` figures
     (references, exponents, analysis)."""
     claims = [c for c in meta.get("claims", []) if scale in c.get("scales", SCALES)]
+    groups, extra, on = judged_returns(groups, extra)
     verdicts = judge_figure(claims, {g["group"]: g for g in groups}, extra)
-    return {"verdicts": [v.__dict__ for v in verdicts], "verdict": figure_verdict(verdicts)}
+    return {"verdicts": [v.__dict__ for v in verdicts], "verdict": figure_verdict(verdicts), "judged_on": on}
+
+
+def judged_returns(
+    groups: list[dict[str, Any]], extra: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any], str]:
+    """The returns a figure's claims are judged on, and which: where every run of every group was re-scored on the
+    held-out episodes, its last policy's held-out return (the same policy as its final evaluation's, on more
+    episodes that nothing was chosen on) and the references on those very episodes; else each run's final greedy
+    evaluation."""
+    lasts = [((g.get("held_out") or {}).get("last") or {}).get("values") or [] for g in groups]
+    if not any(lasts) or any(len(v) != len(g["final"]["values"]) for v, g in zip(lasts, groups, strict=True)):
+        return groups, extra, "final"
+    held = [{**g, "final": {**g["final"], "values": v}} for g, v in zip(groups, lasts, strict=True)]
+    refs = extra.get("held_out_references") or extra.get("references") or {}
+    return held, {**extra, "references": refs}, "held_out"
 
 
 def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:

@@ -60,7 +60,9 @@ INTRO = (
     "evaluations on fixed seeds; ± is the 95 % Student-t confidence interval over training seeds; each group also "
     "shows its interquartile mean with a percentile-bootstrap 95 % CI, the area under its greedy curve (the "
     "return averaged over the run), and its jobs' last policies beside their best points (`best.pt`), both "
-    "re-scored on held-out episodes. A claim is *reproduced* when it holds significantly (one-sided t-test over "
+    "re-scored on held-out episodes; where every run was, the claims are judged on the last policies' held-out "
+    "returns and the references on the same episodes. A claim is *reproduced* when it holds significantly "
+    "(one-sided t-test over "
     "seeds, p < 0.05 after Holm's correction over the figure's tests), *not shown* when the difference has the "
     "paper's sign but is not significant, *not reproduced* when it goes the other way; a number the paper measured "
     "on another reward scale is *not comparable*. A figure is *reproduced* when every claim is, *partly* when some "
@@ -339,6 +341,8 @@ def render(docs: Path, page: Path) -> None:
         if r.get("exponents"):
             ks = ", ".join(f"{name} {exponent_text(fit)}" for name, fit in r["exponents"].items())
             lines += [f"Fitted exponent k of inference time ∝ N^k (upper half of N, 95 % CI over rounds): {ks}.", ""]
+        if r.get("judged_on") == "held_out":
+            lines += ["Claims judged on the last policies' held-out returns and the references on those episodes.", ""]
         lines += ["| claim | paper | ours | verdict |", "|---|---|---|---|"]
         for v in r["verdicts"]:
             why = f" ({v['why']})" if v.get("why") else ""

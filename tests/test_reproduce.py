@@ -451,6 +451,29 @@ def test_a_file_or_claim_may_leave_out_a_scale(tmp_path: Path) -> None:
     assert [v["claim"] for v in judged(meta, groups, {}, "mid")["verdicts"]] == ["always", "mid only"]
 
 
+def test_claims_are_judged_on_held_out_returns_where_every_run_has_them() -> None:
+    """Held-out scores are the same last policies on more episodes nothing was chosen on: where every run of every
+    group has one, the claims read them and the references on those episodes; a run without one leaves the whole
+    figure on its final evaluations (no mixing)."""
+    from convoy.cli.reproduce import judged
+
+    meta = {"claims": [{"text": "a above b", "better": "a", "than": "b"},
+                       {"text": "a above the driver", "group": "a", "above_reference": "driver"}]}  # fmt: skip
+    final_a, final_b = [10.0, 11.0, 12.0], [10.5, 11.5, 12.5]  # a below b on 100 episodes each
+    held = {"a": [20.0, 20.5, 21.0], "b": [10.0, 10.2, 10.4]}  # a far above on 500
+
+    def groups(held_b: list[float]) -> list[dict[str, Any]]:
+        return [{"group": "a", "final": {"values": final_a}, "held_out": {"last": {"values": held["a"]}}},
+                {"group": "b", "final": {"values": final_b}, "held_out": {"last": {"values": held_b}}}]  # fmt: skip
+
+    extra = {"references": {"driver": 30.0}, "held_out_references": {"driver": 15.0}}
+    on_held = judged(meta, groups(held["b"]), extra, "mid")
+    assert on_held["judged_on"] == "held_out" and on_held["verdict"] == "reproduced", on_held
+    assert "20.5" in on_held["verdicts"][0]["ours"] and "driver 15" in on_held["verdicts"][1]["ours"]
+    one_short = judged(meta, groups(held["b"][:2]), extra, "mid")  # a run of b was not re-scored
+    assert one_short["judged_on"] == "final" and one_short["verdict"] == "not reproduced"
+
+
 def test_table1_of_several_groups_shows_a_column_for_each(tmp_path: Path) -> None:
     from convoy.cli.reproduction_page import render
 
