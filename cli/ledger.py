@@ -110,26 +110,28 @@ class Ledger:
         they move to ``set-aside/`` beside it, where the page still shows them; a recipe changed back takes its runs
         back from there."""
         spec = request(spec)
-        if not path.is_file():
-            return cls(path, spec), ""
-        data = json.loads(path.read_text())
-        preset = data.get("preset")  # absent in a ledger written before it was kept: its runs stand
-        if recipe(data.get("spec", {})) == recipe(spec) and (preset is None or preset == preset_table(spec)):
-            runs, busy, spans = dict(data.get("runs", {})), dict(data.get("busy_s", {})), dict(data.get("spans", {}))
-            return cls(path, spec, runs, spans, busy), ""
-        kept = set_aside_path(path, data.get("spec", {}), preset)
-        n = len(data.get("runs", {}))
-        note = f"{path}: {n} runs measured under another request set aside" + f" in {kept}" * bool(n)
-        if n:
-            _write(kept, data)
+        note = ""
+        if path.is_file():
+            data = json.loads(path.read_text())
+            preset = data.get("preset")  # absent in a ledger written before it was kept: its runs stand
+            if recipe(data.get("spec", {})) == recipe(spec) and (preset is None or preset == preset_table(spec)):
+                return cls(path, spec, dict(data.get("runs", {})), dict(data.get("spans", {})),
+                           dict(data.get("busy_s", {}))), ""  # fmt: skip
+            kept = set_aside_path(path, data.get("spec", {}), preset)
+            n = len(data.get("runs", {}))
+            note = f"{path}: {n} runs measured under another request set aside" + f" in {kept}" * bool(n)
+            if n:
+                _write(kept, data)
         earlier = set_aside_path(path, spec, preset_table(spec))
+        if not earlier.is_file() and not note:
+            return cls(path, spec), ""  # a new ledger: written when its first run completes
         back = json.loads(earlier.read_text()) if earlier.is_file() else {}
         ledger = cls(path, spec, dict(back.get("runs", {})), dict(back.get("spans", {})), dict(back.get("busy_s", {})))
         ledger.save()  # the file now names the recipe measured, before a run of it completes
         if not back:
             return ledger, note
         earlier.unlink()
-        return ledger, f"{note}; {len(ledger.runs)} runs of this request taken back from {earlier}"
+        return ledger, f"{note}{'; ' * bool(note)}{len(ledger.runs)} runs of this request taken back from {earlier}"
 
     def has(self, point: dict[str, Any]) -> bool:
         return point_key(point) in self.runs

@@ -616,6 +616,10 @@ def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_th
     back, note = Ledger.open(path, first)
     assert back.has({"seed": 0}) and "1 runs of this request taken back" in note and not kept[0].exists()
     assert Ledger.open(path, first)[0].has({"seed": 0})  # saved where it came back
+    Ledger.open(path, then)  # set aside again; then the study's file is lost: its recipe's runs still come back
+    path.unlink()
+    back, note = Ledger.open(path, first)
+    assert back.has({"seed": 0}) and note.startswith("1 runs of this request taken back")
     render(docs, tmp_path / "r.md")
     assert "Runs set aside" not in (tmp_path / "r.md").read_text()
 
