@@ -36,7 +36,7 @@ from convoy.api.sweeps import busy_seconds, group_name
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
 from convoy.cli.ledger import Ledger, point_key, request
-from convoy.cli.reproduction_page import FIGURES, render
+from convoy.cli.reproduction_page import FIGURES, duration, render
 from convoy.cli.sweep_file import read_file, scale_table, skipped, sweep_body
 from convoy.config import MAX_POPULATION
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
@@ -153,7 +153,7 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
     sees each member as soon as it completes. Interrupted, every sweep still running is stopped (each job
     checkpoints), so that the same command continues them."""
     sweeps = [sweep for sweep, _ in started]
-    t0, said, last = time.monotonic(), "", 0.0
+    t0, said, last, done0 = time.monotonic(), "", 0.0, None
     try:
         while True:
             for sweep, (_, harvest) in zip(sweeps, started, strict=True):
@@ -175,8 +175,10 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                 text += f" ({len(demo)} in DAgger round {', '.join(played)})"
             if len(sweeps) > 1:
                 text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
+            done0 = done if done0 is None else done0
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:
-                plain(out, f"{text} · {(time.monotonic() - t0) / 60:.1f} min")
+                took = time.monotonic() - t0
+                plain(out, f"{text} · {took / 60:.1f} min{time_left(asked - done, done - done0, took)}")
                 said, last = text, time.monotonic()
             time.sleep(POLL_S)
             sweeps = [s if s["state"] != "running" else api.call("GET", f"/sweeps/{s['id']}") for s in sweeps]
@@ -192,6 +194,14 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                            f"resume it (`convoy sweep resume {sweep['id']}`) or run the command again")  # fmt: skip
     plain(out, f"{label}: {len(sweeps)} sweep(s) ended after {(time.monotonic() - t0) / 60:.1f} min")
     return sweeps
+
+
+def time_left(left: int, done: int, seconds: float) -> str:
+    """`` · ~5.2 h left``: the env steps ``left`` at the pace of this command so far (``done`` in ``seconds``), once it
+    has run 10 minutes; a guess, since demonstration starts and held-out scoring add time no step counts."""
+    if seconds < 600 or done <= 0:
+        return ""
+    return f" · ~{duration(left / done * seconds)} left at this pace"
 
 
 def seed_waves(bodies: list[dict[str, Any]], size: int) -> list[list[int]]:

@@ -451,6 +451,14 @@ def test_a_file_or_claim_may_leave_out_a_scale(tmp_path: Path) -> None:
     assert [v["claim"] for v in judged(meta, groups, {}, "mid")["verdicts"]] == ["always", "mid only"]
 
 
+def test_the_progress_line_guesses_the_time_left_from_this_commands_pace() -> None:
+    """Only after 10 minutes with steps done (a resumed study's first minutes are its runs' restarts)."""
+    from convoy.cli.reproduce import time_left
+
+    assert time_left(900, 100, 599.0) == "" and time_left(900, 0, 3600.0) == ""
+    assert time_left(900, 100, 600.0) == " · ~1.5 h left at this pace"
+
+
 def test_claims_are_judged_on_held_out_returns_where_every_run_has_them() -> None:
     """Held-out scores are the same last policies on more episodes nothing was chosen on: where every run of every
     group has one, the claims read them and the references on those episodes; a run without one leaves the whole
