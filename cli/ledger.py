@@ -54,16 +54,19 @@ def recipe(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 def preset_table(spec: dict[str, Any]) -> dict[str, Any] | None:
-    """What the request's ``preset`` sets as this Convoy defines it (its rules and its parameters), None without one:
-    the request names a preset, not its settings, so a ledger keeps them beside it and sets its runs aside when the
-    preset has changed since."""
-    from convoy.config import PRESET_ALGO_PARAMS, preset_settings
+    """What the request's ``preset`` sets as this Convoy defines it, None without one: its rules, its parameters and
+    (``resolved``) what each algorithm of the request takes of them. The request names a preset, not its settings,
+    so a ledger keeps them beside it and sets aside the runs whose settings have changed since."""
+    from convoy.config import PRESET_ALGO_PARAMS, algo_name, preset_params, preset_settings
 
-    name = (spec.get("base") or {}).get("preset")
+    base = spec.get("base") or {}
+    name = base.get("preset")
     if name not in PRESET_ALGO_PARAMS:
         return None
     env_params, algo_params = preset_settings(name)
-    return json.loads(json.dumps({"env_params": env_params, "algo_params": algo_params}))
+    algos = (spec.get("grid") or {}).get("algo") or [base.get("algo", "ma-mesn")]
+    resolved = {algo_name(str(a)): preset_params(name, str(a), bool(base.get("hierarchical")))[1] for a in algos}
+    return json.loads(json.dumps({"env_params": env_params, "algo_params": algo_params, "resolved": resolved}))
 
 
 def set_aside_path(path: Path, spec: dict[str, Any], preset: dict[str, Any] | None) -> Path:
@@ -71,6 +74,37 @@ def set_aside_path(path: Path, spec: dict[str, Any], preset: dict[str, Any] | No
     while the study measures another recipe: ``set-aside/FILE-HASH.json``, the hash of both."""
     key = json.dumps({"recipe": recipe(spec), "preset": preset}, sort_keys=True)
     return path.parent / SET_ASIDE / f"{path.stem}-{hashlib.sha256(key.encode()).hexdigest()[:8]}.json"
+
+
+def measures(spec: dict[str, Any], preset: dict[str, Any] | None) -> dict[str, str] | None:
+    """What each grid point of sweep request ``spec`` measures, by ``point_key``: its job's whole configuration with
+    the preset resolved into it (so a preset renamed without changing what an algorithm takes of it changes
+    nothing). None where that cannot be said today: the request no longer validates, or ``preset`` (the preset's
+    settings as a ledger kept them) differs from the preset's definition now, which its jobs would resolve to; ""
+    for a point whose algorithm took other settings of the preset then than it would now."""
+    from convoy.api.models import SweepSubmit
+    from convoy.api.sweeps import expand
+    from convoy.validation import ConfigError, build_config
+
+    now = preset_table(spec) or {}
+    if preset is not None and any(preset.get(k) != now.get(k) for k in ("env_params", "algo_params")):
+        return None
+    changed = {a for a, params in (preset or {}).get("resolved", {}).items() if now["resolved"].get(a) != params}
+    try:
+        jobs = expand(build_config(SweepSubmit, **request(spec)))
+    except ConfigError:
+        return None
+    return {point_key(j.point): "" if j.config.algo in changed else  # "": measured otherwise
+            json.dumps(j.config.model_dump(mode="json", exclude={"preset"}), sort_keys=True) for j in jobs}  # fmt: skip
+
+
+def _set_aside(path: Path, body: dict[str, Any]) -> None:
+    """Add the runs of ledger ``body`` to the set-aside file ``path`` of the same recipe (its runs and sweeps'
+    times kept beside them)."""
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    _write(path, {**body, "runs": {**old.get("runs", {}), **body["runs"]},
+                  "spans": {**old.get("spans", {}), **body.get("spans", {})},
+                  "busy_s": {**old.get("busy_s", {}), **body.get("busy_s", {})}})  # fmt: skip
 
 
 def _write(path: Path, body: dict[str, Any]) -> None:
@@ -105,33 +139,40 @@ class Ledger:
 
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
-        """The ledger at ``path`` for sweep request ``spec``, and a line saying what was set aside (or ""): runs
-        measured under another recipe (the experiment file changed more than its seeds) do not describe this one, so
-        they move to ``set-aside/`` beside it, where the page still shows them; a recipe changed back takes its runs
-        back from there."""
+        """The ledger at ``path`` for sweep request ``spec``, and a line saying what moved (or ""): a run whose job
+        the request would now configure otherwise (its arm of the experiment file changed, or it left the grid)
+        does not describe this study, so it moves to ``set-aside/`` beside the ledger, where the page still shows
+        it; the other runs stay, and set-aside runs this request would configure as they were measured come back.
+        """
         spec = request(spec)
-        note = ""
-        if path.is_file():
-            data = json.loads(path.read_text())
-            preset = data.get("preset")  # absent in a ledger written before it was kept: its runs stand
-            if recipe(data.get("spec", {})) == recipe(spec) and (preset is None or preset == preset_table(spec)):
-                return cls(path, spec, dict(data.get("runs", {})), dict(data.get("spans", {})),
-                           dict(data.get("busy_s", {}))), ""  # fmt: skip
-            kept = set_aside_path(path, data.get("spec", {}), preset)
-            n = len(data.get("runs", {}))
-            note = f"{path}: {n} runs measured under another request set aside" + f" in {kept}" * bool(n)
-            if n:
-                _write(kept, data)
-        earlier = set_aside_path(path, spec, preset_table(spec))
-        if not earlier.is_file() and not note:
-            return cls(path, spec), ""  # a new ledger: written when its first run completes
-        back = json.loads(earlier.read_text()) if earlier.is_file() else {}
-        ledger = cls(path, spec, dict(back.get("runs", {})), dict(back.get("spans", {})), dict(back.get("busy_s", {})))
-        ledger.save()  # the file now names the recipe measured, before a run of it completes
-        if not back:
-            return ledger, note
-        earlier.unlink()
-        return ledger, f"{note}{'; ' * bool(note)}{len(ledger.runs)} runs of this request taken back from {earlier}"
+        now = measures(spec, preset_table(spec)) or {}
+        data = json.loads(path.read_text()) if path.is_file() else {"spec": spec}
+        runs = dict(data.get("runs", {}))
+        before = measures(data["spec"], data.get("preset"))
+        moved = {k: r for k, r in runs.items() if before is None or k not in now or before.get(k) != now[k]}
+        ledger = cls(path, spec, {k: r for k, r in runs.items() if k not in moved},
+                     dict(data.get("spans", {})), dict(data.get("busy_s", {})))  # fmt: skip
+        notes = []
+        if moved:
+            kept = set_aside_path(path, data["spec"], data.get("preset"))
+            _set_aside(kept, {**data, "runs": moved})
+            notes.append(f"{path}: {len(moved)} runs measured under another request set aside in {kept}")
+        for archive in sorted((path.parent / SET_ASIDE).glob(f"{path.stem}-*.json")):
+            old = json.loads(archive.read_text())
+            then = measures(old["spec"], old.get("preset")) or {}
+            back = {k: r for k, r in old["runs"].items() if k in now and then.get(k) == now[k] and k not in ledger.runs}
+            if not back:
+                continue
+            ledger.runs.update(back)
+            rest = {k: r for k, r in old["runs"].items() if k not in back}
+            if rest:
+                _write(archive, {**old, "runs": rest})
+            else:
+                archive.unlink()
+            notes.append(f"{len(back)} runs of this request taken back from {archive}")
+        if notes:
+            ledger.save()  # the file names the recipe measured at once, before a run of it completes
+        return ledger, "; ".join(notes)
 
     def has(self, point: dict[str, Any]) -> bool:
         return point_key(point) in self.runs

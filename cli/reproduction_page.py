@@ -206,7 +206,8 @@ def flat(table: Any, prefix: str = "") -> dict[str, Any]:
 
 def recipe_change(before: dict[str, Any], now: dict[str, Any] | None) -> str:
     """``base.preset: charger-demo → charger-dqfd; …``: what differs between a set-aside ledger's recipe and the
-    study's current one (its preset's settings included); "" without a current ledger."""
+    study's current one (its preset's settings included; what each algorithm took of them where both ledgers say);
+    "" without a current ledger."""
     if now is None:
         return ""
 
@@ -214,6 +215,8 @@ def recipe_change(before: dict[str, Any], now: dict[str, Any] | None) -> str:
         return {k.rstrip("."): v for k, v in flat({**recipe(data["spec"]), "preset": data.get("preset")}).items()}
 
     old, new = table(before), table(now)
+    if not any(k.startswith("preset.resolved.") for k in old) or not any(k.startswith("preset.resolved.") for k in new):
+        old, new = ({k: v for k, v in t.items() if not k.startswith("preset.resolved.")} for t in (old, new))
     return "; ".join(f"`{k}`: {old.get(k, '–')} → {new.get(k, '–')}"
                      for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k))  # fmt: skip
 

@@ -555,7 +555,11 @@ def preset_settings(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
     """The preset's (env_params, algo_params) for ``algo``: its settings the algorithm has a field for (no n-step
-    returns where sequences or options are learned: DIAL, hierarchical DQN)."""
+    returns where sequences or options are learned: DIAL, hierarchical DQN). DIAL keeps its own target sync (by
+    episodes) and judges its online weights: it updates once per batch of unrolled sequences, ~100 × less often
+    than a learner replaying single steps, so the preset's per-update averaging rates (a Polyak target τ = 0.001,
+    the judged policy's 1e-4), set for ~10⁵ updates, would hold it near its initialisation (measured: on-policy
+    DIAL, 782 updates in 400 k steps, stayed at a constant action's return)."""
     if name in DEMO_PRESETS and (hierarchical or algo_name(algo) not in DEMONSTRABLE):
         name = "charger"  # no demonstration to start from: nor its gentle start
     env_params, settings = preset_settings(name)
@@ -563,6 +567,8 @@ def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dic
     algo_params = {k: v for k, v in settings.items() if k in fields}
     if hierarchical or algo_name(algo) == "dial":
         algo_params.pop("n_step", None)
+    if algo_name(algo) == "dial":
+        algo_params = {k: v for k, v in algo_params.items() if k not in ("target_tau", "policy_ema")}
     return env_params, algo_params
 
 

@@ -615,7 +615,8 @@ def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_th
     render(docs, tmp_path / "r.md")
     text = (tmp_path / "r.md").read_text()
     assert "## Runs set aside" in text and (
-        "Since `base.preset`: charger-demo → charger-dqfd; `preset.algo_params.demo_margin`: – → 1.0:" in text
+        "Since `base.preset`: charger-demo → charger-dqfd; `preset.algo_params.demo_margin`: – → 1.0; "
+        "`preset.resolved.ma-mesn.demo_margin`: – → 1.0:" in text
     )
     assert "| mid | `f` | all | 0 of 2 | – | – | – | – |" in text  # the study, on its new recipe
     assert "| mid | `f` | all | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | – |" in text, text  # set aside
@@ -630,6 +631,40 @@ def test_runs_set_aside_wait_beside_the_ledger_on_the_page_and_come_back_with_th
     assert back.has({"seed": 0}) and note.startswith("1 runs of this request taken back")
     render(docs, tmp_path / "r.md")
     assert "Runs set aside" not in (tmp_path / "r.md").read_text()
+
+
+def test_a_changed_arm_sets_aside_its_own_runs_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What moves is decided per run, by the job the request would now configure for its point: a parameter of
+    one algorithm's table moves that algorithm's runs and keeps the others'; a preset renamed to one that gives an
+    algorithm the same settings (DIAL cannot take a demonstration: "charger-demo" and "charger-dqfd" are "charger"
+    to it) keeps its runs; changed back, the arm's runs return. A change to what one algorithm takes of the preset
+    moves that algorithm's runs."""
+    from convoy import config
+    from convoy.cli.ledger import Ledger
+
+    path = tmp_path / "f.json"
+    spec = {"name": "f", "base": {"steps": 100, "preset": "charger-demo"},
+            "grid": {"algo": ["dial", "ims"], "seed": [0]}, "exclude": []}  # fmt: skip
+    ledger, _ = Ledger.open(path, spec)
+    for algo in ("dial", "ims"):
+        ledger.record({"algo": algo, "seed": 0}, {"final": {"eval_return": 1.0}})
+    renamed, note = Ledger.open(path, {**spec, "base": {"steps": 100, "preset": "charger-dqfd"}})
+    assert len(renamed.runs) == 2 and note == ""
+    replayed = {**spec, "algos": {"dial": {"replay": True}}}
+    changed, note = Ledger.open(path, replayed)
+    assert changed.has({"algo": "ims", "seed": 0}) and not changed.has({"algo": "dial", "seed": 0})
+    assert "1 runs measured under another request set aside" in note
+    back, note = Ledger.open(path, spec)
+    assert len(back.runs) == 2 and "1 runs of this request taken back" in note
+    real = config.preset_params  # what DIAL takes of the preset changes (the preset's definition does not)
+
+    def dial_otherwise(name: str, algo: str, hierarchical: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+        env_params, algo_params = real(name, algo, hierarchical)
+        return env_params, {**algo_params, "lr_end": 1e-5} if algo == "dial" else algo_params
+
+    monkeypatch.setattr(config, "preset_params", dial_otherwise)
+    changed, note = Ledger.open(path, spec)
+    assert changed.has({"algo": "ims", "seed": 0}) and not changed.has({"algo": "dial", "seed": 0}), note
 
 
 def test_a_sweep_left_running_under_a_request_the_command_no_longer_makes_is_named(tmp_path: Path) -> None:
