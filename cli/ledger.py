@@ -145,7 +145,7 @@ class Ledger:
         it; the other runs stay, and set-aside runs this request would configure as they were measured come back.
         """
         spec = request(spec)
-        now = measures(spec, preset_table(spec)) or {}
+        now = measures(spec, None) or {}  # no kept settings to compare: the preset as defined today
         data = json.loads(path.read_text()) if path.is_file() else {"spec": spec}
         runs = dict(data.get("runs", {}))
         before = measures(data["spec"], data.get("preset"))

@@ -225,9 +225,10 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
     """A section on the runs a study measured under an earlier recipe (``ledger/SCALE/set-aside/``): what changed
     since, and their scores, which the study's figure does not count. Files set aside by the same change share a
     table."""
+    asides = sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json"))
     tables: dict[str, list[str]] = {}
-    for path in sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")):
-        current = path.parent.parent / f"{path.stem.rsplit('-', 1)[0]}.json"
+    for path in asides:
+        current = path.parent.parent / f"{file_of(path)}.json"
         now = json.loads(current.read_text()) if current.is_file() else None
         change = recipe_change(json.loads(path.read_text()), now) or "a study no longer measured"
         tables.setdefault(change, []).extend(ledger_rows(path, path.parent.parent.name))
@@ -241,9 +242,9 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
     for change, rows in tables.items():
         lines += ["", f"Since {change}:", "", *LEDGER_HEAD, *rows]
     drawn = {path.parent.name for path in in_progress(docs, records)}  # with the study's curves above
-    for folder in sorted({p.parent for p in (docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")}):
+    for folder in sorted({p.parent for p in asides}):
         if folder.parent.name not in drawn:
-            lines += study_curves(docs, rel, folder.parent.name, sorted(folder.glob("*.json")))
+            lines += study_curves(docs, rel, folder.parent.name, [p for p in asides if p.parent == folder])
     return lines
 
 

@@ -564,12 +564,9 @@ def preset_params(name: str, algo: str, hierarchical: bool = False) -> tuple[dic
         name = "charger"  # no demonstration to start from: nor its gentle start
     env_params, settings = preset_settings(name)
     fields = ALGORITHMS[algo_name(algo)].config.model_fields
-    algo_params = {k: v for k, v in settings.items() if k in fields}
-    if hierarchical or algo_name(algo) == "dial":
-        algo_params.pop("n_step", None)
-    if algo_name(algo) == "dial":
-        algo_params = {k: v for k, v in algo_params.items() if k not in ("target_tau", "policy_ema")}
-    return env_params, algo_params
+    dial = algo_name(algo) == "dial"
+    left_out = ({"n_step"} if hierarchical or dial else set()) | ({"target_tau", "policy_ema"} if dial else set())
+    return env_params, {k: v for k, v in settings.items() if k in fields and k not in left_out}
 
 
 def env_name(name: str) -> str:
