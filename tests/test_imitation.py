@@ -143,7 +143,8 @@ def test_train_starts_from_the_demonstrator_once_and_a_resume_goes_on(tmp_path, 
         for seed in (0, 1):
             demo = json.loads((out / f"seed-{seed}" / imitation.DEMONSTRATION_FILE).read_text())
             assert demo["demo_env_steps"] > 0 and len(demo["rounds"]) == 2
-            assert demo["demo_s"] >= sum(r["seconds"] for r in demo["rounds"]) > 0
+            rounds_s = sum(r["seconds"] for r in demo["rounds"])  # each rounded to 0.1 s, as the total is
+            assert demo["demo_s"] >= rounds_s - 0.05 * len(demo["rounds"]) and rounds_s > 0
             assert load_checkpoint(out / f"seed-{seed}" / "checkpoint.pt", device="cpu")[2]["env_steps"] == 0
 
         def again(*_a, **_k):
