@@ -144,6 +144,21 @@ def holm(verdicts: list[Verdict]) -> list[Verdict]:
     return verdicts
 
 
+def judged_returns(
+    groups: list[dict[str, Any]], extra: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any], str]:
+    """The returns a figure's claims are judged on, and which: where every run of every group was re-scored on the
+    held-out episodes, its last policy's held-out return (the same policy as its final evaluation's, on more
+    episodes that nothing was chosen on) and the references on those very episodes; else each run's final greedy
+    evaluation."""
+    lasts = [((g.get("held_out") or {}).get("last") or {}).get("values") or [] for g in groups]
+    if not any(lasts) or any(len(v) != len(g["final"]["values"]) for v, g in zip(lasts, groups, strict=True)):
+        return groups, extra, "final"
+    held = [{**g, "final": {**g["final"], "values": v}} for g, v in zip(groups, lasts, strict=True)]
+    refs = extra.get("held_out_references") or extra.get("references") or {}
+    return held, {**extra, "references": refs}, "held_out"
+
+
 def judge_figure(
     claims: list[dict[str, Any]], groups: dict[str, dict[str, Any]], extra: dict[str, Any]
 ) -> list[Verdict]:

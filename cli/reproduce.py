@@ -30,7 +30,7 @@ from typing import Any
 
 from rich.console import Console
 
-from convoy.analysis.verdicts import figure_verdict, judge_figure
+from convoy.analysis.verdicts import figure_verdict, judge_figure, judged_returns
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import busy_seconds, group_name
 from convoy.cli.args import add_command
@@ -684,21 +684,6 @@ def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, 
     return {"verdicts": [v.__dict__ for v in verdicts], "verdict": figure_verdict(verdicts), "judged_on": on}
 
 
-def judged_returns(
-    groups: list[dict[str, Any]], extra: dict[str, Any]
-) -> tuple[list[dict[str, Any]], dict[str, Any], str]:
-    """The returns a figure's claims are judged on, and which: where every run of every group was re-scored on the
-    held-out episodes, its last policy's held-out return (the same policy as its final evaluation's, on more
-    episodes that nothing was chosen on) and the references on those very episodes; else each run's final greedy
-    evaluation."""
-    lasts = [((g.get("held_out") or {}).get("last") or {}).get("values") or [] for g in groups]
-    if not any(lasts) or any(len(v) != len(g["final"]["values"]) for v, g in zip(lasts, groups, strict=True)):
-        return groups, extra, "final"
-    held = [{**g, "final": {**g["final"], "values": v}} for g, v in zip(groups, lasts, strict=True)]
-    refs = extra.get("held_out_references") or extra.get("references") or {}
-    return held, {**extra, "references": refs}, "held_out"
-
-
 def rejudge(files: dict[str, Any], docs: Path, fig: str) -> dict[str, Any]:
     """Figure ``fig``'s stored record with its verdicts judged again from its stored measurements."""
     path = docs / f"{fig}.json"
@@ -745,7 +730,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         for fig in wanted:
             record = rejudge(files, docs, fig)
             plain(out, f"{fig}: {record['verdict']} — rewrote {docs / (fig + '.json')}")
-        render(docs, page)
+        render(docs, page, files)
         plain(out, f"wrote {page}")
         return 0
     with contextlib.ExitStack() as stack:
@@ -762,7 +747,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             Console(stderr=True).print(f"[bold red]error:[/] {exc.line()}", highlight=False, soft_wrap=True)
             return exc.code
         finally:
-            render(docs, page)
+            render(docs, page, files)
             plain(out, f"wrote {page}")
     return 0
 

@@ -11,7 +11,7 @@ import textwrap
 from pathlib import Path
 from typing import Any, cast
 
-from convoy.analysis.verdicts import mean_ci, p_above, significant
+from convoy.analysis.verdicts import judge, judged_returns, mean_ci, p_above, significant
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import group_name
 from convoy.cli.ledger import SET_ASIDE, Ledger, recipe
@@ -173,7 +173,44 @@ def in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[Path]:
             if (path.parent.name, path.stem) not in read and not path.stem.endswith("-tuning")]  # fmt: skip
 
 
-def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[str]:
+Files = dict[str, list[tuple[Path, dict[str, Any]]]]  # experiment files by figure id (cli/reproduce.figure_files)
+
+
+def interim_comparisons(paths: list[Path], files: Files) -> list[str]:
+    """Table rows of the figures' comparisons between groups (one group above another, the share of a told
+    learner's gain recovered) on the runs the ledgers ``paths`` hold so far: the difference with its 95 % CI, the
+    fraction with its bootstrap CI, on the held-out returns where every run has one. A comparison waits until each
+    of its groups holds two runs; no verdict, since the family of tests is not complete."""
+    rows = []
+    for fig, parts in files.items():
+        stems = {path.stem for path, _ in parts}
+        for scale in dict.fromkeys(p.parent.name for p in paths if p.stem in stems):
+            held = [g for p in paths if p.stem in stems and p.parent.name == scale for _, g, _ in ledger_groups(p) if g]
+            groups, _, on = judged_returns(held, {})
+            by_name = {g["group"]: g for g in groups}
+            for claim in parts[0][1]["figure"].get("claims", []):
+                named = [claim[k] for k in ("better", "than", "recovers", "own", "told") if k in claim]
+                between = "than" in claim or "recovers" in claim  # not a reference, a paper number, an analysis
+                if not between or scale not in claim.get("scales", [scale]):
+                    continue
+                seeds = [len(by_name[n]["final"]["values"]) if n in by_name else 0 for n in named]
+                if min(seeds) < 2:
+                    continue
+                v = judge(claim, by_name, {})
+                goal = f"; goal ≥ {float(claim['goal']):.0%}" if "goal" in claim else ""
+                rows.append(f"| {scale} | {fig} | {v.claim} | {'/'.join(map(str, seeds))} | {v.ours}{goal} | "
+                            f"{'held out' if on == 'held_out' else 'final evaluation'} |")  # fmt: skip
+    if not rows:
+        return []
+    return ["", *textwrap.wrap("Interim comparisons on the seeds held (the figure's claims between groups; runs "
+                               "per group in claim order; no verdict until every group has run):", 108),
+            "", "| scale | figure | comparison | runs | interim | on |", "|---|---|---|---|---|---|",
+            *rows]  # fmt: skip
+
+
+def studies_in_progress(
+    docs: Path, records: dict[str, dict[str, Any]], rel: str, files: Files | None = None
+) -> list[str]:
     """A section on the ledgers no figure at their scale has read yet (``in_progress``), with their curves beside
     those of their runs set aside, so that a study that takes days shows where it stands between sessions.
     Interim: no verdict until the figure is run to the end."""
@@ -194,7 +231,7 @@ def studies_in_progress(docs: Path, records: dict[str, dict[str, Any]], rel: str
                            "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
                            "where it stopped. The curves: solid, the study; dashed, its runs set aside (below).",
                            108),
-            "", *LEDGER_HEAD, *rows, *curves]  # fmt: skip
+            "", *LEDGER_HEAD, *rows, *interim_comparisons(paths, files or {}), *curves]  # fmt: skip
 
 
 def flat(table: Any, prefix: str = "") -> dict[str, Any]:
@@ -248,8 +285,9 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
     return lines
 
 
-def render(docs: Path, page: Path) -> None:
-    """``page`` from every figure's JSON in ``docs``: an overview table, then one section per figure."""
+def render(docs: Path, page: Path, files: Files | None = None) -> None:
+    """``page`` from every figure's JSON in ``docs``: an overview table, then one section per figure; with the
+    experiment ``files``, the interim comparisons of studies still training too."""
     records = {r["id"]: r for r in (json.loads(p.read_text()) for p in sorted(docs.glob("*.json")))}
     rel = os.path.relpath(docs, page.parent)
     lines = [
@@ -267,7 +305,7 @@ def render(docs: Path, page: Path) -> None:
                          f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
-    lines += studies_in_progress(docs, records, rel)
+    lines += studies_in_progress(docs, records, rel, files)
     lines += set_aside(docs, records, rel)
     for fig in FIGURES:
         if fig not in records:

@@ -713,6 +713,52 @@ def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_
     assert "Studies still training" not in page.read_text()
 
 
+def test_the_interim_table_compares_the_groups_a_figure_claims_about_once_each_holds_two_runs(tmp_path: Path) -> None:
+    """With the experiment files, the study's section adds the figure's claims between groups on the runs held so
+    far (held-out returns where every run has one): a difference with its CI, a recovered fraction with its goal;
+    a comparison whose group holds one run waits, and claims about references or analyses are not there."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduction_page import render
+
+    docs = tmp_path / "docs"
+    spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["idqn", "ma-mesn", "dial"], "seed": [0, 1]},
+            "exclude": []}  # fmt: skip
+    ledger, _ = Ledger.open(docs / "ledger" / "mid" / "fig3_centralised.json", spec)
+    told, _ = Ledger.open(
+        docs / "ledger" / "mid" / "fig3_told.json", {**spec, "grid": {"algo": ["ims"], "seed": [0, 1]}}
+    )
+    scores = {("idqn", 0): 100.0, ("idqn", 1): 110.0, ("ma-mesn", 0): 130.0, ("ma-mesn", 1): 134.0, ("dial", 0): 5.0,
+              ("ims", 0): 150.0, ("ims", 1): 160.0}  # fmt: skip
+    for (algo, seed), last in scores.items():
+        run = {
+            "job": f"{algo}{seed}",
+            "population": "p",
+            "env": "treadmill",
+            "env_steps": 100,
+            "rows": [],
+            "final": {"eval_return": 1.0},
+            "held_out": {"episodes": 500, "seed": 777, "last": last, "best": last},
+        }
+        (told if algo == "ims" else ledger).record({"algo": algo, "seed": seed}, run)
+    claims = [
+        {"text": "MA-MeSN above DQN", "better": "algo=ma-mesn", "than": "algo=idqn"},
+        {"text": "MA-MeSN above DIAL", "better": "algo=ma-mesn", "than": "algo=dial"},  # DIAL holds one run
+        {"text": "MA-MeSN recovers half", "recovers": "algo=ma-mesn", "own": "algo=idqn", "told": "algo=ims",
+         "goal": 0.5, "scales": ["mid"]},
+        {"text": "only at paper scale", "better": "algo=ims", "than": "algo=idqn", "scales": ["paper"]},
+        {"text": "MA-MeSN above the scripted driver", "group": "algo=ma-mesn", "above_reference": "scripted"},
+    ]  # fmt: skip
+    files = {"fig3": [(Path("fig3_centralised.toml"), {"figure": {"claims": claims}}), (Path("fig3_told.toml"), {})]}
+    page = tmp_path / "r.md"
+    render(docs, page, files)
+    text = page.read_text()
+    assert "| mid | fig3 | MA-MeSN above DQN | 2/2 | 132 ± 25 (n=2) vs 105 ± 64 (n=2); difference +27 [" in text, text
+    assert "| mid | fig3 | MA-MeSN recovers half | 2/2/2 | 54% [" in text and "; goal ≥ 50% | held out |" in text
+    assert "above DIAL" not in text and "paper scale" not in text and "scripted driver" not in text
+    render(docs, page)  # without the files: the table of runs only
+    assert "Interim comparisons" not in page.read_text()
+
+
 def _points(body: dict[str, Any]) -> list[dict[str, Any]]:
     return [job.point for job in expand(build_config(SweepSubmit, **body))]
 
