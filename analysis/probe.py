@@ -9,7 +9,9 @@ where it is itself (a word may name a window cell, which needs the listener's ow
 is scored beside the same probe on the listener's place alone (what it could guess without hearing anything: the
 chaser comes from behind more often) and on a hand-designed 16-bit code (``envs.treadmill.drivers.encode16``, the
 team16 driver's word: the cell of the car a teammate sees closing in fastest), which carries the chaser's cell by
-design: a learned channel that carries the information scores near that, a cut channel at the place-only figure.
+design: a learned channel that carries the information scores near that. The messages are those sent, which on an
+open channel are those heard; a channel-cut twin's speakers send too, though no listener hears them, so its figure
+is that of a message network no listener shaped (measured at mid: 0.30 against 0.27 from the place alone).
 """
 
 from __future__ import annotations

@@ -159,6 +159,20 @@ def judged_returns(
     return held, {**extra, "references": refs}, "held_out"
 
 
+def metric_values(analyses: list[dict[str, Any]]) -> tuple[dict[str, dict[str, list[Any]]], dict[str, str]]:
+    """Each analysis figure's values and shuffled baselines over runs (``analyses``: one stored analysis a run, as
+    Table 1's recording writes it), keyed as ``metric`` claims name them, and each key's readable name."""
+    figures: dict[str, dict[str, list[Any]]] = {}
+    names: dict[str, str] = {}
+    for analysis in analyses:
+        for f in analysis["figures"]:
+            names[f["key"]] = f["name"]
+            entry = figures.setdefault(f["key"], {"value": [], "shuffled": []})
+            entry["value"].append(f["value"])
+            entry["shuffled"].append(f["shuffled"])
+    return figures, names
+
+
 def judge_figure(
     claims: list[dict[str, Any]], groups: dict[str, dict[str, Any]], extra: dict[str, Any]
 ) -> list[Verdict]:

@@ -126,6 +126,11 @@ def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
     return {**rest, key: params} if params else rest
 
 
+def analysis_key(opts: dict[str, Any]) -> dict[str, Any]:
+    """The settings an analysis depends on (a run analysed under others is analysed again where it can be)."""
+    return {k: opts[k] for k in ("samples", "episodes", "seed", "num_envs") if k in opts}
+
+
 @dataclass
 class Ledger:
     """One experiment file's runs at one scale: the sweep request they were measured under and, per grid point,

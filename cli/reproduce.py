@@ -30,12 +30,12 @@ from typing import Any
 
 from rich.console import Console
 
-from convoy.analysis.verdicts import figure_verdict, judge_figure, judged_returns
+from convoy.analysis.verdicts import figure_verdict, judge_figure, judged_returns, metric_values
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import busy_seconds, group_name
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
-from convoy.cli.ledger import Ledger, point_key, request
+from convoy.cli.ledger import Ledger, analysis_key, point_key, request
 from convoy.cli.reproduction_page import FIGURES, duration, render
 from convoy.cli.sweep_file import read_file, scale_table, skipped, sweep_body
 from convoy.config import MAX_POPULATION
@@ -592,8 +592,7 @@ def analyse_group(
     ledger holds them, analysed now (and recorded) where a run was measured under other settings and its
     checkpoint is still on the service."""
     ledger: Ledger = group["ledger"]
-    figures: dict[str, dict[str, list[Any]]] = {}
-    last = None
+    analyses = []
     for run in group["runs"]:
         analysis = run.get("analysis")
         if analysis is None or analysis["opts"] != analysis_key(opts):
@@ -603,18 +602,10 @@ def analyse_group(
                       "settings and no checkpoint on this service: left out")  # fmt: skip
                 continue
             ledger.record(run["point"], {**{k: v for k, v in run.items() if k != "point"}, "analysis": analysis})
-        last = analysis
-        for f in analysis["figures"]:
-            names[f["key"]] = f["name"]
-            entry = figures.setdefault(f["key"], {"value": [], "shuffled": []})
-            entry["value"].append(f["value"])
-            entry["shuffled"].append(f["shuffled"])
-    return figures, last
-
-
-def analysis_key(opts: dict[str, Any]) -> dict[str, Any]:
-    """The settings an analysis depends on (a run analysed under others is analysed again where it can be)."""
-    return {k: opts[k] for k in ("samples", "episodes", "seed", "num_envs") if k in opts}
+        analyses.append(analysis)
+    figures, keys = metric_values(analyses)
+    names.update(keys)
+    return figures, analyses[-1] if analyses else None
 
 
 RECORDED = (

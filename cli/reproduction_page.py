@@ -11,10 +11,10 @@ import textwrap
 from pathlib import Path
 from typing import Any, cast
 
-from convoy.analysis.verdicts import judge, judged_returns, mean_ci, p_above, significant
+from convoy.analysis.verdicts import judge, judged_returns, mean_ci, metric_values, p_above, significant
 from convoy.api.models import SweepSubmit
 from convoy.api.sweeps import group_name
-from convoy.cli.ledger import SET_ASIDE, Ledger, recipe
+from convoy.cli.ledger import SET_ASIDE, Ledger, analysis_key, recipe
 from convoy.envs.treadmill.config import RULES as TREADMILL_RULES
 from convoy.validation import build_config
 
@@ -177,35 +177,72 @@ Files = dict[str, list[tuple[Path, dict[str, Any]]]]  # experiment files by figu
 
 
 def interim_comparisons(paths: list[Path], files: Files) -> list[str]:
-    """Table rows of the figures' comparisons between groups (one group above another, the share of a told
-    learner's gain recovered) on the runs the ledgers ``paths`` hold so far: the difference with its 95 % CI, the
-    fraction with its bootstrap CI, on the held-out returns where every run has one. A comparison waits until each
-    of its groups holds two runs; no verdict, since the family of tests is not complete."""
+    """Table rows of the figures' claims between groups on the runs the ledgers ``paths`` hold so far: one group
+    above another (the difference with its 95 % CI) and the share of a told learner's gain recovered (with its
+    bootstrap CI), on the held-out returns where every run has one; an analysis figure's (Table 1's) on its source
+    figure's runs analysed so far. A claim waits until each of its groups holds two runs; no verdict, since the
+    family of tests is not complete."""
     rows = []
     for fig, parts in files.items():
-        stems = {path.stem for path, _ in parts}
+        meta = parts[0][1].get("figure", {})
+        stems = {path.stem for path, _ in files.get(meta.get("source", fig), [])}
         for scale in dict.fromkeys(p.parent.name for p in paths if p.stem in stems):
             held = [g for p in paths if p.stem in stems and p.parent.name == scale for _, g, _ in ledger_groups(p) if g]
-            groups, _, on = judged_returns(held, {})
-            by_name = {g["group"]: g for g in groups}
-            for claim in parts[0][1]["figure"].get("claims", []):
-                named = [claim[k] for k in ("better", "than", "recovers", "own", "told") if k in claim]
-                between = "than" in claim or "recovers" in claim  # not a reference, a paper number, an analysis
-                if not between or scale not in claim.get("scales", [scale]):
-                    continue
-                seeds = [len(by_name[n]["final"]["values"]) if n in by_name else 0 for n in named]
-                if min(seeds) < 2:
-                    continue
-                v = judge(claim, by_name, {})
-                goal = f"; goal ≥ {float(claim['goal']):.0%}" if "goal" in claim else ""
-                rows.append(f"| {scale} | {fig} | {v.claim} | {'/'.join(map(str, seeds))} | {v.ours}{goal} | "
-                            f"{'held out' if on == 'held_out' else 'final evaluation'} |")  # fmt: skip
+            claims = [c for c in meta.get("claims", []) if scale in c.get("scales", [scale])]
+            if meta.get("kind") == "analysis":
+                found = analysed_claims(meta, scale, claims, {g["group"]: g for g in held})
+            else:
+                found = compared_claims(claims, held)
+            rows += [f"| {scale} | {fig} | {text} | {runs} | {ours} | {on} |" for text, runs, ours, on in found]
     if not rows:
         return []
-    return ["", *textwrap.wrap("Interim comparisons on the seeds held (the figure's claims between groups; runs "
+    return ["", *textwrap.wrap("Interim comparisons on the seeds held (the figures' claims between groups; runs "
                                "per group in claim order; no verdict until every group has run):", 108),
             "", "| scale | figure | comparison | runs | interim | on |", "|---|---|---|---|---|---|",
             *rows]  # fmt: skip
+
+
+def compared_claims(claims: list[dict[str, Any]], held: list[dict[str, Any]]) -> list[tuple[str, str, str, str]]:
+    """(claim, runs per group, interim figure, returns judged on) of the claims between returns of groups (not a
+    reference's or the paper's number) whose groups each hold two runs."""
+    groups, _, on = judged_returns(held, {})
+    by_name = {g["group"]: g for g in groups}
+    found = []
+    for claim in claims:
+        if "than" not in claim and "recovers" not in claim:
+            continue
+        named = [claim[k] for k in ("better", "than", "recovers", "own", "told") if k in claim]
+        seeds = [len(by_name[n]["final"]["values"]) if n in by_name else 0 for n in named]
+        if min(seeds) >= 2:
+            v = judge(claim, by_name, {})
+            goal = f"; goal ≥ {float(claim['goal']):.0%}" if "goal" in claim else ""
+            found.append((v.claim, "/".join(map(str, seeds)), v.ours + goal,
+                          "held out" if on == "held_out" else "final evaluation"))  # fmt: skip
+    return found
+
+
+def analysed_claims(
+    meta: dict[str, Any], scale: str, claims: list[dict[str, Any]], held: dict[str, dict[str, Any]]
+) -> list[tuple[str, str, str, str]]:
+    """The same for an analysis figure (Table 1): its claims on the analyses its groups' runs hold at the scale's
+    settings, where each group a claim reads has two."""
+    opts = meta.get("scales", {}).get(scale)
+    if opts is None:
+        return []
+    by_group, runs = {}, {}
+    for name in [meta["group"], *opts.get("also", [])]:
+        runs_held = (held.get(name) or {}).get("runs", [])
+        analyses = [r["analysis"] for r in runs_held if (r.get("analysis") or {}).get("opts") == analysis_key(opts)]
+        by_group[name], runs[name] = metric_values(analyses)[0], len(analyses)
+    extra = {"analysis": by_group[meta["group"]], "analysis_groups": by_group}
+    found = []
+    for claim in claims:
+        named = [claim.get("group", meta["group"]), *([claim["above_group"]] if "above_group" in claim else [])]
+        seeds = [runs.get(n, 0) for n in named]
+        if min(seeds) >= 2:
+            v = judge(claim, {}, extra)
+            found.append((v.claim, "/".join(map(str, seeds)), v.ours, "last checkpoints analysed"))
+    return found
 
 
 def studies_in_progress(

@@ -759,6 +759,49 @@ def test_the_interim_table_compares_the_groups_a_figure_claims_about_once_each_h
     assert "Interim comparisons" not in page.read_text()
 
 
+def test_the_interim_table_judges_table_1_on_the_runs_analysed_at_its_settings(tmp_path: Path) -> None:
+    """An analysis figure's claims (Table 1) read its source figure's ledgers: each group's runs analysed at the
+    scale's settings (a run analysed under others is left out), a claim across groups once each has two."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduction_page import render
+
+    docs = tmp_path / "docs"
+    spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["ma-mesn", "idqn"], "seed": [0, 1, 2]},
+            "exclude": []}  # fmt: skip
+    ledger, _ = Ledger.open(docs / "ledger" / "mid" / "fig3_centralised.json", spec)
+    opts = {"samples": 64, "episodes": 2}
+    values = {("ma-mesn", 0): (0.4, 150.0), ("ma-mesn", 1): (0.5, 160.0), ("ma-mesn", 2): (0.9, 999.0),
+              ("idqn", 0): (0.1, 0.0), ("idqn", 1): (0.2, 0.0)}  # fmt: skip
+    for (algo, seed), (influence, sent) in values.items():
+        figures = [{"key": "causal_influence", "name": "CI", "value": influence, "shuffled": 0.05},
+                   {"key": "return_sent", "name": "sent", "value": sent, "shuffled": None},
+                   {"key": "return_shuffled", "name": "shuffled", "value": sent - 20.0, "shuffled": None}]  # fmt: skip
+        analysed = {**opts, "samples": 32} if seed == 2 else opts  # seed 2: other settings, left out
+        run = {
+            "job": f"{algo}{seed}",
+            "population": "p",
+            "env": "treadmill",
+            "env_steps": 100,
+            "rows": [],
+            "final": {"eval_return": 1.0},
+            "analysis": {"opts": analysed, "title": "t", "figures": figures},
+        }
+        ledger.record({"algo": algo, "seed": seed}, run)
+    claims = [{"text": "shuffled costs", "metric": "return_shuffled", "below": "return_sent"},
+              {"text": "hears more than DQN", "metric": "causal_influence", "above_group": "algo=idqn"}]  # fmt: skip
+    table1: dict[str, Any] = {"id": "table1", "kind": "analysis", "source": "fig3", "group": "algo=ma-mesn",
+                              "scales": {"mid": {**opts, "also": ["algo=idqn"]}}, "claims": claims}  # fmt: skip
+    files = {"fig3": [(Path("fig3_centralised.toml"), {"figure": {"claims": []}})],
+             "table1": [(Path("table1_communication.toml"), {"figure": table1})]}  # fmt: skip
+    page = tmp_path / "r.md"
+    render(docs, page, files)
+    text = page.read_text()
+    assert "| mid | table1 | shuffled costs | 2 | 135 ± 64 (n=2) vs 155 ± 64 (n=2); paired gap +20 " in text, text
+    assert (
+        "| mid | table1 | hears more than DQN | 2/2 | 0.45 ± 0.64 (n=2) vs 0.15 ± 0.64 (n=2); difference +0.3 [" in text
+    )
+
+
 def _points(body: dict[str, Any]) -> list[dict[str, Any]]:
     return [job.point for job in expand(build_config(SweepSubmit, **body))]
 
