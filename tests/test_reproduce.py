@@ -730,15 +730,7 @@ def test_the_interim_table_compares_the_groups_a_figure_claims_about_once_each_h
     scores = {("idqn", 0): 100.0, ("idqn", 1): 110.0, ("ma-mesn", 0): 130.0, ("ma-mesn", 1): 134.0, ("dial", 0): 5.0,
               ("ims", 0): 150.0, ("ims", 1): 160.0}  # fmt: skip
     for (algo, seed), last in scores.items():
-        run = {
-            "job": f"{algo}{seed}",
-            "population": "p",
-            "env": "treadmill",
-            "env_steps": 100,
-            "rows": [],
-            "final": {"eval_return": 1.0},
-            "held_out": {"episodes": 500, "seed": 777, "last": last, "best": last},
-        }
+        run = _ledger_run(f"{algo}{seed}", held_out={"episodes": 500, "seed": 777, "last": last, "best": last})
         (told if algo == "ims" else ledger).record({"algo": algo, "seed": seed}, run)
     claims = [
         {"text": "MA-MeSN above DQN", "better": "algo=ma-mesn", "than": "algo=idqn"},
@@ -777,15 +769,7 @@ def test_the_interim_table_judges_table_1_on_the_runs_analysed_at_its_settings(t
                    {"key": "return_sent", "name": "sent", "value": sent, "shuffled": None},
                    {"key": "return_shuffled", "name": "shuffled", "value": sent - 20.0, "shuffled": None}]  # fmt: skip
         analysed = {**opts, "samples": 32} if seed == 2 else opts  # seed 2: other settings, left out
-        run = {
-            "job": f"{algo}{seed}",
-            "population": "p",
-            "env": "treadmill",
-            "env_steps": 100,
-            "rows": [],
-            "final": {"eval_return": 1.0},
-            "analysis": {"opts": analysed, "title": "t", "figures": figures},
-        }
+        run = _ledger_run(f"{algo}{seed}", analysis={"opts": analysed, "title": "t", "figures": figures})
         ledger.record({"algo": algo, "seed": seed}, run)
     claims = [{"text": "shuffled costs", "metric": "return_shuffled", "below": "return_sent"},
               {"text": "hears more than DQN", "metric": "causal_influence", "above_group": "algo=idqn"}]  # fmt: skip
@@ -800,6 +784,12 @@ def test_the_interim_table_judges_table_1_on_the_runs_analysed_at_its_settings(t
     assert (
         "| mid | table1 | hears more than DQN | 2/2 | 0.45 ± 0.64 (n=2) vs 0.15 ± 0.64 (n=2); difference +0.3 [" in text
     )
+
+
+def _ledger_run(job: str, **parts: Any) -> dict[str, Any]:
+    """A completed run as the ledger records it, with ``parts`` (its held-out scores, its analysis, …)."""
+    return {"job": job, "population": "p", "env": "treadmill", "env_steps": 100, "rows": [],
+            "final": {"eval_return": 1.0}, **parts}  # fmt: skip
 
 
 def _points(body: dict[str, Any]) -> list[dict[str, Any]]:
