@@ -1,6 +1,7 @@
 """``docs/reproduction.md``: the page ``convoy reproduce`` renders from every figure's stored record
-(``docs/reproduction/ID.json``) and from the ledgers of studies still training (``docs/reproduction/ledger/``), so
-figures measured in separate runs, sessions or machines share one page and the page regenerates without the runs.
+(``docs/reproduction/ID.json``) and from the ledgers of studies still training (``docs/reproduction/ledger/``, with
+their figures' claims between groups judged on the seeds held so far), so figures measured in separate runs,
+sessions or machines share one page and the page regenerates without the runs.
 """
 
 from __future__ import annotations
