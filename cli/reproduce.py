@@ -153,7 +153,7 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
     sees each member as soon as it completes. Interrupted, every sweep still running is stopped (each job
     checkpoints), so that the same command continues them."""
     sweeps = [sweep for sweep, _ in started]
-    t0, said, last, done0 = time.monotonic(), "", 0.0, None
+    t0, said, last, first_seen = time.monotonic(), "", 0.0, dict[str, int]()
     try:
         while True:
             for sweep, (_, harvest) in zip(sweeps, started, strict=True):
@@ -175,10 +175,10 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                 text += f" ({len(demo)} in DAgger round {', '.join(played)})"
             if len(sweeps) > 1:
                 text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
-            done0 = done if done0 is None else done0
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:
                 took = time.monotonic() - t0
-                plain(out, f"{text} · {took / 60:.1f} min{time_left(asked - done, done - done0, took)}")
+                pace = time_left(asked - done, stepped(members, first_seen), took)
+                plain(out, f"{text} · {took / 60:.1f} min{pace}")
                 said, last = text, time.monotonic()
             time.sleep(POLL_S)
             sweeps = [s if s["state"] != "running" else api.call("GET", f"/sweeps/{s['id']}") for s in sweeps]
@@ -194,6 +194,18 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                            f"resume it (`convoy sweep resume {sweep['id']}`) or run the command again")  # fmt: skip
     plain(out, f"{label}: {len(sweeps)} sweep(s) ended after {(time.monotonic() - t0) / 60:.1f} min")
     return sweeps
+
+
+def stepped(members: list[dict[str, Any]], first_seen: dict[str, int]) -> int:
+    """The env steps the sweeps' ``members`` took while this command watched them: each member's count beyond the
+    first one above 0 it was seen with (``first_seen``, filled here), since a resumed run reports its checkpoint's
+    steps at once and a run completed before reports all of its steps."""
+    total = 0
+    for m in members:
+        steps = min(m.get("env_steps", 0), m.get("steps", 0))
+        if steps > 0:
+            total += steps - first_seen.setdefault(str(m["id"]), steps)
+    return total
 
 
 def time_left(left: int, done: int, seconds: float) -> str:

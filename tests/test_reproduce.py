@@ -459,6 +459,21 @@ def test_the_progress_line_guesses_the_time_left_from_this_commands_pace() -> No
     assert time_left(900, 100, 600.0) == " · ~1.5 h left at this pace"
 
 
+def test_the_pace_counts_the_steps_taken_while_the_command_watched() -> None:
+    """A run resumed from a checkpoint (or completed before) reports its steps at once: they are not this command's
+    pace; a fresh run counts from the first steps it reports."""
+    from convoy.cli.reproduce import stepped
+
+    seen: dict[str, int] = {}
+    members = [{"id": "done", "steps": 100, "env_steps": 100}, {"id": "resumed", "steps": 100, "env_steps": 60},
+               {"id": "fresh", "steps": 100, "env_steps": 0}]  # fmt: skip
+    assert stepped(members, seen) == 0
+    members[1]["env_steps"], members[2]["env_steps"] = 70, 5
+    assert stepped(members, seen) == 10  # the fresh run's first 5 steps are its first count
+    members[1]["env_steps"], members[2]["env_steps"] = 90, 25
+    assert stepped(members, seen) == 30 + 20
+
+
 def test_claims_are_judged_on_held_out_returns_where_every_run_has_them() -> None:
     """Held-out scores are the same last policies on more episodes nothing was chosen on: where every run of every
     group has one, the claims read them and the references on those episodes; a run without one leaves the whole
