@@ -197,8 +197,12 @@ def judge(claim: dict[str, Any], groups: dict[str, dict[str, Any]], extra: dict[
         if "above_reference" in claim:
             a = _finals(groups, claim["group"])
             ref = extra.get("references", {}).get(claim["above_reference"])
-            if ref is None or not a:
-                return Verdict(text, paper, "no reference or no final returns", NOT, "nothing to compare")
+            if ref is None:  # the env's references were measured without it (other rules): no evidence either way
+                known = ", ".join(extra.get("references", {})) or "none"
+                return Verdict(text, paper, "not measured", NOT_SHOWN,
+                               f"no reference {claim['above_reference']!r} (measured: {known})")  # fmt: skip
+            if not a:
+                return Verdict(text, paper, "no final returns yet", NOT, "a group has no completed job")
             ours = f"{mean_ci(a)} vs {claim['above_reference']} {ref:.3g}"
             return _tested(text, paper, ours, *p_above(a, float(ref)))
         if "group" in claim and "paper" in claim:

@@ -223,6 +223,8 @@ def test_claims_get_strict_verdicts_from_one_sided_tests() -> None:
     assert judge({"text": "", "group": "a", "paper": 12.5}, groups, {}).verdict == NOT  # outside our CI: not "partly"
     missing = judge({"text": "", "better": "a", "than": "nope"}, groups, {})
     assert missing.verdict == NOT_SHOWN and "no group 'nope'" in missing.why
+    unmeasured = judge({"text": "", "group": "a", "above_reference": "planner"}, groups, refs)  # other rules' table
+    assert unmeasured.verdict == NOT_SHOWN and "no reference 'planner' (measured: scripted)" in unmeasured.why
     figures = {"analysis": {"sc": {"value": [0.3, 0.32, 0.29], "shuffled": [0.1, 0.11, 0.09]}}}
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, figures).verdict == REPRODUCED
     assert judge({"text": "", "metric": "sc", "above": "shuffled"}, groups, {}).verdict == NOT_SHOWN  # not measured
