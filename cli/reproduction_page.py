@@ -123,16 +123,26 @@ def file_of(path: Path) -> str:
     return path.stem.rsplit("-", 1)[0] if path.parent.name == SET_ASIDE else path.stem
 
 
+def training_change(run: dict[str, Any]) -> float | None:
+    """A run's last greedy evaluation less its first: what its training added after where it started (for a run
+    started from a demonstrator, what Q-learning added to the clone, 10 k steps in)."""
+    curve = [float(r["eval_return"]) for r in run.get("rows", []) if r.get("eval_return") is not None]
+    return curve[-1] - curve[0] if len(curve) >= 2 else None
+
+
 def ledger_rows(path: Path, scale: str) -> list[str]:
     """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
-    Table 1's shuffled cost where a run was analysed, and the group's wall time."""
+    the change over training, Table 1's shuffled cost where a run was analysed, and the group's wall time."""
     rows = []
     for name, g, planned in ledger_groups(path):
         h = g.get("held_out") or {}
-        costs = [shuffled_cost(r["analysis"]) for r in g.get("runs", []) if r.get("analysis")]
-        rows.append(f"| {scale} | `{file_of(path)}` | {name} | {len(g.get('runs', []))} of {planned} | "
+        runs = g.get("runs", [])
+        costs = [shuffled_cost(r["analysis"]) for r in runs if r.get("analysis")]
+        changes = [training_change(r) for r in runs]
+        rows.append(f"| {scale} | `{file_of(path)}` | {name} | {len(runs)} of {planned} | "
                     f"{mean_ci((h.get('last') or {}).get('values', []))} | "
                     f"{mean_ci((h.get('best') or {}).get('values', []))} | "
+                    f"{mean_ci([c for c in changes if c is not None])} | "
                     f"{mean_ci([c for c in costs if c is not None])} | {wall_text(g)} |")  # fmt: skip
     return rows
 
@@ -162,8 +172,9 @@ def study_curves(docs: Path, rel: str, scale: str, paths: list[Path]) -> list[st
 
 
 LEDGER_HEAD = [
-    "| scale | file | group | seeds held | last, held out | best.pt, held out | shuffled costs | wall time |",
-    "|---|---|---|---|---|---|---|---|",
+    "| scale | file | group | seeds held | last, held out | best.pt, held out | first → last evaluation | "
+    "shuffled costs | wall time |",
+    "|---|---|---|---|---|---|---|---|---|",
 ]
 
 
@@ -264,7 +275,9 @@ def studies_in_progress(
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
                            "seeds held), no verdict until the command has run every group; wall time is its "
-                           "populations' learners, resumes and demonstration starts included; *shuffled costs* is "
+                           "populations' learners, resumes and demonstration starts included; *first → last "
+                           "evaluation* is what training added to where a run started (its last greedy evaluation "
+                           "less its first, 10 k steps after a demonstration start); *shuffled costs* is "
                            "Table 1's paired cost of hearing another env's messages (return with true messages − "
                            "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
                            "where it stopped. The curves: solid, the study; dashed, its runs set aside (below).",

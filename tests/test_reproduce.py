@@ -708,19 +708,26 @@ def test_the_page_shows_a_study_still_training_from_its_ledger_until_its_figure_
     spec = {"name": "f", "base": {"steps": 100}, "grid": {"algo": ["idqn", "ma-mesn"], "seed": [0, 1]}, "exclude": []}
     ledger, _ = Ledger.open(docs / "ledger" / "mid" / "fig3_centralised.json", spec)
     held_out = {"episodes": 500, "seed": 777, "last": 130.0, "best": 140.0}
-    run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "rows": [], "wall_s": 3600.0,
+    curve = [{"env_steps": 50, "eval_return": 120.0}, {"env_steps": 100, "eval_return": 128.0}]
+    run = {"job": "j0", "population": "p0", "env": "treadmill", "env_steps": 100, "rows": curve, "wall_s": 3600.0,
            "final": {"eval_return": 1.0, "clone_s": 600.0}, "held_out": held_out}  # fmt: skip
     ledger.record({"algo": "idqn", "seed": 0}, run)
     analysis = {"figures": [{"key": "return_sent", "value": 150.0}, {"key": "return_shuffled", "value": 110.0}]}
-    older = {**run, "job": "j1", "population": "p1", "final": {"eval_return": 1.0}, "analysis": analysis}  # no clone_s
+    # an older run: no clone_s, no curve
+    older = {**run, "job": "j1", "population": "p1", "rows": [], "final": {"eval_return": 1.0},
+             "analysis": analysis}  # fmt: skip
     ledger.record({"algo": "ma-mesn", "seed": 0}, older)
     page = tmp_path / "r.md"
     render(docs, page)
     text = page.read_text()
     assert "## Studies still training" in text
-    assert "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | 1.0 h |" in text, text
     assert (
-        "| algo=ma-mesn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 40 ± 0 (n=1) | 1.0 h (1 population(s) leave " in text
+        "| mid | `fig3_centralised` | algo=idqn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | 8 ± 0 (n=1) | – | 1.0 h |"
+        in text
+    )
+    assert (
+        "| algo=ma-mesn | 1 of 2 | 130 ± 0 (n=1) | 140 ± 0 (n=1) | – | 40 ± 0 (n=1) | 1.0 h (1 population(s) leave "
+        in text
     )
     record = {"id": "fig3", "title": "Fig. 3: x", "paper": "", "scale": "mid", "note": "", "minutes": 1.0,
               "files": ["experiments/fig3_centralised.toml"], "command": "convoy reproduce fig3 --scale mid",
