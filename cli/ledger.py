@@ -126,6 +126,13 @@ def _without_compile(table: dict[str, Any], key: str) -> dict[str, Any]:
     return {**rest, key: params} if params else rest
 
 
+def training_change(run: dict[str, Any]) -> float | None:
+    """A run's last greedy evaluation less its first: what training added to where the run started (for a run
+    started from a demonstrator, what Q-learning added to its clone, one evaluation period in)."""
+    curve = [float(r["eval_return"]) for r in run.get("rows", []) if r.get("eval_return") is not None]
+    return curve[-1] - curve[0] if len(curve) >= 2 else None
+
+
 def analysis_key(opts: dict[str, Any]) -> dict[str, Any]:
     """The settings an analysis depends on (a run analysed under others is analysed again where it can be)."""
     return {k: opts[k] for k in ("samples", "episodes", "seed", "num_envs") if k in opts}
@@ -216,6 +223,9 @@ class Ledger:
             g["wall_s"] = round(sum(walls.values()), 1) if walls else None
             # populations whose wall time may leave out a demonstration start (trained before runs said)
             g["clone_unknown"] = len({r["population"] for r in runs if (r.get("final") or {}).get("clone_s") is None})
+            changes = [c for c in map(training_change, runs) if c is not None]
+            if changes:
+                g["change"] = seeds_summary(changes)
             scored = [r["held_out"] for r in runs if r.get("held_out")]
             if scored:
                 g["held_out"] = {

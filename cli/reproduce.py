@@ -632,6 +632,7 @@ RECORDED = (
     "references",
     "wall_s",
     "clone_unknown",
+    "change",
 )  # per group
 
 

@@ -123,13 +123,6 @@ def file_of(path: Path) -> str:
     return path.stem.rsplit("-", 1)[0] if path.parent.name == SET_ASIDE else path.stem
 
 
-def training_change(run: dict[str, Any]) -> float | None:
-    """A run's last greedy evaluation less its first: what its training added after where it started (for a run
-    started from a demonstrator, what Q-learning added to the clone, 10 k steps in)."""
-    curve = [float(r["eval_return"]) for r in run.get("rows", []) if r.get("eval_return") is not None]
-    return curve[-1] - curve[0] if len(curve) >= 2 else None
-
-
 def ledger_rows(path: Path, scale: str) -> list[str]:
     """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
     the change over training, Table 1's shuffled cost where a run was analysed, and the group's wall time."""
@@ -138,11 +131,10 @@ def ledger_rows(path: Path, scale: str) -> list[str]:
         h = g.get("held_out") or {}
         runs = g.get("runs", [])
         costs = [shuffled_cost(r["analysis"]) for r in runs if r.get("analysis")]
-        changes = [training_change(r) for r in runs]
         rows.append(f"| {scale} | `{file_of(path)}` | {name} | {len(runs)} of {planned} | "
                     f"{mean_ci((h.get('last') or {}).get('values', []))} | "
                     f"{mean_ci((h.get('best') or {}).get('values', []))} | "
-                    f"{mean_ci([c for c in changes if c is not None])} | "
+                    f"{mean_ci((g.get('change') or {}).get('values', []))} | "
                     f"{mean_ci([c for c in costs if c is not None])} | {wall_text(g)} |")  # fmt: skip
     return rows
 
@@ -379,8 +371,11 @@ def render(docs: Path, page: Path, files: Files | None = None) -> None:
             head = " above random? |" if None not in rand else ""
             held = next((g["held_out"]["episodes"] for g in r["groups"] if g.get("held_out")), None)
             more = f" last, {held} held-out episodes | best.pt, held out |" if held else ""
+            changed = any(g.get("change") for g in r["groups"])  # records made before it was kept: no column
+            more += " first → last evaluation |" * changed
+            columns = 5 + 2 * bool(held) + changed + bool(head)
             lines += [f"| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve |{more} jobs |"
-                      f"{head}", "|---|---|---|---|" + "---|" * (1 + 2 * bool(held) + bool(head))]  # fmt: skip
+                      f"{head}", "|---" * columns + "|"]  # fmt: skip
             for g, ref in zip(r["groups"], rand, strict=True):
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
                 areas = (g.get("auc") or {}).get("values", [])  # records made before it was measured: –
@@ -389,6 +384,8 @@ def render(docs: Path, page: Path, files: Files | None = None) -> None:
                 if held:
                     h = g.get("held_out") or {}
                     row += "".join(f" {mean_ci((h.get(k) or {}).get('values', []))} |" for k in ("last", "best"))
+                if changed:
+                    row += f" {mean_ci((g.get('change') or {}).get('values', []))} |"
                 row += f" {states} |"
                 if head:
                     diff, p = p_above(g["final"]["values"], float(cast(float, ref)))

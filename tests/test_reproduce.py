@@ -114,7 +114,8 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert all(g["iqm"]["n"] == 2 and g["auc"]["n"] == 2 for g in record["groups"])  # the reviewer's aggregates
     assert all(g["held_out"]["last"]["n"] == g["held_out"]["best"]["n"] == 2 for g in record["groups"])
     assert all(0 < g["wall_s"] < 3600 for g in record["groups"]) and "Training wall time per group here" in page
-    assert "| last, 16 held-out episodes | best.pt, held out |" in page
+    assert "| last, 16 held-out episodes | best.pt, held out | first → last evaluation | jobs |" in page
+    assert all(g["change"]["n"] == 2 for g in record["groups"])  # what training added to where each run started
     tuning = record["tuning"]  # each algorithm's lr chosen on validation seed 7, then the figure on seeds 0 and 1
     assert set(tuning) == {"ma-mesn", "idqn"} and all(len(t["tried"]) == 2 for t in tuning.values())
     assert all(t["chosen"]["lr"] in (0.001, 0.003) for t in tuning.values())
