@@ -105,7 +105,10 @@ def shuffled_cost(analysis: dict[str, Any]) -> float | None:
     return None if sent is None or shuffled is None else float(sent) - float(shuffled)
 
 
-def ledger_groups(path: Path) -> list[tuple[str, dict[str, Any], int]]:
+Groups = list[tuple[str, dict[str, Any], int]]  # a ledger's groups: name, summary of the runs held, runs planned
+
+
+def ledger_groups(path: Path) -> Groups:
     """Per group of the ledger at ``path`` (grid order): its name, its summary from the runs held ({} for none) and
     the runs its grid plans."""
     from convoy.api.sweeps import expand
@@ -123,11 +126,18 @@ def file_of(path: Path) -> str:
     return path.stem.rsplit("-", 1)[0] if path.parent.name == SET_ASIDE else path.stem
 
 
-def ledger_rows(path: Path, scale: str) -> list[str]:
-    """One table row per group of the ledger at ``path``: the runs held of those planned, their held-out scores,
-    the change over training, Table 1's shuffled cost where a run was analysed, and the group's wall time."""
+def read_ledgers(paths: list[Path]) -> dict[Path, Groups]:
+    """Each ledger's groups, read once per render: a ledger that ``convoy reproduce`` writes meanwhile then reads
+    the same in every table and curve of the page."""
+    return {path: ledger_groups(path) for path in paths}
+
+
+def ledger_rows(path: Path, groups: Groups, scale: str) -> list[str]:
+    """One table row per group (``groups``) of the ledger at ``path``: the runs held of those planned, their
+    held-out scores, the change over training, Table 1's shuffled cost where a run was analysed, and the group's
+    wall time."""
     rows = []
-    for name, g, planned in ledger_groups(path):
+    for name, g, planned in groups:
         h = g.get("held_out") or {}
         runs = g.get("runs", [])
         costs = [shuffled_cost(r["analysis"]) for r in runs if r.get("analysis")]
@@ -139,17 +149,17 @@ def ledger_rows(path: Path, scale: str) -> list[str]:
     return rows
 
 
-def study_curves(docs: Path, rel: str, scale: str, paths: list[Path]) -> list[str]:
-    """The greedy curves of the ledgers ``paths`` at ``scale`` as ``ledger/SCALE/curves.png`` (one panel per
+def study_curves(docs: Path, rel: str, scale: str, ledgers: dict[Path, Groups]) -> list[str]:
+    """The greedy curves of the ``ledgers`` at ``scale`` as ``ledger/SCALE/curves.png`` (one panel per
     experiment file; a group's runs set aside dashed in its colour beside the study's), and the page's image line
     (``rel``: the docs folder from the page)."""
     from convoy.analysis.curves import plot_panels
 
     panels: dict[str, list[dict[str, Any]]] = {}
     colours: dict[str, str] = {}
-    for path in paths:
+    for path, groups in ledgers.items():
         aside = path.parent.name == SET_ASIDE
-        for name, g, _ in ledger_groups(path):
+        for name, g, _ in groups:
             if g.get("curve"):
                 colour = colours.setdefault(name, f"C{len(colours) % 10}")
                 label = name.replace("algo_params.", "").replace("env_params.", "") + " (set aside)" * aside
@@ -180,8 +190,8 @@ def in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[Path]:
 Files = dict[str, list[tuple[Path, dict[str, Any]]]]  # experiment files by figure id (cli/reproduce.figure_files)
 
 
-def interim_comparisons(paths: list[Path], files: Files) -> list[str]:
-    """Table rows of the figures' claims between groups on the runs the ledgers ``paths`` hold so far: one group
+def interim_comparisons(ledgers: dict[Path, Groups], files: Files) -> list[str]:
+    """Table rows of the figures' claims between groups on the runs the ``ledgers`` hold so far: one group
     above another (the difference with its 95 % CI) and the share of a told learner's gain recovered (with its
     bootstrap CI), on the held-out returns where every run has one; an analysis figure's (Table 1's) on its source
     figure's runs analysed so far. A claim waits until each of its groups holds two runs; no verdict, since the
@@ -190,8 +200,9 @@ def interim_comparisons(paths: list[Path], files: Files) -> list[str]:
     for fig, parts in files.items():
         meta = parts[0][1].get("figure", {})
         stems = {path.stem for path, _ in files.get(meta.get("source", fig), [])}
-        for scale in dict.fromkeys(p.parent.name for p in paths if p.stem in stems):
-            held = [g for p in paths if p.stem in stems and p.parent.name == scale for _, g, _ in ledger_groups(p) if g]
+        for scale in dict.fromkeys(p.parent.name for p in ledgers if p.stem in stems):
+            held = [g for p, groups in ledgers.items() if p.stem in stems and p.parent.name == scale
+                    for _, g, _ in groups if g]  # fmt: skip
             claims = [c for c in meta.get("claims", []) if scale in c.get("scales", [scale])]
             if meta.get("kind") == "analysis":
                 found = analysed_claims(meta, scale, claims, {g["group"]: g for g in held})
@@ -255,14 +266,14 @@ def studies_in_progress(
     """A section on the ledgers no figure at their scale has read yet (``in_progress``), with their curves beside
     those of their runs set aside, so that a study that takes days shows where it stands between sessions.
     Interim: no verdict until the figure is run to the end."""
-    paths = in_progress(docs, records)
-    rows = [row for path in paths for row in ledger_rows(path, path.parent.name)]
+    ledgers = read_ledgers(in_progress(docs, records))
+    rows = [row for path, groups in ledgers.items() for row in ledger_rows(path, groups, path.parent.name)]
     if not rows:
         return []
     curves = []
-    for scale in dict.fromkeys(path.parent.name for path in paths):
-        aside = sorted((docs / "ledger" / scale / SET_ASIDE).glob("*.json"))
-        curves += study_curves(docs, rel, scale, [*(p for p in paths if p.parent.name == scale), *aside])
+    for scale in dict.fromkeys(path.parent.name for path in ledgers):
+        aside = read_ledgers(sorted((docs / "ledger" / scale / SET_ASIDE).glob("*.json")))
+        curves += study_curves(docs, rel, scale, {p: g for p, g in ledgers.items() if p.parent.name == scale} | aside)
     return ["", "## Studies still training", "",
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
@@ -274,7 +285,7 @@ def studies_in_progress(
                            "with shuffled ones, last checkpoint) where a run was analysed. The same command goes on "
                            "where it stopped. The curves: solid, the study; dashed, its runs set aside (below).",
                            108),
-            "", *LEDGER_HEAD, *rows, *interim_comparisons(paths, files or {}), *curves]  # fmt: skip
+            "", *LEDGER_HEAD, *rows, *interim_comparisons(ledgers, files or {}), *curves]  # fmt: skip
 
 
 def flat(table: Any, prefix: str = "") -> dict[str, Any]:
@@ -305,13 +316,13 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
     """A section on the runs a study measured under an earlier recipe (``ledger/SCALE/set-aside/``): what changed
     since, and their scores, which the study's figure does not count. Files set aside by the same change share a
     table."""
-    asides = sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json"))
+    asides = read_ledgers(sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")))
     tables: dict[str, list[str]] = {}
-    for path in asides:
+    for path, groups in asides.items():
         current = path.parent.parent / f"{file_of(path)}.json"
         now = json.loads(current.read_text()) if current.is_file() else None
         change = recipe_change(json.loads(path.read_text()), now) or "a study no longer measured"
-        tables.setdefault(change, []).extend(ledger_rows(path, path.parent.parent.name))
+        tables.setdefault(change, []).extend(ledger_rows(path, groups, path.parent.parent.name))
     if not tables:
         return []
     lines = ["", "## Runs set aside", "",
@@ -324,7 +335,9 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
     drawn = {path.parent.name for path in in_progress(docs, records)}  # with the study's curves above
     for folder in sorted({p.parent for p in asides}):
         if folder.parent.name not in drawn:
-            lines += study_curves(docs, rel, folder.parent.name, [p for p in asides if p.parent == folder])
+            lines += study_curves(
+                docs, rel, folder.parent.name, {p: g for p, g in asides.items() if p.parent == folder}
+            )
     return lines
 
 
