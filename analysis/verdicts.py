@@ -325,7 +325,7 @@ def _judge_metric(claim: dict[str, Any], text: str, paper: str, figures: dict[st
     diff = [o - v for v, o in zip(values, other, strict=False)]
     if not diff:
         return Verdict(text, paper, ours, NOT_SHOWN, f"no figure {below!r}: run the figure again")
-    ours = f"{ours} vs {mean_ci(other)}; {difference_text(diff, word='paired gap')}"
+    ours = f"{below} {mean_ci(other)} vs {key} {ours}; {difference_text(diff, word='paired gap')}"  # the gap's order
     return _tested(text, paper, ours, *p_above(diff, 0.0))
 
 

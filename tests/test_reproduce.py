@@ -805,7 +805,10 @@ def test_the_interim_table_judges_table_1_on_the_runs_analysed_at_its_settings(t
     page = tmp_path / "r.md"
     render(docs, page, files)
     text = page.read_text()
-    assert "| mid | table1 | shuffled costs | 2 | 135 ± 64 (n=2) vs 155 ± 64 (n=2); paired gap +20 " in text, text
+    assert (
+        "| mid | table1 | shuffled costs | 2 | return_sent 155 ± 64 (n=2) vs return_shuffled 135 ± 64 (n=2); "
+        "paired gap +20 " in text
+    ), text
     assert (
         "| mid | table1 | hears more than DQN | 2/2 | 0.45 ± 0.64 (n=2) vs 0.15 ± 0.64 (n=2); difference +0.3 [" in text
     )
