@@ -349,6 +349,27 @@ def test_a_curve_plot_without_any_evaluation_says_so_instead_of_an_empty_legend(
     assert ax.get_legend() is None and [t.get_text() for t in ax.texts] == ["no greedy evaluation yet"]
 
 
+def test_a_study_panel_s_axis_shows_its_bands_and_not_a_set_aside_group_s(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Two seeds set aside have a band 12.7 t-widths wide: it must not flatten the study's curves."""
+    from convoy.analysis import curves
+
+    drawn: list[Any] = []
+
+    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
+        drawn.append(fig)
+        return Path(path)
+
+    monkeypatch.setattr(curves, "_save", save)
+    study = {"group": "a", "curve": {"env_steps": [0, 10], "mean": [150.0, 160.0], "ci95": [5.0, 5.0], "n": [6, 6]}}
+    aside = {"group": "a (set aside)", "linestyle": "--",
+             "curve": {"env_steps": [0, 10], "mean": [140.0, 170.0], "ci95": [300.0, 300.0], "n": [2, 2]}}  # fmt: skip
+    curves.plot_panels({"f": [study, aside]}, tmp_path / "c.png", "t")
+    low, high = drawn[0].axes[0].get_ylim()
+    assert 130 < low <= 140 and 170 <= high < 180, (low, high)
+
+
 def test_a_figure_from_an_earlier_treadmill_rule_set_is_flagged(tmp_path: Path) -> None:
     """A figure's record keeps the treadmill rules it was measured on; the page flags one from earlier rules (in the
     overview and under its heading), and says nothing for the current rules or another env."""
