@@ -306,16 +306,24 @@ def test_a_figures_claims_are_holm_corrected_together() -> None:
     assert [x.verdict for x in judge_figure(claims, groups, {})] == [REPRODUCED, NOT]
 
 
-def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def kept_figures(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The matplotlib figures the curve plots draw from now on, kept instead of written."""
     from convoy.analysis import curves
 
     drawn: list[Any] = []
 
-    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
+    def save(fig: Any, path: str | Path) -> Path:
         drawn.append(fig)
         return Path(path)
 
     monkeypatch.setattr(curves, "_save", save)
+    return drawn
+
+
+def test_fig4a_plot_draws_each_groups_own_references(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from convoy.analysis import curves
+
+    drawn = kept_figures(monkeypatch)
     groups = [
         {"point": {"algo": a, "n": n}, "final": {"mean": 10.0 * n, "ci95": 1.0},
          "references": {"random": float(n), "scripted": 5.0 * n, "full-information": 99.0}}
@@ -334,13 +342,7 @@ def test_a_curve_plot_without_any_evaluation_says_so_instead_of_an_empty_legend(
 
     from convoy.analysis import curves
 
-    drawn: list[Any] = []
-
-    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
-        drawn.append(fig)
-        return Path(path)
-
-    monkeypatch.setattr(curves, "_save", save)
+    drawn = kept_figures(monkeypatch)
     groups = [{"group": "a", "curve": {"env_steps": [0], "mean": [None], "ci95": [None], "n": [0]}}]
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # matplotlib warns about a legend with no labels
@@ -355,13 +357,7 @@ def test_a_study_panel_s_axis_shows_its_bands_and_not_a_set_aside_group_s(
     """Two seeds set aside have a band 12.7 t-widths wide: it must not flatten the study's curves."""
     from convoy.analysis import curves
 
-    drawn: list[Any] = []
-
-    def save(fig: Any, path: str | Path) -> Path:  # keeps the figure instead of writing it
-        drawn.append(fig)
-        return Path(path)
-
-    monkeypatch.setattr(curves, "_save", save)
+    drawn = kept_figures(monkeypatch)
     study = {"group": "a", "curve": {"env_steps": [0, 10], "mean": [150.0, 160.0], "ci95": [5.0, 5.0], "n": [6, 6]}}
     aside = {"group": "a (set aside)", "linestyle": "--",
              "curve": {"env_steps": [0, 10], "mean": [140.0, 170.0], "ci95": [300.0, 300.0], "n": [2, 2]}}  # fmt: skip
