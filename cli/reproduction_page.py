@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
@@ -108,12 +109,11 @@ def shuffled_cost(analysis: dict[str, Any]) -> float | None:
 Groups = list[tuple[str, dict[str, Any], int]]  # a ledger's groups: name, summary of the runs held, runs planned
 
 
-def ledger_groups(path: Path) -> Groups:
-    """Per group of the ledger at ``path`` (grid order): its name, its summary from the runs held ({} for none) and
-    the runs its grid plans."""
+def ledger_groups(path: Path, data: dict[str, Any]) -> Groups:
+    """Per group of the ledger ``data`` read from ``path`` (grid order): its name, its summary from the runs held
+    ({} for none) and the runs its grid plans."""
     from convoy.api.sweeps import expand
 
-    data = json.loads(path.read_text())
     ledger = Ledger(path, data["spec"], data.get("runs", {}))
     points = [job.point for job in expand(build_config(SweepSubmit, **data["spec"]))]
     held = {g["group"]: g for g in ledger.groups(points, {})}
@@ -126,10 +126,18 @@ def file_of(path: Path) -> str:
     return path.stem.rsplit("-", 1)[0] if path.parent.name == SET_ASIDE else path.stem
 
 
-def read_ledgers(paths: list[Path]) -> dict[Path, Groups]:
-    """Each ledger's groups, read once per render: a ledger that ``convoy reproduce`` writes meanwhile then reads
-    the same in every table and curve of the page."""
-    return {path: ledger_groups(path) for path in paths}
+@dataclass(frozen=True)
+class Read:
+    """A ledger as read once per render: a ledger that ``convoy reproduce`` writes meanwhile then reads the same
+    in every table and curve of the page."""
+
+    data: dict[str, Any]  # the file as stored (its spec and preset name the recipe)
+    groups: Groups
+
+
+def read_ledgers(paths: list[Path]) -> dict[Path, Read]:
+    """Each ledger at ``paths``, read once."""
+    return {path: Read(data, ledger_groups(path, data)) for path in paths for data in [json.loads(path.read_text())]}
 
 
 def ledger_rows(path: Path, groups: Groups, scale: str) -> list[str]:
@@ -149,7 +157,7 @@ def ledger_rows(path: Path, groups: Groups, scale: str) -> list[str]:
     return rows
 
 
-def study_curves(docs: Path, rel: str, scale: str, ledgers: dict[Path, Groups]) -> list[str]:
+def study_curves(docs: Path, rel: str, scale: str, ledgers: dict[Path, Read]) -> list[str]:
     """The greedy curves of the ``ledgers`` at ``scale`` as ``ledger/SCALE/curves.png`` (one panel per
     experiment file; a group's runs set aside dashed in its colour beside the study's), and the page's image line
     (``rel``: the docs folder from the page)."""
@@ -157,9 +165,9 @@ def study_curves(docs: Path, rel: str, scale: str, ledgers: dict[Path, Groups]) 
 
     panels: dict[str, list[dict[str, Any]]] = {}
     colours: dict[str, str] = {}
-    for path, groups in ledgers.items():
+    for path, read in ledgers.items():
         aside = path.parent.name == SET_ASIDE
-        for name, g, _ in groups:
+        for name, g, _ in read.groups:
             if g.get("curve"):
                 colour = colours.setdefault(name, f"C{len(colours) % 10}")
                 label = name.replace("algo_params.", "").replace("env_params.", "") + " (set aside)" * aside
@@ -190,7 +198,7 @@ def in_progress(docs: Path, records: dict[str, dict[str, Any]]) -> list[Path]:
 Files = dict[str, list[tuple[Path, dict[str, Any]]]]  # experiment files by figure id (cli/reproduce.figure_files)
 
 
-def interim_comparisons(ledgers: dict[Path, Groups], files: Files) -> list[str]:
+def interim_comparisons(ledgers: dict[Path, Read], files: Files) -> list[str]:
     """Table rows of the figures' claims between groups on the runs the ``ledgers`` hold so far: one group
     above another (the difference with its 95 % CI) and the share of a told learner's gain recovered (with its
     bootstrap CI), on the held-out returns where every run has one; an analysis figure's (Table 1's) on its source
@@ -201,8 +209,8 @@ def interim_comparisons(ledgers: dict[Path, Groups], files: Files) -> list[str]:
         meta = parts[0][1].get("figure", {})
         stems = {path.stem for path, _ in files.get(meta.get("source", fig), [])}
         for scale in dict.fromkeys(p.parent.name for p in ledgers if p.stem in stems):
-            held = [g for p, groups in ledgers.items() if p.stem in stems and p.parent.name == scale
-                    for _, g, _ in groups if g]  # fmt: skip
+            held = [g for p, read in ledgers.items() if p.stem in stems and p.parent.name == scale
+                    for _, g, _ in read.groups if g]  # fmt: skip
             claims = [c for c in meta.get("claims", []) if scale in c.get("scales", [scale])]
             if meta.get("kind") == "analysis":
                 found = analysed_claims(meta, scale, claims, {g["group"]: g for g in held})
@@ -261,19 +269,19 @@ def analysed_claims(
 
 
 def studies_in_progress(
-    docs: Path, records: dict[str, dict[str, Any]], rel: str, files: Files | None = None
+    docs: Path, rel: str, ledgers: dict[Path, Read], asides: dict[Path, Read], files: Files | None = None
 ) -> list[str]:
-    """A section on the ledgers no figure at their scale has read yet (``in_progress``), with their curves beside
-    those of their runs set aside, so that a study that takes days shows where it stands between sessions.
-    Interim: no verdict until the figure is run to the end."""
-    ledgers = read_ledgers(in_progress(docs, records))
-    rows = [row for path, groups in ledgers.items() for row in ledger_rows(path, groups, path.parent.name)]
+    """A section on the ledgers no figure at their scale has read yet (``ledgers``, from ``in_progress``), with
+    their curves beside those of their runs set aside (``asides``), so that a study that takes days shows where it
+    stands between sessions. Interim: no verdict until the figure is run to the end."""
+    rows = [row for path, read in ledgers.items() for row in ledger_rows(path, read.groups, path.parent.name)]
     if not rows:
         return []
     curves = []
     for scale in dict.fromkeys(path.parent.name for path in ledgers):
-        aside = read_ledgers(sorted((docs / "ledger" / scale / SET_ASIDE).glob("*.json")))
-        curves += study_curves(docs, rel, scale, {p: g for p, g in ledgers.items() if p.parent.name == scale} | aside)
+        both = {p: r for p, r in ledgers.items() if p.parent.name == scale}
+        both |= {p: r for p, r in asides.items() if p.parent.parent.name == scale}
+        curves += study_curves(docs, rel, scale, both)
     return ["", "## Studies still training", "",
             *textwrap.wrap("Runs held in the ledger of a scale no figure has been rendered at yet: interim scores "
                            "(last policy and best.pt on the figure's held-out episodes, mean ± 95 % CI over the "
@@ -312,17 +320,18 @@ def recipe_change(before: dict[str, Any], now: dict[str, Any] | None) -> str:
                      for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k))  # fmt: skip
 
 
-def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[str]:
-    """A section on the runs a study measured under an earlier recipe (``ledger/SCALE/set-aside/``): what changed
-    since, and their scores, which the study's figure does not count. Files set aside by the same change share a
-    table."""
-    asides = read_ledgers(sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")))
+def set_aside(docs: Path, rel: str, asides: dict[Path, Read], ledgers: dict[Path, Read]) -> list[str]:
+    """A section on the runs a study measured under an earlier recipe (``asides``, from ``ledger/SCALE/set-aside/``):
+    what changed since, and their scores, which the study's figure does not count. Files set aside by the same
+    change share a table; the curves of a scale whose study is still training (``ledgers``) are drawn with it."""
     tables: dict[str, list[str]] = {}
-    for path, groups in asides.items():
+    for path, read in asides.items():
         current = path.parent.parent / f"{file_of(path)}.json"
-        now = json.loads(current.read_text()) if current.is_file() else None
-        change = recipe_change(json.loads(path.read_text()), now) or "a study no longer measured"
-        tables.setdefault(change, []).extend(ledger_rows(path, groups, path.parent.parent.name))
+        now = ledgers[current].data if current in ledgers else None  # a study still training: read above
+        if now is None and current.is_file():  # a study a figure has read
+            now = json.loads(current.read_text())
+        change = recipe_change(read.data, now) or "a study no longer measured"
+        tables.setdefault(change, []).extend(ledger_rows(path, read.groups, path.parent.parent.name))
     if not tables:
         return []
     lines = ["", "## Runs set aside", "",
@@ -332,7 +341,7 @@ def set_aside(docs: Path, records: dict[str, dict[str, Any]], rel: str) -> list[
                             "back.", 108)]  # fmt: skip
     for change, rows in tables.items():
         lines += ["", f"Since {change}:", "", *LEDGER_HEAD, *rows]
-    drawn = {path.parent.name for path in in_progress(docs, records)}  # with the study's curves above
+    drawn = {path.parent.name for path in ledgers}  # with the study's curves above
     for folder in sorted({p.parent for p in asides}):
         if folder.parent.name not in drawn:
             lines += study_curves(
@@ -361,8 +370,10 @@ def render(docs: Path, page: Path, files: Files | None = None) -> None:
                          f"{r['paper']} | {r['scale']}{stale(r)} | **{r['verdict']}** |")  # fmt: skip
         else:
             lines.append(f"| {fig} | | | not run yet: `convoy reproduce {fig} --scale quick` |")
-    lines += studies_in_progress(docs, records, rel, files)
-    lines += set_aside(docs, records, rel)
+    ledgers = read_ledgers(in_progress(docs, records))
+    asides = read_ledgers(sorted((docs / "ledger").glob(f"*/{SET_ASIDE}/*.json")))
+    lines += studies_in_progress(docs, rel, ledgers, asides, files)
+    lines += set_aside(docs, rel, asides, ledgers)
     for fig in FIGURES:
         if fig not in records:
             continue
