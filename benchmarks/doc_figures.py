@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from convoy.analysis.verdicts import NOT, REPRODUCED, p_above, significant  # noqa: E402
-from convoy.cli.reproduction_page import heading_anchor  # noqa: E402
+from convoy.cli.reproduction_page import duration, heading_anchor  # noqa: E402
 from convoy.output import markdown_table  # noqa: E402
 from convoy.stats import mean_ci, ratio_ci  # noqa: E402
 
@@ -334,9 +334,10 @@ def causes(ends: dict[str, Any]) -> str:
 
 
 def _final(r: dict[str, Any], group: str) -> str:
-    """A group's final greedy return over seeds, as ``convoy reproduce`` summarised it."""
-    final = next(g["final"] for g in r["groups"] if g["group"] == group)
-    return _ci(final)
+    """A group's return over seeds, as ``convoy reproduce`` summarised it and judged the claims on: its last
+    policies on the held-out episodes where it scored them, else its final greedy evaluation."""
+    g = next(g for g in r["groups"] if g["group"] == group)
+    return _ci(g["held_out"]["last"] if r.get("judged_on") == "held_out" else g["final"])
 
 
 def _verdict(r: dict[str, Any], claim: str) -> dict[str, Any]:
@@ -349,6 +350,19 @@ def _verdict(r: dict[str, Any], claim: str) -> dict[str, Any]:
 
 def _p(p: float) -> str:
     return "p < 0.001" if p < 0.001 else f"p = {p:.1g}" if p < 0.01 else f"p = {p:.2f}"
+
+
+def _short(claim: str) -> str:
+    """A claim less its parenthesised gloss (``… its twin with the channel cut (communication helps)``)."""
+    return re.sub(r" \([^()]*\)$", "", claim)
+
+
+def _recovered(v: dict[str, Any]) -> str:
+    """``MA-MeSN recovers 51% [45%, 57%] of the told learner's gain … (goal ≥ 50%: met)`` from a fraction's
+    verdict."""
+    who, what = _short(v["claim"]).split(" recovers ", 1)
+    goal = re.search(r"goal ≥ [\d.]+%: (?:not )?met", v["why"])
+    return f"{who} recovers {v['ours']}{what.removeprefix('half')}" + (f" ({goal.group(0)})" if goal else "")
 
 
 def _outcome(v: dict[str, Any]) -> str:
@@ -364,8 +378,11 @@ def _span(values: set[int]) -> str:
 
 
 def _steps(r: dict[str, Any]) -> str | None:
-    """``30 k``: the env steps per run that the figure's note states (``5 seeds × 30 k env steps …``)."""
-    m = re.search(r"seeds × ([\d.,]+ [kM]) env steps", r["note"])
+    """``30 k``: the env steps per run that the figure's note states (``5 seeds × 30 k env steps …``, or
+    ``~405–450 k env steps a run``)."""
+    m = re.search(r"seeds × ([\d.,]+ [kM]) env steps", r["note"]) or re.search(
+        r"(~?[\d.,–]+ [kM]) env steps a run", r["note"]
+    )
     return m.group(1) if m else None
 
 
@@ -402,8 +419,9 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
 
     fig3 = records["fig3"]
     head = _verdict(fig3, "MA-MeSN ends above independent DQN")
-    also = [f"{v['claim'].replace(' ends above ', ' > ')}, {_p(v['p'])}" for v in fig3["verdicts"]
+    also = [f"{_short(v['claim']).replace(' ends above ', ' > ')}, {_p(v['p'])}" for v in fig3["verdicts"]
             if v is not head and v["verdict"] == REPRODUCED]  # fmt: skip
+    also += [_recovered(v) for v in fig3["verdicts"] if " recovers " in v["claim"] and "[" in v["ours"]]
     also.append(f"tuned private driver {fig3['references']['private-driver']:.1f} on the same episodes")
     rows.append([f"Fig. 3 at the {fig3['scale']} scale ({_budget(fig3)}): MA-MeSN vs independent DQN",
                  f"{_final(fig3, 'algo=ma-mesn')} vs {_final(fig3, 'algo=idqn')}{_outcome(head)} ({'; '.join(also)})",
@@ -425,8 +443,8 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
         why = f" (no learner above random{at})" if _none_above_random(r) else ""
         verdicts.append(f"{short} {word}{why}")
     rows.append([f"Figs. {numbers[0]}–{numbers[-1]}{''.join(' and ' + t for t in tables)} at the "
-                 f"{' and '.join(scales)} scale ({seeds} seeds each, ≤ {max(minutes):.0f} min a "
-                 f"figure, {sum(minutes):.0f} min in all)",
+                 f"{' and '.join(scales)} scale ({seeds} seeds each, ≤ {duration(60 * max(minutes))} a "
+                 f"figure, {duration(60 * sum(minutes))} in all)",
                  " · ".join(verdicts), "[docs/reproduction.md](docs/reproduction.md)"])  # fmt: skip
 
     fig5 = records["fig5"]

@@ -99,12 +99,9 @@ def measures(spec: dict[str, Any], preset: dict[str, Any] | None) -> dict[str, s
 
 
 def _set_aside(path: Path, body: dict[str, Any]) -> None:
-    """Add the runs of ledger ``body`` to the set-aside file ``path`` of the same recipe (its runs and sweeps'
-    times kept beside them)."""
+    """Add the runs of ledger ``body`` to the set-aside file ``path`` of the same recipe."""
     old = json.loads(path.read_text()) if path.is_file() else {}
-    _write(path, {**body, "runs": {**old.get("runs", {}), **body["runs"]},
-                  "spans": {**old.get("spans", {}), **body.get("spans", {})},
-                  "busy_s": {**old.get("busy_s", {}), **body.get("busy_s", {})}})  # fmt: skip
+    _write(path, {**body, "runs": {**old.get("runs", {}), **body["runs"]}})
 
 
 def _write(path: Path, body: dict[str, Any]) -> None:
@@ -146,8 +143,6 @@ class Ledger:
     path: Path
     spec: dict[str, Any]
     runs: dict[str, dict[str, Any]] = field(default_factory=dict)
-    spans: dict[str, list[list[float]]] = field(default_factory=dict)  # per sweep: its jobs' [start, end] times
-    busy_s: dict[str, float] = field(default_factory=dict)  # per sweep recorded before its spans were: seconds run
 
     @classmethod
     def open(cls, path: Path, spec: dict[str, Any]) -> tuple[Ledger, str]:
@@ -162,8 +157,7 @@ class Ledger:
         runs = dict(data.get("runs", {}))
         before = measures(data["spec"], data.get("preset"))
         moved = {k: r for k, r in runs.items() if before is None or k not in now or before.get(k) != now[k]}
-        ledger = cls(path, spec, {k: r for k, r in runs.items() if k not in moved},
-                     dict(data.get("spans", {})), dict(data.get("busy_s", {})))  # fmt: skip
+        ledger = cls(path, spec, {k: r for k, r in runs.items() if k not in moved})
         notes = []
         if moved:
             kept = set_aside_path(path, data["spec"], data.get("preset"))
@@ -196,8 +190,7 @@ class Ledger:
 
     def save(self) -> None:
         """Write atomically: a kill mid-write leaves the previous ledger whole."""
-        body = {"spec": self.spec, "preset": preset_table(self.spec), "busy_s": self.busy_s, "spans": self.spans,
-                "runs": dict(sorted(self.runs.items()))}  # fmt: skip
+        body = {"spec": self.spec, "preset": preset_table(self.spec), "runs": dict(sorted(self.runs.items()))}
         _write(self.path, body)
 
     def groups(self, points: list[dict[str, Any]], others: dict[str, str]) -> list[dict[str, Any]]:

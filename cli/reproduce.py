@@ -32,7 +32,7 @@ from rich.console import Console
 
 from convoy.analysis.verdicts import figure_verdict, judge_figure, judged_returns, metric_values
 from convoy.api.models import SweepSubmit
-from convoy.api.sweeps import busy_seconds, group_name
+from convoy.api.sweeps import group_name
 from convoy.cli.args import add_command
 from convoy.cli.jobs import Api, CliError, plain
 from convoy.cli.ledger import Ledger, analysis_key, point_key, request
@@ -272,12 +272,17 @@ class Plan:
     others: dict[str, str] = field(default_factory=dict)
 
 
-def busy_minutes(ledgers: list[Ledger]) -> float:
-    """How long the ledgers' sweeps ran: the union of their jobs' spans (sweeps side by side counted once), plus
-    the busy time of sweeps recorded before spans were."""
-    spans = [(a, b) for ledger in ledgers for sweep in ledger.spans.values() for a, b in sweep]
-    alone = sum(s for ledger in ledgers for sid, s in ledger.busy_s.items() if sid not in ledger.spans)
-    return (busy_seconds(spans) + alone) / 60
+def training_minutes(ledgers: list[Ledger]) -> float:
+    """The training time of the ledgers' runs: each population's learner wall time (resumes and demonstration
+    starts included), summed. Kept per run, it survives a study stopped and resumed over days, where the command's
+    own wall time does not (populations side by side each count theirs)."""
+    walls: dict[tuple[str, str], float] = {}
+    for ledger in ledgers:
+        for run in ledger.runs.values():
+            if run.get("wall_s") is not None:
+                key = (str(ledger.path), run["population"])
+                walls[key] = max(walls.get(key, 0.0), float(run["wall_s"]))
+    return sum(walls.values()) / 60
 
 
 class Context:
@@ -291,7 +296,7 @@ class Context:
         self.current = ""
         self._summaries: dict[str, list[dict[str, Any]]] = {}
         self.tuning: dict[str, dict[str, dict[str, Any]]] = {}  # per figure, per algorithm: tried and chosen
-        self.ledgers: dict[str, list[Ledger]] = {}  # each figure's, tuning included: the time its sweeps ran
+        self.ledgers: dict[str, list[Ledger]] = {}  # each figure's, tuning included: its training time
 
     def sweep_summaries(self, fig: str) -> list[dict[str, Any]]:
         """Every group of figure ``fig``'s sweeps, in file order, summarised from its ledgers after the runs they
@@ -365,8 +370,6 @@ class Context:
         if not started:
             return
         for plan, sweep in zip(owners, follow_sweeps(self.api, started, f"{fig} [{self.scale}]"), strict=True):
-            plan.ledger.spans[sweep["id"]] = [[round(a, 1), round(b, 1)] for a, b in sweep.get("spans", [])]
-            plan.ledger.save()
             plan.others.update({point_key(m["point"]): m["state"] for m in sweep["jobs"]
                                 if not plan.ledger.has(m["point"]) and m["state"] != "deleted"})  # fmt: skip
 
@@ -655,7 +658,7 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
         "note": " ".join(dict.fromkeys(n for n in scale_notes if n)) or meta.get("note", ""),
         "files": [str(p) for p, _ in ctx.files[fig]],
         "command": f"convoy reproduce {fig} --scale {ctx.scale}",
-        "minutes": round(busy_minutes(ctx.ledgers.get(fig, [])) + (time.monotonic() - t0) / 60 * (kind != "sweep"), 1),
+        **minutes(ctx, fig, kind, (time.monotonic() - t0) / 60),
         "groups": [{k: g[k] for k in RECORDED if k in g} for g in result["groups"]],
         "references": result["references"],
         **{k: result["extra"][k] for k in ("held_out_references",) if result["extra"].get(k)},
@@ -676,6 +679,16 @@ def run_figure(ctx: Context, fig: str) -> dict[str, Any]:
     (ctx.docs / f"{fig}.json").write_text(json.dumps(record, indent=2) + "\n")
     plain(out, f"{fig} [{ctx.scale}]: {record['verdict']} — wrote {ctx.docs / (fig + '.json')}")
     return record
+
+
+def minutes(ctx: Context, fig: str, kind: str, elapsed: float) -> dict[str, Any]:
+    """A record's ``minutes`` and what they measure: a sweep figure's training (``training_minutes``), another
+    figure's wall time here (a benchmark's run, an analysis)."""
+    if kind == "sweep":
+        return {"minutes": round(training_minutes(ctx.ledgers.get(fig, [])), 1),
+                "minutes_of": "training, its populations' learners summed"}  # fmt: skip
+    shown = "wall time here" + ", besides the analyses made as its source's runs completed" * (kind == "analysis")
+    return {"minutes": round(elapsed, 1), "minutes_of": shown}
 
 
 def judged(meta: dict[str, Any], groups: list[dict[str, Any]], extra: dict[str, Any], scale: str) -> dict[str, Any]:

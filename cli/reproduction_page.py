@@ -384,7 +384,8 @@ def render(docs: Path, page: Path, files: Files | None = None) -> None:
                       f"({TREADMILL_RULES}): run `{r['command']}` again.", ""]  # fmt: skip
         if r.get("note"):
             lines += [f"**Ours ({r['scale']}):** {r['note']}", ""]
-        lines += [f"Regenerate: `{r['command']}` ({r['minutes']} min of wall time here; files: "
+        measured = r.get("minutes_of", "wall time here")  # older records: the command's wall time
+        lines += [f"Regenerate: `{r['command']}` ({duration(60 * r['minutes'])} of {measured}; files: "
                   f"{', '.join(f'`{f}`' for f in r['files'])})", ""]  # fmt: skip
         if r.get("png"):
             lines += [f"![{r['title']}]({rel}/{r['png']})", ""]

@@ -15,6 +15,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import doc_figures  # noqa: E402
 
+from convoy.cli.reproduction_page import duration  # noqa: E402
+
 
 def test_every_figures_block_shows_its_json() -> None:
     assert doc_figures.main(["--check"]) == 0
@@ -50,11 +52,37 @@ def test_a_changed_reproduction_figure_makes_the_readme_results_stale(tmp_path: 
     mesn = next(g for g in fig8["groups"] if g["group"] == "algo=ma-mesn")["final"]
     minutes = [r["minutes"] for r in records.values() if "minutes" in r]
     partly = f"{mesn['mean']:.1f} ± {mesn['ci95']:.1f} vs −15.6 ± {idqn['ci95']:.1f}: partly at this budget"
-    longest = f"≤ {max(minutes):.0f} min a figure, {sum(minutes):.0f} min in all"
+    longest = f"≤ {duration(60 * max(minutes))} a figure, {duration(60 * sum(minutes))} in all"
     for shown in (partly.replace("-", "−"), "· 6 reproduced ·", longest):
         assert shown not in readme and shown in new
     was = f"{stored:.1f} ± {idqn['ci95']:.1f}".replace("-", "−")  # the stored figure's independent DQN
     assert f"vs {was}, p < 0.001: reproduced" in readme and was not in new
+
+
+def test_fig3_s_row_quotes_the_returns_its_claims_were_judged_on_and_the_recovered_fractions(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """A figure judged on held-out returns shows those, not its final evaluations; a fraction of the told learner's
+    gain is quoted with its CI and whether it meets its goal."""
+    records = {p.name: json.loads(p.read_text()) for p in doc_figures.REPRODUCTION.glob("*.json")}
+    fig3 = records["fig3.json"]
+    fig3["judged_on"] = "held_out"
+    for i, g in enumerate(fig3["groups"]):
+        g["held_out"] = {"last": {"mean": 150.0 + i, "ci95": 1.5, "n": 10, "values": []}}
+    fig3["verdicts"].append({"claim": "MA-MeSN recovers half of the told learner's gain over independent DQN",
+                             "ours": "51% [45%, 57%]", "verdict": "not comparable", "p": None,
+                             "why": "a fraction stated, not a claim of the paper; goal ≥ 50%: not met"})  # fmt: skip
+    for name, values in records.items():
+        (tmp_path / name).write_text(json.dumps(values))
+    monkeypatch.setattr(doc_figures, "REPRODUCTION", tmp_path)
+    new = doc_figures.rendered((ROOT / "README.md").read_text())
+    mesn, idqn = (
+        next(150 + i for i, g in enumerate(fig3["groups"]) if g["group"] == f"algo={a}") for a in ("ma-mesn", "idqn")
+    )
+    assert f"{mesn:.1f} ± 1.5 vs {idqn:.1f} ± 1.5" in new
+    assert (
+        "MA-MeSN recovers 51% [45%, 57%] of the told learner's gain over independent DQN (goal ≥ 50%: not met)" in new
+    )
 
 
 def test_the_service_figures_come_from_the_population_and_soak_json(tmp_path: Path, monkeypatch) -> None:

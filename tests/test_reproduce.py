@@ -856,15 +856,13 @@ class _Service:
         n = len(self.bodies)
         jobs = [{"id": f"{n}-{k}", "point": p, "state": "failed", "steps": 10, "env_steps": 0}
                 for k, p in enumerate(_points(kwargs["json"]))]  # fmt: skip
-        start = 500.0 * n  # each sweep runs 1,000 s, the next one starting half-way through
-        return {"id": f"s{n}", "state": "failed", "jobs": jobs, "busy_s": 1000.0,
-                "spans": [[start, start + 1000.0], [start + 200.0, start + 900.0]]}  # fmt: skip
+        return {"id": f"s{n}", "state": "failed", "jobs": jobs}
 
 
 def test_a_figures_files_train_wave_by_wave_of_seeds_so_a_stopped_study_holds_the_same_seeds_in_every_arm(
     tmp_path: Path,
 ) -> None:
-    from convoy.cli.reproduce import Context, busy_minutes
+    from convoy.cli.reproduce import Context
 
     files = figure_files(ROOT / "experiments")
     service = _Service()
@@ -879,8 +877,6 @@ def test_a_figures_files_train_wave_by_wave_of_seeds_so_a_stopped_study_holds_th
     asked = [p for b in service.bodies for p in _points(b)]
     assert sorted(map(repr, asked)) == sorted(map(repr, planned))  # each run once, none left out
     assert all(g["states"] == {"failed": len(g["jobs"])} for g in groups)
-    # sweeps side by side are timed once: the union of their spans, not the sum of their busy seconds
-    assert busy_minutes(ctx.ledgers["fig3"]) == pytest.approx(500 * (len(names) + 1) / 60)
     # a ledger holding the first sweep's runs leaves that sweep out
     ledger = next(led for led in ctx.ledgers["fig3"] if led.path.stem == "fig3_centralised")
     run = {"job": "x", "population": "x", "env": "treadmill", "env_steps": 1, "final": {}, "references": {}, "rows": []}
@@ -889,3 +885,19 @@ def test_a_figures_files_train_wave_by_wave_of_seeds_so_a_stopped_study_holds_th
     again = _Service()
     Context(cast(Any, again), "mid", files, tmp_path / "docs", tmp_path / "work", pack=2).sweep_summaries("fig3")
     assert [b["name"] for b in again.bodies] == names[1:]
+
+
+def test_a_figure_s_minutes_are_its_populations_training_summed_whatever_the_sessions(tmp_path: Path) -> None:
+    """Kept per run, the training time survives a study stopped and resumed: each population counts its learner's
+    wall time once (its runs share it), in every ledger of the figure, tuning included; a run without one adds
+    nothing."""
+    from convoy.cli.ledger import Ledger
+    from convoy.cli.reproduce import training_minutes
+
+    def run(population: str, wall_s: float | None) -> dict[str, Any]:
+        return {"job": population, "population": population, "wall_s": wall_s}
+
+    study = Ledger(tmp_path / "a.json", {}, {"s0": run("p0", 600.0), "s1": run("p0", 600.0), "s2": run("p1", 1200.0)})
+    tuning = Ledger(tmp_path / "a-tuning.json", {}, {"s0": run("p0", 300.0), "s1": run("q", None)})
+    assert training_minutes([study, tuning]) == pytest.approx((600 + 1200 + 300) / 60)
+    assert training_minutes([]) == 0.0
