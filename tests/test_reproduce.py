@@ -901,3 +901,48 @@ def test_a_figure_s_minutes_are_its_populations_training_summed_whatever_the_ses
     tuning = Ledger(tmp_path / "a-tuning.json", {}, {"s0": run("p0", 300.0), "s1": run("q", None)})
     assert training_minutes([study, tuning]) == pytest.approx((600 + 1200 + 300) / 60)
     assert training_minutes([]) == 0.0
+
+
+def test_the_mid_study_s_figures_render_from_the_runs_its_ledgers_hold(tmp_path: Path, monkeypatch) -> None:
+    """The end of `convoy reproduce fig3 table1 --scale mid` on the runs its stored ledgers hold (nothing trained,
+    no held-out references, no new analyses): the records, the page and README's result rows render, with the
+    figure's training time, the returns its claims were judged on and the recovered fractions — so a study of days
+    does not meet a broken page only at its end."""
+    import convoy.cli.reproduce as reproduce
+    from convoy.cli.ledger import point_key
+    from convoy.cli.reproduction_page import render
+
+    docs = tmp_path / "reproduction"
+    shutil.copytree(ROOT / "docs" / "reproduction", docs)
+    files = figure_files(ROOT / "experiments")
+
+    class Held(reproduce.Context):
+        """The runs the ledgers hold; the others stay queued."""
+
+        def train(self, fig: str, plans: list[reproduce.Plan]) -> None:
+            for plan in plans:
+                plan.others.update({point_key(p): "queued" for p in plan.points if not plan.ledger.has(p)})
+
+        def analyse(self, fig: str, job_id: str, opts: dict[str, Any]) -> dict[str, Any] | None:
+            return None
+
+    monkeypatch.setattr(reproduce, "held_out_references", lambda ctx, groups, episodes: {})
+    ctx = Held(cast(Any, None), "mid", files, docs, tmp_path / "work", pack=2)
+    fig3, table1 = reproduce.run_figure(ctx, "fig3"), reproduce.run_figure(ctx, "table1")
+    assert fig3["minutes"] > 60 and fig3["minutes_of"].startswith("training"), fig3["minutes"]
+    assert fig3["judged_on"] == "held_out"
+    recovered = [v for v in fig3["verdicts"] if " recovers " in v["claim"]]
+    assert recovered and all("%" in v["ours"] for v in recovered), recovered
+    assert len(table1["analysis_groups"]) == 4  # MA-MeSN, MA-BoN and their channel-cut twins
+
+    render(docs, tmp_path / "reproduction.md", files)
+    page = (tmp_path / "reproduction.md").read_text()
+    assert "of training, its populations' learners summed" in page and "## Table 1" in page
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import doc_figures
+
+    monkeypatch.setattr(doc_figures, "REPRODUCTION", docs)
+    row = next(r for r in doc_figures.rendered((ROOT / "README.md").read_text()).splitlines() if "Fig. 3 at" in r)
+    mesn = next(g for g in fig3["groups"] if g["group"] == "algo=ma-mesn")["held_out"]["last"]
+    assert "mid scale" in row and f"{mesn['mean']:.1f} ± {mesn['ci95']:.1f}" in row, row
+    assert "MA-MeSN recovers " in row and "of the told learner's gain" in row, row
