@@ -263,8 +263,25 @@ def properties(search: dict[str, Any]) -> str:
     )
 
 
-def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
-    """README: what the treadmill shows, from the reference search and the learners' scores."""
+def figure_scales(records: dict[str, dict[str, Any]]) -> str:
+    """``The paper's figures at the quick scale, on these rules``, or, once some ran at a larger scale, which did
+    and on what rules (a larger scale's note names the charger rules where it runs on them)."""
+    scales: dict[str, list[dict[str, Any]]] = {}
+    for r in (records[k] for k in sorted(records)):
+        scales.setdefault(r["scale"], []).append(r)
+    if set(scales) <= {"quick"}:
+        return "The paper's figures at the quick\nscale, on these rules"
+    parts = []
+    for scale, held in sorted(scales.items(), key=lambda item: item[0] == "quick"):
+        names = " and ".join(r["title"].split(":")[0] for r in held) if scale != "quick" else "the others"
+        rules = "the charger rules below" if all("charger rules" in r["note"] for r in held) else "these rules"
+        parts.append(f"{names} at the {scale} scale on {rules}")
+    return "The paper's figures: " + ", ".join(parts)
+
+
+def readme_summary(search: dict[str, Any], scores: dict[str, Any], records: dict[str, dict[str, Any]]) -> str:
+    """README: what the treadmill shows, from the reference search, the learners' scores and the scales the
+    paper's figures ran at."""
     g = scores["groups"][HEADLINE[1]]
     told = scores["groups"][HEADLINE[0]]
     c = next(c for c in scores["comparisons"] if (c["a"], c["b"]) == HEADLINE)
@@ -287,8 +304,8 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any]) -> str:
         f"{len(g['seeds'])} seeds), told every car its teammates see {told['last_mean']:.1f} ± "
         f"{told['last_ci95']:.1f}\n(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, "
         f"{_signed(c['diff_high'])}]): the learners are far from what their own information allows\n"
-        "([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). The paper's figures at the quick\n"
-        "scale, on these rules: [docs/reproduction.md](docs/reproduction.md)."
+        f"([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). {figure_scales(records)}: "
+        "[docs/reproduction.md](docs/reproduction.md)."
     )
 
 
@@ -574,7 +591,7 @@ RENDERERS: dict[str, tuple[tuple[str, ...], Callable[..., str]]] = {
     "treadmill-search": ((SEARCH,), search_table),
     "treadmill-reference-line": ((SEARCH,), reference_line),
     "treadmill-properties": ((SEARCH,), properties),
-    "readme-summary": ((SEARCH, SCORES), readme_summary),
+    "readme-summary": ((SEARCH, SCORES, REPRODUCED_FIGURES), readme_summary),
     "treadmill-learners": ((SCORES,), learners),
     "treadmill-learner-comparisons": ((SCORES,), learner_comparisons),
     "treadmill-learner-headline": ((SCORES,), lambda scores: learner_comparisons(scores, headline=True)),
