@@ -42,9 +42,14 @@ def heading_anchor(title: str) -> str:
     return "".join(c for c in title.lower().replace(" ", "-") if c.isalnum() or c == "-")
 
 
-def iqm_text(group: dict[str, Any]) -> str:
-    """``41.2 [35.0, 47.9]``: a group's interquartile mean and its bootstrap CI (– in an older record)."""
-    iqm = group.get("iqm") or {}
+def iqm_text(group: dict[str, Any], held_out: bool = False) -> str:
+    """``41.2 [35.0, 47.9]``: a group's interquartile mean and its bootstrap CI, of its final evaluations or, with
+    ``held_out``, of its last policies' held-out returns (the returns a figure judged on held-out episodes judges);
+    – in an older record."""
+    from convoy.stats import iqm_ci
+
+    last = ((group.get("held_out") or {}).get("last") or {}).get("values", [])
+    iqm = iqm_ci(last) if held_out else group.get("iqm") or {}
     return "–" if iqm.get("iqm") is None else f"{iqm['iqm']:.3g} [{iqm['low']:.3g}, {iqm['high']:.3g}]"
 
 
@@ -399,13 +404,15 @@ def render(docs: Path, page: Path, files: Files | None = None) -> None:
             changed = any(g.get("change") for g in r["groups"])  # records made before it was kept: no column
             more += " first → last evaluation |" * changed
             columns = 5 + 2 * bool(held) + changed + bool(head)
-            lines += [f"| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve |{more} jobs |"
-                      f"{head}", "|---" * columns + "|"]  # fmt: skip
+            judged_held = r.get("judged_on") == "held_out"
+            iqm_of = ", last, held out" * judged_held
+            lines += [f"| group | final greedy return | IQM [bootstrap 95 % CI]{iqm_of} | area under the curve |{more} "
+                      f"jobs |{head}", "|---" * columns + "|"]  # fmt: skip
             for g, ref in zip(r["groups"], rand, strict=True):
                 states = ", ".join(f"{n} {s}" for s, n in g["states"].items())
                 areas = (g.get("auc") or {}).get("values", [])  # records made before it was measured: –
                 final = mean_ci(g["final"]["values"])
-                row = f"| {g['group']} | {final} | {iqm_text(g)} | {mean_ci(areas)} |"
+                row = f"| {g['group']} | {final} | {iqm_text(g, judged_held)} | {mean_ci(areas)} |"
                 if held:
                     h = g.get("held_out") or {}
                     row += "".join(f" {mean_ci((h.get(k) or {}).get('values', []))} |" for k in ("last", "best"))

@@ -109,8 +109,8 @@ def test_reproduce_runs_a_figure_through_a_local_service_and_writes_the_page(tmp
     assert "## Fig. 8: a tiny stand-in" in page and "`convoy reproduce fig8 --scale quick`" in page
     assert "![Fig. 8: a tiny stand-in](r/fig8.png)" in page and "| fig3 | | | not run yet" in page
     assert "random" in record["references"]  # each group's final return is tested against the random policy's
-    head = "| group | final greedy return | IQM [bootstrap 95 % CI] | area under the curve |"
-    assert head in page
+    head = "| group | final greedy return | IQM [bootstrap 95 % CI], last, held out | area under the curve |"
+    assert head in page and record["judged_on"] == "held_out"  # the IQM of the returns the claims are judged on
     assert all(g["iqm"]["n"] == 2 and g["auc"]["n"] == 2 for g in record["groups"])  # the reviewer's aggregates
     assert all(g["held_out"]["last"]["n"] == g["held_out"]["best"]["n"] == 2 for g in record["groups"])
     assert all(0 < g["wall_s"] < 3600 for g in record["groups"]) and "Training wall time per group here" in page
@@ -938,6 +938,7 @@ def test_the_mid_study_s_figures_render_from_the_runs_its_ledgers_hold(tmp_path:
     render(docs, tmp_path / "reproduction.md", files)
     page = (tmp_path / "reproduction.md").read_text()
     assert "of training, its populations' learners summed" in page and "## Table 1" in page
+    assert "| IQM [bootstrap 95 % CI], last, held out |" in page  # of the returns its claims are judged on
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     import doc_figures
 
