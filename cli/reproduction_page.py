@@ -44,8 +44,8 @@ def heading_anchor(title: str) -> str:
 
 def iqm_text(group: dict[str, Any], held_out: bool = False) -> str:
     """``41.2 [35.0, 47.9]``: a group's interquartile mean and its bootstrap CI, of its final evaluations or, with
-    ``held_out``, of its last policies' held-out returns (the returns a figure judged on held-out episodes judges);
-    – in an older record."""
+    ``held_out``, of its last policies' held-out returns (what a figure judged on held-out episodes compares); – in
+    an older record."""
     from convoy.stats import iqm_ci
 
     last = ((group.get("held_out") or {}).get("last") or {}).get("values", [])
@@ -143,7 +143,11 @@ class Read:
 
 def read_ledgers(paths: list[Path]) -> dict[Path, Read]:
     """Each ledger at ``paths``, read once."""
-    return {path: Read(data, ledger_groups(path, data)) for path in paths for data in [json.loads(path.read_text())]}
+    read = {}
+    for path in paths:
+        data = json.loads(path.read_text())
+        read[path] = Read(data, ledger_groups(path, data))
+    return read
 
 
 def ledger_rows(path: Path, groups: Groups, scale: str) -> list[str]:
