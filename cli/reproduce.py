@@ -148,9 +148,12 @@ def stale_sweeps(
 Harvest = Callable[[dict[str, Any]], None]
 
 
-def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label: str) -> list[dict[str, Any]]:
+def follow_sweeps(
+    api: Api, started: list[tuple[dict[str, Any], Harvest]], label: str, before: tuple[int, int] = (0, 0)
+) -> list[dict[str, Any]]:
     """Each started sweep as ``GET /sweeps/{id}`` shows it once no job of any is queued or running; ``harvest``
-    sees each member as soon as it completes. Interrupted, every sweep still running is stopped (each job
+    sees each member as soon as it completes; ``before``: the figure's runs its ledgers held when the command began
+    and their env steps, counted in the progress line. Interrupted, every sweep still running is stopped (each job
     checkpoints), so that the same command continues them."""
     sweeps = [sweep for sweep, _ in started]
     t0, said, last, first_seen = time.monotonic(), "", 0.0, dict[str, int]()
@@ -163,22 +166,11 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
             if all(sweep["state"] != "running" for sweep in sweeps):
                 break
             members = [m for sweep in sweeps for m in sweep["jobs"] if m["state"] != "deleted"]
-            asked = sum(m.get("steps", 0) for m in members)
-            done = sum(min(m.get("env_steps", 0), m.get("steps", 0)) for m in members)
-            states: dict[str, int] = {}
-            for m in members:
-                states[m["state"]] = states.get(m["state"], 0) + 1
-            runs = ", ".join(f"{n} {s}" for s, n in sorted(states.items()))
-            text = f"{label}: {done / max(asked, 1):.0%} of its env steps · {runs}"
-            if demo := [m for m in members if m["state"] == "running" and m.get("demo_round")]:  # before their steps
-                played = sorted({f"{m['demo_round']}/{m['demo_rounds']}" for m in demo})
-                text += f" ({len(demo)} in DAgger round {', '.join(played)})"
-            if len(sweeps) > 1:
-                text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
+            text = progress_text(label, sweeps, before)
             if text != said and time.monotonic() - last >= PRINT_EVERY_S:
                 took = time.monotonic() - t0
-                pace = time_left(asked - done, stepped(members, first_seen), took)
-                plain(out, f"{text} · {took / 60:.1f} min{pace}")
+                left = sum(m.get("steps", 0) - min(m.get("env_steps", 0), m.get("steps", 0)) for m in members)
+                plain(out, f"{text} · {took / 60:.1f} min{time_left(left, stepped(members, first_seen), took)}")
                 said, last = text, time.monotonic()
             time.sleep(POLL_S)
             sweeps = [s if s["state"] != "running" else api.call("GET", f"/sweeps/{s['id']}") for s in sweeps]
@@ -194,6 +186,26 @@ def follow_sweeps(api: Api, started: list[tuple[dict[str, Any], Harvest]], label
                            f"resume it (`convoy sweep resume {sweep['id']}`) or run the command again")  # fmt: skip
     plain(out, f"{label}: {len(sweeps)} sweep(s) ended after {(time.monotonic() - t0) / 60:.1f} min")
     return sweeps
+
+
+def progress_text(label: str, sweeps: list[dict[str, Any]], before: tuple[int, int]) -> str:
+    """The figure's progress as its sweeps show it, with the ``before`` (runs, env steps) its ledgers held when the
+    command began: a resumed study reads as far along as it is, not as a fresh start of the runs it lacks."""
+    members = [m for sweep in sweeps for m in sweep["jobs"] if m["state"] != "deleted"]
+    runs, steps = before
+    asked = steps + sum(m.get("steps", 0) for m in members)
+    done = steps + sum(min(m.get("env_steps", 0), m.get("steps", 0)) for m in members)
+    states: dict[str, int] = {}
+    for m in members:
+        states[m["state"]] = states.get(m["state"], 0) + 1
+    counts = [f"{runs} measured before"] * bool(runs) + [f"{n} {s}" for s, n in sorted(states.items())]
+    text = f"{label}: {done / max(asked, 1):.0%} of its env steps · {', '.join(counts)}"
+    if demo := [m for m in members if m["state"] == "running" and m.get("demo_round")]:  # before their steps
+        played = sorted({f"{m['demo_round']}/{m['demo_rounds']}" for m in demo})
+        text += f" ({len(demo)} in DAgger round {', '.join(played)})"
+    if len(sweeps) > 1:
+        text += f" · {sum(s['state'] != 'running' for s in sweeps)} of {len(sweeps)} sweeps done"
+    return text
 
 
 def stepped(members: list[dict[str, Any]], first_seen: dict[str, int]) -> int:
@@ -369,7 +381,12 @@ class Context:
                        f"`convoy sweep stop {sweep['id']}`")  # fmt: skip
         if not started:
             return
-        for plan, sweep in zip(owners, follow_sweeps(self.api, started, f"{fig} [{self.scale}]"), strict=True):
+        followed = {point_key(m["point"]) for sweep, _ in started for m in sweep["jobs"]}  # a continued sweep's too
+        held = [plan.ledger.runs[k] for plan in plans for p in plan.points
+                if (k := point_key(p)) not in followed and plan.ledger.has(p)]  # fmt: skip
+        before = (len(held), sum(int(run.get("env_steps", 0)) for run in held))
+        ended = follow_sweeps(self.api, started, f"{fig} [{self.scale}]", before)
+        for plan, sweep in zip(owners, ended, strict=True):
             plan.others.update({point_key(m["point"]): m["state"] for m in sweep["jobs"]
                                 if not plan.ledger.has(m["point"]) and m["state"] != "deleted"})  # fmt: skip
 

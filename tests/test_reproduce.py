@@ -479,6 +479,23 @@ def test_the_progress_line_guesses_the_time_left_from_this_commands_pace() -> No
     assert time_left(900, 100, 600.0) == " · ~1.5 h left at this pace"
 
 
+def test_a_resumed_study_s_progress_counts_the_runs_its_ledgers_held() -> None:
+    """A study resumed with 55 of 59 runs measured reads as far along as it is, not as a fresh start of the four runs
+    it lacks."""
+    from convoy.cli.reproduce import progress_text
+
+    jobs = [{"state": "completed", "steps": 100, "env_steps": 100}, {"state": "queued", "steps": 100},
+            {"state": "running", "steps": 100, "env_steps": 50, "demo_round": 0},
+            {"state": "running", "steps": 100, "env_steps": 0, "demo_round": 3, "demo_rounds": 8},
+            {"state": "deleted", "steps": 100, "env_steps": 100}]  # fmt: skip
+    sweeps = [{"state": "running", "jobs": jobs}, {"state": "completed", "jobs": []}]
+    assert progress_text("fig3 [mid]", sweeps, (55, 5500)) == (
+        "fig3 [mid]: 96% of its env steps · 55 measured before, 1 completed, 1 queued, 2 running"
+        " (1 in DAgger round 3/8) · 1 of 2 sweeps done"
+    )
+    assert progress_text("fig3 [mid]", sweeps[:1], (0, 0)).startswith("fig3 [mid]: 38% of its env steps · 1 completed")
+
+
 def test_the_pace_counts_the_steps_taken_while_the_command_watched() -> None:
     """A run resumed from a checkpoint (or completed before) reports its steps at once: they are not this command's
     pace; a fresh run counts from the first steps it reports."""
