@@ -36,6 +36,13 @@ SLOW_MODULES = {
     "test_treadmill_references",  # ≥ 500 episodes per reference policy
 }
 
+# One torch intra-op thread in every test process and in every process a test starts (they inherit the variable), as
+# the learner and the actors run (``torch_threads=1``): the test workers already fill the cores, and OpenMP threads
+# oversubscribing a shared box make small ops several times slower (the decoding probe's fit: 3.6 ×). It also keeps a
+# test's float path the same on machines with any number of cores. OMP_NUM_THREADS set by the caller wins.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+THREADS = int(os.environ["OMP_NUM_THREADS"])
+
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "slow: starts processes, servers or a browser, or trains (not in test-fast)")
@@ -68,14 +75,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                 item.add_marker(pytest.mark.skip(reason=reason))
 
 
-@pytest.fixture
-def one_thread() -> Iterator[None]:
-    """Single-threaded torch for a test: tiny batched matmuls are many times faster on one thread than with
-    OpenMP threads oversubscribing a shared 2-core box (and the trainer runs with ``torch_threads=1``)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+@pytest.fixture(autouse=True)
+def _threads() -> Iterator[None]:
+    """Each test starts on the session's thread count, whatever a test before it in this worker set (a trainer's
+    ``torch_threads``, ``--threads``)."""
+    torch.set_num_threads(THREADS)
     yield
-    torch.set_num_threads(before)
 
 
 def synthetic_spec(n_agents: int = 3, obs_dim: int = 5, n_actions: int = 3) -> EnvSpec:

@@ -19,8 +19,6 @@ from convoy.transition import Transition, from_columns
 from tests.conftest import single_update
 from tests.transitions import batch
 
-pytestmark = pytest.mark.usefixtures("one_thread")
-
 
 def make_dial(num_envs: int = 8, rounds: int = 2, seed: int = 0, **params: Any) -> tuple[DIAL, Any]:
     torch.manual_seed(seed)

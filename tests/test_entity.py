@@ -291,7 +291,7 @@ def env_chunk(env: Any, runs: int, g: np.random.Generator, steps: int = 8) -> Tr
 
 @pytest.mark.parametrize("share", [True, False], ids=["shared", "per-agent"])
 @pytest.mark.parametrize("name", ["idqn", "ma-mesn"])
-def test_a_population_member_trains_as_the_single_run_of_its_seed(name: str, share: bool, one_thread: None) -> None:
+def test_a_population_member_trains_as_the_single_run_of_its_seed(name: str, share: bool) -> None:
     """As ``tests/test_population.py`` for the flat MLPs: the same batches, the same updates, weights equal to
     float32 rounding (message algorithms over fewer updates: a hard bit flips on rounding, see there)."""
     env = make_batched("treadmill", 4 * len(SEEDS), **SIGHTINGS)

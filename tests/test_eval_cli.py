@@ -25,8 +25,6 @@ GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 EPISODES = ["--episodes", "20", "--device", "cpu"]
 
-pytestmark = pytest.mark.usefixtures("one_thread")
-
 
 def train(out: Path, algo: str, env: str, env_params: dict[str, Any], steps: int, **algo_params: Any) -> Path:
     """A tiny in-process run on CPU; returns its checkpoint."""

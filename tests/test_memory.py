@@ -45,8 +45,6 @@ TINY_MEMORY = {"memory_window": 3, "memory_hidden": 8}
 SMALL_TREADMILL = {"n_agents": 2, "n_adversaries": 1, "length": 30, "width": 12, "max_steps": 50}
 GLIMPSE = {"n_targets": 4, "rounds": 2, "listener_glimpse": True}
 
-pytestmark = pytest.mark.usefixtures("one_thread")
-
 
 def build(name: str, spec: EnvSpec | None = None, seed: int = 0, **params: Any) -> NetworkAgent:
     """A tiny CPU algorithm (message and memory sizes only where the algorithm has them)."""

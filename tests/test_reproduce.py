@@ -484,11 +484,12 @@ def test_a_resumed_study_s_progress_counts_the_runs_its_ledgers_held() -> None:
     it lacks."""
     from convoy.cli.reproduce import progress_text
 
-    jobs = [{"state": "completed", "steps": 100, "env_steps": 100}, {"state": "queued", "steps": 100},
+    jobs: list[dict[str, Any]] = [
+            {"state": "completed", "steps": 100, "env_steps": 100}, {"state": "queued", "steps": 100},
             {"state": "running", "steps": 100, "env_steps": 50, "demo_round": 0},
             {"state": "running", "steps": 100, "env_steps": 0, "demo_round": 3, "demo_rounds": 8},
             {"state": "deleted", "steps": 100, "env_steps": 100}]  # fmt: skip
-    sweeps = [{"state": "running", "jobs": jobs}, {"state": "completed", "jobs": []}]
+    sweeps: list[dict[str, Any]] = [{"state": "running", "jobs": jobs}, {"state": "completed", "jobs": []}]
     assert progress_text("fig3 [mid]", sweeps, (55, 5500)) == (
         "fig3 [mid]: 96% of its env steps · 55 measured before, 1 completed, 1 queued, 2 running"
         " (1 in DAgger round 3/8) · 1 of 2 sweeps done"

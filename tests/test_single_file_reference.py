@@ -130,7 +130,7 @@ def same_noise(agent: NetworkAgent, seed: int, monkeypatch: pytest.MonkeyPatch) 
 
 @pytest.mark.parametrize("params", [REF, PLAIN], ids=["ref", "plain"])
 def test_losses_and_gradients_equal_the_products(
-    single: ModuleType, params: dict, one_thread: None, monkeypatch: pytest.MonkeyPatch
+    single: ModuleType, params: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     agent = product(params)
     args, online, target = twins(single, agent)
@@ -154,7 +154,7 @@ def test_losses_and_gradients_equal_the_products(
 
 @pytest.mark.parametrize("params", [REF, PLAIN], ids=["ref", "plain"])
 def test_weights_after_adam_steps_equal_the_products(
-    single: ModuleType, params: dict, one_thread: None, monkeypatch: pytest.MonkeyPatch
+    single: ModuleType, params: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Three steps on three batches (Adam's moments, the clip and the target sync included)."""
     agent = product(params)
@@ -179,7 +179,7 @@ def test_weights_after_adam_steps_equal_the_products(
     assert moved > 1e-4  # the steps changed the weights: equal after them is not equal by standing still
 
 
-def test_the_script_runs_end_to_end_and_parses_its_flags(single: ModuleType, one_thread: None) -> None:
+def test_the_script_runs_end_to_end_and_parses_its_flags(single: ModuleType) -> None:
     args = single.parse_args(["--steps", "768", "--no-huber", "--hidden", "16", "16", "--gumbel-noise", "0"])
     assert args.steps == 768 and args.huber is False and args.hidden == (16, 16) and args.gumbel_noise == 0.0
     small = single.Args(steps=768, num_envs=32, learning_starts=64, eval_episodes=64, log_every=256, hidden=(16,))
@@ -189,7 +189,7 @@ def test_the_script_runs_end_to_end_and_parses_its_flags(single: ModuleType, one
 
 
 @pytest.mark.slow
-def test_the_documented_run_beats_random(single: ModuleType, one_thread: None) -> None:
+def test_the_documented_run_beats_random(single: ModuleType) -> None:
     """`python examples/ma_mesn_single.py --steps 25000` (docs/algorithms.md): the listener names the target."""
     out = single.main(single.Args(steps=25_000))
     assert out["greedy"] >= 0.9 and out["greedy"] - out["greedy_ci"] > out["random"] + out["random_ci"]

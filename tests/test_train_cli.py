@@ -18,13 +18,6 @@ TINY = ["--inprocess", "--env", "referential", "--steps", "3000", "--num-envs", 
         "--eval-episodes", "50", "--no-progress", "--hp", "hidden=32", "--hp", "learning_starts=64"]  # fmt: skip
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    yield
-    torch.set_num_threads(old)
-
-
 def test_train_writes_metrics_curve_checkpoint_and_summary(tmp_path, capsys) -> None:
     out = tmp_path / "run"
     assert main(["train", "--algo", "ma-mesn", *TINY, "--out", str(out)]) == 0
