@@ -103,7 +103,9 @@ class RunStreams:
         a run that uses none of this draw keeps its stream where it was."""
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
         per_run = hash32(self.keys ^ (self.counters & M32))  # [R]
-        words = hash32(index_words(math.prod(shape), self.keys.device) ^ per_run[:, None])
+        # a captured update traces the hash instead (dynamo ignores the cache and warns that it does)
+        index = index_words.__wrapped__ if torch.compiler.is_compiling() else index_words
+        words = hash32(index(math.prod(shape), self.keys.device) ^ per_run[:, None])
         self.counters.add_(1 if advance is None else advance)
         return words.view(self.runs, *shape)
 

@@ -270,13 +270,13 @@ def figure_scales(records: dict[str, dict[str, Any]]) -> str:
     for r in (records[k] for k in sorted(records)):
         scales.setdefault(r["scale"], []).append(r)
     if set(scales) <= {"quick"}:
-        return "The paper's figures at the quick\nscale, on these rules"
+        return "The paper's figures at the quick scale, on these rules"
     parts = []
     for scale, held in sorted(scales.items(), key=lambda item: item[0] == "quick"):
         names = " and ".join(r["title"].split(":")[0] for r in held) if scale != "quick" else "the others"
         rules = "the charger rules below" if all("charger rules" in r["note"] for r in held) else "these rules"
         parts.append(f"{names} at the {scale} scale on {rules}")
-    return "The paper's figures: " + ", ".join(parts)
+    return "The paper's figures: " + ",\n".join(parts)
 
 
 def readme_summary(search: dict[str, Any], scores: dict[str, Any], records: dict[str, dict[str, Any]]) -> str:
@@ -304,7 +304,7 @@ def readme_summary(search: dict[str, Any], scores: dict[str, Any], records: dict
         f"{len(g['seeds'])} seeds), told every car its teammates see {told['last_mean']:.1f} ± "
         f"{told['last_ci95']:.1f}\n(difference {_signed(c['diff'])}, 95 % CI [{_signed(c['diff_low'])}, "
         f"{_signed(c['diff_high'])}]): the learners are far from what their own information allows\n"
-        f"([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)). {figure_scales(records)}: "
+        f"([docs/benchmarks.md](docs/benchmarks.md#treadmill-learners)).\n{figure_scales(records)}: "
         "[docs/reproduction.md](docs/reproduction.md)."
     )
 
@@ -382,6 +382,15 @@ def _recovered(v: dict[str, Any]) -> str:
     return f"{who} recovers {v['ours']}{what.removeprefix('half')}" + (f" ({goal.group(0)})" if goal else "")
 
 
+def _against_twin(v: dict[str, Any]) -> str:
+    """``MA-MeSN − its channel-cut twin +22.5 [19.2, 25.8]`` from a twin claim's verdict (its difference, Welch's
+    interval), with the verdict word where it is not *reproduced*."""
+    who = v["claim"].split(" ends above ", 1)[0]
+    diff = re.search(r"difference (\S+ \[[^\]]+\])", v["ours"])
+    word = "" if v["verdict"] == REPRODUCED else f" ({v['verdict']})"
+    return f"{who} − its channel-cut twin {diff.group(1) if diff else v['ours']}{word}"
+
+
 def _outcome(v: dict[str, Any]) -> str:
     """``, p = 0.005: reproduced`` or ``: not reproduced at this budget``, after the two returns compared."""
     if v["verdict"] == REPRODUCED:
@@ -436,10 +445,15 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
 
     fig3 = records["fig3"]
     head = _verdict(fig3, "MA-MeSN ends above independent DQN")
-    also = [f"{_short(v['claim']).replace(' ends above ', ' > ')}, {_p(v['p'])}" for v in fig3["verdicts"]
-            if v is not head and v["verdict"] == REPRODUCED]  # fmt: skip
-    also += [_recovered(v) for v in fig3["verdicts"] if " recovers " in v["claim"] and "[" in v["ours"]]
-    also.append(f"tuned private driver {fig3['references']['private-driver']:.1f} on the same episodes")
+    also = [_against_twin(v) for v in fig3["verdicts"] if "its twin with the channel cut" in v["claim"]]
+    also += [_recovered(v) for v in fig3["verdicts"]
+             if v["claim"].startswith("MA-") and " recovers " in v["claim"] and "[" in v["ours"]]  # fmt: skip
+    also += [f"{_short(v['claim'])}: not reproduced" for v in fig3["verdicts"] if v["verdict"] == NOT]
+    held = fig3["held_out_references"] if fig3.get("judged_on") == "held_out" else fig3["references"]
+    planners = {"private-planner": "private planner", "team16-planner": "16-bit planner"}
+    shown = [f"{name} {held[key]:.0f}" for key, name in planners.items() if key in held]
+    also.append(f"{', '.join(shown) or 'tuned private driver ' + format(held['private-driver'], '.1f')} "
+                "on the same episodes")  # fmt: skip
     rows.append([f"Fig. 3 at the {fig3['scale']} scale ({_budget(fig3)}): MA-MeSN vs independent DQN",
                  f"{_final(fig3, 'algo=ma-mesn')} vs {_final(fig3, 'algo=idqn')}{_outcome(head)} ({'; '.join(also)})",
                  _where(fig3)])  # fmt: skip

@@ -9,6 +9,7 @@ any R; greedy acting draws nothing; and checkpoints carry the counters, so a res
 from __future__ import annotations
 
 import io
+import warnings
 from typing import Any
 
 import numpy as np
@@ -70,6 +71,17 @@ def test_draws_are_a_function_of_seed_purpose_and_counter_alone() -> None:
     resumed = RunStreams([SEEDS[2]], "replay")
     resumed.load(0, 99)
     assert a.state(2) == 99 and torch.equal(a.bits(2)[2], resumed.bits(2)[0])
+
+
+def test_a_compiled_draw_is_the_eager_one_and_warns_of_no_cache() -> None:
+    """A captured update draws inside the graph: the same numbers, without dynamo's warning that it ignores
+    ``index_words``' cache (printed once in every compiled job's log)."""
+    compiled, eager = RunStreams(SEEDS, "noise"), RunStreams(SEEDS, "noise")
+    draw = torch.compile(lambda: compiled.uniform((3, 4)), fullgraph=True, backend="eager")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert torch.equal(draw(), eager.uniform((3, 4)))
+    assert torch.equal(compiled.counters, eager.counters)
 
 
 def test_uniforms_fill_their_bins_with_the_right_moments() -> None:
