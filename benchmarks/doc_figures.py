@@ -449,11 +449,11 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
     also += [_recovered(v) for v in fig3["verdicts"]
              if v["claim"].startswith("MA-") and " recovers " in v["claim"] and "[" in v["ours"]]  # fmt: skip
     also += [f"{_short(v['claim'])}: not reproduced" for v in fig3["verdicts"] if v["verdict"] == NOT]
-    held = fig3["held_out_references"] if fig3.get("judged_on") == "held_out" else fig3["references"]
-    planners = {"private-planner": "private planner", "team16-planner": "16-bit planner"}
-    shown = [f"{name} {held[key]:.0f}" for key, name in planners.items() if key in held]
-    also.append(f"{', '.join(shown) or 'tuned private driver ' + format(held['private-driver'], '.1f')} "
-                "on the same episodes")  # fmt: skip
+    held = (fig3.get("held_out_references") if fig3.get("judged_on") == "held_out" else None) or fig3["references"]
+    # the strongest policies of the learners' information: the planners where measured, else the tuned driver
+    names = {"private-planner": "private planner", "team16-planner": "16-bit planner", "private-driver": "tuned driver"}
+    shown = [f"{name} {held[key]:.0f}" for key, name in names.items() if key in held][:2]
+    also += [f"{', '.join(shown)} on the same episodes"] if shown else []
     rows.append([f"Fig. 3 at the {fig3['scale']} scale ({_budget(fig3)}): MA-MeSN vs independent DQN",
                  f"{_final(fig3, 'algo=ma-mesn')} vs {_final(fig3, 'algo=idqn')}{_outcome(head)} ({'; '.join(also)})",
                  _where(fig3)])  # fmt: skip

@@ -964,7 +964,7 @@ def test_the_mid_study_s_figures_render_from_the_runs_its_ledgers_hold(tmp_path:
     readme = doc_figures.rendered((ROOT / "README.md").read_text())
     summary = "The paper's figures: Fig. 3 and Table 1 at the mid scale on the charger rules below, the others at the "
     assert summary + "quick scale on these rules: [docs/reproduction.md]" in " ".join(readme.split())
-    row = next(r for r in readme.splitlines() if "Fig. 3 at" in r)
+    row = next(r for r in readme.splitlines() if r.startswith("| Fig. 3 at"))
     mesn = next(g for g in fig3["groups"] if g["group"] == "algo=ma-mesn")["held_out"]["last"]
     assert "mid scale" in row and f"{mesn['mean']:.1f} ± {mesn['ci95']:.1f}" in row, row
     assert "MA-MeSN recovers " in row and "of the told learner's gain" in row, row
