@@ -6,6 +6,7 @@ the benchmarks and ``make`` do; the short ones run in the tests of their command
 
 from __future__ import annotations
 
+import functools
 import re
 import shlex
 import subprocess
@@ -99,14 +100,21 @@ def test_every_documented_convoy_command_parses(where: str, command: str) -> Non
         job_from_args(args)  # the job it asks for is valid: --set and --hp names and values
 
 
+@functools.cache
+def script_help(script: str) -> str:
+    """A script's ``--help`` text, read once a worker: the docs run some scripts 30 times, and each start imports
+    torch (~3 s)."""
+    return subprocess.run([sys.executable, str(ROOT / script), "--help"], capture_output=True, text=True, cwd=ROOT,
+                          timeout=120).stdout  # fmt: skip
+
+
 @pytest.mark.parametrize(("where", "command"), SCRIPTS, ids=[w for w, _ in SCRIPTS])
 def test_every_documented_benchmark_takes_its_flags(where: str, command: str) -> None:
     argv = expand(command)
     script = ROOT / argv[1]
     assert script.is_file(), f"{where}: {argv[1]} does not exist"
     flags = [a.split("=")[0] for a in argv[2:] if a.startswith("--")]
-    help_text = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, cwd=ROOT,
-                               timeout=120).stdout  # fmt: skip
+    help_text = script_help(argv[1])
     for flag in flags:
         assert flag in help_text, f"{where}: {argv[1]} has no {flag}"
 
