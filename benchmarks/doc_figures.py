@@ -452,8 +452,8 @@ def reproduction_results(search: dict[str, Any], records: dict[str, dict[str, An
     held = (fig3.get("held_out_references") if fig3.get("judged_on") == "held_out" else None) or fig3["references"]
     # the strongest policies of the learners' information: the planners where measured, else the tuned driver
     names = {"private-planner": "private planner", "team16-planner": "16-bit planner", "private-driver": "tuned driver"}
-    shown = [f"{name} {held[key]:.0f}" for key, name in names.items() if key in held][:2]
-    also += [f"{', '.join(shown)} on the same episodes"] if shown else []
+    strongest = [f"{name} {held[key]:.0f}" for key, name in names.items() if key in held][:2]
+    also += [f"{', '.join(strongest)} on the same episodes"] if strongest else []
     rows.append([f"Fig. 3 at the {fig3['scale']} scale ({_budget(fig3)}): MA-MeSN vs independent DQN",
                  f"{_final(fig3, 'algo=ma-mesn')} vs {_final(fig3, 'algo=idqn')}{_outcome(head)} ({'; '.join(also)})",
                  _where(fig3)])  # fmt: skip
