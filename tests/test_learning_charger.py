@@ -40,9 +40,8 @@ def _population_returns(jobs: list[JobConfig]) -> list[list[float]]:
 
 
 def _charger_returns(channel: str) -> list[list[float]]:
-    """MA-MeSN's seeds 0 and 1 after 100 k env steps on the small charger treadmill, with its channel open or cut;
-    updates compiled (1.7x faster here, compiling included: the test's 431 s eager, 253 s compiled)."""
-    hp = {**CHARGER_HP, "channel_control": channel, "compile": True}
+    """MA-MeSN's seeds 0 and 1 after 100 k env steps on the small charger treadmill, with its channel open or cut."""
+    hp = {**CHARGER_HP, "channel_control": channel}
     return _population_returns([small_treadmill_job("ma-mesn", SMALL_CHARGER, hp, 100_000, s) for s in range(2)])
 
 
@@ -50,9 +49,8 @@ def _charger_returns(channel: str) -> list[list[float]]:
 def test_ma_mesn_beats_its_channel_cut_twin_where_teammates_see_the_chaser() -> None:
     """MA-MeSN against its channel-cut twin (the same networks, listeners hearing all-zero bits in training and
     evaluation) on the small charger treadmill, 100 k env steps, seeds 0 and 1 of each arm one population, pooled (512
-    episodes an arm), updates compiled: open 35.62 ± 1.64, cut 30.29 ± 1.56 (per seed 36.67 vs 31.76, 34.57 vs
-    28.82). Eager: open 36.56 ± 1.61, cut 31.72 ± 1.57; on another machine's float path 33.07 against 28.69. Eager,
-    seeds 0-3 pooled: 36.14 ± 1.13 against 31.95 ± 1.14 (33.71 against
+    episodes an arm): open 36.56 ± 1.61, cut 31.72 ± 1.57 (per seed 38.78 vs 30.92, 34.34 vs 32.53); on another
+    machine's float path 33.07 against 28.69. Seeds 0-3 pooled: 36.14 ± 1.13 against 31.95 ± 1.14 (33.71 against
     30.39 on the other machine, the open channel ahead on every seed; seeds 4-7 there: 36.36 against 33.45), at 1.4x
     the cost. The control is in distribution: what the twin lacks is only what the messages carry. Against
     independent DQN the lead is not apart (32.96 at seeds 0-3), and at 40 k steps nothing is apart; a blind-rear
