@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.convoy-installed
 OUT    ?= runs/demo
 # test processes: many tests wait on services and child processes, so three fill a 2-core box that two left a third
-# idle (the whole suite: 28 min against 31-33 with two); modules stay whole (--dist loadfile)
+# idle (the whole suite: 28 min against 31-33 with two and 30 with four); modules stay whole (--dist loadfile)
 WORKERS ?= 3
 
 .PHONY: run run-distributed serve demo test test-fast docs-check lint bench clean
