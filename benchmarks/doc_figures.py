@@ -541,9 +541,11 @@ def gpu_table(gpu: dict[str, Any]) -> str:
             goal_ms = (algo, size) == ("idqn", "1")
             rows.append([algo, size, f"{f['eager_ms']:.2f}", f"**{captured}**" if goal_ms else captured,
                          f"{f['speedup']:.1f}×", f"**{rate}**" if (algo, size) == ("idqn", "128") else rate,
-                         f"{f['captured_warm_s']:.0f}", f"{f['cudagraph_skips']:.0f}"])  # fmt: skip
-    header = ["algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "CUDA-graph skips"]
-    table = markdown_table(header, rows, [False, *[True] * 7])
+                         f"{f['captured_warm_s']:.0f}", f"{f['cudagraph_skips']:.0f}",
+                         f"{f['sample_ms']:.2f}" if "sample_ms" in f else "–"])  # fmt: skip
+    header = ["algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "CUDA-graph skips",
+              "eager sample ms"]  # fmt: skip
+    table = markdown_table(header, rows, [False, *[True] * 8])
     missing = "; ".join(f"{what}: {why}" for what, why in gpu.get("not_measured", {}).items())
     return f"{gpu['device']}, torch {gpu['torch']}.\n\n{table}" + (f"\n\nNot measured: {missing}." if missing else "")
 

@@ -5,10 +5,11 @@ Per algorithm (independent DQN, MA-MeSN with its Gumbel messages, DIAL with its 
 agents + 1 adversary) and population size P: ms per ``update()`` — the replay's sample on the device, loss,
 gradients, per-run clip and non-finite guard, Adam, targets — eager, and with ``--hp compile=true`` (one
 ``torch.compile(fullgraph=True)`` graph; on CUDA also replayed as a CUDA graph), timed over many updates with one
-synchronisation at the end, as training runs them (figures are read in batches), after the compile. Run-updates/s =
-P × 1000 ÷ ms. Then training: ``convoy train --inprocess`` of P = 20 (and 128) independent-DQN runs on the device,
-captured, against one run on one pinned CPU core (1 torch thread), aggregate env-steps/s = P × steps ÷ wall time
-(start-up included: users pay it too).
+synchronisation per 10, as training runs them (figures are read in batches), after the compile: the median of 5
+windows. Beside them, ms per eager ``sample()``: the replay's draw and gather run before the captured step, a floor
+under it. Run-updates/s = P × 1000 ÷ ms. Then training: ``convoy train --inprocess`` of P = 20 (and 128)
+independent-DQN runs on the device, captured, against one run on one pinned CPU core (1 torch thread), aggregate
+env-steps/s = P × steps ÷ wall time (start-up included: users pay it too).
 
 The goals it prints (issue "One code path, on the device"): P = 20 training ≥ 20 × one CPU core's run; a captured
 IDQN update ≤ 1 ms at P = 1; P = 128 ≥ 50 k run-updates/s. Compiling dominates the script's time (a graph per
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import tempfile
 import time
@@ -53,35 +55,44 @@ def synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def ms_per_update(agent: Any, device: str, seconds: float) -> tuple[float, float]:
-    """(ms per update over ``seconds`` of back-to-back updates, seconds the first updates took: the compile)."""
+def ms_per_update(agent: Any, device: str, seconds: float, windows: int = 5) -> tuple[float, float]:
+    """(ms per update, the median over ``windows`` windows that share ``seconds`` of back-to-back updates; seconds
+    the first updates took: the compile). A median, as ``timeit`` repeats: the first window after a compile can
+    still share the device and the host with compile workers, GPU clocks and the CUDA-graph pool warming up."""
     t0 = time.perf_counter()
     for _ in range(3):  # the first compiles (captured) or warms the allocator (eager); CUDA graphs record on the 2nd
         agent.update()
     synchronize(device)
     warm_s = time.perf_counter() - t0
+    return statistics.median(_window_ms(agent.update, device, seconds / windows) for _ in range(windows)), warm_s
+
+
+def _window_ms(call: Callable[[], Any], device: str, seconds: float) -> float:
+    """ms per ``call`` over at least ``seconds`` of calls in blocks of 10, one synchronisation per block."""
     n, t0 = 0, time.perf_counter()
     while True:
         for _ in range(10):
-            agent.update()
+            call()
         n += 10
         synchronize(device)
         if time.perf_counter() - t0 >= seconds:
-            return (time.perf_counter() - t0) / n * 1e3, warm_s
+            return (time.perf_counter() - t0) / n * 1e3
 
 
 def update_figures(algo: str, runs: int, device: str, seconds: float, **params: Any) -> dict[str, float]:
-    """ms per update eager and captured, P runs (``params`` over the treadmill's); the captured step's CUDA-graph
-    skips (0: it replays as one)."""
+    """ms per update eager and captured, P runs (``params`` over the treadmill's); ms per eager ``sample()`` (the
+    replay's draw, outside the captured step); the captured step's CUDA-graph skips (0: it replays as one)."""
     out: dict[str, float] = {}
     for mode, compile in (("eager", False), ("captured", True)):
         torch._dynamo.reset()
         torch._dynamo.utils.counters.clear()
-        ms, warm_s = ms_per_update(
-            filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile, **params), device, seconds
-        )
+        agent = filled(algo, list(range(runs)), device, PLAY_STEPS, compile=compile, **params)
+        ms, warm_s = ms_per_update(agent, device, seconds)
         out[f"{mode}_ms"], out[f"{mode}_warm_s"] = ms, warm_s
         out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
+    # the replay's draw and gather run eagerly before the captured step (~50 small ops: 0.12 ms of host time at P = 1
+    # on a CPU), so they are a floor under the captured figure: timed alone, they say how much of it they are
+    out["sample_ms"] = statistics.median(_window_ms(agent.sample, device, seconds / 5) for _ in range(5))
     out["cudagraph_skips"] = float(torch._dynamo.utils.counters["inductor"]["cudagraph_skips"])
     out["speedup"] = out["eager_ms"] / out["captured_ms"]
     return out
@@ -147,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"{name}; torch {torch.__version__}; treadmill defaults, {ENVS_PER_RUN} envs per run")
     figures: dict[str, Any] = {"device": name, "torch": torch.__version__, "updates": {}, "training": {}}
     table = Table(title=f"ms per update on {args.device}: eager vs captured")
-    for col in ("algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "graph skips"):
+    columns = ("algo", "P", "eager ms", "captured ms", "×", "captured run-updates/s", "compile s", "graph skips")
+    for col in (*columns, "sample ms"):
         table.add_column(col, justify="right")
 
     def save() -> None:  # as it goes: a call cut short keeps what it measured
@@ -159,10 +171,11 @@ def main(argv: list[str] | None = None) -> int:
         for size in args.sizes:
             f = update_figures(algo, size, args.device, args.seconds, **recipe(args.preset, algo))
             figures["updates"][algo][size] = f
-            console.print(f"{algo} P = {size}: eager {f['eager_ms']:.2f} ms, captured {f['captured_ms']:.2f} ms")
+            console.print(f"{algo} P = {size}: eager {f['eager_ms']:.2f} ms, captured {f['captured_ms']:.2f} ms, "
+                          f"eager sample {f['sample_ms']:.2f} ms")  # fmt: skip
             table.add_row(algo, str(size), f"{f['eager_ms']:.2f}", f"{f['captured_ms']:.2f}", f"{f['speedup']:.2f}",
                           f"{f['captured_run_updates_per_s']:,.0f}", f"{f['captured_warm_s']:.0f}",
-                          f"{f['cudagraph_skips']:.0f}")  # fmt: skip
+                          f"{f['cudagraph_skips']:.0f}", f"{f['sample_ms']:.2f}")  # fmt: skip
             save()
     console.print(table)
     if args.train_sizes:

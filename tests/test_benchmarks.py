@@ -142,6 +142,7 @@ def test_gpu_benchmark_quick_run_times_eager_and_captured_updates_and_training(t
     for size in ("1", "2"):
         f = data["updates"]["idqn"][size]
         assert f["eager_ms"] > 0 and f["captured_ms"] > 0 and f["cudagraph_skips"] == 0
+        assert 0 < f["sample_ms"] < f["eager_ms"]  # the draw is a part of the eager update
     assert data["training"]["2"]["steps_per_s"] > 0 and data["training"]["cpu_core_steps_per_s"] > 0
 
 

@@ -31,6 +31,7 @@ from unittest import mock
 
 import httpx
 import pytest
+from filelock import FileLock
 
 from convoy.config import DEMO_PRESETS
 from convoy.protocol.session import free_port
@@ -203,6 +204,37 @@ def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) ->
     return code or 0, out.out + out.err
 
 
+# benchmark scripts that change no process-wide state (threads, environment variables, signal handlers) and start
+# no process of their own code: they run in this process, without the ~3 s of imports a new interpreter pays (46 of
+# the documented commands: learner_scores.py alone is 31)
+IN_PROCESS = {"learner_scores.py", "treadmill_imitation.py", "treadmill_causes.py", "speaker_listener.py",
+              "treadmill_variants.py", "treadmill_references.py", "doc_figures.py"}  # fmt: skip
+
+
+def run_script(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    """``python ARGV`` in this process with ``ws`` as the working directory, as the interpreter would run it: (exit
+    code, stdout + stderr), an uncaught exception exiting 1 with its traceback, ``SystemExit("message")`` too."""
+    import runpy
+    import traceback
+
+    old_argv, cwd = sys.argv, os.getcwd()
+    sys.argv = list(argv)
+    os.chdir(ws)
+    try:
+        runpy.run_path(argv[0], run_name="__main__")
+        code, tail = 0, ""
+    except SystemExit as exc:  # None exits 0, a message exits 1 and is printed
+        message = exc.code is not None and not isinstance(exc.code, int)
+        code, tail = (1, f"{exc.code}\n") if message else (int(exc.code or 0), "")
+    except Exception:
+        code, tail = 1, traceback.format_exc()
+    finally:
+        sys.argv = old_argv
+        os.chdir(cwd)
+    out = capsys.readouterr()
+    return code, out.out + out.err + tail
+
+
 def run_make(target: str, ws: Path, **variables: str) -> subprocess.CompletedProcess[str]:
     """``make TARGET`` of the repository (its venv as it is: never reinstalled here) with small variables."""
     assigns = [f"{k}={v}" for k, v in variables.items()]
@@ -236,6 +268,8 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
                               "--sample", "2", "--drain", "1.5"],  # bounded: a slow machine leaves jobs queued
                   "treadmill_learning.py": ["--episodes", "2", "--eval-every", "200", "--eval-episodes", "2",
                                                    "--analysis-samples", "256"]}[Path(argv[1]).name]  # fmt: skip
+        if Path(argv[1]).name in IN_PROCESS:
+            return run_script([*argv[1:], *budget], ws, capsys)
         done = subprocess.run([sys.executable, *argv[1:], *budget], capture_output=True, text=True, timeout=600,
                               cwd=ws)  # fmt: skip
         return done.returncode, done.stdout + done.stderr
@@ -250,12 +284,42 @@ def run_documented(command: str, ws: Path, capsys: pytest.CaptureFixture[str]) -
 
 
 def ensure(path: str, ws: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """The run at ``ws/path``, made by its documented producer unless it is there."""
-    if (ws / path).is_file() or (ws / path / "summary.json").is_file() or any((ws / path).glob("seed-*/summary.json")):
-        return  # a benchmark's figures, a single run, or a population whose seeds need not start at 0
-    producer = PRODUCERS[path]
-    code, out = run_documented(producer, ws, capsys)
-    assert code == 0, f"{producer} (which writes {path}) failed:\n{out[-4000:]}"
+    """The run at ``ws/path``, made by its documented producer unless it is there: once per test session, kept in
+    ``shared_runs`` and copied into every workspace that reads it (each half of the commands has its own workspace,
+    and the halves read ~half of the same runs: ~220 s of producers each would run twice)."""
+    if made(ws / path):
+        return
+    kept = shared_runs(ws) / path
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(f"{kept}.lock"):  # another worker making it: wait for it, then copy
+        if not made(kept):
+            producer = PRODUCERS[path]
+            code, out = run_documented(producer, ws, capsys)
+            assert code == 0, f"{producer} (which writes {path}) failed:\n{out[-4000:]}"
+            copy_run(ws / path, kept)
+    if not made(ws / path):
+        copy_run(kept, ws / path)
+
+
+def made(path: Path) -> bool:
+    """A benchmark's figures, a single run, or a population whose seeds need not start at 0, at ``path``."""
+    return path.is_file() or (path / "summary.json").is_file() or any(path.glob("seed-*/summary.json"))
+
+
+def copy_run(src: Path, dst: Path) -> None:
+    """A copy, never a link: a documented command may go on with a run in place (``--resume``)."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if src.is_dir():
+        shutil.copytree(src, dst, dirs_exist_ok=True)
+    else:
+        shutil.copy2(src, dst)
+
+
+def shared_runs(ws: Path) -> Path:
+    """The folder of this test session's produced runs that every worker's workspace reads from: beside the
+    workers' own temporary roots under xdist (their parent is the session's), in the session's root without it."""
+    root = ws.parent  # the worker's (or the session's) temporary root: workspaces are made directly in it
+    return (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "docs-run-shared"
 
 
 def check(where: str, command: str, code: int, out: str, shown: str | None = None) -> None:
