@@ -59,7 +59,7 @@ lint: $(STAMP)
 test: lint
 	@echo "make test: the dashboard tests need chromium on PATH and the multi-host test ip netns as root;"
 	@echo "  without them they skip (named below), and with CI=true the dashboard's fail instead"
-	$(BIN)/pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=40
+	$(BIN)/pytest -n $(WORKERS) --dist loadfile --durations=40
 
 test-fast: $(STAMP)
 	$(BIN)/pytest -n $(WORKERS) --dist loadfile -m "not slow" -q

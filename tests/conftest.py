@@ -57,29 +57,7 @@ def pytest_report_header() -> str:
     return f"pace: this machine takes {slowness():.1f} × the reference machine's time now (tests/pace.py)"
 
 
-# Where the suite's longest module waits in xdist's queue (``make test``: --dist loadfile --no-loadscope-reorder, so
-# modules are handed to free workers in this order). xdist's own order, most tests first, queued the charger module (2
-# tests, ~9 of the suite's 28 minutes on 2 cores) last: it started ~20 min in and ran alone at the end. Queued before
-# test_learning it starts about halfway. A worker given a module of 2 tests is given the next one too, which then
-# waits behind it: test_stats, a second's work, is that one.
-QUEUED_BEFORE = {"test_learning_charger": "test_learning", "test_stats": "test_learning"}
-
-
-def queue_order(items: list[pytest.Item]) -> list[pytest.Item]:
-    """``items`` by module, most tests first (xdist's own order), the modules of ``QUEUED_BEFORE`` moved before
-    theirs; a module's tests keep their order."""
-    modules: dict[str, list[pytest.Item]] = {}
-    for item in items:
-        modules.setdefault(item.nodeid.split("::")[0].rsplit("/", 1)[-1].removesuffix(".py"), []).append(item)
-    order = [m for m in sorted(modules, key=lambda m: -len(modules[m])) if m not in QUEUED_BEFORE]
-    for moved, before in QUEUED_BEFORE.items():
-        if moved in modules:
-            order.insert(order.index(before) if before in order else len(order), moved)
-    return [item for m in order for item in modules[m]]
-
-
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    items[:] = queue_order(items)
     slow = slowness()  # the hang guards (``timeout`` marks, --timeout) in the reference machine's seconds
     for item in items:
         guard = item.get_closest_marker("timeout")
