@@ -2,12 +2,12 @@
 
 ``test_docs_commands`` checks that they parse; here they execute: the ``convoy`` commands in this process (their
 ``--steps``, episodes and samples shrunk, ``--actors`` at most 2, ``--seeds`` the first two), the benchmark scripts
-and the ``make`` targets as processes, the service sessions (README and docs/service.md: ``convoy serve``, then the
-``curl``, ``convoy jobs`` and ``convoy sweep`` lines in their order, with the ids the service really gave in place
-of the docs' examples), the many-hosts topology of docs/training.md on 127.0.0.1, and ``tensorboard`` on a run. A
-command the docs show refused must fail with the error they show; every other must succeed. Runs a command needs
-(``runs/demo``, ``runs/glimpse`` …) come from the documented command that writes them. ``make test`` is the command
-that runs this.
+that keep to themselves in it too (``IN_PROCESS``), the others and the ``make`` targets as processes, the service
+sessions (README and docs/service.md: ``convoy serve``, then the ``curl``, ``convoy jobs`` and ``convoy sweep`` lines
+in their order, with the ids the service really gave in place of the docs' examples), the many-hosts topology of
+docs/training.md on 127.0.0.1, and ``tensorboard`` on a run. A command the docs show refused must fail with the error
+they show; every other must succeed. Runs a command needs (``runs/demo``, ``runs/glimpse`` …) come from the
+documented command that writes them, once per test session (``ensure``). ``make test`` is the command that runs this.
 """
 
 from __future__ import annotations
