@@ -64,19 +64,22 @@ def ms_per_update(agent: Any, device: str, seconds: float, windows: int = 5) -> 
         agent.update()
     synchronize(device)
     warm_s = time.perf_counter() - t0
-    return statistics.median(_window_ms(agent.update, device, seconds / windows) for _ in range(windows)), warm_s
+    return median_ms(agent.update, device, seconds, windows), warm_s
 
 
-def _window_ms(call: Callable[[], Any], device: str, seconds: float) -> float:
-    """ms per ``call`` over at least ``seconds`` of calls in blocks of 10, one synchronisation per block."""
-    n, t0 = 0, time.perf_counter()
-    while True:
-        for _ in range(10):
-            call()
-        n += 10
-        synchronize(device)
-        if time.perf_counter() - t0 >= seconds:
-            return (time.perf_counter() - t0) / n * 1e3
+def median_ms(call: Callable[[], Any], device: str, seconds: float, windows: int = 5) -> float:
+    """ms per ``call``: the median over ``windows`` windows that share ``seconds``, each timing calls in blocks of
+    10 with one synchronisation per block."""
+    per_window = []
+    for _ in range(windows):
+        n, t0 = 0, time.perf_counter()
+        while n == 0 or time.perf_counter() - t0 < seconds / windows:
+            for _ in range(10):
+                call()
+            n += 10
+            synchronize(device)
+        per_window.append((time.perf_counter() - t0) / n * 1e3)
+    return statistics.median(per_window)
 
 
 def update_figures(algo: str, runs: int, device: str, seconds: float, **params: Any) -> dict[str, float]:
@@ -92,7 +95,7 @@ def update_figures(algo: str, runs: int, device: str, seconds: float, **params: 
         out[f"{mode}_run_updates_per_s"] = runs * 1e3 / ms
     # the replay's draw and gather run eagerly before the captured step (~50 small ops: 0.12 ms of host time at P = 1
     # on a CPU), so they are a floor under the captured figure: timed alone, they say how much of it they are
-    out["sample_ms"] = statistics.median(_window_ms(agent.sample, device, seconds / 5) for _ in range(5))
+    out["sample_ms"] = median_ms(agent.sample, device, seconds)
     out["cudagraph_skips"] = float(torch._dynamo.utils.counters["inductor"]["cudagraph_skips"])
     out["speedup"] = out["eager_ms"] / out["captured_ms"]
     return out

@@ -205,7 +205,7 @@ def run_convoy(argv: list[str], ws: Path, capsys: pytest.CaptureFixture[str]) ->
 
 
 # benchmark scripts that change no process-wide state (threads, environment variables, signal handlers) and start
-# no process of their own code: they run in this process, without the ~3 s of imports a new interpreter pays (46 of
+# no process of their own code: they run in this process, without the ~3 s of imports a new interpreter pays (47 of
 # the documented commands: learner_scores.py alone is 31)
 IN_PROCESS = {"learner_scores.py", "treadmill_imitation.py", "treadmill_causes.py", "speaker_listener.py",
               "treadmill_variants.py", "treadmill_references.py", "doc_figures.py"}  # fmt: skip
